@@ -1,0 +1,47 @@
+# One command runs the main job, one runs the tests; each sets itself up.
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+# ROS traffic stays on this machine; each target picks its own domain.
+export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
+
+.PHONY: setup run identify test lint bench bag experiment report clean
+
+$(STAMP): setup.py package.xml
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e '.[ros,test]'
+	touch $(STAMP)
+
+setup: $(STAMP)
+
+## The main job: the ROS pipeline on the robot-arm data (bag -> node -> identify).
+run: $(STAMP)
+	ROS_DOMAIN_ID=61 $(BIN)/python -m spm_sysid.tools.pipeline --out out/run
+
+## The offline identification on the robot-arm data.
+identify: $(STAMP)
+	$(BIN)/spm-sysid identify --criterion aic --seed 1 --json out/model.json --plots out/figures
+
+test: $(STAMP)
+	ROS_DOMAIN_ID=62 $(BIN)/python -m pytest -q test
+
+lint: $(STAMP)
+	$(BIN)/ruff check .
+
+bench: $(STAMP)
+	$(BIN)/spm-sysid bench
+
+bag: $(STAMP)
+	$(BIN)/spm-sysid make-bag --output bags/robot_arm --force
+
+experiment: $(STAMP)
+	$(BIN)/spm-sysid experiment --out out/experiment
+
+report: $(STAMP)
+	$(BIN)/spm-sysid experiment --out out/experiment --report out/report
+
+clean:
+	rm -rf build install log out .pytest_cache

@@ -1,0 +1,57 @@
+"""ament_python package spm_sysid; also installs with ``pip install -e .``."""
+
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = "spm_sysid"
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    packages=find_packages(exclude=["test", "test.*"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml", "README.md"]),
+        (f"share/{PACKAGE}/config", glob("config/*.yaml")),
+    ],
+    python_requires=">=3.10",
+    install_requires=[
+        "numpy>=1.24",
+        "scipy>=1.10",
+        "matplotlib>=3.7",
+        "rosbags>=0.10",
+        "mcap>=1.1",
+        "mcap-ros2-support>=0.5",
+        "tqdm>=4.60",
+        "pyyaml>=6.0",
+    ],
+    extras_require={
+        # ROS 2 Jazzy from PyPI for machines without a ROS install (see README).
+        "ros": [
+            "ros-jazzy-rclpy[fastrtps]",
+            "ros-jazzy-common-interfaces",
+            "ros-jazzy-std-srvs",
+        ],
+        "test": [
+            "pytest>=7",
+            "pytest-timeout>=2.1",
+            "ruff>=0.5",
+            "colcon-core",
+            "colcon-ros",
+            "colcon-python-setup-py",
+        ],
+    },
+    zip_safe=True,
+    maintainer="spm_sysid developers",
+    maintainer_email="spm-sysid@example.com",
+    description="NARX identification with a single-parent-mating GA, for ROS 2 robots",
+    license="Apache-2.0",
+    entry_points={
+        "console_scripts": [
+            "spm-sysid = spm_sysid.tools.cli:main",
+            "sysid_node = spm_sysid.ros.sysid_node:main",
+            "bag_player = spm_sysid.ros.bag_player:main",
+        ],
+    },
+)

@@ -1,0 +1,1 @@
+"""The identification core: numpy/scipy only, never rclpy."""

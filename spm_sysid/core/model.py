@@ -1,0 +1,272 @@
+"""A fitted polynomial NARX model: terms, coefficients, prediction, JSON document.
+
+The model is a plain object (no estimator hierarchy): it knows its term space,
+which candidate terms it uses and their coefficients, and can predict one step
+ahead, simulate free-run and save itself as a versioned JSON document that other
+tools (and other languages) can read. See ``docs/model_format.md``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+from .evaluator import reference_fit
+from .terms import TermSpace
+
+__all__ = ["MODEL_SCHEMA", "MODEL_SCHEMA_VERSION", "ModelFormatError", "NarxModel"]
+
+MODEL_SCHEMA = "spm_sysid/narx-model"
+MODEL_SCHEMA_VERSION = 1
+
+
+class ModelFormatError(ValueError):
+    """A model document that cannot be read (wrong schema, version or content)."""
+
+
+@dataclass
+class NarxModel:
+    """Polynomial NARX model ``y(t) = sum_j theta_j * term_j(t)``.
+
+    Attributes
+    ----------
+    term_space : TermSpace
+        The candidate terms the structure was chosen from.
+    term_indices : list of int
+        Positions of the selected terms in ``term_space.terms`` (ascending).
+    coefficients : ndarray, shape (k,)
+        One parameter per selected term, same order.
+    criterion : str or None
+        Name of the criterion that selected the structure.
+    criterion_value : float or None
+    mse : float or None
+        One-step mean squared error on the estimation data.
+    n_samples : int or None
+        Samples in the estimation data (regression rows = n_samples - max_lag).
+    metadata : dict
+        Free-form, JSON-serialisable extras (GA settings, seed, validation ...).
+    """
+
+    term_space: TermSpace
+    term_indices: list[int]
+    coefficients: np.ndarray
+    criterion: str | None = None
+    criterion_value: float | None = None
+    mse: float | None = None
+    n_samples: int | None = None
+    metadata: dict = field(default_factory=dict)
+
+    # -- construction -------------------------------------------------------------------
+    @classmethod
+    def fit(
+        cls, u: np.ndarray, y: np.ndarray, mask: np.ndarray, term_space: TermSpace,
+        **info,
+    ) -> NarxModel:
+        """Least-squares fit (Householder QR) of the structure ``mask`` on u, y.
+
+        Raises
+        ------
+        ValueError
+            If the structure is empty or its regressors are linearly dependent.
+        """
+        mask = np.asarray(mask, dtype=bool)
+        if mask.shape != (term_space.n_terms,):
+            raise ValueError(f"mask must have {term_space.n_terms} entries, got {mask.shape}")
+        if not mask.any():
+            raise ValueError("cannot fit a structure with no terms")
+        P = term_space.regression_matrix(u, y)
+        target = term_space.target(y)
+        res = reference_fit(P, target, mask)
+        if res.rank_deficient:
+            names = [term_space.term_names()[i] for i in np.flatnonzero(mask)]
+            raise ValueError(f"the regressors {names} are linearly dependent on this data")
+        return cls(
+            term_space=term_space,
+            term_indices=[int(i) for i in np.flatnonzero(mask)],
+            coefficients=res.coefficients,
+            mse=res.sse / len(target),
+            n_samples=len(y),
+            **info,
+        )
+
+    # -- structure ----------------------------------------------------------------------
+    @property
+    def mask(self) -> np.ndarray:
+        """Chromosome of this structure, shape (n_terms,)."""
+        m = np.zeros(self.term_space.n_terms, dtype=bool)
+        m[self.term_indices] = True
+        return m
+
+    @property
+    def terms(self) -> list[str]:
+        """Names of the selected terms, in coefficient order."""
+        names = self.term_space.term_names()
+        return [names[i] for i in self.term_indices]
+
+    def equation(self, decimals: int = 3) -> str:
+        """The model as text, like the paper's eq. (1)."""
+        parts = []
+        for i, (c, name) in enumerate(zip(self.coefficients, self.terms)):
+            mag = abs(c)
+            num = f"{mag:.{decimals}f}" if mag >= 10 ** -decimals or mag == 0 else f"{mag:.2e}"
+            sign = "-" if c < 0 else "+"
+            term = "" if name == "1" else name
+            if i == 0:
+                parts.append(f"{'-' if c < 0 else ''}{num}{term}")
+            else:
+                parts.append(f" {sign} {num}{term}")
+        return "y(t) = " + ("".join(parts) if parts else "0")
+
+    # -- prediction -------------------------------------------------------------------
+    def predict(self, u: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """One-step-ahead prediction for t = max_lag..len-1 from measured u and y."""
+        P = self.term_space.regression_matrix(u, y)
+        return P[:, self.term_indices] @ self.coefficients
+
+    def residuals(self, u: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """One-step residuals y(t) - yhat(t), t = max_lag..len-1."""
+        return self.term_space.target(y) - self.predict(u, y)
+
+    def simulate(self, u: np.ndarray, y_initial: np.ndarray) -> np.ndarray:
+        """Free-run simulation: each prediction is fed back as a lagged output.
+
+        Parameters
+        ----------
+        u : ndarray, shape (n,)
+            Input over the whole horizon.
+        y_initial : ndarray, shape (>= max_lag,)
+            Measured outputs; only the first ``max_lag`` are used, as initial
+            conditions.
+
+        Returns
+        -------
+        ndarray, shape (n - max_lag,)
+            Simulated y(t) for t = max_lag..n-1 (same rows as :meth:`predict`).
+        """
+        u = np.asarray(u, dtype=float)
+        ts = self.term_space
+        lag0 = ts.max_lag
+        y_initial = np.asarray(y_initial, dtype=float)
+        if len(y_initial) < lag0:
+            raise ValueError(f"simulation needs {lag0} initial outputs, got {len(y_initial)}")
+        n = len(u)
+        ysim = np.zeros(n)
+        ysim[:lag0] = y_initial[:lag0]
+        lin = ts.linear
+        all_terms = ts.terms
+        n_lin = len(lin)
+        # Each selected term as a row of linear-term indices padded with n_lin, which
+        # points at a constant 1 appended to the linear values.
+        width = max((len(all_terms[i]) for i in self.term_indices), default=1) or 1
+        gather = np.full((len(self.term_indices), width), n_lin)
+        for row, i in enumerate(self.term_indices):
+            gather[row, : len(all_terms[i])] = all_terms[i]
+        y_lags = np.array([lag for sig, lag in lin if sig == "y"], dtype=int)
+        u_lags = np.array([lag for sig, lag in lin if sig == "u"], dtype=int)
+        vals = np.ones(n_lin + 1)
+        n_y = len(y_lags)
+        theta = self.coefficients
+        with np.errstate(over="ignore", invalid="ignore"):
+            for t in range(lag0, n):
+                vals[:n_y] = ysim[t - y_lags]
+                vals[n_y:n_lin] = u[t - u_lags]
+                ysim[t] = np.prod(vals[gather], axis=1) @ theta
+        return ysim[lag0:]
+
+    # -- persistence --------------------------------------------------------------------
+    def to_dict(self) -> dict:
+        """The versioned JSON document (see ``docs/model_format.md``)."""
+        from .. import __version__
+
+        return {
+            "schema": MODEL_SCHEMA,
+            "schema_version": MODEL_SCHEMA_VERSION,
+            "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            "software": {"name": "spm_sysid", "version": __version__},
+            "term_space": self.term_space.to_dict(),
+            "terms": self.terms,
+            "term_indices": list(self.term_indices),
+            "coefficients": [float(c) for c in self.coefficients],
+            "criterion": None if self.criterion is None else {
+                "name": self.criterion,
+                "value": _json_float(self.criterion_value),
+            },
+            "mse": _json_float(self.mse),
+            "n_samples": self.n_samples,
+            "metadata": self.metadata,
+        }
+
+    @classmethod
+    def from_dict(cls, doc: dict) -> NarxModel:
+        """Read a model document, checking schema, version and term consistency."""
+        if not isinstance(doc, dict) or doc.get("schema") != MODEL_SCHEMA:
+            raise ModelFormatError(
+                f"not a spm_sysid model document (schema must be {MODEL_SCHEMA!r})"
+            )
+        version = doc.get("schema_version")
+        if version != MODEL_SCHEMA_VERSION:
+            raise ModelFormatError(
+                f"model schema version {version!r} is not supported (this is version "
+                f"{MODEL_SCHEMA_VERSION})"
+            )
+        try:
+            space = TermSpace.from_dict(doc["term_space"])
+            indices = [int(i) for i in doc["term_indices"]]
+            coefs = np.asarray(doc["coefficients"], dtype=float)
+            names = list(doc["terms"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ModelFormatError(f"model document is incomplete or malformed: {exc}") from exc
+        all_names = space.term_names()
+        if len(indices) != len(coefs) or len(names) != len(coefs):
+            raise ModelFormatError("terms, term_indices and coefficients differ in length")
+        if any(i < 0 or i >= len(all_names) for i in indices):
+            raise ModelFormatError("a term index lies outside the term space")
+        if [all_names[i] for i in indices] != names:
+            raise ModelFormatError("term names do not match the term space's order")
+        crit = doc.get("criterion") or {}
+        return cls(
+            term_space=space,
+            term_indices=indices,
+            coefficients=coefs,
+            criterion=crit.get("name"),
+            criterion_value=crit.get("value"),
+            mse=doc.get("mse"),
+            n_samples=doc.get("n_samples"),
+            metadata=doc.get("metadata") or {},
+        )
+
+    def to_json(self) -> str:
+        """The document as JSON text."""
+        return json.dumps(self.to_dict(), indent=2, allow_nan=False)
+
+    def save(self, path: str | Path) -> Path:
+        """Write the JSON document to ``path``; returns the path."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(self.to_json() + "\n")
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> NarxModel:
+        """Read a model saved with :meth:`save`."""
+        path = Path(path)
+        try:
+            doc = json.loads(path.read_text())
+        except FileNotFoundError:
+            raise ModelFormatError(f"model file not found: {path}") from None
+        except json.JSONDecodeError as exc:
+            raise ModelFormatError(f"{path} is not valid JSON: {exc}") from None
+        return cls.from_dict(doc)
+
+
+def _json_float(x: float | None) -> float | None:
+    """JSON has no inf/NaN: store them as null."""
+    if x is None:
+        return None
+    x = float(x)
+    return x if math.isfinite(x) else None

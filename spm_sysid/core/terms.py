@@ -1,0 +1,176 @@
+"""Candidate terms of a polynomial NARX model and the regression matrix.
+
+The term order is fixed and documented because a GA chromosome is one bit per
+term in exactly this order:
+
+1. the constant term ``1`` (only when ``constant=True``);
+2. the linear terms: ``y(t-1) .. y(t-ny)`` then ``u(t-d) .. u(t-d-nu+1)``;
+3. the products of degree 2, 3, ... ``degree``: for each degree, every
+   multiset of linear terms in lexicographic order of their positions in
+   step 2 (``itertools.combinations_with_replacement``), e.g. ``y(t-1)^2``,
+   ``y(t-1)*y(t-2)``, ..., ``u(t-4)^2``.
+
+With the paper's setting (ny=4, nu=4, degree=2, delay=1, no constant) this gives
+8 linear and 36 quadratic terms: 44 in all.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from itertools import combinations_with_replacement
+
+import numpy as np
+
+__all__ = ["TermSpace"]
+
+
+@dataclass(frozen=True)
+class TermSpace:
+    """The space of candidate NARX terms.
+
+    Parameters
+    ----------
+    ny : int
+        Maximum output lag; output lags are 1..ny.
+    nu : int
+        Number of input lags; input lags are delay..delay+nu-1.
+    degree : int
+        Highest polynomial degree (the paper's "nonlinearity").
+    delay : int
+        Input delay (the smallest input lag), at least 1 so the model is causal.
+    constant : bool
+        Whether a constant term is a candidate.
+    """
+
+    ny: int = 4
+    nu: int = 4
+    degree: int = 2
+    delay: int = 1
+    constant: bool = False
+
+    def __post_init__(self) -> None:
+        for name in ("ny", "nu", "degree", "delay"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, np.integer)) or isinstance(value, bool):
+                raise TypeError(f"{name} must be an integer, got {value!r}")
+        if self.ny < 0 or self.nu < 0:
+            raise ValueError(f"lags must be >= 0, got ny={self.ny}, nu={self.nu}")
+        if self.ny + self.nu == 0:
+            raise ValueError("at least one of ny, nu must be positive")
+        if self.degree < 1:
+            raise ValueError(f"degree must be >= 1, got {self.degree}")
+        if self.delay < 1:
+            raise ValueError(f"delay must be >= 1 (a causal model), got {self.delay}")
+        if self.n_terms > 63:
+            raise ValueError(
+                f"this term space has {self.n_terms} candidate terms; at most 63 "
+                "are supported (a structure is a 64-bit key)"
+            )
+
+    # -- the linear building blocks -------------------------------------------------
+    @property
+    def linear(self) -> list[tuple[str, int]]:
+        """The lagged signals as ``(signal, lag)`` pairs, in term order."""
+        ys = [("y", lag) for lag in range(1, self.ny + 1)]
+        us = [("u", lag) for lag in range(self.delay, self.delay + self.nu)]
+        return ys + us
+
+    @property
+    def max_lag(self) -> int:
+        """Largest lag; the first regression row is at t = max_lag."""
+        return max(self.ny, self.delay + self.nu - 1 if self.nu else 0)
+
+    @property
+    def terms(self) -> list[tuple[int, ...]]:
+        """Every candidate term as a sorted tuple of indices into :attr:`linear`.
+
+        The constant term is the empty tuple.
+        """
+        n_lin = len(self.linear)
+        out: list[tuple[int, ...]] = [()] if self.constant else []
+        for deg in range(1, self.degree + 1):
+            out.extend(combinations_with_replacement(range(n_lin), deg))
+        return out
+
+    @property
+    def n_terms(self) -> int:
+        """Number of candidate terms (chromosome length)."""
+        from math import comb
+
+        n_lin = (self.ny + self.nu)
+        return int(self.constant) + sum(
+            comb(n_lin + deg - 1, deg) for deg in range(1, self.degree + 1)
+        )
+
+    def term_names(self) -> list[str]:
+        """Readable names such as ``y(t-1)*u(t-2)`` and ``u(t-1)^2``, in term order."""
+        lin = self.linear
+        names = []
+        for term in self.terms:
+            if not term:
+                names.append("1")
+                continue
+            parts = []
+            for idx in sorted(set(term)):
+                sig, lag = lin[idx]
+                power = term.count(idx)
+                parts.append(f"{sig}(t-{lag})" + (f"^{power}" if power > 1 else ""))
+            names.append("*".join(parts))
+        return names
+
+    def to_dict(self) -> dict:
+        """Plain-data form for JSON documents."""
+        return {k: (bool(v) if k == "constant" else int(v)) for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, data: dict) -> TermSpace:
+        """Inverse of :meth:`to_dict`."""
+        return cls(**{k: data[k] for k in ("ny", "nu", "degree", "delay", "constant")})
+
+    # -- the regression matrix -------------------------------------------------------
+    def lagged(self, u: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Matrix of the linear terms, shape ``(N, ny + nu)``, rows t = max_lag..len-1."""
+        u = np.asarray(u, dtype=float)
+        y = np.asarray(y, dtype=float)
+        start, stop = self.max_lag, len(y)
+        cols = []
+        for sig, lag in self.linear:
+            src = y if sig == "y" else u
+            cols.append(src[start - lag : stop - lag])
+        if not cols:
+            return np.empty((stop - start, 0))
+        return np.column_stack(cols)
+
+    def regression_matrix(self, u: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """All candidate regressors, shape ``(N, n_terms)`` with ``N = len(y) - max_lag``.
+
+        Column ``j`` is term ``j`` of :attr:`terms` evaluated at t = max_lag..len-1.
+        Products are built degree by degree from the previous degree's columns, so
+        each column costs one vectorised multiplication.
+        """
+        lin = self.lagged(u, y)
+        n_rows, n_lin = lin.shape
+        columns: dict[tuple[int, ...], np.ndarray] = {(): np.ones(n_rows)}
+        for i in range(n_lin):
+            columns[(i,)] = lin[:, i]
+        for term in self.terms:
+            if len(term) > 1 and term not in columns:
+                columns[term] = columns[term[:-1]] * lin[:, term[-1]]
+        return np.column_stack([columns[t] for t in self.terms]) if self.terms else np.empty(
+            (n_rows, 0)
+        )
+
+    def target(self, y: np.ndarray) -> np.ndarray:
+        """The regression target y(t) for t = max_lag..len-1."""
+        return np.asarray(y, dtype=float)[self.max_lag :]
+
+    def regressor_row(self, past_y: np.ndarray, past_u: np.ndarray) -> np.ndarray:
+        """Regressors for one time step from the recent history.
+
+        ``past_y[i]`` is y(t-1-i) and ``past_u[i]`` is u(t-1-i); used by free-run
+        simulation, where y(t-1..) are the model's own predictions.
+        """
+        vals = np.array(
+            [past_y[lag - 1] if sig == "y" else past_u[lag - 1] for sig, lag in self.linear]
+        )
+        return np.array([np.prod(vals[list(t)]) if t else 1.0 for t in self.terms])

@@ -1,0 +1,1 @@
+"""ROS 2 layer: thin rclpy nodes over the core."""

@@ -1,0 +1,1 @@
+"""Command line, benchmark, experiments, figures (no rclpy)."""

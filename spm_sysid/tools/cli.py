@@ -1,0 +1,229 @@
+"""The ``spm-sysid`` command line.
+
+Sub-commands: ``identify`` (the main offline job), ``validate``, ``experiment``,
+``make-bag``, ``bench``, ``fetch-data`` and ``call`` (a service client for the
+ROS node). Every failure a user can cause ends with one ``error: ...`` line and
+exit status 2, never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+import numpy as np
+
+from ..core.data import DataError, find_robot_arm, load_io
+from ..core.ga import GAConfig
+from ..core.terms import TermSpace
+
+__all__ = ["main"]
+
+
+class UserError(Exception):
+    """A problem the user can fix; printed without a traceback."""
+
+
+# -- shared options -------------------------------------------------------------------
+
+
+def _add_data_options(p: argparse.ArgumentParser, bag: bool = True) -> None:
+    g = p.add_argument_group("data (default: the robot-arm data)")
+    g.add_argument("--data", metavar="PATH", help="two-column or CSV file of u, y")
+    if bag:
+        g.add_argument("--bag", metavar="PATH", help="rosbag2 bag (MCAP) to read u, y from")
+        g.add_argument("--input-topic", default="/robot_arm/torque")
+        g.add_argument("--input-field", default=None,
+                       help="field path of u in the input message (default by type)")
+        g.add_argument("--output-topic", default="/robot_arm/acceleration")
+        g.add_argument("--output-field", default=None,
+                       help="field path of y in the output message (default by type)")
+
+
+def _add_model_options(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("term space (default: the paper's)")
+    g.add_argument("--ny", type=int, default=4, help="output lags 1..ny (default 4)")
+    g.add_argument("--nu", type=int, default=4, help="number of input lags (default 4)")
+    g.add_argument("--degree", type=int, default=2, help="polynomial degree (default 2)")
+    g.add_argument("--delay", type=int, default=1, help="input delay (default 1)")
+    g.add_argument("--constant", action="store_true", help="add a constant candidate term")
+
+
+def _add_ga_options(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("genetic algorithm (default: the paper's settings)")
+    g.add_argument("--population", type=int, default=200)
+    g.add_argument("--generations", type=int, default=300)
+    g.add_argument("--crossover", type=float, default=0.6, help="crossover probability")
+    g.add_argument("--mutation", type=float, default=0.01, help="per-bit mutation probability")
+    g.add_argument("--spm", type=float, default=0.15, help="single parent mating fraction s")
+    g.add_argument("--fitness", choices=("akaike", "rank", "window"), default="akaike",
+                   help="roulette fitness transform (see docs/method.md)")
+
+
+def _term_space(args) -> TermSpace:
+    try:
+        return TermSpace(ny=args.ny, nu=args.nu, degree=args.degree, delay=args.delay,
+                         constant=args.constant)
+    except (TypeError, ValueError) as exc:
+        raise UserError(str(exc)) from None
+
+
+def _ga_config(args) -> GAConfig:
+    try:
+        return GAConfig(population_size=args.population, generations=args.generations,
+                        crossover_prob=args.crossover, mutation_prob=args.mutation,
+                        spm_fraction=args.spm, fitness=args.fitness)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+
+
+def _load(args) -> tuple[np.ndarray, np.ndarray, str]:
+    if getattr(args, "bag", None) and args.data:
+        raise UserError("give either --data or --bag, not both")
+    if getattr(args, "bag", None):
+        from ..core.bagio import read_bag_signals
+
+        sig = read_bag_signals(args.bag, input_topic=args.input_topic,
+                               output_topic=args.output_topic,
+                               input_field=args.input_field, output_field=args.output_field)
+        return sig.u, sig.y, f"bag {args.bag}"
+    if args.data:
+        u, y = load_io(args.data)
+        return u, y, args.data
+    path = find_robot_arm()
+    u, y = load_io(path)
+    return u, y, f"robot-arm data ({path})"
+
+
+class _Progress:
+    """A tqdm bar over generations showing the best criterion so far."""
+
+    def __init__(self, total: int, enabled: bool) -> None:
+        self.bar = None
+        if enabled:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=total, desc="GA", unit="gen", file=sys.stderr, leave=False,
+                            disable=None)  # None: silent when stderr is not a terminal
+
+    def __call__(self, stats) -> None:
+        if self.bar is not None:
+            if stats.generation:
+                self.bar.update(1)
+            self.bar.set_postfix(best=f"{stats.best:.2f}", fits=stats.evaluations)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+# -- sub-commands -----------------------------------------------------------------------
+
+
+def cmd_identify(args) -> int:
+    from ..core.identify import identify
+
+    space = _term_space(args)
+    config = _ga_config(args)
+    u, y, source = _load(args)
+    progress = _Progress(config.generations, not args.quiet)
+    try:
+        result = identify(u=u, y=y, term_space=space, criterion=args.criterion, ga=config,
+                          seed=args.seed, callback=progress)
+    finally:
+        progress.close()
+    model = result.model
+    model.metadata["source"] = source
+    print(f"data: {source}, {len(y)} samples")
+    print(result.summary())
+    if args.plots or args.validation != "none":
+        from .report_model import validate_and_report
+
+        validate_and_report(model, u, y, segment=args.validation, plots=args.plots,
+                            split=args.split)
+    if args.json:
+        path = model.save(args.json)
+        print(f"model written to {path}")
+    return 0
+
+
+def cmd_bench(args) -> int:
+    from .bench import run_benchmark
+
+    u, y = load_io(args.data) if args.data else load_io(find_robot_arm())
+    run_benchmark(u, y, criterion=args.criterion, repeats=args.repeats,
+                  naive_repeats=args.naive_repeats,
+                  config=GAConfig(population_size=args.population,
+                                  generations=args.generations, spm_fraction=args.spm))
+    return 0
+
+
+def cmd_fetch_data(args) -> int:
+    from ..core.data import DAISY_ROBOT_ARM_URL, download_robot_arm
+
+    path = download_robot_arm(url=args.url or DAISY_ROBOT_ARM_URL, dest=args.output)
+    print(f"robot-arm data verified and saved to {path}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser (exposed for documentation and tests)."""
+    from .. import __version__
+
+    parser = argparse.ArgumentParser(
+        prog="spm-sysid",
+        description="Polynomial NARX identification with a single-parent-mating GA.",
+    )
+    parser.add_argument("--version", action="version", version=f"spm-sysid {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("identify", help="select and fit a NARX model on data")
+    _add_data_options(p)
+    _add_model_options(p)
+    _add_ga_options(p)
+    p.add_argument("--criterion", default="aic", help="aic, bic or pmic2 (default aic)")
+    p.add_argument("--seed", type=int, default=None, help="random seed (reproducible runs)")
+    p.add_argument("--json", metavar="PATH", help="write the model document here")
+    p.add_argument("--plots", metavar="DIR", help="write validation figures here")
+    p.add_argument("--validation", choices=("none", "estimation", "holdout"),
+                   default="estimation",
+                   help="validate on the estimation data or a held-out tail")
+    p.add_argument("--split", type=float, default=0.5,
+                   help="estimation fraction for --validation holdout (default 0.5)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_identify)
+
+    p = sub.add_parser("bench", help="time the engine against a naive evaluator")
+    p.add_argument("--data", metavar="PATH")
+    p.add_argument("--criterion", default="aic")
+    p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--naive-repeats", type=int, default=3)
+    p.add_argument("--population", type=int, default=200)
+    p.add_argument("--generations", type=int, default=300)
+    p.add_argument("--spm", type=float, default=0.15)
+    p.set_defaults(func=cmd_bench)
+
+    p = sub.add_parser("fetch-data", help="download the robot-arm data into the user cache")
+    p.add_argument("--url", help="alternative download address")
+    p.add_argument("--output", metavar="PATH", help="where to save (default: user cache)")
+    p.set_defaults(func=cmd_fetch_data)
+
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``spm-sysid`` console script."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except (UserError, DataError, ValueError, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,63 @@
+"""The spm-sysid command line, run as a real subprocess."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from .conftest import EQ1, ROOT
+
+
+def spm(*args, **kw):
+    return subprocess.run([sys.executable, "-m", "spm_sysid.tools.cli", *args],
+                          capture_output=True, text=True, cwd=ROOT, timeout=300, **kw)
+
+
+def test_identify_on_robot_arm_writes_model(tmp_path):
+    out = tmp_path / "model.json"
+    r = spm("identify", "--criterion", "aic", "--seed", "1", "--json", str(out),
+            "--validation", "none")
+    assert r.returncode == 0, r.stderr
+    assert "y(t) = 3.158y(t-1) - 4.439y(t-2)" in r.stdout
+    assert "AIC = -10744.78" in r.stdout and "8 terms" in r.stdout
+    assert "MSE 2.6199e-05" in r.stdout
+    doc = json.loads(out.read_text())
+    assert doc["terms"] == EQ1 and doc["metadata"]["seed"] == 1
+
+
+def test_identify_small_settings_on_a_data_file(tmp_path, robot_arm_path):
+    csv = tmp_path / "d.csv"
+    lines = robot_arm_path.read_text().splitlines()
+    csv.write_text("u,y\n" + "\n".join(ln.replace(" ", ",") for ln in lines) + "\n")
+    r = spm("identify", "--data", str(csv), "--criterion", "bic", "--ny", "2", "--nu", "2",
+            "--degree", "1", "--population", "20", "--generations", "10", "--spm", "0",
+            "--seed", "3", "--validation", "none")
+    assert r.returncode == 0, r.stderr
+    assert "criterion BIC" in r.stdout
+
+
+@pytest.mark.parametrize("args, message", [
+    (["identify", "--data", "/no/such/file.dat"], "data file not found"),
+    (["identify", "--criterion", "xyz", "--generations", "1"], "unknown criterion"),
+    (["identify", "--spm", "0.9"], "spm_fraction"),
+    (["identify", "--degree", "0"], "degree"),
+    (["identify", "--data", "x", "--bag", "y"], "either --data or --bag"),
+])
+def test_identify_errors_are_one_line_without_traceback(args, message):
+    r = spm(*args)
+    assert r.returncode == 2
+    assert message in r.stderr and "Traceback" not in r.stderr
+
+
+def test_bad_file_content_error(tmp_path):
+    p = tmp_path / "bad.dat"
+    p.write_text("1 2\n3 x\n")
+    r = spm("identify", "--data", str(p))
+    assert r.returncode == 2 and "line 2: 'x' is not a number" in r.stderr
+
+
+def test_bench_prints_figures():
+    r = spm("bench", "--repeats", "1", "--naive-repeats", "1", "--generations", "15")
+    assert r.returncode == 0, r.stderr
+    assert "naive/engine time ratio" in r.stdout and "cache hits" in r.stdout

@@ -1,0 +1,152 @@
+"""Data loading: formats, every malformed-input error, and the robot-arm loader."""
+
+import gzip
+import http.server
+import threading
+
+import numpy as np
+import pytest
+
+from spm_sysid.core import data as data_mod
+from spm_sysid.core.data import (
+    ROBOT_ARM_SHA256,
+    DataError,
+    check_samples,
+    download_robot_arm,
+    find_robot_arm,
+    load_io,
+    numeric_sha256,
+)
+from spm_sysid.core.identify import identify
+
+
+def test_robot_arm_file_is_the_known_data(robot_arm):
+    u, y = robot_arm
+    assert len(u) == len(y) == 1024
+    assert numeric_sha256(np.column_stack([u, y])) == ROBOT_ARM_SHA256
+    assert y.min() == pytest.approx(-0.78827423) and y.max() == pytest.approx(0.78911527)
+
+
+def test_csv_with_header_and_column_names(tmp_path):
+    p = tmp_path / "d.csv"
+    p.write_text("time,y,u\n0,1.5,0.1\n1,2.5,0.2\n")
+    u, y = load_io(p)
+    assert u.tolist() == [0.1, 0.2] and y.tolist() == [1.5, 2.5]
+    p.write_text("torque,accel\n0.1,1.5\n0.2,2.5\n")
+    u, y = load_io(p)
+    assert u.tolist() == [0.1, 0.2] and y.tolist() == [1.5, 2.5]
+
+
+def test_two_column_text_with_comments_and_gzip(tmp_path):
+    p = tmp_path / "d.dat"
+    p.write_text("# comment\n1.0 2.0\n\n3.0\t4.0\r\n")
+    assert [a.tolist() for a in load_io(p)] == [[1.0, 3.0], [2.0, 4.0]]
+    g = tmp_path / "d.dat.gz"
+    g.write_bytes(gzip.compress(p.read_bytes()))
+    assert [a.tolist() for a in load_io(g)] == [[1.0, 3.0], [2.0, 4.0]]
+
+
+@pytest.mark.parametrize("content, message", [
+    ("1.0 2.0\n3.0\n", "line 2: expected 2 columns"),
+    ("1.0 2.0 3.0\n", "line 1: expected 2 columns"),
+    ("1.0 2.0\n1.0 abc\n", "line 2: 'abc' is not a number"),
+    ("1.0 2.0\nnan 1.0\n", "line 2: value 'nan' is not finite"),
+    ("1.0 inf\n", "line 1: value 'inf' is not finite"),
+    ("", "empty"),
+    ("a,b,c\n1,2,3\n", "needs columns named 'u' and 'y'"),
+    ("u,y\n", "no data rows"),
+    ("u,y\n1,2\n3\n", "line 3: expected 2 columns"),
+    ("u,y\n1,x\n", "'x' is not a number"),
+])
+def test_malformed_files_give_clear_errors(tmp_path, content, message):
+    p = tmp_path / "bad.txt"
+    p.write_text(content)
+    with pytest.raises(DataError, match=message):
+        load_io(p)
+
+
+def test_missing_directory_and_binary_files(tmp_path):
+    with pytest.raises(DataError, match="not found"):
+        load_io(tmp_path / "nope.dat")
+    with pytest.raises(DataError, match="directory"):
+        load_io(tmp_path)
+    b = tmp_path / "bin.dat"
+    b.write_bytes(b"\xff\xfe\x00\x81")
+    with pytest.raises(DataError, match="not a text file"):
+        load_io(b)
+
+
+def test_too_few_samples_and_bad_signals():
+    with pytest.raises(DataError, match="too few samples"):
+        check_samples(40, 4, 44)
+    with pytest.raises(DataError, match="too few samples"):
+        identify(u=np.zeros(30), y=np.ones(30))
+    with pytest.raises(DataError, match="same length"):
+        identify(u=np.zeros(100), y=np.ones(99))
+    y = np.ones(100)
+    y[17] = np.nan
+    with pytest.raises(DataError, match="non-finite.*index 17"):
+        identify(u=np.zeros(100), y=y)
+
+
+def test_find_robot_arm_search_order(tmp_path, monkeypatch, robot_arm_path):
+    explicit = tmp_path / "mine.dat"
+    explicit.write_text("1 2\n")
+    assert find_robot_arm(explicit) == explicit
+    with pytest.raises(DataError, match="explicit path"):
+        find_robot_arm(tmp_path / "missing.dat")
+    monkeypatch.setenv("SPM_SYSID_ROBOT_ARM", str(explicit))
+    assert find_robot_arm() == explicit
+    monkeypatch.setenv("SPM_SYSID_ROBOT_ARM", str(tmp_path / "gone.dat"))
+    with pytest.raises(DataError, match="SPM_SYSID_ROBOT_ARM"):
+        find_robot_arm()
+    monkeypatch.delenv("SPM_SYSID_ROBOT_ARM")
+    assert find_robot_arm() == robot_arm_path  # ../shared/data from the project root
+    # nothing anywhere: the message says where it looked and how to fetch it
+    monkeypatch.setattr(data_mod, "_candidates", lambda p: [("user cache", tmp_path / "x.dat")])
+    with pytest.raises(DataError, match="fetch-data"):
+        find_robot_arm()
+
+
+@pytest.fixture
+def http_server(tmp_path):
+    """A real HTTP server on 127.0.0.1 serving files from tmp_path/www."""
+    root = tmp_path / "www"
+    root.mkdir()
+
+    class Handler(http.server.SimpleHTTPRequestHandler):
+        def __init__(self, *a, **kw):
+            super().__init__(*a, directory=str(root), **kw)
+
+        def log_message(self, *a):
+            pass
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    yield root, f"http://127.0.0.1:{server.server_address[1]}"
+    server.shutdown()
+    server.server_close()
+
+
+def test_download_from_local_server_with_checksum(http_server, tmp_path, robot_arm_path):
+    root, base = http_server
+    # the DaISy layout: tab-separated, trailing tab, CRLF, gzip-compressed
+    lines = robot_arm_path.read_text().splitlines()
+    daisy = "".join("   " + "\t  ".join(ln.split()) + "\t\r\n" for ln in lines)
+    (root / "robot_arm.dat.gz").write_bytes(gzip.compress(daisy.encode()))
+    dest = tmp_path / "cache" / "robot_arm.dat"
+    path = download_robot_arm(url=f"{base}/robot_arm.dat.gz", dest=dest)
+    assert path == dest
+    u, y = load_io(path)
+    assert numeric_sha256(np.column_stack([u, y])) == ROBOT_ARM_SHA256
+
+    # one changed digit: rejected, nothing written
+    tampered = daisy.replace("2.2183165e-01", "2.2183166e-01", 1)
+    (root / "bad.dat.gz").write_bytes(gzip.compress(tampered.encode()))
+    other = tmp_path / "cache2" / "robot_arm.dat"
+    with pytest.raises(DataError, match="checksum mismatch"):
+        download_robot_arm(url=f"{base}/bad.dat.gz", dest=other)
+    assert not other.exists()
+    with pytest.raises(DataError, match="could not download"):
+        download_robot_arm(url=f"{base}/missing.gz", dest=other)

@@ -1,0 +1,143 @@
+"""The fast evaluator against the paper's numbers and an independent reference fit."""
+
+import numpy as np
+import pytest
+
+from spm_sysid.core.evaluator import (
+    NaiveEvaluator,
+    StructureEvaluator,
+    reference_fit,
+    reference_score,
+    structure_keys,
+)
+from spm_sysid.core.terms import TermSpace
+
+from .conftest import EQ1, EQ2
+
+
+def _mask(space, names):
+    all_names = space.term_names()
+    m = np.zeros(space.n_terms, dtype=bool)
+    m[[all_names.index(n) for n in names]] = True
+    return m
+
+
+@pytest.fixture(scope="module")
+def arm_problem(robot_arm):
+    u, y = robot_arm
+    ts = TermSpace()
+    return ts, ts.regression_matrix(u, y), ts.target(y)
+
+
+def test_eq1_aic_and_coefficients_match_the_paper(arm_problem):
+    ts, P, t = arm_problem
+    assert P.shape == (1020, 44)
+    m = _mask(ts, EQ1)
+    ev = StructureEvaluator(P, t, "aic")
+    assert ev.cached_score(m) == pytest.approx(-10744.78, abs=0.01)
+    fit = reference_fit(P, t, m)
+    assert np.round(fit.coefficients, 3).tolist() == [
+        3.158, -4.439, 3.13, -0.982, 0.019, -0.029, 0.055, -0.030]
+    assert fit.sse / len(t) == pytest.approx(2.6199e-05, rel=1e-4)
+
+
+def test_eq2_bic_matches_the_paper(arm_problem):
+    ts, P, t = arm_problem
+    m = _mask(ts, EQ2)
+    assert StructureEvaluator(P, t, "bic").cached_score(m) == pytest.approx(-10707.48, abs=0.01)
+    fit = reference_fit(P, t, m)
+    assert np.round(fit.coefficients, 3).tolist() == [
+        3.128, -4.367, 3.058, -0.952, 0.004, 0.026, -0.015]
+    assert fit.sse / len(t) == pytest.approx(2.6323e-05, rel=1e-4)
+
+
+def test_reference_fit_equals_independent_lstsq(arm_problem):
+    ts, P, t = arm_problem
+    m = _mask(ts, EQ1)
+    theta, *_ = np.linalg.lstsq(P[:, m], t, rcond=None)
+    fit = reference_fit(P, t, m)
+    assert np.allclose(fit.coefficients, theta, rtol=1e-8)
+    # AIC by hand from numpy's residuals
+    sse = float(((t - P[:, m] @ theta) ** 2).sum())
+    assert fit.sse == pytest.approx(sse, rel=1e-10)
+
+
+@pytest.mark.parametrize("criterion", ["aic", "bic", "pmic2"])
+def test_fast_path_agrees_with_reference_fit(arm_problem, criterion):
+    ts, P, t = arm_problem
+    rng = np.random.default_rng(11)
+    masks = rng.random((300, 44)) < rng.uniform(0.05, 0.95, size=(300, 1))
+    fast = StructureEvaluator(P, t, criterion).evaluate(masks)
+    ref = np.array([reference_score(P, t, m, criterion) for m in masks])
+    assert np.array_equal(np.isfinite(fast), np.isfinite(ref))
+    finite = np.isfinite(ref)
+    assert finite.sum() > 250
+    assert np.max(np.abs(fast[finite] - ref[finite])) < 1e-6
+
+
+def test_rank_deficient_and_empty_structures_get_the_worst_score():
+    # y(t) = u(t-1) exactly, so the column y(t-1) equals u(t-2): dependent regressors.
+    rng = np.random.default_rng(5)
+    u = rng.normal(size=200)
+    y = np.concatenate([[0.0], u[:-1]])
+    ts = TermSpace(ny=2, nu=2, degree=2)
+    P, t = ts.regression_matrix(u, y), ts.target(y)
+    dependent = _mask(ts, ["y(t-1)", "u(t-2)"])
+    fine = _mask(ts, ["u(t-1)"])
+    empty = np.zeros(ts.n_terms, dtype=bool)
+    for crit in ("aic", "pmic2"):
+        ev = StructureEvaluator(P, t, crit)
+        scores = ev.score(np.array([dependent, fine, empty]))
+        assert scores[0] == np.inf and scores[2] == np.inf
+        # fine is an exact fit: finite (clamped), and the best possible
+        assert np.isfinite(scores[1])
+        assert reference_score(P, t, dependent, crit) == np.inf
+        assert NaiveEvaluator(P, t, crit).score(dependent[None])[0] == np.inf
+    assert reference_fit(P, t, dependent).rank_deficient
+
+
+def test_zero_column_is_rank_deficient_not_a_crash():
+    rng = np.random.default_rng(2)
+    u = np.zeros(100)
+    y = rng.normal(size=100)
+    ts = TermSpace(ny=2, nu=2, degree=1)
+    P, t = ts.regression_matrix(u, y), ts.target(y)
+    ev = StructureEvaluator(P, t, "aic")
+    scores = ev.score(np.array([[True, False, True, False], [True, True, False, False]]))
+    assert scores[0] == np.inf and np.isfinite(scores[1])
+
+
+def test_ill_conditioned_structures_keep_the_reference_score():
+    # strongly collinear but independent regressors: a slowly varying output
+    rng = np.random.default_rng(9)
+    u = rng.normal(size=500)
+    y = np.zeros(500)
+    for k in range(2, 500):
+        y[k] = 1.98 * y[k - 1] - 0.9801 * y[k - 2] + 1e-3 * u[k - 1] + 1e-6 * rng.normal()
+    ts = TermSpace(ny=4, nu=2, degree=1)
+    P, t = ts.regression_matrix(u, y), ts.target(y)
+    masks = np.array([[1, 1, 1, 1, 1, 1], [1, 1, 0, 0, 1, 0], [1, 1, 1, 0, 1, 1]], dtype=bool)
+    fast = StructureEvaluator(P, t, "aic").evaluate(masks)
+    ref = np.array([reference_score(P, t, m, "aic") for m in masks])
+    assert np.allclose(fast, ref, atol=1e-6, rtol=0)
+
+
+def test_cache_never_refits(arm_problem):
+    ts, P, t = arm_problem
+    ev = StructureEvaluator(P, t, "aic")
+    rng = np.random.default_rng(0)
+    pop = rng.random((50, 44)) < 0.5
+    pop[10:20] = pop[0]  # repeats inside one batch
+    first = ev.score(pop)
+    assert ev.evaluations == len(np.unique(structure_keys(pop)))
+    again = ev.score(pop[::-1])
+    assert ev.evaluations == len(np.unique(structure_keys(pop)))
+    assert np.array_equal(first[::-1], again)
+    assert ev.lookups == 100 and ev.cache_hit_rate > 0.5
+
+
+def test_structure_keys_are_unique_bit_patterns():
+    masks = np.eye(44, dtype=bool)
+    keys = structure_keys(masks)
+    assert len(set(keys.tolist())) == 44
+    assert keys[0] == 1 and keys[43] == 1 << 43
