@@ -1,0 +1,47 @@
+"""Test helper process: subscribe to the robot-arm topics with a default QoS and
+print what arrived as JSON (values and header stamps, in arrival order)."""
+
+import json
+import sys
+import time
+
+import rclpy
+from geometry_msgs.msg import AccelStamped, WrenchStamped
+from rclpy.node import Node
+
+
+def main() -> None:
+    expected, timeout = int(sys.argv[1]), float(sys.argv[2])
+    in_topic = sys.argv[3] if len(sys.argv) > 3 else "/robot_arm/torque"
+    out_topic = sys.argv[4] if len(sys.argv) > 4 else "/robot_arm/acceleration"
+    rclpy.init()
+    node = Node("test_recorder")
+    got = {"u": [], "y": [], "tu": [], "ty": []}
+
+    def on_u(m):
+        got["u"].append(m.wrench.torque.z)
+        got["tu"].append(m.header.stamp.sec * 10**9 + m.header.stamp.nanosec)
+
+    def on_y(m):
+        got["y"].append(m.accel.linear.x)
+        got["ty"].append(m.header.stamp.sec * 10**9 + m.header.stamp.nanosec)
+
+    node.create_subscription(WrenchStamped, in_topic, on_u, 10)
+    node.create_subscription(AccelStamped, out_topic, on_y, 10)
+    print("ready", flush=True)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        rclpy.spin_once(node, timeout_sec=0.05)
+        if len(got["u"]) >= expected and len(got["y"]) >= expected:
+            break
+    # a short grace period catches anything beyond the expected count
+    end = time.monotonic() + 0.3
+    while time.monotonic() < end:
+        rclpy.spin_once(node, timeout_sec=0.05)
+    print(json.dumps(got), flush=True)
+    node.destroy_node()
+    rclpy.shutdown()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,184 @@
+"""Robot-arm bags: written with rosbags, read back with rosbags and with mcap."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import yaml
+
+from spm_sysid.core.bagio import BagError, pair_by_stamp, read_bag_signals, write_io_bag
+
+from .conftest import ROOT
+
+
+@pytest.fixture(scope="module")
+def arm_bag(robot_arm, tmp_path_factory):
+    u, y = robot_arm
+    return write_io_bag(tmp_path_factory.mktemp("bags") / "robot_arm", u, y)
+
+
+def test_metadata_declares_version_9_mcap_and_both_topics(arm_bag):
+    meta = yaml.safe_load((arm_bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert meta["version"] == 9 and meta["storage_identifier"] == "mcap"
+    assert meta["message_count"] == 2048
+    topics = {t["topic_metadata"]["name"]: t for t in meta["topics_with_message_count"]}
+    assert topics["/robot_arm/torque"]["topic_metadata"]["type"] == \
+        "geometry_msgs/msg/WrenchStamped"
+    assert topics["/robot_arm/acceleration"]["topic_metadata"]["type"] == \
+        "geometry_msgs/msg/AccelStamped"
+    for t in topics.values():
+        assert t["message_count"] == 1024
+        qos = t["topic_metadata"]["offered_qos_profiles"][0]
+        assert qos["reliability"] == "reliable" and qos["durability"] == "volatile"
+    assert [f["path"] for f in meta["files"]] == ["robot_arm.mcap"]
+
+
+def test_round_trip_with_rosbags(arm_bag, robot_arm):
+    u, y = robot_arm
+    sig = read_bag_signals(arm_bag)
+    assert sig.input_count == sig.output_count == 1024 and sig.unpaired == 0
+    assert np.array_equal(sig.u, u) and np.array_equal(sig.y, y)
+    assert np.array_equal(sig.stamps_ns, np.arange(1024) * 10_000_000)  # 100 Hz nominal
+    # reading the .mcap file directly works too
+    assert np.array_equal(read_bag_signals(arm_bag / "robot_arm.mcap").y, y)
+
+
+def test_round_trip_with_the_mcap_library(arm_bag, robot_arm):
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    u, y = robot_arm
+    got = {"/robot_arm/torque": [], "/robot_arm/acceleration": []}
+    stamps = {k: [] for k in got}
+    log_times = {k: [] for k in got}
+    with open(arm_bag / "robot_arm.mcap", "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        for schema, channel, message, msg in reader.iter_decoded_messages():
+            got[channel.topic].append(
+                msg.wrench.torque.z if schema.name == "geometry_msgs/msg/WrenchStamped"
+                else msg.accel.linear.x)
+            stamps[channel.topic].append(msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec)
+            log_times[channel.topic].append(message.log_time)
+    assert np.array_equal(got["/robot_arm/torque"], u)
+    assert np.array_equal(got["/robot_arm/acceleration"], y)
+    assert stamps["/robot_arm/torque"] == stamps["/robot_arm/acceleration"]
+    assert np.all(np.diff(stamps["/robot_arm/torque"]) == 10_000_000)
+    assert log_times["/robot_arm/torque"] == stamps["/robot_arm/torque"]
+
+
+def test_options_rate_topics_and_overwrite(tmp_path):
+    u, y = np.arange(5.0), -np.arange(5.0)
+    p = write_io_bag(tmp_path / "b", u, y, rate_hz=250, start_ns=10**9,
+                     input_topic="/a/effort", output_topic="/a/acc")
+    sig = read_bag_signals(p, input_topic="/a/effort", output_topic="/a/acc")
+    assert sig.stamps_ns.tolist() == [10**9 + k * 4_000_000 for k in range(5)]
+    with pytest.raises(BagError, match="already exists"):
+        write_io_bag(p, u, y)
+    write_io_bag(p, u[:3], y[:3], overwrite=True)
+    assert read_bag_signals(p).input_count == 3
+    with pytest.raises(BagError, match="rate"):
+        write_io_bag(tmp_path / "c", u, y, rate_hz=0)
+    with pytest.raises(BagError, match="finite"):
+        write_io_bag(tmp_path / "d", np.array([1.0, np.nan]), np.zeros(2))
+
+
+def test_pairing_by_stamp_with_tolerance():
+    iu, iy = pair_by_stamp([0, 10, 20, 30], [1, 21, 50], tolerance_ns=2)
+    assert iu.tolist() == [0, 2] and iy.tolist() == [0, 1]
+    iu, iy = pair_by_stamp([0, 10], [0, 10], 0)
+    assert iu.tolist() == [0, 1]
+
+
+def _spm(*args):
+    return subprocess.run([sys.executable, "-m", "spm_sysid.tools.cli", *args],
+                          capture_output=True, text=True, cwd=ROOT, timeout=120)
+
+
+def test_make_bag_and_identify_from_bag_via_cli(tmp_path):
+    out = tmp_path / "arm"
+    r = _spm("make-bag", "--output", str(out), "--rate", "50")
+    assert r.returncode == 0, r.stderr
+    assert (out / "metadata.yaml").exists() and (out / "arm.mcap").exists()
+    r = _spm("make-bag", "--output", str(out))
+    assert r.returncode == 2 and "already exists" in r.stderr
+    r = _spm("identify", "--bag", str(out), "--seed", "1", "--validation", "none")
+    assert r.returncode == 0, r.stderr
+    assert "AIC = -10744.78" in r.stdout and "1024 samples" in r.stdout
+
+
+@pytest.fixture
+def broken(tmp_path, arm_bag):
+    """Damaged copies of the robot-arm bag."""
+    import shutil
+
+    def copy(name):
+        dst = tmp_path / name
+        shutil.copytree(arm_bag, dst)
+        return dst
+
+    return copy
+
+
+def test_error_missing_path_and_not_a_bag(tmp_path):
+    with pytest.raises(BagError, match="bag not found"):
+        read_bag_signals(tmp_path / "nothing")
+    (tmp_path / "dir").mkdir()
+    with pytest.raises(BagError, match="no metadata.yaml"):
+        read_bag_signals(tmp_path / "dir")
+    f = tmp_path / "data.txt"
+    f.write_text("1 2\n")
+    with pytest.raises(BagError, match="not a bag"):
+        read_bag_signals(f)
+
+
+def test_error_corrupt_and_truncated_mcap(broken):
+    trunc = broken("trunc")
+    mcap = next(trunc.glob("*.mcap"))
+    data = mcap.read_bytes()
+    mcap.write_bytes(data[: len(data) // 2])
+    with pytest.raises(BagError, match="cannot read"):
+        read_bag_signals(trunc)
+    garbage = broken("garbage")
+    mcap = next(garbage.glob("*.mcap"))
+    mcap.write_bytes(b"this is not an mcap file at all" * 10)
+    with pytest.raises(BagError, match="cannot read"):
+        read_bag_signals(garbage)
+
+
+def test_error_missing_topic_and_unexpected_type(arm_bag):
+    with pytest.raises(BagError, match="has no topic /robot_arm/effort; it has"):
+        read_bag_signals(arm_bag, input_topic="/robot_arm/effort")
+    # both topics swapped: the AccelStamped topic has no wrench field
+    with pytest.raises(BagError, match="AccelStamped.*does not exist"):
+        read_bag_signals(arm_bag, input_topic="/robot_arm/acceleration",
+                         output_topic="/robot_arm/torque", input_field="wrench.torque.z")
+    with pytest.raises(BagError, match="malformed field path"):
+        read_bag_signals(arm_bag, input_field="wrench..z")
+
+
+def test_error_topic_of_a_type_without_a_number(tmp_path):
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from spm_sysid.core.bagio import typestore
+
+    store = typestore()
+    String = store.types["std_msgs/msg/String"]
+    path = tmp_path / "strings"
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        for topic in ("/robot_arm/torque", "/robot_arm/acceleration"):
+            c = w.add_connection(topic, "std_msgs/msg/String", typestore=store)
+            w.write(c, 0, store.serialize_cdr(String(data="hi"), "std_msgs/msg/String"))
+    with pytest.raises(BagError, match="no default field for message type std_msgs/msg/String"):
+        read_bag_signals(path)
+    with pytest.raises(BagError, match="leads to str, not a number"):
+        read_bag_signals(path, input_field="data", output_field="data")
+
+
+@pytest.mark.parametrize("args, message", [
+    (["identify", "--bag", "/no/bag"], "bag not found"),
+    (["identify", "--bag", "/tmp", "--generations", "1"], "no metadata.yaml"),
+])
+def test_bag_errors_exit_nonzero_without_traceback(args, message):
+    r = _spm(*args)
+    assert r.returncode == 2 and message in r.stderr and "Traceback" not in r.stderr
