@@ -130,9 +130,16 @@ class _Progress:
 def cmd_identify(args) -> int:
     from ..core.identify import identify
 
+    from ..core.validation import split_data
+
     space = _term_space(args)
     config = _ga_config(args)
+    if args.plots and args.validation == "none":
+        raise UserError("--plots needs validation (--validation estimation or holdout)")
     u, y, source = _load(args)
+    u_val, y_val = u, y
+    if args.validation == "holdout":
+        (u, y), (u_val, y_val) = split_data(u, y, args.split, space.max_lag)
     progress = _Progress(config.generations, not args.quiet)
     try:
         result = identify(u=u, y=y, term_space=space, criterion=args.criterion, ga=config,
@@ -141,16 +148,44 @@ def cmd_identify(args) -> int:
         progress.close()
     model = result.model
     model.metadata["source"] = source
-    print(f"data: {source}, {len(y)} samples")
+    print(f"data: {source}, {len(y)} samples used for estimation")
     print(result.summary())
-    if args.plots or args.validation != "none":
-        from .report_model import validate_and_report
-
-        validate_and_report(model, u, y, segment=args.validation, plots=args.plots,
-                            split=args.split)
+    if args.validation != "none":
+        _validate_and_report(model, u_val, y_val, args.validation, args.plots, args.corr_lags)
     if args.json:
         path = model.save(args.json)
         print(f"model written to {path}")
+    return 0
+
+
+def _validate_and_report(model, u, y, segment, plots, corr_lags) -> None:
+    """Validate, print the summary, store it in the model, write figures."""
+    from ..core.validation import validate_model
+
+    report = validate_model(model, u, y, max_lag=corr_lags, segment=segment)
+    model.metadata["validation"] = report.to_dict()
+    print(report.summary())
+    if plots:
+        from .plots import write_model_figures
+
+        paths = write_model_figures(report, plots)
+        print(f"figures written to {plots}: {', '.join(p.name for p in paths)}")
+
+
+def cmd_validate(args) -> int:
+    from ..core.model import NarxModel
+
+    model = NarxModel.load(args.model)
+    u, y, source = _load(args)
+    if args.tail is not None:
+        from ..core.validation import split_data
+
+        _, (u, y) = split_data(u, y, 1.0 - args.tail, model.term_space.max_lag)
+    print(f"model: {args.model}")
+    print(model.equation())
+    print(f"data: {source}" + (f", last {args.tail:.0%}" if args.tail is not None else ""))
+    _validate_and_report(model, u, y, "holdout" if args.tail is not None else "supplied",
+                         args.plots, args.corr_lags)
     return 0
 
 
@@ -210,8 +245,19 @@ def build_parser() -> argparse.ArgumentParser:
                    help="validate on the estimation data or a held-out tail")
     p.add_argument("--split", type=float, default=0.5,
                    help="estimation fraction for --validation holdout (default 0.5)")
+    p.add_argument("--corr-lags", type=int, default=20,
+                   help="largest lag of the correlation tests (default 20)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_identify)
+
+    p = sub.add_parser("validate", help="validate a saved model on data")
+    p.add_argument("model", metavar="MODEL.json")
+    _add_data_options(p)
+    p.add_argument("--tail", type=float, default=None,
+                   help="validate on this final fraction of the data only (e.g. 0.5)")
+    p.add_argument("--plots", metavar="DIR", help="write validation figures here")
+    p.add_argument("--corr-lags", type=int, default=20)
+    p.set_defaults(func=cmd_validate)
 
     p = sub.add_parser("bench", help="time the engine against a naive evaluator")
     p.add_argument("--data", metavar="PATH")
@@ -251,7 +297,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except (UserError, DataError, ValueError, OSError) as exc:
+    except (UserError, DataError, ValueError, OSError) as exc:  # ModelFormatError is a ValueError
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
