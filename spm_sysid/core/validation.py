@@ -104,7 +104,7 @@ class ValidationReport:
             f"mean |e| {o['mean_abs']:.6f}, fit {o['fit_percent']:.2f} %",
             f"  free-run: MSE {f['mse']:.4e}, max |e| {f['max_abs']:.5f}, "
             f"mean |e| {f['mean_abs']:.6f}, fit {f['fit_percent']:.2f} %",
-            "  correlation tests (95 % band ±{:.4f}):".format(self.tests[0].band),
+            f"  correlation tests (95 % band ±{self.tests[0].band:.4f}):",
         ]
         for t in self.tests:
             state = "OK  " if t.passed else "WARN"
@@ -126,6 +126,7 @@ def validate_model(
     Parameters
     ----------
     model : NarxModel
+        The model to validate.
     u, y : ndarray, shape (n,)
         The segment; its first ``model.term_space.max_lag`` samples serve as
         initial conditions.

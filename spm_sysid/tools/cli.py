@@ -129,7 +129,6 @@ class _Progress:
 
 def cmd_identify(args) -> int:
     from ..core.identify import identify
-
     from ..core.validation import split_data
 
     space = _term_space(args)
@@ -186,6 +185,66 @@ def cmd_validate(args) -> int:
     print(f"data: {source}" + (f", last {args.tail:.0%}" if args.tail is not None else ""))
     _validate_and_report(model, u, y, "holdout" if args.tail is not None else "supplied",
                          args.plots, args.corr_lags)
+    return 0
+
+
+def _list(text: str | None, kind):
+    if text is None:
+        return None
+    try:
+        return [kind(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise UserError(f"cannot read {text!r} as a comma-separated list") from None
+
+
+def cmd_experiment(args) -> int:
+    import time
+
+    from .experiment import (
+        ExperimentConfig,
+        run_experiment,
+        summarise,
+        summary_table,
+        write_results,
+    )
+
+    overrides = dict(criteria=_list(args.criteria, str), populations=_list(args.populations, int),
+                     spm_fractions=_list(args.spm, float), runs=args.runs,
+                     generations=args.generations, seed=args.seed, fitness=args.fitness,
+                     workers=args.workers)
+    try:
+        if args.config:
+            config = ExperimentConfig.from_yaml(args.config, **overrides)
+        else:
+            config = ExperimentConfig(**{k: v for k, v in overrides.items() if v is not None})
+    except TypeError as exc:
+        raise UserError(f"bad experiment settings: {exc}") from None
+    u, y, source = _load(args)
+    n_runs = (len(config.criteria) * len(config.populations) * len(config.spm_fractions)
+              * config.runs)
+    print(f"study: {n_runs} runs on {source}, {len(y)} samples")
+    bar = None
+    if not args.quiet:
+        from tqdm import tqdm
+
+        bar = tqdm(total=n_runs, desc="runs", unit="run", file=sys.stderr, disable=None)
+    t0 = time.perf_counter()
+    try:
+        records = run_experiment(u, y, config,
+                                 progress=(lambda i, n: bar.update(1)) if bar else None)
+    finally:
+        if bar:
+            bar.close()
+    elapsed = time.perf_counter() - t0
+    rows = summarise(records)
+    write_results(records, rows, config, args.out)
+    print(summary_table(rows))
+    print(f"{n_runs} runs in {elapsed:.1f} s; per-run records and figure in {args.out}")
+    if args.report:
+        from .report import write_report
+
+        path = write_report(records, rows, config, args.out, args.report, elapsed, source)
+        print(f"report written to {path}")
     return 0
 
 
@@ -258,6 +317,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--plots", metavar="DIR", help="write validation figures here")
     p.add_argument("--corr-lags", type=int, default=20)
     p.set_defaults(func=cmd_validate)
+
+    p = sub.add_parser("experiment", help="the paper's study: SPM vs plain GA, repeated runs")
+    _add_data_options(p, bag=False)
+    p.add_argument("--config", metavar="YAML", help="settings file (options below override)")
+    p.add_argument("--criteria", help="comma-separated (default aic,bic,pmic2)")
+    p.add_argument("--populations", help="comma-separated (default 200,100)")
+    p.add_argument("--spm", help="comma-separated SPM fractions (default 0,0.15)")
+    p.add_argument("--runs", type=int, help="runs per setting (default 15)")
+    p.add_argument("--generations", type=int, help="default 300")
+    p.add_argument("--seed", type=int, help="first seed (default 0)")
+    p.add_argument("--fitness", choices=("akaike", "rank", "window"),
+                   help="roulette fitness transform (default akaike)")
+    p.add_argument("--workers", type=int, help="processes (default: one per core)")
+    p.add_argument("--out", metavar="DIR", default="out/experiment")
+    p.add_argument("--report", metavar="DIR", help="write a Markdown report here")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=cmd_experiment)
 
     p = sub.add_parser("bench", help="time the engine against a naive evaluator")
     p.add_argument("--data", metavar="PATH")

@@ -109,7 +109,9 @@ def plot_convergence(
     return _save(fig, stem)
 
 
-def write_model_figures(report: ValidationReport, directory: Path, name: str = "model") -> list[Path]:
+def write_model_figures(
+    report: ValidationReport, directory: Path, name: str = "model"
+) -> list[Path]:
     """The correlation, one-step and free-run figures of one validated model."""
     directory = Path(directory)
     paths = plot_correlation_tests(report, directory / f"{name}_correlation",

@@ -1,0 +1,262 @@
+"""The paper's study: SPM versus the plain GA over repeated seeded runs.
+
+For every combination of criterion, population size and SPM fraction, ``runs``
+GA runs are made with seeds ``seed, seed + 1, ...`` -- the *same* seeds for
+every setting (common random numbers), so settings differ only by their
+parameters. Runs go to a process pool, one process per core, each loading the
+data and building the regression matrix once.
+
+Per setting the summary counts the runs that *reached the best*: whose final
+structure equals the best structure found across all runs of that criterion
+(all population sizes and fractions), as the paper does ("the same, presumably
+most optimal model"). Fisher's exact test (scipy, two-sided) compares each
+fraction's reach count with that of s = 0 at the same criterion and population.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import time
+from collections import defaultdict
+from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..core.evaluator import StructureEvaluator
+from ..core.ga import GAConfig, run_ga
+from ..core.terms import TermSpace
+
+__all__ = ["ExperimentConfig", "RunRecord", "SettingSummary", "run_experiment", "summarise"]
+
+
+@dataclass
+class ExperimentConfig:
+    """What to run; defaults are the paper's study (180 runs)."""
+
+    criteria: list[str] = field(default_factory=lambda: ["aic", "bic", "pmic2"])
+    populations: list[int] = field(default_factory=lambda: [200, 100])
+    spm_fractions: list[float] = field(default_factory=lambda: [0.0, 0.15])
+    runs: int = 15
+    generations: int = 300
+    seed: int = 0
+    fitness: str = "akaike"
+    crossover_prob: float = 0.6
+    mutation_prob: float = 0.01
+    workers: int = 0  # 0: one per core
+    term_space: dict = field(default_factory=lambda: TermSpace().to_dict())
+
+    def __post_init__(self) -> None:
+        if self.runs < 1 or self.generations < 0:
+            raise ValueError("runs must be >= 1 and generations >= 0")
+        if not self.criteria or not self.populations or not self.spm_fractions:
+            raise ValueError("criteria, populations and spm_fractions must not be empty")
+        from ..core.criteria import get_criterion
+
+        for c in self.criteria:
+            get_criterion(c)  # unknown names fail here, before any run
+        for pop in self.populations:
+            for s in self.spm_fractions:
+                self.ga(pop, s)  # invalid GA settings fail here too
+
+    def ga(self, population: int, spm: float) -> GAConfig:
+        """The GA settings of one cell."""
+        return GAConfig(population_size=int(population), generations=int(self.generations),
+                        crossover_prob=self.crossover_prob, mutation_prob=self.mutation_prob,
+                        spm_fraction=float(spm), fitness=self.fitness)
+
+    @classmethod
+    def from_yaml(cls, path: str | Path, **overrides) -> ExperimentConfig:
+        """Read settings from a YAML mapping; ``overrides`` (not None) win."""
+        import yaml
+
+        data = yaml.safe_load(Path(path).read_text()) or {}
+        if not isinstance(data, dict):
+            raise ValueError(f"{path}: expected a mapping of settings")
+        unknown = set(data) - set(cls.__dataclass_fields__)
+        if unknown:
+            raise ValueError(f"{path}: unknown setting(s) {sorted(unknown)}")
+        data.update({k: v for k, v in overrides.items() if v is not None})
+        return cls(**data)
+
+
+@dataclass
+class RunRecord:
+    """One GA run of the study."""
+
+    criterion: str
+    population: int
+    spm: float
+    run: int
+    seed: int
+    final_value: float
+    terms: list[str]
+    n_terms: int
+    first_best_generation: int
+    seconds: float
+    evaluations: int
+    best_curve: list[float] = field(repr=False, default_factory=list)
+    reached_best: bool = False
+
+
+# -- workers --------------------------------------------------------------------------
+
+_DATA: dict = {}
+
+
+def _init_worker(u: np.ndarray, y: np.ndarray, space: dict) -> None:
+    ts = TermSpace.from_dict(space)
+    _DATA.update(P=ts.regression_matrix(u, y), target=ts.target(y), names=ts.term_names())
+
+
+def _one_run(task: tuple) -> RunRecord:
+    criterion, population, spm, run, seed, ga = task
+    ev = StructureEvaluator(_DATA["P"], _DATA["target"], criterion)
+    t0 = time.perf_counter()
+    res = run_ga(ev, ga, seed=seed)
+    seconds = time.perf_counter() - t0
+    names = _DATA["names"]
+    return RunRecord(
+        criterion=criterion, population=population, spm=spm, run=run, seed=seed,
+        final_value=res.best_score, terms=[names[i] for i in np.flatnonzero(res.best_mask)],
+        n_terms=int(res.best_mask.sum()), first_best_generation=res.first_best_generation,
+        seconds=seconds, evaluations=res.evaluations,
+        best_curve=res.history_array("best").tolist(),
+    )
+
+
+def run_experiment(
+    u: np.ndarray, y: np.ndarray, config: ExperimentConfig,
+    progress: Callable[[int, int], None] | None = None,
+) -> list[RunRecord]:
+    """Run every (criterion, population, fraction, run) of the study in parallel.
+
+    Records come back in a fixed order (criterion, population, fraction, run),
+    whatever order the workers finish in, so the same seeds give the same list.
+    """
+    tasks = [
+        (c, int(pop), float(s), r, config.seed + r, config.ga(pop, s))
+        for c in config.criteria for pop in config.populations
+        for s in config.spm_fractions for r in range(config.runs)
+    ]
+    workers = config.workers or os.cpu_count() or 1
+    records: list[RunRecord] = []
+    if workers == 1:
+        _init_worker(u, y, config.term_space)
+        for i, task in enumerate(tasks):
+            records.append(_one_run(task))
+            if progress:
+                progress(i + 1, len(tasks))
+    else:
+        with ProcessPoolExecutor(max_workers=workers, initializer=_init_worker,
+                                 initargs=(u, y, config.term_space)) as pool:
+            for i, rec in enumerate(pool.map(_one_run, tasks, chunksize=1)):
+                records.append(rec)
+                if progress:
+                    progress(i + 1, len(tasks))
+    mark_reached(records)
+    return records
+
+
+def mark_reached(records: Sequence[RunRecord]) -> dict[str, tuple[float, list[str]]]:
+    """Flag runs whose final structure is the best found for their criterion."""
+    best: dict[str, tuple[float, list[str]]] = {}
+    for r in records:
+        if r.criterion not in best or r.final_value < best[r.criterion][0]:
+            best[r.criterion] = (r.final_value, r.terms)
+    for r in records:
+        r.reached_best = r.terms == best[r.criterion][1]
+    return best
+
+
+# -- summary --------------------------------------------------------------------------
+
+
+@dataclass
+class SettingSummary:
+    """One row of the study's table."""
+
+    criterion: str
+    population: int
+    spm: float
+    runs: int
+    reached: int
+    mean_final: float
+    best_final: float
+    mean_generation_to_best: float
+    mean_seconds: float
+    fisher_p: float | None  # against s = 0 at the same criterion and population
+
+
+def summarise(records: Sequence[RunRecord]) -> list[SettingSummary]:
+    """The per-setting table, with Fisher's exact test against s = 0."""
+    from scipy.stats import fisher_exact
+
+    groups: dict[tuple, list[RunRecord]] = defaultdict(list)
+    for r in records:
+        groups[(r.criterion, r.population, r.spm)].append(r)
+    rows = []
+    for (crit, pop, s), runs in groups.items():
+        reached = sum(r.reached_best for r in runs)
+        base = groups.get((crit, pop, 0.0))
+        p = None
+        if base is not None and s != 0.0:
+            b = sum(r.reached_best for r in base)
+            p = float(fisher_exact([[reached, len(runs) - reached], [b, len(base) - b]])[1])
+        rows.append(SettingSummary(
+            criterion=crit, population=pop, spm=s, runs=len(runs), reached=reached,
+            mean_final=float(np.mean([r.final_value for r in runs])),
+            best_final=float(np.min([r.final_value for r in runs])),
+            mean_generation_to_best=float(np.mean([r.first_best_generation for r in runs])),
+            mean_seconds=float(np.mean([r.seconds for r in runs])),
+            fisher_p=p,
+        ))
+    return rows
+
+
+def summary_table(rows: Sequence[SettingSummary]) -> str:
+    """The summary as a Markdown table."""
+    head = ("| criterion | population | SPM s | reached best | mean final | best final | "
+            "mean gen. to best | mean s/run | Fisher p vs s=0 |\n"
+            "|---|---|---|---|---|---|---|---|---|\n")
+    body = "".join(
+        f"| {r.criterion.upper()} | {r.population} | {r.spm:g} | {r.reached}/{r.runs} | "
+        f"{r.mean_final:.2f} | {r.best_final:.2f} | {r.mean_generation_to_best:.1f} | "
+        f"{r.mean_seconds:.2f} | {'—' if r.fisher_p is None else f'{r.fisher_p:.3g}'} |\n"
+        for r in rows
+    )
+    return head + body
+
+
+def write_results(records: Sequence[RunRecord], rows: Sequence[SettingSummary],
+                  config: ExperimentConfig, out: Path) -> list[Path]:
+    """runs.csv, runs.json (with convergence curves), summary.csv, summary.md, figure."""
+    from .plots import plot_convergence
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    fields = [f for f in RunRecord.__dataclass_fields__ if f != "best_curve"]
+    with open(out / "runs.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=fields)
+        w.writeheader()
+        for r in records:
+            row = {k: v for k, v in asdict(r).items() if k in fields}
+            row["terms"] = " + ".join(r.terms)
+            w.writerow(row)
+    (out / "runs.json").write_text(json.dumps(
+        {"config": asdict(config), "runs": [asdict(r) for r in records]}, indent=1))
+    with open(out / "summary.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(SettingSummary.__dataclass_fields__))
+        w.writeheader()
+        for row in rows:
+            w.writerow(asdict(row))
+    (out / "summary.md").write_text(summary_table(rows))
+    curves: dict[str, dict[float, list]] = defaultdict(lambda: defaultdict(list))
+    for r in records:
+        curves[f"{r.criterion.upper()}, population {r.population}"][r.spm].append(r.best_curve)
+    figs = plot_convergence(curves, out / "convergence")
+    return [out / "runs.csv", out / "runs.json", out / "summary.csv", out / "summary.md", *figs]
