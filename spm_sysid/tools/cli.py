@@ -248,6 +248,17 @@ def cmd_experiment(args) -> int:
     return 0
 
 
+def cmd_call(args) -> int:
+    # The one place the command line reaches into the ROS layer, and only when asked,
+    # so every other sub-command runs on machines without ROS.
+    try:
+        from ..ros.client import main as call_main
+    except ImportError as exc:
+        raise UserError(f"`call` needs ROS 2 (rclpy): {exc}") from None
+    return call_main(args.action, node_name=args.node, timeout=args.timeout,
+                     show_model=args.show_model)
+
+
 def cmd_bench(args) -> int:
     from .bench import run_benchmark
 
@@ -334,6 +345,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--report", metavar="DIR", help="write a Markdown report here")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_experiment)
+
+    p = sub.add_parser("call", help="call the sysid node's identify or clear service")
+    p.add_argument("action", choices=("identify", "clear"))
+    p.add_argument("--node", default="/spm_sysid", help="node name (default /spm_sysid)")
+    p.add_argument("--timeout", type=float, default=300.0, help="seconds to wait")
+    p.add_argument("--show-model", action="store_true",
+                   help="print the published model document after identify")
+    p.set_defaults(func=cmd_call)
 
     p = sub.add_parser("bench", help="time the engine against a naive evaluator")
     p.add_argument("--data", metavar="PATH")

@@ -1,0 +1,80 @@
+"""Calling the node's services without the ``ros2`` command line.
+
+``spm-sysid call identify`` / ``spm-sysid call clear`` use :func:`call_trigger`;
+another rclpy node can do the same with its own client (see
+``examples/identify_from_node.py``).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+
+import rclpy
+from rclpy.node import Node
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+
+from .sysid_node import LATCHED
+
+__all__ = ["call_trigger", "main", "wait_for_model"]
+
+
+def call_trigger(node: Node, service: str, timeout: float = 300.0) -> tuple[bool, str]:
+    """Call a ``std_srvs/srv/Trigger`` service; returns ``(success, message)``.
+
+    Raises
+    ------
+    TimeoutError
+        The service did not appear, or did not answer, within ``timeout`` seconds.
+    """
+    client = node.create_client(Trigger, service)
+    try:
+        deadline = time.monotonic() + timeout
+        if not client.wait_for_service(timeout_sec=min(timeout, 30.0)):
+            raise TimeoutError(f"service {service} is not available (is sysid_node running, "
+                               "with the same ROS_DOMAIN_ID?)")
+        future = client.call_async(Trigger.Request())
+        rclpy.spin_until_future_complete(node, future,
+                                         timeout_sec=max(0.1, deadline - time.monotonic()))
+        if not future.done():
+            raise TimeoutError(f"no answer from {service} within {timeout:.0f} s")
+        result = future.result()
+        return bool(result.success), str(result.message)
+    finally:
+        node.destroy_client(client)
+
+
+def wait_for_model(node: Node, topic: str, timeout: float = 10.0) -> dict | None:
+    """The latest model document on a latched ``~/model`` topic, or None."""
+    got: list[dict] = []
+    sub = node.create_subscription(String, topic, lambda m: got.append(json.loads(m.data)),
+                                   LATCHED)
+    try:
+        deadline = time.monotonic() + timeout
+        while not got and time.monotonic() < deadline:
+            rclpy.spin_once(node, timeout_sec=0.1)
+        return got[-1] if got else None
+    finally:
+        node.destroy_subscription(sub)
+
+
+def main(action: str, node_name: str = "/spm_sysid", timeout: float = 300.0,
+         show_model: bool = False) -> int:
+    """Entry of ``spm-sysid call``; prints the answer, returns an exit status."""
+    rclpy.init()
+    node = Node("spm_sysid_call")
+    try:
+        ok, message = call_trigger(node, f"{node_name.rstrip('/')}/{action}", timeout)
+        print(("success: " if ok else "refused: ") + message)
+        if ok and action == "identify" and show_model:
+            doc = wait_for_model(node, f"{node_name.rstrip('/')}/model")
+            if doc is not None:
+                print(json.dumps(doc, indent=2))
+        return 0 if ok else 1
+    except TimeoutError as exc:
+        print(f"error: {exc}")
+        return 2
+    finally:
+        node.destroy_node()
+        rclpy.shutdown()
