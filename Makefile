@@ -19,7 +19,7 @@ setup: $(STAMP)
 
 ## The main job: the ROS pipeline on the robot-arm data (bag -> node -> identify).
 run: $(STAMP)
-	ROS_DOMAIN_ID=61 $(BIN)/python -m spm_sysid.tools.pipeline --out out/run
+	ROS_DOMAIN_ID=61 $(BIN)/python -m spm_sysid.ros.pipeline --out out/run
 
 ## The offline identification on the robot-arm data.
 identify: $(STAMP)

@@ -82,6 +82,7 @@ def run_job(stamps_ns: np.ndarray, u: np.ndarray, y: np.ndarray, settings: JobSe
     stamps_ns, u, y : ndarray, shape (n,)
         The snapshot, oldest first.
     settings : JobSettings
+        Term space, criterion, GA and validation settings.
     progress : callable, optional
         Called as ``progress(generation, best, evaluations)`` every
         ``settings.progress_every`` generations.

@@ -17,6 +17,9 @@ Parameters (``--ros-args -p name:=value``):
 ``wait_for_subscribers`` (int, 0)  wait until each topic has this many matched
     subscribers before playing (at most ``wait_timeout`` seconds)
 ``wait_timeout`` (double, 10.0)
+``settle_time`` (double, 0.5)  seconds to wait after the subscribers matched:
+    discovery completes on the subscriber's side a little after the publisher
+    sees it, and a reliable, volatile subscriber misses what was sent before
 
 It logs how many messages it published per topic and exits with status 0 at
 the end (or keeps looping); a bag it cannot read ends it with status 1 and one
@@ -76,10 +79,12 @@ class BagPlayer(Node):
             description="matched subscribers per topic before playing", read_only=True))
         self.declare_parameter("wait_timeout", 10.0, ParameterDescriptor(
             description="longest wait for subscribers, seconds", read_only=True))
+        self.declare_parameter("settle_time", 0.5, ParameterDescriptor(
+            description="seconds to wait after subscribers matched", read_only=True))
 
         p = {name: self.get_parameter(name).value for name in (
             "bag", "rate", "start_delay", "loop", "topics", "remap", "qos_depth",
-            "wait_for_subscribers", "wait_timeout")}
+            "wait_for_subscribers", "wait_timeout", "settle_time")}
         if not p["bag"]:
             raise BagError("parameter 'bag' is required (--ros-args -p bag:=PATH)")
         if not p["rate"] > 0:
@@ -90,6 +95,7 @@ class BagPlayer(Node):
         self.loop = bool(p["loop"])
         self.wait_for = int(p["wait_for_subscribers"])
         self.wait_timeout = float(p["wait_timeout"])
+        self.settle_time = max(0.0, float(p["settle_time"]))
         selected = [t for t in p["topics"] if t]
         remap = {}
         for item in (r for r in p["remap"] if r):
@@ -131,6 +137,7 @@ class BagPlayer(Node):
         while not self._stop.is_set() and time.monotonic() < deadline:
             counts = [pub.get_subscription_count() for pub in self.publishers_by_topic.values()]
             if min(counts, default=0) >= self.wait_for:
+                self._stop.wait(self.settle_time)
                 return
             time.sleep(0.02)
         self.get_logger().warning(

@@ -1,0 +1,183 @@
+"""The main job end to end: bag -> bag_player -> sysid_node -> ~/identify -> figures.
+
+``make run`` calls this. It generates the robot-arm bag (if missing), starts
+``sysid_node`` and ``bag_player`` as separate processes, waits for the replay,
+calls ``~/identify``, prints the model and its validation, writes the figures
+and the model document, stops its processes and exits 0 (non-zero with one
+error line if any step fails). ROS traffic stays on this machine
+(``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``) in its own ``ROS_DOMAIN_ID``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+__all__ = ["main"]
+
+
+class PipelineError(RuntimeError):
+    """A step of the pipeline failed."""
+
+
+def _ros_env(domain: int) -> dict[str, str]:
+    env = dict(os.environ)
+    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    env["ROS_DOMAIN_ID"] = str(domain)
+    env["PYTHONUNBUFFERED"] = "1"
+    return env
+
+
+def _stop(proc: subprocess.Popen | None, timeout: float = 10.0) -> None:
+    if proc is None or proc.poll() is not None:
+        return
+    proc.send_signal(signal.SIGINT)
+    try:
+        proc.wait(timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
+def _wait_for_samples(node, expected: int, timeout: float) -> int:
+    """Watch /diagnostics until the buffer holds ``expected`` pairs; returns the count."""
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    seen = {"samples": -1}
+
+    def on_diag(msg):
+        for st in msg.status:
+            if st.name.endswith(": buffer"):
+                kv = {k.key: k.value for k in st.values}
+                seen["samples"] = int(kv.get("samples", -1))
+
+    sub = node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 10)
+    deadline = time.monotonic() + timeout
+    try:
+        while time.monotonic() < deadline and seen["samples"] < expected:
+            rclpy.spin_once(node, timeout_sec=0.1)
+    finally:
+        node.destroy_subscription(sub)
+    return seen["samples"]
+
+
+def run(args) -> int:
+    """Run the pipeline; raises PipelineError on a failed step."""
+    from ..core.bagio import read_bag_signals, write_io_bag
+    from ..core.data import find_robot_arm, load_io
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    data_path = Path(args.data) if args.data else find_robot_arm()
+    bag = Path(args.bag)
+    if args.force_bag or not (bag / "metadata.yaml").exists():
+        u, y = load_io(data_path)
+        write_io_bag(bag, u, y, rate_hz=args.bag_rate, overwrite=True)
+        print(f"[1/6] wrote bag {bag} from {data_path} ({len(u)} samples per topic)")
+    else:
+        print(f"[1/6] using bag {bag}")
+    signals = read_bag_signals(bag)
+    expected = len(signals.y)
+
+    env = _ros_env(args.domain)
+    os.environ.update({k: env[k] for k in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_DOMAIN_ID")})
+    node_log = open(out / "sysid_node.log", "w")
+    node_proc = player = None
+    import rclpy
+    from rclpy.node import Node
+    from std_srvs.srv import Trigger
+
+    from .client import call_trigger, wait_for_model
+
+    rclpy.init()
+    client = Node("spm_sysid_pipeline")
+    try:
+        node_proc = subprocess.Popen(
+            [sys.executable, "-m", "spm_sysid.ros.sysid_node", "--ros-args",
+             "-p", f"criterion:={args.criterion}", "-p", f"seed:={args.seed}",
+             "-p", f"model_path:={(out / 'model.json').resolve()}"],
+            stdout=node_log, stderr=subprocess.STDOUT, env=env)
+        print(f"[2/6] started sysid_node (pid {node_proc.pid}, ROS_DOMAIN_ID {args.domain}, "
+              f"log {out / 'sysid_node.log'})")
+        ident = client.create_client(Trigger,
+                                     "/spm_sysid/identify")
+        if not ident.wait_for_service(timeout_sec=30.0):
+            raise PipelineError("sysid_node did not offer /spm_sysid/identify within 30 s")
+        client.destroy_client(ident)
+
+        t0 = time.monotonic()
+        player = subprocess.run(
+            [sys.executable, "-m", "spm_sysid.ros.bag_player", "--ros-args",
+             "-p", f"bag:={bag}", "-p", f"rate:={args.rate}", "-p", "wait_for_subscribers:=1"],
+            capture_output=True, text=True, env=env, timeout=600)
+        if player.returncode != 0:
+            raise PipelineError(f"bag_player failed: {player.stderr.strip()}")
+        print(f"[3/6] replayed {bag} at {args.rate:g}x in {time.monotonic() - t0:.1f} s")
+        have = _wait_for_samples(client, expected, timeout=15.0)
+        if have < expected:
+            raise PipelineError(f"the node buffered {have} of {expected} samples")
+        print(f"[4/6] sysid_node buffered {have} paired samples")
+
+        ok, message = call_trigger(client, "/spm_sysid/identify", timeout=600.0)
+        if not ok:
+            raise PipelineError(f"~/identify refused: {message}")
+        print(f"[5/6] ~/identify: {message}")
+        doc = wait_for_model(client, "/spm_sysid/model")
+        if doc is None:
+            raise PipelineError("no model on /spm_sysid/model")
+    finally:
+        _stop(node_proc)
+        node_log.close()
+        client.destroy_node()
+        rclpy.shutdown()
+
+    from ..core.model import NarxModel
+    from ..core.validation import validate_model
+    from ..tools.plots import write_model_figures
+
+    model = NarxModel.from_dict(doc)
+    (out / "model.json").write_text(json.dumps(doc, indent=2) + "\n")
+    report = validate_model(model, signals.u, signals.y)
+    figures = write_model_figures(report, out / "figures")
+    print("[6/6] model (published on /spm_sysid/model):")
+    print(f"  {model.equation()}")
+    print(f"  {model.criterion.upper()} = {model.criterion_value:.2f}, "
+          f"{len(model.terms)} terms, MSE {model.mse:.4e}")
+    print("\n".join("  " + line for line in report.summary().splitlines()))
+    print(f"  model document: {out / 'model.json'}; figures: "
+          f"{', '.join(str(p) for p in figures if p.suffix == '.png')}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Command-line entry (``python -m spm_sysid.ros.pipeline``)."""
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--out", default="out/run", help="output directory (default out/run)")
+    p.add_argument("--data", help="data file (default: the robot-arm data)")
+    p.add_argument("--bag", default="bags/robot_arm", help="bag directory (default bags/robot_arm)")
+    p.add_argument("--force-bag", action="store_true", help="regenerate the bag")
+    p.add_argument("--bag-rate", type=float, default=100.0, help="nominal rate of a new bag, Hz")
+    p.add_argument("--rate", type=float, default=10.0, help="replay speed factor (default 10)")
+    p.add_argument("--criterion", default="aic")
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--domain", type=int,
+                   default=int(os.environ.get("ROS_DOMAIN_ID", "61") or 61),
+                   help="ROS_DOMAIN_ID for this run (default: $ROS_DOMAIN_ID or 61)")
+    args = p.parse_args(argv)
+    try:
+        return run(args)
+    except (PipelineError, ValueError, OSError, TimeoutError,
+            subprocess.TimeoutExpired) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
