@@ -17,7 +17,7 @@ Parameters (``--ros-args -p name:=value``):
 ``wait_for_subscribers`` (int, 0)  wait until each topic has this many matched
     subscribers before playing (at most ``wait_timeout`` seconds)
 ``wait_timeout`` (double, 10.0)
-``settle_time`` (double, 0.5)  seconds to wait after the subscribers matched:
+``settle_time`` (double, 1.0)  seconds to wait after the subscribers matched:
     discovery completes on the subscriber's side a little after the publisher
     sees it, and a reliable, volatile subscriber misses what was sent before
 
@@ -79,7 +79,7 @@ class BagPlayer(Node):
             description="matched subscribers per topic before playing", read_only=True))
         self.declare_parameter("wait_timeout", 10.0, ParameterDescriptor(
             description="longest wait for subscribers, seconds", read_only=True))
-        self.declare_parameter("settle_time", 0.5, ParameterDescriptor(
+        self.declare_parameter("settle_time", 1.0, ParameterDescriptor(
             description="seconds to wait after subscribers matched", read_only=True))
 
         p = {name: self.get_parameter(name).value for name in (

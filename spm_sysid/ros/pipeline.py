@@ -45,27 +45,30 @@ def _stop(proc: subprocess.Popen | None, timeout: float = 10.0) -> None:
         proc.wait()
 
 
-def _wait_for_samples(node, expected: int, timeout: float) -> int:
-    """Watch /diagnostics until the buffer holds ``expected`` pairs; returns the count."""
+def wait_for_buffer(node, done, timeout: float) -> dict:
+    """Watch the sysid node's buffer status on /diagnostics until ``done(values)``.
+
+    Returns the last key/value pairs seen (empty if none arrived).
+    """
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
 
-    seen = {"samples": -1}
+    seen: dict = {}
 
     def on_diag(msg):
         for st in msg.status:
             if st.name.endswith(": buffer"):
-                kv = {k.key: k.value for k in st.values}
-                seen["samples"] = int(kv.get("samples", -1))
+                seen.clear()
+                seen.update({k.key: k.value for k in st.values})
 
     sub = node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 10)
     deadline = time.monotonic() + timeout
     try:
-        while time.monotonic() < deadline and seen["samples"] < expected:
+        while time.monotonic() < deadline and not (seen and done(seen)):
             rclpy.spin_once(node, timeout_sec=0.1)
     finally:
         node.destroy_subscription(sub)
-    return seen["samples"]
+    return seen
 
 
 def run(args) -> int:
@@ -111,6 +114,10 @@ def run(args) -> int:
         if not ident.wait_for_service(timeout_sec=30.0):
             raise PipelineError("sysid_node did not offer /spm_sysid/identify within 30 s")
         client.destroy_client(ident)
+        # Start the replay only once the node is fully up (its worker process too): a
+        # volatile subscriber misses what is sent before discovery completes on its side.
+        if not wait_for_buffer(client, lambda kv: kv.get("worker_ready") == "True", 60.0):
+            raise PipelineError("sysid_node published no diagnostics within 60 s")
 
         t0 = time.monotonic()
         player = subprocess.run(
@@ -120,7 +127,8 @@ def run(args) -> int:
         if player.returncode != 0:
             raise PipelineError(f"bag_player failed: {player.stderr.strip()}")
         print(f"[3/6] replayed {bag} at {args.rate:g}x in {time.monotonic() - t0:.1f} s")
-        have = _wait_for_samples(client, expected, timeout=15.0)
+        have = int(wait_for_buffer(client, lambda kv: int(kv["samples"]) >= expected,
+                                   15.0).get("samples", 0))
         if have < expected:
             raise PipelineError(f"the node buffered {have} of {expected} samples")
         print(f"[4/6] sysid_node buffered {have} paired samples")

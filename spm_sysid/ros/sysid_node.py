@@ -35,8 +35,8 @@ from rcl_interfaces.msg import (
     ParameterDescriptor,
     SetParametersResult,
 )
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import (
     DurabilityPolicy,
@@ -44,6 +44,7 @@ from rclpy.qos import (
     QoSProfile,
     ReliabilityPolicy,
 )
+from rclpy.task import Future
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
 from std_srvs.srv import Trigger
 
@@ -103,8 +104,10 @@ PARAMETERS = {
     "output_topic": ("/robot_arm/acceleration", _text("output signal topic", True)),
     "output_type": ("geometry_msgs/msg/AccelStamped", _text("output message type", True)),
     "output_field": ("", _text("field path of y (empty: the type's default)", True)),
-    "qos_depth": (1000, _int("subscription queue depth", 1, 100000, True)),
-    "best_effort": (False, _text("subscribe best-effort (for best-effort sensors)", True)),
+    "qos_depth": (1000, _int("subscription queue depth (keep-last history only)", 1, 100000,
+                             True)),
+    "best_effort": (False, _text("subscribe best-effort, keep-last qos_depth (for "
+                                 "best-effort sensors); default: reliable, keep-all", True)),
     "buffer_capacity": (100000, _int("most sample pairs kept (oldest dropped)", 10,
                                      10_000_000, True)),
     "stamp_tolerance": (0.0005, _float("largest input/output stamp difference of a pair, s",
@@ -148,27 +151,30 @@ class SysidNode(Node):
         self.buffer = SampleBuffer(p["buffer_capacity"], int(round(p["stamp_tolerance"] * 1e9)))
         self._in = self._signal(p["input_type"], p["input_field"])
         self._out = self._signal(p["output_type"], p["output_field"])
-        qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=p["qos_depth"],
-                         reliability=ReliabilityPolicy.BEST_EFFORT if p["best_effort"]
-                         else ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.VOLATILE)
-        # Callback groups: recording never waits for a service; ~/identify is reentrant
-        # so a second request is answered (refused) while the first one runs.
-        recording = MutuallyExclusiveCallbackGroup()
+        if p["best_effort"]:
+            qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=p["qos_depth"],
+                             reliability=ReliabilityPolicy.BEST_EFFORT,
+                             durability=DurabilityPolicy.VOLATILE)
+        else:  # reliable and keep-all: a burst waits in the queue instead of being dropped
+            qos = QoSProfile(history=HistoryPolicy.KEEP_ALL,
+                             reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.VOLATILE)
+        # One executor thread does everything quickly (rclpy's multi-threaded executor
+        # takes too long per message for 2 kHz). ~/identify is a coroutine that awaits
+        # the worker process, so recording goes on while it runs; its group is
+        # reentrant so a second request is answered (refused) meanwhile.
         services = ReentrantCallbackGroup()
-        housekeeping = MutuallyExclusiveCallbackGroup()
-        self.create_subscription(self._in[0], p["input_topic"], self._on_input, qos,
-                                 callback_group=recording)
-        self.create_subscription(self._out[0], p["output_topic"], self._on_output, qos,
-                                 callback_group=recording)
+        self.create_subscription(self._in[0], p["input_topic"], self._on_input, qos)
+        self.create_subscription(self._out[0], p["output_topic"], self._on_output, qos)
         self.model_pub = self.create_publisher(String, "~/model", LATCHED)
         self.coef_pub = self.create_publisher(Float64MultiArray, "~/coefficients", LATCHED)
         self.resid_pub = self.create_publisher(Float64MultiArray, "~/residuals", LATCHED)
         self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_service(Trigger, "~/identify", self._on_identify, callback_group=services)
         self.create_service(Trigger, "~/clear", self._on_clear, callback_group=services)
-        self.create_timer(p["diagnostics_period"], self._publish_diagnostics,
-                          callback_group=housekeeping)
+        self.create_timer(p["diagnostics_period"], self._publish_diagnostics)
+        # Triggered from the pool's thread when a job ends, to wake the executor.
+        self._wake = self.create_guard_condition(lambda: None)
 
         self._busy = threading.Lock()
         self._started: float | None = None
@@ -180,7 +186,8 @@ class SysidNode(Node):
         self._progress_queue = ctx.Queue()
         self._pool = ProcessPoolExecutor(1, mp_context=ctx, initializer=_init_worker,
                                          initargs=(self._progress_queue,))
-        self._pool.submit(int)  # start the worker now, not on the first request
+        # start the worker now, not on the first request; diagnostics say when it is ready
+        self._worker_ready = self._pool.submit(int)
         self._closing = threading.Event()
         threading.Thread(target=self._drain_progress, name="progress", daemon=True).start()
         self.get_logger().info(
@@ -244,7 +251,7 @@ class SysidNode(Node):
         self.get_logger().info(response.message)
         return response
 
-    def _on_identify(self, request, response):
+    async def _on_identify(self, request, response):
         if not self._busy.acquire(blocking=False):
             response.success = False
             response.message = (f"an identification is already running (started "
@@ -270,7 +277,7 @@ class SysidNode(Node):
                                    f"{settings.population_size}, {settings.generations} "
                                    f"generations, SPM {settings.spm_fraction})")
             try:
-                result = self._pool.submit(_worker_job, stamps, u, y, settings).result()
+                result = await self._run_in_worker(stamps, u, y, settings)
             except BrokenProcessPool:
                 self._restart_pool()
                 raise RuntimeError("the worker process died") from None
@@ -289,10 +296,27 @@ class SysidNode(Node):
             self._started = None
             self._busy.release()
 
+    def _run_in_worker(self, stamps, u, y, settings) -> Future:
+        """Submit the job to the worker process; an awaitable rclpy Future of its result."""
+        done = Future()
+        job = self._pool.submit(_worker_job, stamps, u, y, settings)
+
+        def finished(job):  # runs in the pool's thread
+            exc = job.exception()
+            if exc is None:
+                done.set_result(job.result())
+            else:
+                done.set_exception(exc)
+            self._wake.trigger()
+
+        job.add_done_callback(finished)
+        return done
+
     def _restart_pool(self) -> None:
         ctx = multiprocessing.get_context("spawn")
         self._pool = ProcessPoolExecutor(1, mp_context=ctx, initializer=_init_worker,
                                          initargs=(self._progress_queue,))
+        self._worker_ready = self._pool.submit(int)
 
     # -- results -----------------------------------------------------------------------
     def _publish_result(self, result: dict, values: dict) -> None:
@@ -339,7 +363,8 @@ class SysidNode(Node):
             message=(f"{stats['samples']} paired samples" + (f", {lost} rejected" if lost
                                                               else "")),
             values=[KeyValue(key=k, value=str(v)) for k, v in stats.items()]
-            + [KeyValue(key="field_errors", value=str(self._field_errors))])
+            + [KeyValue(key="field_errors", value=str(self._field_errors)),
+               KeyValue(key="worker_ready", value=str(self._worker_ready.done()))])
         statuses = [buf]
         if self._started is not None and self._progress is not None:
             gen, best, evals = self._progress
@@ -384,7 +409,7 @@ class SysidNode(Node):
 def main(args: list[str] | None = None) -> int:
     """Run the node until interrupted."""
     rclpy.init(args=args)
-    executor = MultiThreadedExecutor(num_threads=4)
+    executor = SingleThreadedExecutor()
     node = None
     status = 0
     try:
