@@ -1,0 +1,104 @@
+"""The sample buffer on its own (no ROS)."""
+
+import threading
+
+import numpy as np
+import pytest
+
+from spm_sysid.core.buffer import SampleBuffer
+
+
+def test_pairs_identical_stamps_in_order():
+    b = SampleBuffer(10)
+    for k in range(5):
+        assert b.add_input(k * 100, float(k))
+        assert b.add_output(k * 100, -float(k))
+    st, u, y = b.snapshot()
+    assert st.tolist() == [0, 100, 200, 300, 400]
+    assert u.tolist() == [0, 1, 2, 3, 4] and y.tolist() == [0, -1, -2, -3, -4]
+    assert b.stats.paired == 5 and b.stats.pending_inputs == 0
+
+
+def test_tolerance_and_unpaired_samples_are_counted():
+    b = SampleBuffer(10, tolerance_ns=10)
+    b.add_input(0, 1.0)
+    b.add_output(5, 2.0)        # within 10 ns: paired
+    b.add_input(100, 3.0)
+    b.add_output(150, 4.0)      # 50 ns away: no pair; input 100 can never pair now
+    b.add_input(152, 5.0)       # pairs with output 150
+    s = b.stats
+    assert len(b) == 2 and s.unpaired_inputs == 1 and s.unpaired_outputs == 0
+    assert b.snapshot()[1].tolist() == [1.0, 5.0]
+
+
+def test_nonfinite_and_out_of_order_are_rejected_and_counted():
+    b = SampleBuffer(10)
+    assert not b.add_input(0, float("nan"))
+    assert not b.add_output(0, float("inf"))
+    assert b.add_input(10, 1.0)
+    assert not b.add_input(5, 2.0)    # older than the last input
+    assert not b.add_input(10, 2.0)   # same stamp again
+    assert b.add_output(10, 3.0)
+    s = b.stats
+    assert s.rejected_nonfinite == 2 and s.rejected_out_of_order == 2
+    assert len(b) == 1 and s.received_inputs == 4 and s.received_outputs == 2
+
+
+def test_full_buffer_drops_the_oldest_and_counts_them():
+    b = SampleBuffer(3)
+    for k in range(7):
+        b.add_input(k, float(k))
+        b.add_output(k, float(k))
+    st, u, _ = b.snapshot()
+    assert st.tolist() == [4, 5, 6] and u.tolist() == [4.0, 5.0, 6.0]
+    assert b.stats.dropped_oldest == 4 and b.stats.samples == 3
+
+
+def test_pending_is_bounded():
+    b = SampleBuffer(10, max_pending=5)
+    for k in range(8):
+        b.add_input(k, 1.0)
+    assert b.stats.pending_inputs == 5 and b.stats.unpaired_inputs == 3
+
+
+def test_clear_and_snapshot_is_a_copy():
+    b = SampleBuffer(10)
+    b.add_input(1, 1.0)
+    b.add_output(1, 2.0)
+    st, u, y = b.snapshot()
+    u[0] = 99.0
+    assert b.snapshot()[1][0] == 1.0
+    assert b.clear() == 1 and len(b) == 0 and b.stats.cleared == 1
+    b.add_input(0, 1.0)  # stamps may restart after a clear
+    b.add_output(0, 1.0)
+    assert len(b) == 1
+
+
+def test_concurrent_writers_and_snapshots_lose_nothing():
+    b = SampleBuffer(100_000)
+    n = 20_000
+
+    def writer(add):
+        for k in range(n):
+            add(k * 1000, float(k))
+
+    threads = [threading.Thread(target=writer, args=(b.add_input,)),
+               threading.Thread(target=writer, args=(b.add_output,))]
+    for t in threads:
+        t.start()
+    sizes = []
+    while any(t.is_alive() for t in threads):
+        st, u, y = b.snapshot()
+        assert np.array_equal(u, y)  # every snapshot is consistent
+        sizes.append(len(st))
+    for t in threads:
+        t.join()
+    assert len(b) == n and b.stats.unpaired_inputs + b.stats.unpaired_outputs == 0
+    assert sizes == sorted(sizes)
+
+
+def test_invalid_buffer_settings():
+    with pytest.raises(ValueError):
+        SampleBuffer(0)
+    with pytest.raises(ValueError):
+        SampleBuffer(10, tolerance_ns=-1)
