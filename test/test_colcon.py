@@ -1,0 +1,61 @@
+"""colcon builds the package; the installed sysid_node runs and offers its service."""
+
+import os
+import shutil
+import subprocess
+import sys
+
+import pytest
+
+from .conftest import ROOT
+from .ros_harness import Harness, stop
+
+
+@pytest.fixture(scope="module")
+def workspace(tmp_path_factory):
+    colcon = shutil.which("colcon") or str(ROOT / ".venv" / "bin" / "colcon")
+    if not os.path.exists(colcon):
+        pytest.skip("colcon is not installed")
+    ws = tmp_path_factory.mktemp("ws")
+    (ws / "src").mkdir()
+    os.symlink(ROOT, ws / "src" / "spm_sysid")
+    r = subprocess.run([colcon, "build", "--build-base", str(ws / "build"),
+                        "--install-base", str(ws / "install")],
+                       cwd=ws, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    return ws
+
+
+def test_install_tree(workspace):
+    pkg = workspace / "install" / "spm_sysid"
+    for exe in ("sysid_node", "bag_player"):
+        path = pkg / "lib" / "spm_sysid" / exe
+        assert path.is_file() and os.access(path, os.X_OK), exe
+    assert (pkg / "share" / "ament_index" / "resource_index" / "packages" / "spm_sysid").exists()
+    assert "<name>spm_sysid</name>" in (pkg / "share" / "spm_sysid" / "package.xml").read_text()
+    assert (pkg / "share" / "spm_sysid" / "config" / "sysid_node.yaml").exists()
+    site = next((pkg / "lib").glob("python3*/site-packages/spm_sysid/ros/sysid_node.py"))
+    assert site.exists()
+
+
+def test_installed_node_offers_its_service(workspace, ros_env):
+    pkg = workspace / "install" / "spm_sysid"
+    site = next((pkg / "lib").glob("python3*/site-packages"))
+    env = dict(ros_env)
+    env["PYTHONPATH"] = os.pathsep.join([str(site), env.get("PYTHONPATH", "")])
+    env["AMENT_PREFIX_PATH"] = os.pathsep.join([str(pkg), env.get("AMENT_PREFIX_PATH", "")])
+    # where does the installed executable import the package from?
+    probe = subprocess.run([sys.executable, "-c", "import spm_sysid; print(spm_sysid.__file__)"],
+                           env=env, capture_output=True, text=True, cwd=workspace)
+    assert probe.stdout.strip().startswith(str(site))
+    node = subprocess.Popen([str(pkg / "lib" / "spm_sysid" / "sysid_node"), "--ros-args",
+                             "-p", "min_samples:=10"], env=env, cwd=workspace,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
+    harness = Harness(ros_env)
+    try:
+        harness.wait_ready()
+        res = harness.call("/spm_sysid/identify")
+        assert not res.success and "too few samples: 0 paired samples" in res.message
+    finally:
+        harness.close()
+        stop(node)
