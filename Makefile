@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 # ROS traffic stays on this machine; each target picks its own domain.
 export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
 
-.PHONY: setup run identify test lint bench bag experiment report clean
+.PHONY: setup run identify test lint bench bench-node bag experiment report clean
 
 $(STAMP): setup.py package.xml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -45,3 +45,7 @@ report: $(STAMP)
 
 clean:
 	rm -rf build install log out .pytest_cache
+
+## Node benchmark: ingest at 1 kHz for 60 s, identify latency, memory with 100000 pairs.
+bench-node: $(STAMP)
+	$(BIN)/python -m spm_sysid.ros.bench_node

@@ -97,8 +97,15 @@ def test_diagnostics_report_buffer_and_correlation_tests(ros_env, harness, arm_b
         harness.diag.clear()
         harness.spin_until(lambda: "correlation ee" in harness.statuses(), 10)
         st = harness.statuses()
+        # the documented example client, as another node in its own process
+        example = subprocess.run([sys.executable, str(ROOT / "examples" /
+                                                      "identify_from_node.py")],
+                                 capture_output=True, text=True, env=ros_env, timeout=120)
     finally:
         stop(node)
+    assert example.returncode == 0, example.stderr
+    assert "identified: y(t) = 3.158y(t-1)" in example.stderr
+    assert "model: y(t) = 3.158*y(t-1) + -4.439*y(t-2)" in example.stderr
     assert st["buffer"][0] == 0 and st["buffer"][2]["samples"] == "1024"
     assert st["identification"][0] == 0
     # eq. (1) leaves residual autocorrelation outside the band (paper Fig. 5): WARN

@@ -1,0 +1,168 @@
+"""Benchmark of sysid_node: ingest, identify latency, memory (``make bench-node``).
+
+1. Ingest: a publisher process sends both topics at ``--rate`` Hz for
+   ``--seconds`` s; compares what it published with what the node received.
+2. Identify latency: the robot-arm data (1024 samples) in the buffer, then
+   ``~/identify`` at the paper's settings ``--repeats`` times; median service
+   round trip and the search's own time.
+3. Memory: the node's resident memory empty and with a full buffer of
+   ``--capacity`` pairs.
+
+Prints figures; asserts nothing. ROS traffic stays on this machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import time
+
+__all__ = ["main"]
+
+
+def _rss_mb(pid: int) -> float:
+    with open(f"/proc/{pid}/status") as f:
+        for line in f:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def publish(rate: float, count: int, data: str) -> None:
+    """Publisher process: ``count`` messages per topic at ``rate`` Hz, stamped with the
+    wall clock (as a live driver would), the same stamp on both topics.
+    """
+    import rclpy
+    from geometry_msgs.msg import AccelStamped, WrenchStamped
+    from rclpy.node import Node
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    from ..core.data import load_robot_arm
+
+    u, y = load_robot_arm() if data == "robot_arm" else ([0.1, 0.2, 0.3], [1.0, 0.5, 0.2])
+    rclpy.init()
+    node = Node("bench_publisher")
+    qos = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE)
+    pw = node.create_publisher(WrenchStamped, "/robot_arm/torque", qos)
+    pa = node.create_publisher(AccelStamped, "/robot_arm/acceleration", qos)
+    while pw.get_subscription_count() < 1 or pa.get_subscription_count() < 1:
+        time.sleep(0.05)
+    time.sleep(1.0)
+    w, a = WrenchStamped(), AccelStamped()
+    t0 = time.monotonic()
+    late = 0
+    for k in range(count):
+        delay = t0 + k / rate - time.monotonic()
+        if delay > 0:
+            time.sleep(delay)
+        elif delay < -0.01:
+            late += 1
+        ns = time.time_ns()
+        w.header.stamp.sec, w.header.stamp.nanosec = divmod(ns, 10**9)
+        a.header.stamp = w.header.stamp
+        w.wrench.torque.z = float(u[k % len(u)])
+        a.accel.linear.x = float(y[k % len(y)])
+        pw.publish(w)
+        pa.publish(a)
+    elapsed = time.monotonic() - t0
+    time.sleep(1.0)
+    print(json.dumps({"published": count, "seconds": elapsed, "late": late}), flush=True)
+    node.destroy_node()
+    rclpy.shutdown()
+
+
+def run(args) -> None:
+    import rclpy
+    from rclpy.node import Node
+
+    from .client import call_trigger
+    from .pipeline import wait_for_buffer
+
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+               ROS_DOMAIN_ID=str(args.domain), PYTHONUNBUFFERED="1")
+    os.environ.update({k: env[k] for k in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_DOMAIN_ID")})
+    node = subprocess.Popen([sys.executable, "-m", "spm_sysid.ros.sysid_node", "--ros-args",
+                             "-p", f"buffer_capacity:={args.capacity}", "-p", "seed:=1"],
+                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
+    rclpy.init()
+    client = Node("bench_client")
+
+    def pub(rate, count, data):
+        p = subprocess.run([sys.executable, "-m", "spm_sysid.ros.bench_node", "--publish",
+                            str(rate), str(count), data], env=env, capture_output=True,
+                           text=True, timeout=count / rate + 120)
+        return json.loads(p.stdout.strip().splitlines()[-1])
+
+    try:
+        wait_for_buffer(client, lambda kv: kv.get("worker_ready") == "True", 60)
+        rss_empty = _rss_mb(node.pid)
+
+        # 1. ingest
+        count = int(args.rate * args.seconds)
+        sent = pub(args.rate, count, "synthetic")
+        kv = wait_for_buffer(client, lambda kv: int(kv["received_outputs"]) >= count, 30)
+        lost_u = count - int(kv["received_inputs"])
+        lost_y = count - int(kv["received_outputs"])
+        print(f"ingest: {count} messages per topic at {args.rate:g} Hz over "
+              f"{sent['seconds']:.1f} s (publisher late by >10 ms: {sent['late']}); node "
+              f"received {kv['received_inputs']} inputs, {kv['received_outputs']} outputs, "
+              f"paired {kv['paired']}; lost {lost_u} inputs, {lost_y} outputs")
+
+        # 3. memory with a full buffer (fill the rest quickly)
+        have = int(kv["samples"])
+        if have < args.capacity:
+            pub(args.fill_rate, args.capacity - have + 10, "synthetic")
+            kv = wait_for_buffer(client, lambda kv: int(kv["samples"]) >= args.capacity, 60)
+        rss_full = _rss_mb(node.pid)
+        print(f"memory: node RSS {rss_empty:.1f} MB empty, {rss_full:.1f} MB with "
+              f"{kv['samples']} of {args.capacity} pairs buffered (+{rss_full - rss_empty:.1f} MB;"
+              f" the ring buffer's arrays are {3 * 8 * args.capacity / 1e6:.1f} MB)")
+
+        # 2. identify latency on 1024 samples
+        call_trigger(client, "/spm_sysid/clear", 30)
+        pub(args.fill_rate, 1024, "robot_arm")
+        wait_for_buffer(client, lambda kv: int(kv["samples"]) >= 1024, 60)
+        rounds, searches = [], []
+        for _ in range(args.repeats):
+            t0 = time.perf_counter()
+            ok, message = call_trigger(client, "/spm_sysid/identify", 300)
+            rounds.append(time.perf_counter() - t0)
+            if not ok:
+                raise RuntimeError(message)
+            searches.append(float(message.rsplit(", ", 1)[-1].rstrip(" s")))
+        print(f"identify latency (1024 samples, population 200, 300 generations, SPM 0.15, "
+              f"AIC): median service round trip {statistics.median(rounds):.3f} s, median "
+              f"identify+validate in the worker {statistics.median(searches):.3f} s "
+              f"({args.repeats} calls)")
+    finally:
+        node.send_signal(2)
+        node.wait(20)
+        client.destroy_node()
+        rclpy.shutdown()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Command-line entry."""
+    p = argparse.ArgumentParser(description="benchmark sysid_node")
+    p.add_argument("--rate", type=float, default=1000.0)
+    p.add_argument("--seconds", type=float, default=60.0)
+    p.add_argument("--capacity", type=int, default=100_000)
+    p.add_argument("--fill-rate", type=float, default=4000.0)
+    p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--domain", type=int, default=64)
+    p.add_argument("--publish", nargs=3, metavar=("RATE", "COUNT", "DATA"),
+                   help=argparse.SUPPRESS)
+    args = p.parse_args(argv)
+    if args.publish:
+        publish(float(args.publish[0]), int(args.publish[1]), args.publish[2])
+        return 0
+    run(args)
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
