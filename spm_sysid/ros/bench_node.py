@@ -33,8 +33,9 @@ def _rss_mb(pid: int) -> float:
 
 
 def publish(rate: float, count: int, data: str) -> None:
-    """Publisher process: ``count`` messages per topic at ``rate`` Hz, stamped with the
-    wall clock (as a live driver would), the same stamp on both topics.
+    """Publisher process: ``count`` messages per topic at ``rate`` Hz.
+
+    Stamped with the wall clock (as a live driver would), the same on both topics.
     """
     import rclpy
     from geometry_msgs.msg import AccelStamped, WrenchStamped
