@@ -75,8 +75,9 @@ def test_clear_and_snapshot_is_a_copy():
 
 
 def test_concurrent_writers_and_snapshots_lose_nothing():
-    b = SampleBuffer(100_000)
     n = 20_000
+    # one writer may run far ahead of the other: let every sample wait for its partner
+    b = SampleBuffer(100_000, max_pending=n)
 
     def writer(add):
         for k in range(n):

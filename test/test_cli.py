@@ -61,3 +61,28 @@ def test_bench_prints_figures():
     r = spm("bench", "--repeats", "1", "--naive-repeats", "1", "--generations", "15")
     assert r.returncode == 0, r.stderr
     assert "naive/engine time ratio" in r.stdout and "cache hits" in r.stdout
+
+
+def test_identify_plots_and_validate_saved_model_on_other_data(tmp_path, robot_arm_path):
+    model = tmp_path / "m.json"
+    figs = tmp_path / "figs"
+    r = spm("identify", "--criterion", "bic", "--seed", "2", "--json", str(model),
+            "--plots", str(figs), "--validation", "holdout", "--split", "0.5")
+    assert r.returncode == 0, r.stderr
+    assert "validation on holdout data (516 samples)" in r.stdout
+    assert "512 samples used for estimation" in r.stdout
+    names = sorted(p.name for p in figs.iterdir())
+    assert names == sorted(f"model_{k}.{e}" for k in ("correlation", "one_step", "free_run")
+                           for e in ("png", "svg"))
+    doc = json.loads(model.read_text())
+    assert doc["metadata"]["validation"]["segment"] == "holdout"
+    # validate on a different data file: the second half, written as CSV
+    lines = robot_arm_path.read_text().splitlines()[512:]
+    other = tmp_path / "other.csv"
+    other.write_text("u,y\n" + "\n".join(ln.replace(" ", ",") for ln in lines) + "\n")
+    r = spm("validate", str(model), "--data", str(other), "--plots", str(tmp_path / "v"))
+    assert r.returncode == 0, r.stderr
+    assert "validation on supplied data (512 samples)" in r.stdout
+    assert (tmp_path / "v" / "model_free_run.png").stat().st_size > 1000
+    r = spm("validate", str(tmp_path / "missing.json"))
+    assert r.returncode == 2 and "model file not found" in r.stderr

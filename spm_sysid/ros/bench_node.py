@@ -116,8 +116,16 @@ def run(args) -> None:
         # 3. memory with a full buffer (fill the rest quickly)
         have = int(kv["samples"])
         if have < args.capacity:
-            pub(args.fill_rate, args.capacity - have + 10, "synthetic")
-            kv = wait_for_buffer(client, lambda kv: int(kv["samples"]) >= args.capacity, 60)
+            extra = args.capacity - have + 10
+            target = int(kv["received_outputs"]) + extra
+            t0 = time.monotonic()
+            sent = pub(args.fill_rate, extra, "synthetic")
+            kv = wait_for_buffer(client, lambda kv: int(kv["received_outputs"]) >= target, 300)
+            took = time.monotonic() - t0 - 1.0  # the publisher waits 1 s before sending
+            print(f"fill: {extra} pairs offered at {args.fill_rate:g} Hz, received in "
+                  f"{took:.1f} s ({extra / took:.0f} pairs/s; publisher "
+                  f"{sent['seconds']:.1f} s); lost "
+                  f"{target - int(kv['received_outputs'])} outputs")
         rss_full = _rss_mb(node.pid)
         print(f"memory: node RSS {rss_empty:.1f} MB empty, {rss_full:.1f} MB with "
               f"{kv['samples']} of {args.capacity} pairs buffered (+{rss_full - rss_empty:.1f} MB;"
@@ -152,7 +160,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--rate", type=float, default=1000.0)
     p.add_argument("--seconds", type=float, default=60.0)
     p.add_argument("--capacity", type=int, default=100_000)
-    p.add_argument("--fill-rate", type=float, default=4000.0)
+    p.add_argument("--fill-rate", type=float, default=2000.0)
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--domain", type=int, default=64)
     p.add_argument("--publish", nargs=3, metavar=("RATE", "COUNT", "DATA"),
