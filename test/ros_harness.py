@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import os
-import signal
 import subprocess
 import sys
 import time
@@ -17,6 +16,7 @@ from rcl_interfaces.srv import SetParameters
 from rclpy.node import Node
 from std_srvs.srv import Trigger
 
+from spm_sysid.ros.pipeline import stop_process
 from spm_sysid.ros.sysid_node import LATCHED
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -33,14 +33,7 @@ def start_node(env, *params, params_file=None, log=None):
                             stderr=subprocess.STDOUT, cwd=ROOT)
 
 
-def stop(proc, timeout=10):
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+stop = stop_process
 
 
 class Harness:

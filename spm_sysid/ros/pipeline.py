@@ -19,7 +19,7 @@ import sys
 import time
 from pathlib import Path
 
-__all__ = ["main"]
+__all__ = ["main", "stop_process", "wait_for_buffer"]
 
 
 class PipelineError(RuntimeError):
@@ -34,7 +34,8 @@ def _ros_env(domain: int) -> dict[str, str]:
     return env
 
 
-def _stop(proc: subprocess.Popen | None, timeout: float = 10.0) -> None:
+def stop_process(proc: subprocess.Popen | None, timeout: float = 10.0) -> None:
+    """Interrupt a child process (SIGINT, as Ctrl-C), kill it if it does not end."""
     if proc is None or proc.poll() is not None:
         return
     proc.send_signal(signal.SIGINT)
@@ -141,7 +142,7 @@ def run(args) -> int:
         if doc is None:
             raise PipelineError("no model on /spm_sysid/model")
     finally:
-        _stop(node_proc)
+        stop_process(node_proc)
         node_log.close()
         client.destroy_node()
         rclpy.shutdown()
