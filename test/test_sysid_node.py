@@ -114,8 +114,10 @@ def test_diagnostics_report_buffer_and_correlation_tests(ros_env, harness, arm_b
 
 
 def test_no_sample_lost_at_1khz_while_identify_runs(ros_env, harness):
-    # a long search (3000 generations) so recording and identification overlap
-    node = start_node(ros_env, "generations:=3000", "min_samples:=500", "seed:=3")
+    # a long search (6000 generations, several seconds) so recording and identification
+    # overlap, and diagnostics (every 0.2 s) show it running
+    node = start_node(ros_env, "generations:=6000", "min_samples:=500", "seed:=3",
+                      "diagnostics_period:=0.2")
     try:
         harness.wait_ready()
         pub = publisher(ros_env, 1000, 6000)  # 1 kHz on both topics for 6 s
