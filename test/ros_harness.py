@@ -140,9 +140,9 @@ class Harness:
 
 
 def publisher(env, *args):
-    """Start the test signal publisher; returns the process (JSON lines on stdout)."""
-    return subprocess.Popen([sys.executable, str(ROOT / "test" / "helpers" /
-                                                 "publish_signals.py"), *map(str, args)],
+    """Start the signal publisher; returns the process (JSON lines on stdout)."""
+    return subprocess.Popen([sys.executable, "-m", "spm_sysid.ros.signal_publisher",
+                             *map(str, args)],
                             env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             cwd=ROOT)
 

@@ -32,50 +32,6 @@ def _rss_mb(pid: int) -> float:
     return float("nan")
 
 
-def publish(rate: float, count: int, data: str) -> None:
-    """Publisher process: ``count`` messages per topic at ``rate`` Hz.
-
-    Stamped with the wall clock (as a live driver would), the same on both topics.
-    """
-    import rclpy
-    from geometry_msgs.msg import AccelStamped, WrenchStamped
-    from rclpy.node import Node
-    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
-
-    from ..core.data import load_robot_arm
-
-    u, y = load_robot_arm() if data == "robot_arm" else ([0.1, 0.2, 0.3], [1.0, 0.5, 0.2])
-    rclpy.init()
-    node = Node("bench_publisher")
-    qos = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE)
-    pw = node.create_publisher(WrenchStamped, "/robot_arm/torque", qos)
-    pa = node.create_publisher(AccelStamped, "/robot_arm/acceleration", qos)
-    while pw.get_subscription_count() < 1 or pa.get_subscription_count() < 1:
-        time.sleep(0.05)
-    time.sleep(1.0)
-    w, a = WrenchStamped(), AccelStamped()
-    t0 = time.monotonic()
-    late = 0
-    for k in range(count):
-        delay = t0 + k / rate - time.monotonic()
-        if delay > 0:
-            time.sleep(delay)
-        elif delay < -0.01:
-            late += 1
-        ns = time.time_ns()
-        w.header.stamp.sec, w.header.stamp.nanosec = divmod(ns, 10**9)
-        a.header.stamp = w.header.stamp
-        w.wrench.torque.z = float(u[k % len(u)])
-        a.accel.linear.x = float(y[k % len(y)])
-        pw.publish(w)
-        pa.publish(a)
-    elapsed = time.monotonic() - t0
-    time.sleep(1.0)
-    print(json.dumps({"published": count, "seconds": elapsed, "late": late}), flush=True)
-    node.destroy_node()
-    rclpy.shutdown()
-
-
 def run(args) -> None:
     import rclpy
     from rclpy.node import Node
@@ -93,9 +49,10 @@ def run(args) -> None:
     client = Node("bench_client")
 
     def pub(rate, count, data):
-        p = subprocess.run([sys.executable, "-m", "spm_sysid.ros.bench_node", "--publish",
-                            str(rate), str(count), data], env=env, capture_output=True,
-                           text=True, timeout=count / rate + 120)
+        p = subprocess.run([sys.executable, "-m", "spm_sysid.ros.signal_publisher",
+                            str(rate), str(count), "--data", data, "--stamps", "wall"],
+                           env=env, capture_output=True, text=True,
+                           timeout=count / rate + 120)
         return json.loads(p.stdout.strip().splitlines()[-1])
 
     try:
@@ -104,7 +61,7 @@ def run(args) -> None:
 
         # 1. ingest
         count = int(args.rate * args.seconds)
-        sent = pub(args.rate, count, "synthetic")
+        sent = pub(args.rate, count, "ramp")
         kv = wait_for_buffer(client, lambda kv: int(kv["received_outputs"]) >= count, 30)
         lost_u = count - int(kv["received_inputs"])
         lost_y = count - int(kv["received_outputs"])
@@ -119,13 +76,12 @@ def run(args) -> None:
             extra = args.capacity - have + 10
             target = int(kv["received_outputs"]) + extra
             t0 = time.monotonic()
-            sent = pub(args.fill_rate, extra, "synthetic")
+            sent = pub(args.fill_rate, extra, "ramp")
             kv = wait_for_buffer(client, lambda kv: int(kv["received_outputs"]) >= target, 300)
-            took = time.monotonic() - t0 - 1.0  # the publisher waits 1 s before sending
-            print(f"fill: {extra} pairs offered at {args.fill_rate:g} Hz, received in "
-                  f"{took:.1f} s ({extra / took:.0f} pairs/s; publisher "
-                  f"{sent['seconds']:.1f} s); lost "
-                  f"{target - int(kv['received_outputs'])} outputs")
+            took = time.monotonic() - t0
+            print(f"fill: {extra} pairs offered at {args.fill_rate:g} Hz (sent in "
+                  f"{sent['seconds']:.1f} s), all received {took:.1f} s after starting the "
+                  f"publisher process; lost {target - int(kv['received_outputs'])} outputs")
         rss_full = _rss_mb(node.pid)
         print(f"memory: node RSS {rss_empty:.1f} MB empty, {rss_full:.1f} MB with "
               f"{kv['samples']} of {args.capacity} pairs buffered (+{rss_full - rss_empty:.1f} MB;"
@@ -163,12 +119,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--fill-rate", type=float, default=2000.0)
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--domain", type=int, default=64)
-    p.add_argument("--publish", nargs=3, metavar=("RATE", "COUNT", "DATA"),
-                   help=argparse.SUPPRESS)
     args = p.parse_args(argv)
-    if args.publish:
-        publish(float(args.publish[0]), int(args.publish[1]), args.publish[2])
-        return 0
     run(args)
     return 0
 

@@ -1,0 +1,97 @@
+"""Publish input/output samples on the robot-arm topics at a fixed rate.
+
+A stand-in for a robot driver, used by the node benchmark and the tests::
+
+    python -m spm_sysid.ros.signal_publisher RATE COUNT [--data robot_arm|PATH|ramp]
+        [--stamps index|wall] [--start-ns S] [--output-offset-ns D] [--nan-every K]
+
+It waits until both topics have a subscriber (plus a settle second, so the
+subscriber's side of discovery is complete), publishes COUNT messages per topic
+(the data repeat if shorter) with the same stamp on both topics -- ``start + k /
+rate`` (``index``) or the wall clock (``wall``) -- shifts output stamps by D ns,
+replaces every K-th output with NaN, then prints one JSON line: what it did.
+Publishers are reliable and keep-all, so nothing is dropped on this side.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+
+__all__ = ["main"]
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Command-line entry; returns the exit status."""
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("rate", type=float, help="messages per second per topic")
+    p.add_argument("count", type=int, help="messages per topic")
+    p.add_argument("--data", default="robot_arm",
+                   help="robot_arm (default), ramp, or a data file path")
+    p.add_argument("--stamps", choices=("index", "wall"), default="index")
+    p.add_argument("--start-ns", type=int, default=0)
+    p.add_argument("--output-offset-ns", type=int, default=0)
+    p.add_argument("--nan-every", type=int, default=0)
+    p.add_argument("--input-topic", default="/robot_arm/torque")
+    p.add_argument("--output-topic", default="/robot_arm/acceleration")
+    a = p.parse_args(argv)
+
+    import rclpy
+    from geometry_msgs.msg import AccelStamped, WrenchStamped
+    from rclpy.node import Node
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    from ..core.data import load_io, load_robot_arm
+
+    if a.data == "robot_arm":
+        u, y = load_robot_arm()
+    elif a.data == "ramp":
+        u = [float(k) for k in range(a.count)]
+        y = [-float(k) for k in range(a.count)]
+    else:
+        u, y = load_io(a.data)
+    rclpy.init()
+    node = Node("signal_publisher")
+    qos = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE)
+    pub_u = node.create_publisher(WrenchStamped, a.input_topic, qos)
+    pub_y = node.create_publisher(AccelStamped, a.output_topic, qos)
+    try:
+        while pub_u.get_subscription_count() < 1 or pub_y.get_subscription_count() < 1:
+            time.sleep(0.05)
+        time.sleep(1.0)
+        print(json.dumps({"started": True}), flush=True)
+        w, acc = WrenchStamped(), AccelStamped()
+        nans = late = 0
+        t0 = time.monotonic()
+        for k in range(a.count):
+            delay = t0 + k / a.rate - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            elif delay < -0.01:
+                late += 1
+            ns = time.time_ns() if a.stamps == "wall" else a.start_ns + round(k * 1e9 / a.rate)
+            w.header.stamp.sec, w.header.stamp.nanosec = divmod(ns, 10**9)
+            acc.header.stamp.sec, acc.header.stamp.nanosec = divmod(ns + a.output_offset_ns,
+                                                                    10**9)
+            w.wrench.torque.z = float(u[k % len(u)])
+            acc.accel.linear.x = float(y[k % len(y)])
+            if a.nan_every and k % a.nan_every == 0:
+                acc.accel.linear.x = math.nan
+                nans += 1
+            pub_u.publish(w)
+            pub_y.publish(acc)
+        elapsed = time.monotonic() - t0
+        time.sleep(1.0)  # let reliable delivery finish before the publishers go away
+        print(json.dumps({"published": a.count, "nans": nans, "seconds": elapsed,
+                          "late": late}), flush=True)
+    finally:
+        node.destroy_node()
+        rclpy.shutdown()
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
