@@ -168,10 +168,13 @@ class StructureEvaluator:
         """Fraction of lookups answered from the cache."""
         return 1.0 - self.evaluations / self.lookups if self.lookups else 0.0
 
-    def score(self, masks: np.ndarray) -> np.ndarray:
-        """Criterion values for a population, shape (B,); fits only unseen structures."""
+    def score(self, masks: np.ndarray, keys: np.ndarray | None = None) -> np.ndarray:
+        """Criterion values for a population, shape (B,); fits only unseen structures.
+
+        ``keys`` (from :func:`structure_keys`) may be passed when the caller has them.
+        """
         masks = np.asarray(masks, dtype=bool)
-        keys = structure_keys(masks)
+        keys = structure_keys(masks) if keys is None else keys
         self.lookups += len(keys)
         cache = self._cache
         todo: dict[int, int] = {}
@@ -314,8 +317,8 @@ class NaiveEvaluator:
 
     cache_hit_rate = 0.0
 
-    def score(self, masks: np.ndarray) -> np.ndarray:
-        """Criterion values, one lstsq per row."""
+    def score(self, masks: np.ndarray, keys: np.ndarray | None = None) -> np.ndarray:
+        """Criterion values, one lstsq per row (``keys`` is ignored: no cache)."""
         masks = np.asarray(masks, dtype=bool)
         out = np.empty(len(masks))
         for i, mask in enumerate(masks):

@@ -239,7 +239,7 @@ class _Scorer:
     evaluations: int
     lookups: int
 
-    def score(self, masks: np.ndarray) -> np.ndarray: ...
+    def score(self, masks: np.ndarray, keys: np.ndarray | None = None) -> np.ndarray: ...
 
 
 def run_ga(
@@ -272,7 +272,8 @@ def run_ga(
     result = GAResult(best_mask=pop[0].copy(), best_score=np.inf, first_best_generation=0)
     best_key: bytes | None = None
     for gen in range(config.generations + 1):
-        scores = evaluator.score(pop)
+        keys = structure_keys(pop)
+        scores = evaluator.score(pop, keys)
         i_best = int(np.argmin(scores))
         if scores[i_best] < result.best_score or best_key is None:
             result.best_score = float(scores[i_best])
@@ -284,7 +285,7 @@ def run_ga(
             generation=gen,
             best=result.best_score,
             mean=float(finite.mean()) if finite.size else float("inf"),
-            distinct=len(np.unique(structure_keys(pop))),
+            distinct=len(np.unique(keys)),
             evaluations=evaluator.evaluations - evals0,
             elapsed=time.perf_counter() - start,
         )
