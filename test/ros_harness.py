@@ -13,6 +13,7 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from std_srvs.srv import Trigger
 
@@ -44,19 +45,17 @@ class Harness:
         rclpy.init(context=self.context, domain_id=int(env["ROS_DOMAIN_ID"]))
         os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
         self.node = Node("test_harness", context=self.context)
+        self._executor = SingleThreadedExecutor(context=self.context)
+        self._executor.add_node(self.node)
         self.diag: list[DiagnosticArray] = []
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self.diag.append, 50)
 
     def close(self):
+        self._executor.shutdown()
         self.node.destroy_node()
         rclpy.shutdown(context=self.context)
 
     def _spin_once(self, timeout):
-        from rclpy.executors import SingleThreadedExecutor
-
-        if not hasattr(self, "_executor"):
-            self._executor = SingleThreadedExecutor(context=self.context)
-            self._executor.add_node(self.node)
         self._executor.spin_once(timeout_sec=timeout)
 
     def spin_until(self, predicate, timeout):

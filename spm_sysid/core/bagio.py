@@ -33,6 +33,7 @@ __all__ = [
     "DEFAULT_RATE_HZ",
     "BagError",
     "BagSignals",
+    "open_bag",
     "pair_by_stamp",
     "read_bag_signals",
     "typestore",
@@ -192,7 +193,8 @@ class BagSignals:
         return self.input_count + self.output_count - 2 * len(self.u)
 
 
-def _open_reader(path: Path):
+def open_bag(path: Path):
+    """An open rosbags AnyReader for a bag directory or ``.mcap`` file, or a BagError."""
     from rosbags.highlevel import AnyReader
 
     if not path.exists():
@@ -230,7 +232,7 @@ def read_bag_signals(
         non-finite values, or no pairs.
     """
     path = Path(path)
-    reader = _open_reader(path)
+    reader = open_bag(path)
     try:
         conns = {c.topic: c for c in reader.connections}
         for topic in (input_topic, output_topic):

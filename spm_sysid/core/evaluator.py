@@ -337,10 +337,17 @@ class NaiveEvaluator:
         if rank < cols.size or np.any(norms == 0):
             return np.inf
         resid = self.target - A @ theta
-        beta = np.zeros((1, self.n_terms))
-        beta[0, cols] = theta * norms / self._y_norm
-        value = float(self.criterion(resid @ resid, self.n, np.array([cols.size]), beta)[0])
-        return value if np.isfinite(value) else np.inf
+        return _score_one(self.criterion, float(resid @ resid), self.n, self.n_terms, cols,
+                          theta * norms / self._y_norm)
+
+
+def _score_one(crit: Criterion, sse: float, n: int, n_terms: int, cols: np.ndarray,
+               beta_selected: np.ndarray) -> float:
+    """Criterion value of one fitted structure; non-finite values become +inf."""
+    beta = np.zeros((1, n_terms))
+    beta[0, cols] = beta_selected
+    value = float(crit(sse, n, np.array([cols.size]), beta)[0])
+    return value if np.isfinite(value) else np.inf
 
 
 def reference_score(
@@ -353,10 +360,6 @@ def reference_score(
     fit = reference_fit(P, target, mask, rank_tol)
     if fit.rank_deficient or not mask.any():
         return np.inf
-    beta = np.zeros((1, P.shape[1]))
     cols = np.flatnonzero(mask)
-    beta[0, cols] = fit.coefficients * np.linalg.norm(P[:, cols], axis=0) / (
-        np.linalg.norm(target) or 1.0
-    )
-    value = float(crit(fit.sse, P.shape[0], np.array([cols.size]), beta)[0])
-    return value if np.isfinite(value) else np.inf
+    beta = fit.coefficients * np.linalg.norm(P[:, cols], axis=0) / (np.linalg.norm(target) or 1.0)
+    return _score_one(crit, fit.sse, P.shape[0], P.shape[1], cols, beta)

@@ -41,7 +41,7 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from ..core.bagio import BagError, _open_reader
+from ..core.bagio import BagError, open_bag
 
 __all__ = ["BagPlayer", "main", "message_class"]
 
@@ -104,7 +104,7 @@ class BagPlayer(Node):
                 raise BagError(f"remap entry {item!r} must look like from:=to")
             remap[src] = dst
 
-        reader = _open_reader(self.bag)  # fails early, with a clear message
+        reader = open_bag(self.bag)  # fails early, with a clear message
         try:
             topics = {c.topic: c.msgtype for c in reader.connections}
         finally:
@@ -165,7 +165,7 @@ class BagPlayer(Node):
             self.finished.set()
 
     def _play_once(self) -> None:
-        reader = _open_reader(self.bag)
+        reader = open_bag(self.bag)
         try:
             conns = [c for c in reader.connections if c.topic in self.topics]
             start_wall = time.monotonic()
