@@ -38,10 +38,13 @@ def test_nonfinite_and_out_of_order_are_rejected_and_counted():
     assert b.add_input(10, 1.0)
     assert not b.add_input(5, 2.0)    # older than the last input
     assert not b.add_input(10, 2.0)   # same stamp again
+    assert b.stats.held_out_of_order == 2  # held: could be the start of a jump back
     assert b.add_output(10, 3.0)
+    assert b.add_input(20, 4.0)       # in order again: the two late samples were outliers
     s = b.stats
     assert s.rejected_nonfinite == 2 and s.rejected_out_of_order == 2
-    assert len(b) == 1 and s.received_inputs == 4 and s.received_outputs == 2
+    assert s.held_out_of_order == 0 and s.time_jumps == 0
+    assert len(b) == 1 and s.received_inputs == 5 and s.received_outputs == 2
 
 
 def test_full_buffer_drops_the_oldest_and_counts_them():
@@ -103,3 +106,34 @@ def test_invalid_buffer_settings():
         SampleBuffer(0)
     with pytest.raises(ValueError):
         SampleBuffer(10, tolerance_ns=-1)
+
+
+def test_far_future_stamp_costs_one_sample_and_recovers_by_itself():
+    b = SampleBuffer(1000, resync_samples=5)
+    for k in range(10):
+        b.add_input(k * 10, float(k))
+        b.add_output(k * 10, float(k))
+    b.add_input(10**15, 99.0)           # one input stamped far in the future
+    for k in range(10, 40):
+        b.add_input(k * 10, float(k))
+        b.add_output(k * 10, float(k))
+    st, u, y = b.snapshot()
+    s = b.stats
+    assert s.time_jumps == 1 and s.discarded_on_jump == 1
+    assert u.tolist() == [float(k) for k in range(40)] == y.tolist()  # nothing else lost
+    assert s.pending_inputs == s.pending_outputs == s.held_out_of_order == 0
+    assert s.rejected_out_of_order == 0 and s.unpaired_outputs == 0
+
+
+def test_replayed_timeline_becomes_a_new_segment():
+    from spm_sysid.core.segments import find_segments
+
+    b = SampleBuffer(1000)
+    for rep in range(2):               # the same 50 stamps twice, as a replayed bag
+        for k in range(50):
+            b.add_input(k * 10, float(k + 100 * rep))
+            b.add_output(k * 10, float(k + 100 * rep))
+    st, u, _ = b.snapshot()
+    assert len(u) == 100 and b.stats.time_jumps == 2  # each stream jumped once
+    info = find_segments(st)
+    assert info.bounds == [(0, 50), (50, 100)] and info.restarts == 1 and info.gaps == 0

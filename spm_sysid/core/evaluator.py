@@ -122,6 +122,9 @@ class StructureEvaluator:
         See :func:`spm_sysid.core.criteria.get_criterion`.
     rank_tol : float
         See the module docstring.
+    sse_scale : float
+        Factor from the SSE of ``target`` to the SSE in the user's units (when
+        the caller scaled the data).
 
     Attributes
     ----------
@@ -137,10 +140,14 @@ class StructureEvaluator:
         target: np.ndarray,
         criterion: str | Criterion = "aic",
         rank_tol: float = DEFAULT_RANK_TOL,
+        sse_scale: float = 1.0,
     ) -> None:
         P = np.asarray(P, dtype=float)
         target = np.asarray(target, dtype=float)
         self.criterion = get_criterion(criterion)
+        # SSE of the data as the user gave it = SSE here * sse_scale (identify scales
+        # u and y by powers of two, which is exact, so criteria see the user's units)
+        self.sse_scale = float(sse_scale)
         self.n, self.n_terms = P.shape
         self.rank_tol = rank_tol
         norms = np.linalg.norm(P, axis=0)
@@ -197,7 +204,7 @@ class StructureEvaluator:
         sse, beta, bad = self.fit_batch(masks)
         k = masks.sum(axis=1)
         with np.errstate(invalid="ignore", divide="ignore"):
-            values = self.criterion(sse, self.n, k, beta)
+            values = self.criterion(sse * self.sse_scale, self.n, k, beta)
         return np.where(bad | (k == 0) | ~np.isfinite(values), np.inf, values)
 
     def fit_batch(self, masks: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:

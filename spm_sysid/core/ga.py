@@ -36,6 +36,7 @@ import numpy as np
 from .evaluator import structure_keys
 
 __all__ = [
+    "FITNESS_TRANSFORMS",
     "GAConfig",
     "GAResult",
     "GenerationStats",
@@ -46,6 +47,10 @@ __all__ = [
     "run_ga",
     "spm_mating",
 ]
+
+
+#: Roulette-wheel fitness transforms (see :func:`roulette_fitness`).
+FITNESS_TRANSFORMS = ("akaike", "rank", "window")
 
 
 @dataclass(frozen=True)
@@ -91,6 +96,9 @@ class GAConfig:
             value = getattr(self, name)
             if not 0.0 <= value <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {value!r}")
+        if self.fitness not in FITNESS_TRANSFORMS:
+            raise ValueError(f"fitness must be one of {', '.join(FITNESS_TRANSFORMS)}, got "
+                             f"{self.fitness!r}")
         if not 0.0 <= self.spm_fraction <= 0.5:
             raise ValueError(
                 f"spm_fraction must be in [0, 0.5] (pairs with inverses make 2s of the "
@@ -157,7 +165,15 @@ class GAResult:
 
 
 def roulette_fitness(scores: np.ndarray, kind: str = "window") -> np.ndarray:
-    """Positive roulette-wheel fitness from minimised scores (windowing, see module doc)."""
+    """Positive roulette-wheel fitness from minimised scores (see the module doc).
+
+    Raises
+    ------
+    ValueError
+        For a ``kind`` not in :data:`FITNESS_TRANSFORMS`.
+    """
+    if kind not in FITNESS_TRANSFORMS:
+        raise ValueError(f"fitness must be one of {', '.join(FITNESS_TRANSFORMS)}, got {kind!r}")
     scores = np.asarray(scores, dtype=float)
     finite = np.isfinite(scores)
     if not finite.any():

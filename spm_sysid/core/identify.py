@@ -17,7 +17,8 @@ from .data import DataError, check_samples
 from .evaluator import StructureEvaluator
 from .ga import GAConfig, GAResult, GenerationStats, run_ga
 from .model import NarxModel
-from .terms import TermSpace
+from .segments import normalise_segments, usable_segments
+from .terms import TermSpace, power_of_two_scale
 
 __all__ = ["IdentificationResult", "identify", "validate_signals"]
 
@@ -44,7 +45,9 @@ class IdentificationResult:
         )
 
 
-def validate_signals(u, y, term_space: TermSpace) -> tuple[np.ndarray, np.ndarray]:
+def validate_signals(u, y, term_space: TermSpace,
+                     segments: list[tuple[int, int]] | None = None
+                     ) -> tuple[np.ndarray, np.ndarray]:
     """Check and convert u, y at the public boundary.
 
     Raises
@@ -65,7 +68,16 @@ def validate_signals(u, y, term_space: TermSpace) -> tuple[np.ndarray, np.ndarra
                 f"{name} has {bad.size} non-finite value(s) (NaN or inf), first at index "
                 f"{bad[0]}"
             )
-    check_samples(len(y), term_space.max_lag, term_space.n_terms)
+    if segments is None:
+        check_samples(len(y), term_space.max_lag, term_space.n_terms)
+    else:
+        rows = sum(b - a - term_space.max_lag for a, b in segments)
+        if rows <= term_space.n_terms:
+            raise DataError(
+                f"too few samples: {len(segments)} segment(s) longer than the largest lag "
+                f"({term_space.max_lag}) give {max(rows, 0)} regression rows, but "
+                f"{term_space.n_terms + 1} or more are needed for {term_space.n_terms} "
+                "candidate terms")
     return u, y
 
 
@@ -78,13 +90,14 @@ def identify(
     ga: GAConfig | None = None,
     seed: int | None = None,
     callback: Callable[[GenerationStats], bool | None] | None = None,
+    segments: list[tuple[int, int]] | None = None,
 ) -> IdentificationResult:
     """Select a NARX structure with the SPM-GA and fit it.
 
     Parameters
     ----------
     u, y : ndarray, shape (n,)
-        Input and output samples, equally spaced.
+        Input and output samples, equally spaced (within each segment).
     term_space : TermSpace, optional
         Candidate terms; default: the paper's (ny=4, nu=4, degree 2, delay 1).
     criterion : str, Criterion or callable
@@ -95,22 +108,49 @@ def identify(
         Makes the run reproducible.
     callback : callable, optional
         Progress hook, see :func:`spm_sysid.core.ga.run_ga`.
+    segments : list of (start, stop), optional
+        Contiguous parts of the record (``[start, stop)`` indices, e.g. from
+        :func:`spm_sysid.core.segments.find_segments`): regression rows are built
+        inside each and fitted together, never across a gap. Segments no longer
+        than the largest lag are skipped. Default: the whole record.
+
+    Notes
+    -----
+    u and y are scaled internally by powers of two (exact), so data of any
+    magnitude identify alike; coefficients and criteria are in the user's units.
+    Candidate terms whose regressor is zero on all rows (e.g. every term with u
+    when the input is zero) are left out of the search, and the result says so
+    (``model.metadata["excluded_zero_terms"]``).
     """
     term_space = term_space or TermSpace()
     crit = get_criterion(criterion)
-    u, y = validate_signals(u, y, term_space)
+    if segments is not None:
+        segments = normalise_segments(segments, len(np.asarray(y)))
+        segments, _, _ = usable_segments(segments, term_space.max_lag)
+        if not segments:
+            raise DataError(f"no segment of the data is longer than the largest lag "
+                            f"({term_space.max_lag}): nothing to fit")
+    u, y = validate_signals(u, y, term_space, segments)
+    if not np.any(y):
+        raise DataError("the output y is zero throughout: there is nothing to identify")
     ga = ga or GAConfig()
-    P = term_space.regression_matrix(u, y)
-    target = term_space.target(y)
-    evaluator = StructureEvaluator(P, target, crit)
+    su, sy = power_of_two_scale(u), power_of_two_scale(y)
+    P, target = term_space.regression(u / su, y / sy, segments)
+    nonzero = np.any(P != 0, axis=0)
+    names = term_space.term_names()
+    excluded = [names[i] for i in np.flatnonzero(~nonzero)]
+    evaluator = StructureEvaluator(P[:, nonzero], target, crit, sse_scale=sy * sy)
     result = run_ga(evaluator, ga, seed=seed, callback=callback)
     if not np.isfinite(result.best_score):
         raise DataError(
-            "no structure could be fitted: every candidate was rank-deficient "
-            "(is the input or output constant?)"
+            "no structure could be fitted: every structure the search tried has linearly "
+            "dependent regressors on this data (repeated or constant signals?)"
         )
+    full_mask = np.zeros(term_space.n_terms, dtype=bool)
+    full_mask[np.flatnonzero(nonzero)] = result.best_mask
+    result.best_mask = full_mask
     model = NarxModel.fit(
-        u, y, result.best_mask, term_space,
+        u, y, full_mask, term_space, segments=segments,
         criterion=crit.name, criterion_value=result.best_score,
         metadata={
             "ga": ga.to_dict(),
@@ -119,6 +159,7 @@ def identify(
             "first_best_generation": result.first_best_generation,
             "evaluations": result.evaluations,
             "search_seconds": round(result.elapsed, 4),
+            **({"excluded_zero_terms": excluded} if excluded else {}),
         },
     )
     return IdentificationResult(model=model, ga=result, criterion=crit.name, seed=seed)

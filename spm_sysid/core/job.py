@@ -14,12 +14,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .data import DataError
 from .ga import GAConfig
 from .identify import identify
+from .segments import find_segments, usable_segments
 from .terms import TermSpace
-from .validation import split_data, validate_model
+from .validation import split_segments, validate_model
 
-__all__ = ["JobSettings", "run_job"]
+__all__ = ["JobSettings", "describe_data", "run_job"]
 
 
 @dataclass
@@ -42,6 +44,8 @@ class JobSettings:
     validation: str = "estimation"  # or "holdout"
     validation_split: float = 0.5
     correlation_lags: int = 20
+    sample_period: float = 0.0  # seconds; 0: estimated from the stamps
+    gap_factor: float = 1.5
     progress_every: int = 25
     extra: dict = field(default_factory=dict)
 
@@ -71,6 +75,11 @@ class JobSettings:
                              f"{self.validation_split}")
         if self.correlation_lags < 1:
             raise ValueError("correlation_lags must be >= 1")
+        if not (self.sample_period >= 0 and np.isfinite(self.sample_period)):
+            raise ValueError(f"sample_period must be >= 0 seconds (0: estimate from the "
+                             f"stamps), got {self.sample_period}")
+        if not self.gap_factor > 1:
+            raise ValueError(f"gap_factor must be > 1, got {self.gap_factor}")
 
 
 def run_job(stamps_ns: np.ndarray, u: np.ndarray, y: np.ndarray, settings: JobSettings,
@@ -97,25 +106,35 @@ def run_job(stamps_ns: np.ndarray, u: np.ndarray, y: np.ndarray, settings: JobSe
     t0 = time.perf_counter()
     settings.check()
     space = settings.term_space()
-    u_est, y_est, u_val, y_val = u, y, u, y
+    period_ns = int(round(settings.sample_period * 1e9)) or None
+    info = find_segments(stamps_ns, period_ns, settings.gap_factor)
+    bounds, skipped, skipped_samples = usable_segments(info.bounds, space.max_lag)
+    data = {**info.to_dict(), "used_samples": sum(b - a for a, b in bounds),
+            "used_segments": len(bounds), "skipped_segments": skipped,
+            "skipped_samples": skipped_samples}
+    if not bounds:
+        raise DataError(
+            f"no contiguous segment is longer than the largest lag ({space.max_lag}): "
+            f"{len(y)} samples in {len(info.bounds)} segment(s) with {info.gaps} gap(s)")
+    est, val = bounds, bounds
     if settings.validation == "holdout":
-        (u_est, y_est), (u_val, y_val) = split_data(u, y, settings.validation_split,
-                                                    space.max_lag)
+        est, val = split_segments(bounds, len(y), settings.validation_split, space.max_lag)
 
     def callback(stats):
         if progress is not None and (stats.generation % settings.progress_every == 0
                                      or stats.generation == settings.generations):
             progress(stats.generation, stats.best, stats.evaluations)
 
-    result = identify(u=u_est, y=y_est, term_space=space, criterion=settings.criterion,
-                      ga=settings.ga(), seed=settings.seed, callback=callback)
+    result = identify(u=u, y=y, term_space=space, criterion=settings.criterion,
+                      ga=settings.ga(), seed=settings.seed, callback=callback, segments=est)
     model = result.model
-    report = validate_model(model, u_val, y_val, max_lag=settings.correlation_lags,
-                            segment=settings.validation)
+    report = validate_model(model, u, y, max_lag=settings.correlation_lags,
+                            segment=settings.validation, segments=val)
     seconds = time.perf_counter() - t0
     model.metadata.update({
         "validation": report.to_dict(),
-        "samples_used": int(len(y)),
+        "samples_used": data["used_samples"],
+        "data": data,
         "first_stamp_ns": int(stamps_ns[0]),
         "last_stamp_ns": int(stamps_ns[-1]),
         "identify_seconds": round(seconds, 4),
@@ -127,7 +146,7 @@ def run_job(stamps_ns: np.ndarray, u: np.ndarray, y: np.ndarray, settings: JobSe
     summary = (
         f"{model.equation()} | {settings.criterion.upper()} {result.ga.best_score:.2f}, "
         f"{len(model.term_indices)} terms, one-step MSE {model.mse:.4e}, "
-        f"{len(y)} samples ({settings.validation} validation: one-step fit "
+        f"{describe_data(data)} ({settings.validation} validation: one-step fit "
         f"{o['fit_percent']:.1f} %, free-run fit {f['fit_percent']:.1f} %, correlation tests "
         f"{'all inside the band' if not failed else 'outside the band: ' + ', '.join(failed)}"
         f"), {seconds:.2f} s"
@@ -137,4 +156,19 @@ def run_job(stamps_ns: np.ndarray, u: np.ndarray, y: np.ndarray, settings: JobSe
         "residuals": report.residuals.tolist(),
         "summary": summary,
         "seconds": seconds,
+        "data": data,
     }
+
+
+def describe_data(data: dict) -> str:
+    """One phrase on what data a result used: samples, segments, gaps, skipped parts."""
+    text = f"{data['used_samples']} samples"
+    if data["segments"] > 1 or data["gaps"]:
+        text += (f" in {data['used_segments']} contiguous segment(s); {data['gaps']} gap(s) "
+                 f"({data['missing_samples']} samples missing)")
+        if data["restarts"]:
+            text += f", {data['restarts']} restart(s) of the stamps"
+        if data["skipped_segments"]:
+            text += (f", {data['skipped_segments']} segment(s) too short to use "
+                     f"({data['skipped_samples']} samples)")
+    return text

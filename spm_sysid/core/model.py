@@ -17,7 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from .evaluator import reference_fit
-from .terms import TermSpace
+from .files import atomic_write_text
+from .terms import TermSpace, power_of_two_scale
 
 __all__ = ["MODEL_SCHEMA", "MODEL_SCHEMA_VERSION", "ModelFormatError", "NarxModel"]
 
@@ -65,9 +66,12 @@ class NarxModel:
     @classmethod
     def fit(
         cls, u: np.ndarray, y: np.ndarray, mask: np.ndarray, term_space: TermSpace,
-        **info,
+        segments: list[tuple[int, int]] | None = None, **info,
     ) -> NarxModel:
         """Least-squares fit (Householder QR) of the structure ``mask`` on u, y.
+
+        ``segments`` (``[start, stop)`` ranges of contiguous samples) keep every
+        regression row inside one segment; None is the whole record.
 
         Raises
         ------
@@ -79,8 +83,11 @@ class NarxModel:
             raise ValueError(f"mask must have {term_space.n_terms} entries, got {mask.shape}")
         if not mask.any():
             raise ValueError("cannot fit a structure with no terms")
-        P = term_space.regression_matrix(u, y)
-        target = term_space.target(y)
+        u = np.asarray(u, dtype=float)
+        y = np.asarray(y, dtype=float)
+        # exact power-of-two scaling keeps data of any magnitude clear of overflow
+        su, sy = power_of_two_scale(u), power_of_two_scale(y)
+        P, target = term_space.regression(u / su, y / sy, segments)
         res = reference_fit(P, target, mask)
         if res.rank_deficient:
             names = [term_space.term_names()[i] for i in np.flatnonzero(mask)]
@@ -88,9 +95,10 @@ class NarxModel:
         return cls(
             term_space=term_space,
             term_indices=[int(i) for i in np.flatnonzero(mask)],
-            coefficients=res.coefficients,
-            mse=res.sse / len(target),
-            n_samples=len(y),
+            coefficients=res.coefficients * term_space.coefficient_factors(su, sy)[mask],
+            mse=res.sse * sy * sy / len(target),
+            n_samples=len(y) if segments is None else sum(
+                b - a for a, b in segments if b - a > term_space.max_lag),
             **info,
         )
 
@@ -123,14 +131,33 @@ class NarxModel:
         return "y(t) = " + ("".join(parts) if parts else "0")
 
     # -- prediction -------------------------------------------------------------------
-    def predict(self, u: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """One-step-ahead prediction for t = max_lag..len-1 from measured u and y."""
-        P = self.term_space.regression_matrix(u, y)
+    def predict(self, u: np.ndarray, y: np.ndarray,
+                segments: list[tuple[int, int]] | None = None) -> np.ndarray:
+        """One-step-ahead prediction for t = max_lag..len-1 from measured u and y.
+
+        With ``segments``, the predictions of each segment's rows, concatenated.
+        """
+        P, _ = self.term_space.regression(u, y, segments)
         return P[:, self.term_indices] @ self.coefficients
 
-    def residuals(self, u: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """One-step residuals y(t) - yhat(t), t = max_lag..len-1."""
-        return self.term_space.target(y) - self.predict(u, y)
+    def residuals(self, u: np.ndarray, y: np.ndarray,
+                  segments: list[tuple[int, int]] | None = None) -> np.ndarray:
+        """One-step residuals y(t) - yhat(t) on the same rows as :meth:`predict`."""
+        _, target = self.term_space.regression(u, y, segments)
+        return target - self.predict(u, y, segments)
+
+    def simulate_segments(self, u: np.ndarray, y: np.ndarray,
+                          segments: list[tuple[int, int]] | None = None) -> np.ndarray:
+        """Free-run simulation of each segment from its own initial conditions.
+
+        Returns the simulated outputs of every segment's regression rows,
+        concatenated (the rows of :meth:`predict`).
+        """
+        if segments is None:
+            return self.simulate(u, y)
+        lag0 = self.term_space.max_lag
+        parts = [self.simulate(u[a:b], y[a:b]) for a, b in segments if b - a > lag0]
+        return np.concatenate(parts) if parts else np.empty(0)
 
     def simulate(self, u: np.ndarray, y_initial: np.ndarray) -> np.ndarray:
         """Free-run simulation: each prediction is fed back as a lagged output.
@@ -245,11 +272,8 @@ class NarxModel:
         return json.dumps(self.to_dict(), indent=2, allow_nan=False)
 
     def save(self, path: str | Path) -> Path:
-        """Write the JSON document to ``path``; returns the path."""
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(self.to_json() + "\n")
-        return path
+        """Write the JSON document to ``path`` atomically; returns the path."""
+        return atomic_write_text(path, self.to_json() + "\n")
 
     @classmethod
     def load(cls, path: str | Path) -> NarxModel:

@@ -21,7 +21,22 @@ from itertools import combinations_with_replacement
 
 import numpy as np
 
-__all__ = ["TermSpace"]
+__all__ = ["TermSpace", "power_of_two_scale"]
+
+
+def power_of_two_scale(x: np.ndarray) -> float:
+    """The power of two nearest the RMS of ``x`` (1 for an all-zero signal).
+
+    Dividing by a power of two is exact in floating point, so scaled data give
+    the same fits as the original bit for bit, while data of any magnitude
+    (1e-100 or 1e100) stay clear of overflow and underflow in the products.
+    """
+    x = np.asarray(x, dtype=float)
+    peak = float(np.max(np.abs(x))) if x.size else 0.0
+    if not peak > 0 or not np.isfinite(peak):
+        return 1.0
+    rms = peak * float(np.sqrt(np.mean(np.square(x / peak))))
+    return float(np.ldexp(1.0, int(np.round(np.log2(rms)))))
 
 
 @dataclass(frozen=True)
@@ -127,6 +142,24 @@ class TermSpace:
         """Inverse of :meth:`to_dict`."""
         return cls(**{k: data[k] for k in ("ny", "nu", "degree", "delay", "constant")})
 
+    def coefficient_factors(self, u_scale: float, y_scale: float) -> np.ndarray:
+        """Per-term factors from scaled-data coefficients to the user's units, (n_terms,).
+
+        The coefficients were fitted on ``u / u_scale`` and ``y / y_scale``.
+
+        A term with ``a`` output and ``b`` input factors has coefficient
+        ``theta = theta_scaled * y_scale**(1 - a) * u_scale**(-b)``; with powers of
+        two the factors are exact (computed as ``ldexp``, no overflow on the way).
+        """
+        ey, eu = np.frexp(y_scale)[1] - 1, np.frexp(u_scale)[1] - 1
+        lin = self.linear
+        out = np.empty(self.n_terms)
+        for j, term in enumerate(self.terms):
+            a = sum(1 for i in term if lin[i][0] == "y")
+            b = len(term) - a
+            out[j] = np.ldexp(1.0, int(ey * (1 - a) - eu * b))
+        return out
+
     # -- the regression matrix -------------------------------------------------------
     def lagged(self, u: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Matrix of the linear terms, shape ``(N, ny + nu)``, rows t = max_lag..len-1."""
@@ -163,6 +196,24 @@ class TermSpace:
     def target(self, y: np.ndarray) -> np.ndarray:
         """The regression target y(t) for t = max_lag..len-1."""
         return np.asarray(y, dtype=float)[self.max_lag :]
+
+    def regression(self, u: np.ndarray, y: np.ndarray,
+                   segments: list[tuple[int, int]] | None = None
+                   ) -> tuple[np.ndarray, np.ndarray]:
+        """Regression matrix and target built inside each segment, stacked.
+
+        ``segments`` are ``[start, stop)`` index ranges of contiguous samples
+        (see :mod:`spm_sysid.core.segments`); rows never cross from one segment to
+        the next. Segments with no more than ``max_lag`` samples give no row.
+        None means the whole record is one segment.
+        """
+        if segments is None:
+            return self.regression_matrix(u, y), self.target(y)
+        parts = [(self.regression_matrix(u[a:b], y[a:b]), self.target(y[a:b]))
+                 for a, b in segments if b - a > self.max_lag]
+        if not parts:
+            return np.empty((0, self.n_terms)), np.empty(0)
+        return np.vstack([p for p, _ in parts]), np.concatenate([t for _, t in parts])
 
     def regressor_row(self, past_y: np.ndarray, past_u: np.ndarray) -> np.ndarray:
         """Regressors for one time step from the recent history.

@@ -16,7 +16,7 @@ from .correlation import CorrelationTest, correlation_tests
 from .data import DataError
 from .model import NarxModel
 
-__all__ = ["ValidationReport", "metrics", "split_data", "validate_model"]
+__all__ = ["ValidationReport", "metrics", "split_data", "split_segments", "validate_model"]
 
 
 def metrics(y: np.ndarray, yhat: np.ndarray) -> dict[str, float]:
@@ -117,9 +117,30 @@ def _finite(d: dict[str, float]) -> dict[str, float | None]:
     return {k: (v if np.isfinite(v) else None) for k, v in d.items()}
 
 
+def split_segments(bounds: list[tuple[int, int]], n: int, fraction: float, max_lag: int
+                   ) -> tuple[list[tuple[int, int]], list[tuple[int, int]]]:
+    """Split segments at ``round(fraction * n)`` like :func:`split_data`.
+
+    The estimation part keeps what lies before the cut; the validation part what
+    lies after it, plus the ``max_lag`` samples before the cut as initial
+    conditions where they belong to the same segment.
+    """
+    if not 0.0 < fraction < 1.0:
+        raise ValueError(f"split fraction must be in (0, 1), got {fraction}")
+    cut = int(round(fraction * n))
+    est = [(a, min(b, cut)) for a, b in bounds if a < cut]
+    val = [(max(a, cut - max_lag), b) for a, b in bounds if b > cut]
+    est = [(a, b) for a, b in est if b - a > max_lag]
+    val = [(a, b) for a, b in val if b - a > max_lag]
+    if not est or not val:
+        raise DataError(f"cannot split {n} samples at {fraction:g}: a part would have no "
+                        "segment longer than the largest lag")
+    return est, val
+
+
 def validate_model(
     model: NarxModel, u: np.ndarray, y: np.ndarray, *, max_lag: int = 20,
-    segment: str = "estimation",
+    segment: str = "estimation", segments: list[tuple[int, int]] | None = None,
 ) -> ValidationReport:
     """Validate ``model`` on u, y (one-step, free-run, correlation tests).
 
@@ -134,26 +155,36 @@ def validate_model(
         Largest lag of the correlation tests.
     segment : str
         Label for reports (``"estimation"`` or ``"holdout"``).
+    segments : list of (start, stop), optional
+        Contiguous parts of the record (see :mod:`spm_sysid.core.segments`):
+        predictions never cross from one to the next, and each is simulated from
+        its own initial conditions. The correlation tests run on the residuals of
+        all segments, concatenated.
     """
     u = np.asarray(u, dtype=float)
     y = np.asarray(y, dtype=float)
     lag0 = model.term_space.max_lag
     if len(y) != len(u):
         raise DataError(f"u and y differ in length: {len(u)} and {len(y)}")
-    if len(y) - lag0 < max(3, max_lag + 1):
-        raise DataError(f"too few samples to validate: {len(y)} (need more than "
-                        f"{lag0 + max(3, max_lag + 1)})")
-    measured = y[lag0:]
-    one_step = model.predict(u, y)
-    free_run = model.simulate(u, y[:lag0])
+    if segments is not None:
+        segments = [(a, b) for a, b in segments if b - a > lag0]
+    rows = len(y) - lag0 if segments is None else sum(b - a - lag0 for a, b in segments)
+    if rows < max(3, max_lag + 1):
+        raise DataError(f"too few samples to validate: {rows} regression rows (need at "
+                        f"least {max(3, max_lag + 1)})")
+    _, measured = model.term_space.regression(u, y, segments)
+    one_step = model.predict(u, y, segments)
+    free_run = model.simulate_segments(u, y, segments)
     residuals = measured - one_step
+    u_rows = u[lag0:] if segments is None else np.concatenate(
+        [u[a + lag0:b] for a, b in segments])
     return ValidationReport(
         measured=measured,
         one_step=one_step,
         free_run=free_run,
         one_step_metrics=metrics(measured, one_step),
         free_run_metrics=metrics(measured, free_run),
-        tests=correlation_tests(residuals, u[lag0:], max_lag),
+        tests=correlation_tests(residuals, u_rows, max_lag),
         segment=segment,
-        n_samples=len(y),
+        n_samples=len(y) if segments is None else sum(b - a for a, b in segments),
     )

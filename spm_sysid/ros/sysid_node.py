@@ -17,13 +17,10 @@ messages. Interface (see docs/ros_interface.md):
 from __future__ import annotations
 
 import json
-import multiprocessing
-import queue
+import os
 import sys
 import threading
 import time
-from concurrent.futures import ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
 from dataclasses import fields as dataclass_fields
 from pathlib import Path
 
@@ -50,33 +47,17 @@ from std_srvs.srv import Trigger
 
 from ..core.buffer import SampleBuffer
 from ..core.fields import FieldPathError, default_field, extract, message_stamp_ns, parse_path
-from ..core.job import JobSettings, run_job
-from ..core.model import NarxModel
+from ..core.files import atomic_write_text, check_writable_file
+from ..core.job import JobSettings
+from ..core.model import ModelFormatError, NarxModel
+from ..tools.worker import JobCancelledError, JobWorker, WorkerDiedError
 from .bag_player import message_class
 
-__all__ = ["SysidNode", "main"]
+__all__ = ["SysidNode", "diagnostic_statuses", "main"]
 
 LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                      reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
-
-# -- the worker process -----------------------------------------------------------------
-
-_progress_queue = None
-
-
-def _init_worker(progress_queue) -> None:
-    global _progress_queue
-    _progress_queue = progress_queue
-
-
-def _worker_job(stamps, u, y, settings: JobSettings) -> dict:
-    def progress(generation, best, evaluations):
-        if _progress_queue is not None:
-            _progress_queue.put((generation, best, evaluations))
-
-    return run_job(stamps, u, y, settings, progress=progress)
-
 
 # -- parameters -----------------------------------------------------------------------
 
@@ -129,7 +110,16 @@ PARAMETERS = {
     "validation": ("estimation", _text("validate on 'estimation' data or a 'holdout' tail")),
     "validation_split": (0.5, _float("estimation fraction for holdout validation", 0.1, 0.9)),
     "correlation_lags": (20, _int("largest lag of the correlation tests", 1, 1000)),
-    "model_path": ("", _text("save each model's JSON document here (empty: don't)")),
+    "sample_period": (0.0, _float("sampling period, s, for finding gaps (0: estimated from "
+                                  "the stamps)", 0.0, 3600.0)),
+    "gap_factor": (1.5, _float("a stamp difference above gap_factor periods is a gap", 1.01,
+                               1000.0)),
+    "resync_samples": (10, _int("in-order samples behind a stream's last stamp that make "
+                                "the node accept a jump back in time", 1, 100000, True)),
+    "job_timeout": (600.0, _float("seconds an identification may run before it is stopped "
+                                  "(0: no limit)", 0.0, 1e6)),
+    "model_path": ("", _text("save each model's JSON document here and publish it again "
+                             "at start-up (empty: don't)")),
     "diagnostics_period": (1.0, _float("seconds between /diagnostics messages", 0.05, 60.0,
                                        True)),
 }
@@ -148,9 +138,12 @@ class SysidNode(Node):
         self._check_or_raise()
         p = self._params()
 
-        self.buffer = SampleBuffer(p["buffer_capacity"], int(round(p["stamp_tolerance"] * 1e9)))
+        self.buffer = SampleBuffer(p["buffer_capacity"], int(round(p["stamp_tolerance"] * 1e9)),
+                                   resync_samples=p["resync_samples"])
         self._in = self._signal(p["input_type"], p["input_field"])
         self._out = self._signal(p["output_type"], p["output_field"])
+        self._topics = {"input": (p["input_topic"], p["input_type"]),
+                        "output": (p["output_topic"], p["output_type"])}
         if p["best_effort"]:
             qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=p["qos_depth"],
                              reliability=ReliabilityPolicy.BEST_EFFORT,
@@ -173,7 +166,8 @@ class SysidNode(Node):
         self.create_service(Trigger, "~/identify", self._on_identify, callback_group=services)
         self.create_service(Trigger, "~/clear", self._on_clear, callback_group=services)
         self.create_timer(p["diagnostics_period"], self._publish_diagnostics)
-        # Triggered from the pool's thread when a job ends, to wake the executor.
+        self.create_timer(1.0, self._check_graph)
+        # Triggered from the worker's reader thread when a job ends, to wake the executor.
         self._wake = self.create_guard_condition(lambda: None)
 
         self._busy = threading.Lock()
@@ -182,17 +176,15 @@ class SysidNode(Node):
         self._last_result: dict | None = None
         self._last_error: str | None = None
         self._field_errors = 0
-        ctx = multiprocessing.get_context("spawn")  # never fork a process with DDS threads
-        self._progress_queue = ctx.Queue()
-        self._pool = ProcessPoolExecutor(1, mp_context=ctx, initializer=_init_worker,
-                                         initargs=(self._progress_queue,))
-        # start the worker now, not on the first request; diagnostics say when it is ready
-        self._worker_ready = self._pool.submit(int)
-        self._closing = threading.Event()
-        threading.Thread(target=self._drain_progress, name="progress", daemon=True).start()
+        self._type_mismatch: dict[tuple[str, str], str] = {}
+        self._logged_rejects = {"rejected_out_of_order": 0, "time_jumps": 0}
+        self.worker = JobWorker("spm_sysid.core.job:run_job", on_progress=self._on_progress,
+                                on_event=self.get_logger().info)
         self.get_logger().info(
             f"recording {p['input_topic']} ({p['input_type']}) and {p['output_topic']} "
             f"({p['output_type']}); buffer of {p['buffer_capacity']} pairs")
+        if p["model_path"]:
+            self._republish_saved(p["model_path"])
 
     # -- parameters ---------------------------------------------------------------------
     def _params(self) -> dict:
@@ -212,15 +204,20 @@ class SysidNode(Node):
         s.criterion = str(s.criterion).lower()
         return s
 
+    def _check(self, values: dict) -> None:
+        self._settings(values).check()
+        if values["model_path"]:
+            check_writable_file(values["model_path"], "model_path")
+
     def _check_or_raise(self) -> None:
-        self._settings(self._params()).check()
+        self._check(self._params())
 
     def _check_parameters(self, changes) -> SetParametersResult:
         """Reject a parameter change that would make an identification impossible."""
         values = self._params()
         values.update({c.name: c.value for c in changes})
         try:
-            self._settings(values).check()
+            self._check(values)
         except (ValueError, TypeError) as exc:
             return SetParametersResult(successful=False, reason=str(exc))
         return SetParametersResult(successful=True)
@@ -242,6 +239,38 @@ class SysidNode(Node):
             return
         stamp = message_stamp_ns(msg)
         add(self.get_clock().now().nanoseconds if stamp is None else stamp, value)
+
+    def _check_graph(self) -> None:
+        """Find publishers of another message type on our topics (DDS never matches them)."""
+        for role, (topic, expected) in self._topics.items():
+            for info in self.get_publishers_info_by_topic(topic):
+                if info.topic_type != expected:
+                    key = (topic, f"{info.node_namespace.rstrip('/')}/{info.node_name}")
+                    if key not in self._type_mismatch:
+                        text = (f"{key[1]} publishes {topic} as {info.topic_type}, but the "
+                                f"{role} is read as {expected}: its messages are not "
+                                f"received (set {role}_type, or fix the publisher)")
+                        self._type_mismatch[key] = text
+                        self.get_logger().error(text)
+        self._log_rejections()
+
+    def _log_rejections(self) -> None:
+        """A warning when samples were rejected as out of order or the stamps jumped."""
+        stats = self.buffer.stats_dict()
+        new = stats["rejected_out_of_order"] - self._logged_rejects["rejected_out_of_order"]
+        if new > 0:
+            self.get_logger().warning(
+                f"rejected {new} sample(s) stamped before their stream's last stamp "
+                f"({stats['rejected_out_of_order']} in all; see /diagnostics)")
+        while self._logged_rejects["time_jumps"] < len(self.buffer.jumps):
+            stream, old, new_t = self.buffer.jumps[self._logged_rejects["time_jumps"]]
+            self._logged_rejects["time_jumps"] += 1
+            self.get_logger().warning(
+                f"{'input' if stream == 'u' else 'output'} stamps jumped back by "
+                f"{(old - new_t) / 1e9:.3f} s (a replayed bag or a restarted clock?): the "
+                "samples after the jump are a new segment; identification never fits "
+                "across it")
+        self._logged_rejects["rejected_out_of_order"] = stats["rejected_out_of_order"]
 
     # -- services ----------------------------------------------------------------------
     def _on_clear(self, request, response):
@@ -270,17 +299,15 @@ class SysidNode(Node):
             settings.extra = {"node": self.get_fully_qualified_name(),
                               "input_topic": values["input_topic"],
                               "output_topic": values["output_topic"]}
+            if not self.worker.wait_ready(30.0):
+                raise RuntimeError("the worker process is not ready (see the log)")
             self._started = time.monotonic()
             self._progress = (0, float("nan"), 0)
             self.get_logger().info(f"identifying on {len(y)} samples "
                                    f"({settings.criterion.upper()}, population "
                                    f"{settings.population_size}, {settings.generations} "
                                    f"generations, SPM {settings.spm_fraction})")
-            try:
-                result = await self._run_in_worker(stamps, u, y, settings)
-            except BrokenProcessPool:
-                self._restart_pool()
-                raise RuntimeError("the worker process died") from None
+            result = await self._run_in_worker(stamps, u, y, settings, values["job_timeout"])
             self._publish_result(result, values)
             response.success = True
             response.message = result["summary"]
@@ -296,15 +323,29 @@ class SysidNode(Node):
             self._started = None
             self._busy.release()
 
-    def _run_in_worker(self, stamps, u, y, settings) -> Future:
-        """Submit the job to the worker process; an awaitable rclpy Future of its result."""
-        done = Future()
-        job = self._pool.submit(_worker_job, stamps, u, y, settings)
+    def _run_in_worker(self, stamps, u, y, settings, timeout: float) -> Future:
+        """Submit the job to the worker process; an awaitable rclpy Future of its result.
 
-        def finished(job):  # runs in the pool's thread
+        With ``timeout`` > 0 the job is stopped (its process killed and replaced)
+        when it runs longer.
+        """
+        done = Future()
+        job = self.worker.submit(stamps, u, y, settings)
+        timer = None
+        if timeout > 0:
+            timer = threading.Timer(timeout, self.worker.cancel,
+                                    args=(f"stopped after {timeout:g} s (job_timeout)",))
+            timer.daemon = True
+            timer.start()
+
+        def finished(job):  # runs in the worker's reader thread
+            if timer is not None:
+                timer.cancel()
             exc = job.exception()
             if exc is None:
                 done.set_result(job.result())
+            elif isinstance(exc, (JobCancelledError, WorkerDiedError)):
+                done.set_exception(RuntimeError(str(exc)))
             else:
                 done.set_exception(exc)
             self._wake.trigger()
@@ -312,22 +353,20 @@ class SysidNode(Node):
         job.add_done_callback(finished)
         return done
 
-    def _restart_pool(self) -> None:
-        ctx = multiprocessing.get_context("spawn")
-        self._pool = ProcessPoolExecutor(1, mp_context=ctx, initializer=_init_worker,
-                                         initargs=(self._progress_queue,))
-        self._worker_ready = self._pool.submit(int)
-
     # -- results -----------------------------------------------------------------------
     def _publish_result(self, result: dict, values: dict) -> None:
+        """Save the model (when asked), then publish it: never publish what failed to save."""
         doc = result["model"]
-        self.model_pub.publish(String(data=json.dumps(doc)))
-        coefs = Float64MultiArray()
-        coefs.layout.dim = [MultiArrayDimension(
-            label="terms: " + "; ".join(doc["terms"]), size=len(doc["terms"]),
-            stride=len(doc["terms"]))]
-        coefs.data = [float(c) for c in doc["coefficients"]]
-        self.coef_pub.publish(coefs)
+        text = json.dumps(doc, allow_nan=False)
+        if values["model_path"]:
+            try:
+                atomic_write_text(values["model_path"], json.dumps(doc, indent=2,
+                                                                   allow_nan=False) + "\n")
+            except OSError as exc:
+                raise RuntimeError(f"the model could not be saved to {values['model_path']} "
+                                   f"({exc}); nothing was published") from None
+            self.get_logger().info(f"model saved to {values['model_path']}")
+        self._publish_model(doc, text)
         resid = Float64MultiArray()
         n = len(result["residuals"])
         resid.layout.dim = [MultiArrayDimension(label="one_step_residuals", size=n, stride=n)]
@@ -335,79 +374,128 @@ class SysidNode(Node):
         self.resid_pub.publish(resid)
         self._last_result = result
         self._last_error = None
-        if values["model_path"]:
-            path = NarxModel.from_dict(doc).save(Path(values["model_path"]))
-            self.get_logger().info(f"model saved to {path}")
         self._publish_diagnostics()
 
+    def _publish_model(self, doc: dict, text: str) -> None:
+        self.model_pub.publish(String(data=text))
+        coefs = Float64MultiArray()
+        coefs.layout.dim = [MultiArrayDimension(
+            label="terms: " + "; ".join(doc["terms"]), size=len(doc["terms"]),
+            stride=len(doc["terms"]))]
+        coefs.data = [float(c) for c in doc["coefficients"]]
+        self.coef_pub.publish(coefs)
+
+    def _republish_saved(self, path: str) -> None:
+        """At start-up: publish the model saved by an earlier run again, latched."""
+        if not os.path.isfile(path):
+            return
+        try:
+            doc = NarxModel.load(path).to_dict()
+            doc = json.loads(Path(path).read_text())  # as saved (its own 'created' stamp)
+        except (ModelFormatError, OSError, ValueError) as exc:
+            self.get_logger().warning(f"model_path {path} holds no readable model ({exc}); "
+                                      "nothing re-published")
+            return
+        self._publish_model(doc, json.dumps(doc, allow_nan=False))
+        self._last_result = {"model": doc, "restored_from": path}
+        self.get_logger().info(f"published the model saved in {path} "
+                               f"({len(doc['terms'])} terms) again")
+
     # -- progress and diagnostics ------------------------------------------------------------
-    def _drain_progress(self) -> None:
-        while not self._closing.is_set():
-            try:
-                gen, best, evals = self._progress_queue.get(timeout=0.2)
-            except queue.Empty:
-                continue
-            except (EOFError, OSError):
-                return
-            self._progress = (gen, best, evals)
-            self.get_logger().info(f"search: generation {gen}, best {best:.2f}, "
-                                   f"{evals} structures fitted")
+    def _on_progress(self, gen, best, evals) -> None:  # the worker's reader thread
+        self._progress = (gen, best, evals)
+        self.get_logger().info(f"search: generation {gen}, best {best:.2f}, "
+                               f"{evals} structures fitted")
 
     def _publish_diagnostics(self) -> None:
-        stats = self.buffer.stats_dict()
-        name = self.get_fully_qualified_name()
-        lost = stats["rejected_nonfinite"] + stats["rejected_out_of_order"]
-        buf = DiagnosticStatus(
-            level=DiagnosticStatus.WARN if lost or self._field_errors else DiagnosticStatus.OK,
-            name=f"{name}: buffer", hardware_id="spm_sysid",
-            message=(f"{stats['samples']} paired samples" + (f", {lost} rejected" if lost
-                                                              else "")),
-            values=[KeyValue(key=k, value=str(v)) for k, v in stats.items()]
-            + [KeyValue(key="field_errors", value=str(self._field_errors)),
-               KeyValue(key="worker_ready", value=str(self._worker_ready.done()))])
-        statuses = [buf]
-        if self._started is not None and self._progress is not None:
-            gen, best, evals = self._progress
-            statuses.append(DiagnosticStatus(
-                level=DiagnosticStatus.OK, name=f"{name}: identification",
-                hardware_id="spm_sysid", message=f"running: generation {gen}",
-                values=[KeyValue(key="generation", value=str(gen)),
-                        KeyValue(key="best", value=f"{best:.4f}"),
-                        KeyValue(key="evaluations", value=str(evals)),
-                        KeyValue(key="seconds",
-                                 value=f"{time.monotonic() - self._started:.2f}")]))
-        elif self._last_error:
-            statuses.append(DiagnosticStatus(level=DiagnosticStatus.ERROR,
-                                             name=f"{name}: identification",
-                                             hardware_id="spm_sysid", message=self._last_error))
-        elif self._last_result is not None:
-            doc = self._last_result["model"]
-            statuses.append(DiagnosticStatus(
-                level=DiagnosticStatus.OK, name=f"{name}: identification",
-                hardware_id="spm_sysid",
-                message=f"model with {len(doc['terms'])} terms",
-                values=[KeyValue(key="criterion", value=doc["criterion"]["name"]),
-                        KeyValue(key="value", value=str(doc["criterion"]["value"])),
-                        KeyValue(key="mse", value=str(doc["mse"]))]))
-            for t in doc["metadata"]["validation"]["correlation_tests"]:
-                statuses.append(DiagnosticStatus(
-                    level=DiagnosticStatus.OK if t["passed"] else DiagnosticStatus.WARN,
-                    name=f"{name}: correlation {t['name']}", hardware_id="spm_sysid",
-                    message=("inside the 95 % band" if t["passed"] else "outside the 95 % band")
-                    + f" ({t['fraction_inside']:.0%} of lags inside)",
-                    values=[KeyValue(key=k, value=str(v)) for k, v in t.items()]))
-        msg = DiagnosticArray(status=statuses)
+        msg = DiagnosticArray(status=diagnostic_statuses(
+            self.get_fully_qualified_name(), self.buffer.stats_dict(),
+            field_errors=self._field_errors, worker_ready=self.worker.ready,
+            worker_restarts=self.worker.restarts,
+            type_mismatches=list(self._type_mismatch.values()),
+            running=None if self._started is None else (
+                *(self._progress or (0, float("nan"), 0)), time.monotonic() - self._started),
+            last_error=self._last_error, last_result=self._last_result))
         msg.header.stamp = self.get_clock().now().to_msg()
         self.diag_pub.publish(msg)
 
     def close(self) -> None:
-        """Stop the worker process and the progress thread."""
-        self._closing.set()
-        self._pool.shutdown(wait=False, cancel_futures=True)
+        """Stop the worker process (a running search is killed)."""
+        self.worker.close()
+
+
+def _kv(values: dict) -> list[KeyValue]:
+    return [KeyValue(key=str(k), value=str(v)) for k, v in values.items()]
+
+
+def diagnostic_statuses(name: str, stats: dict, *, field_errors: int = 0,
+                        worker_ready: bool = True, worker_restarts: int = 0,
+                        type_mismatches: list[str] | None = None,
+                        running: tuple | None = None, last_error: str | None = None,
+                        last_result: dict | None = None) -> list[DiagnosticStatus]:
+    """The node's /diagnostics statuses from plain data (buffer, identification, tests)."""
+    type_mismatches = type_mismatches or []
+    lost = stats["rejected_nonfinite"] + stats["rejected_out_of_order"]
+    problems = []
+    if lost:
+        problems.append(f"{lost} rejected")
+    if stats.get("time_jumps"):
+        problems.append(f"{stats['time_jumps']} jump(s) back in time")
+    if type_mismatches:
+        problems.append("a publisher of the wrong message type")
+    if not worker_ready:
+        problems.append("worker not ready")
+    level = DiagnosticStatus.OK
+    if lost or field_errors or stats.get("time_jumps") or not worker_ready:
+        level = DiagnosticStatus.WARN
+    if type_mismatches:
+        level = DiagnosticStatus.ERROR
+    buf = DiagnosticStatus(
+        level=level, name=f"{name}: buffer", hardware_id="spm_sysid",
+        message=f"{stats['samples']} paired samples" + "".join(f", {p}" for p in problems),
+        values=_kv(stats) + _kv({"field_errors": field_errors, "worker_ready": worker_ready,
+                                 "worker_restarts": worker_restarts,
+                                 "type_mismatch": "; ".join(type_mismatches)}))
+    statuses = [buf]
+    ident = f"{name}: identification"
+    if running is not None:
+        gen, best, evals, seconds = running
+        statuses.append(DiagnosticStatus(
+            level=DiagnosticStatus.OK, name=ident, hardware_id="spm_sysid",
+            message=f"running: generation {gen}",
+            values=_kv({"generation": gen, "best": f"{best:.4f}", "evaluations": evals,
+                        "seconds": f"{seconds:.2f}"})))
+    elif last_error:
+        statuses.append(DiagnosticStatus(level=DiagnosticStatus.ERROR, name=ident,
+                                         hardware_id="spm_sysid", message=last_error))
+    elif last_result is not None:
+        doc = last_result["model"]
+        data = doc.get("metadata", {}).get("data", {})
+        incomplete = bool(data.get("gaps") or data.get("skipped_segments"))
+        source = (f", restored from {last_result['restored_from']}"
+                  if "restored_from" in last_result else "")
+        statuses.append(DiagnosticStatus(
+            level=DiagnosticStatus.WARN if incomplete else DiagnosticStatus.OK, name=ident,
+            hardware_id="spm_sysid",
+            message=f"model with {len(doc['terms'])} terms" + (
+                f", fitted around {data['gaps']} gap(s) in the data" if incomplete else "")
+            + source,
+            values=_kv({"criterion": (doc.get("criterion") or {}).get("name"),
+                        "value": (doc.get("criterion") or {}).get("value"),
+                        "mse": doc.get("mse"),
+                        **{f"data_{k}": v for k, v in data.items()}})))
+        for t in doc.get("metadata", {}).get("validation", {}).get("correlation_tests", []):
+            statuses.append(DiagnosticStatus(
+                level=DiagnosticStatus.OK if t["passed"] else DiagnosticStatus.WARN,
+                name=f"{name}: correlation {t['name']}", hardware_id="spm_sysid",
+                message=("inside the 95 % band" if t["passed"] else "outside the 95 % band")
+                + f" ({t['fraction_inside']:.0%} of lags inside)",
+                values=_kv(t)))
+    return statuses
 
 
 def main(args: list[str] | None = None) -> int:
-    """Run the node until interrupted."""
+    """Run the node until interrupted (SIGINT or SIGTERM end it within a second or two)."""
     rclpy.init(args=args)
     executor = SingleThreadedExecutor()
     node = None
@@ -425,7 +513,7 @@ def main(args: list[str] | None = None) -> int:
         if node is not None:
             node.close()
             node.destroy_node()
-        executor.shutdown()
+        executor.shutdown(timeout_sec=1.0)
         if rclpy.ok():
             rclpy.shutdown()
     return status

@@ -1,0 +1,259 @@
+"""A job worker in its own process, that can be cancelled, timed out and never orphaned.
+
+The ROS node runs each identification here so the search never blocks
+recording and uses the other core. The worker is a plain child process
+(``python -m spm_sysid.tools.worker``) talking over its stdin/stdout pipes with
+pickled messages; no multiprocessing pool, queue or resource tracker is
+involved, so nothing is left behind:
+
+* the worker ends itself when its stdin closes (the parent died, even by
+  ``kill -9``) and, on Linux, also gets SIGKILL when the parent dies
+  (``PR_SET_PDEATHSIG``);
+* :meth:`JobWorker.cancel` kills a running job (a stuck search, a job timeout,
+  shutdown) and starts a fresh worker;
+* a worker that dies is noticed at once (its pipe closes), the job gets an
+  error, and a new worker is started.
+
+Messages from the worker: ``("ready",)``, ``("progress", *values)``,
+``("result", value)``, ``("error", text)``.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+import signal
+import struct
+import subprocess
+import sys
+import threading
+from collections.abc import Callable
+from concurrent.futures import Future
+from typing import Any
+
+__all__ = ["JobCancelledError", "JobWorker", "WorkerDiedError"]
+
+_HEADER = struct.Struct("!Q")
+
+
+class WorkerDiedError(RuntimeError):
+    """The worker process ended while running a job."""
+
+
+class JobCancelledError(RuntimeError):
+    """The job was cancelled (timeout, shutdown or a user's request)."""
+
+
+def _send(stream, message: Any) -> None:
+    data = pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL)
+    stream.write(_HEADER.pack(len(data)) + data)
+    stream.flush()
+
+
+def _recv(stream) -> Any:
+    head = stream.read(_HEADER.size)
+    if len(head) < _HEADER.size:
+        raise EOFError
+    (size,) = _HEADER.unpack(head)
+    data = stream.read(size)
+    if len(data) < size:
+        raise EOFError
+    return pickle.loads(data)
+
+
+class JobWorker:
+    """One worker process that runs ``function(*args, progress=callback)`` per job.
+
+    Parameters
+    ----------
+    function : str
+        ``"package.module:name"`` of the job function, imported in the worker.
+    on_progress : callable, optional
+        Called (in a reader thread) with the values the job reports.
+    on_event : callable, optional
+        Called with a short text when the worker starts, dies or restarts.
+    env : dict, optional
+        Environment of the worker process (default: this process's).
+    """
+
+    def __init__(self, function: str, on_progress: Callable[..., None] | None = None,
+                 on_event: Callable[[str], None] | None = None,
+                 env: dict[str, str] | None = None) -> None:
+        self.function = function
+        self.on_progress = on_progress
+        self.on_event = on_event or (lambda text: None)
+        self.env = env
+        self.restarts = 0
+        self._lock = threading.Lock()
+        self._closing = False
+        self._proc: subprocess.Popen | None = None
+        self._ready = threading.Event()
+        self._job: Future | None = None
+        self._start()
+
+    # -- state ---------------------------------------------------------------------------
+    @property
+    def ready(self) -> bool:
+        """True when a live worker waits for (or runs) jobs."""
+        return self._ready.is_set() and self._proc is not None and self._proc.poll() is None
+
+    @property
+    def busy(self) -> bool:
+        return self._job is not None
+
+    @property
+    def pid(self) -> int | None:
+        return None if self._proc is None else self._proc.pid
+
+    def wait_ready(self, timeout: float | None = None) -> bool:
+        return self._ready.wait(timeout)
+
+    # -- jobs ------------------------------------------------------------------------------
+    def submit(self, *args: Any) -> Future:
+        """Start a job; a Future of its result (WorkerDiedError / JobCancelledError on failure)."""
+        with self._lock:
+            if self._job is not None:
+                raise RuntimeError("the worker is already running a job")
+            if self._proc is None or self._proc.poll() is not None:
+                raise WorkerDiedError("the worker process is not running")
+            self._job = Future()
+            job = self._job
+            try:
+                _send(self._proc.stdin, ("job", args))
+            except (BrokenPipeError, OSError):
+                self._job = None
+                raise WorkerDiedError("the worker process is not running") from None
+        return job
+
+    def cancel(self, reason: str = "cancelled") -> None:
+        """Kill the running job's process and start a fresh worker."""
+        with self._lock:
+            proc, job, self._job = self._proc, self._job, None
+        if job is not None and not job.done():
+            job.set_exception(JobCancelledError(reason))
+        if proc is not None:
+            self._kill(proc)
+
+    def close(self, timeout: float = 1.0) -> None:
+        """End the worker (a running job is killed); waits at most about ``timeout``."""
+        self._closing = True
+        with self._lock:
+            proc, job, self._job = self._proc, self._job, None
+        if job is not None and not job.done():
+            job.set_exception(JobCancelledError("the node is shutting down"))
+        if proc is not None:
+            self._kill(proc, timeout)
+
+    # -- process management --------------------------------------------------------------
+    def _start(self) -> None:
+        self._ready.clear()
+        self._proc = subprocess.Popen(
+            [sys.executable, "-m", "spm_sysid.tools.worker", self.function],
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=self.env,
+            start_new_session=False)
+        threading.Thread(target=self._read, args=(self._proc,), name="worker-reader",
+                         daemon=True).start()
+
+    @staticmethod
+    def _kill(proc: subprocess.Popen, timeout: float = 1.0) -> None:
+        if proc.poll() is None:
+            proc.kill()
+        try:
+            proc.wait(timeout)
+        except subprocess.TimeoutExpired:  # pragma: no cover - SIGKILL does not wait
+            pass
+
+    def _read(self, proc: subprocess.Popen) -> None:
+        """Reader thread of one worker process: results, progress, and its death."""
+        while True:
+            try:
+                message = _recv(proc.stdout)
+            except (EOFError, OSError, pickle.UnpicklingError):
+                break
+            kind = message[0]
+            if kind == "ready":
+                self._ready.set()
+                self.on_event(f"worker process {proc.pid} ready")
+            elif kind == "progress" and self.on_progress is not None:
+                self.on_progress(*message[1:])
+            elif kind in ("result", "error"):
+                with self._lock:
+                    job, self._job = self._job, None
+                if job is not None and not job.done():
+                    if kind == "result":
+                        job.set_result(message[1])
+                    else:
+                        job.set_exception(RuntimeError(message[1]))
+        proc.wait()
+        with self._lock:
+            if proc is not self._proc:
+                return  # an old process, already replaced
+            self._ready.clear()
+            job, self._job = self._job, None
+            if job is not None and not job.done():
+                job.set_exception(WorkerDiedError(
+                    f"the worker process died (exit status {proc.returncode})"))
+            if self._closing:
+                return
+            self.restarts += 1
+            self.on_event(f"worker process {proc.pid} ended (exit status {proc.returncode}); "
+                          "starting a new one")
+            self._start()
+
+
+# -- the worker process side -----------------------------------------------------------
+
+
+def _die_with_parent() -> None:
+    """Ask Linux to SIGKILL this process when its parent dies (no-op elsewhere)."""
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):  # pragma: no cover - not Linux
+        pass
+
+
+def _worker_main(function: str) -> int:
+    import importlib
+    import queue
+
+    _die_with_parent()
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when we stop
+    out = os.fdopen(os.dup(1), "wb")
+    os.dup2(2, 1)  # stray prints must not corrupt the channel
+    inp = os.fdopen(0, "rb")
+    module, name = function.split(":")
+    func = getattr(importlib.import_module(module), name)
+    jobs: queue.Queue = queue.Queue()
+
+    def read_jobs() -> None:
+        while True:
+            try:
+                jobs.put(_recv(inp))
+            except (EOFError, OSError):
+                os._exit(0)  # the parent is gone (or closed us): end now, even mid-job
+
+    threading.Thread(target=read_jobs, daemon=True).start()
+    lock = threading.Lock()
+
+    def progress(*values: Any) -> None:
+        with lock:
+            _send(out, ("progress", *values))
+
+    with lock:
+        _send(out, ("ready",))
+    while True:
+        kind, args = jobs.get()
+        try:
+            result = func(*args, progress=progress)
+            reply = ("result", result)
+        except Exception as exc:  # reported to the parent as the job's error
+            reply = ("error", str(exc) or type(exc).__name__)
+        with lock:
+            _send(out, reply)
+
+
+if __name__ == "__main__":  # pragma: no cover - started by JobWorker
+    sys.exit(_worker_main(sys.argv[1]))
