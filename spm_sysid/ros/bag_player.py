@@ -12,23 +12,37 @@ Parameters (``--ros-args -p name:=value``):
 ``loop`` (bool, false)  start again at the end, until stopped
 ``topics`` (string[], all)  only these topics
 ``remap`` (string[], none)  ``from:=to`` pairs renaming published topics
-``qos_depth`` (int, 1000)  keep-last depth of the reliable, volatile publishers;
+``qos_depth`` (int, 10000)  keep-last depth of the reliable, volatile publishers;
     a default subscriber (reliable, volatile) matches them
-``wait_for_subscribers`` (int, 0)  wait until each topic has this many matched
-    subscribers before playing (at most ``wait_timeout`` seconds)
-``wait_timeout`` (double, 10.0)
+``wait_for_subscribers`` (int, 1)  wait until each topic has this many matched
+    subscribers before playing; 0 plays at once (messages sent before a
+    subscriber matched are lost to it)
+``wait_timeout`` (double, 30.0)  longest wait for subscribers; when it runs out
+    the player publishes nothing and exits with status 1
 ``settle_time`` (double, 1.0)  seconds to wait after the subscribers matched:
     discovery completes on the subscriber's side a little after the publisher
     sees it, and a reliable, volatile subscriber misses what was sent before
+``ack_timeout`` (double, 10.0)  at the end, longest wait for every reliable
+    subscriber to acknowledge every message
 
-It logs how many messages it published per topic and exits with status 0 at
-the end (or keeps looping); a bag it cannot read ends it with status 1 and one
-error line.
+Delivery: before exiting, the player waits until every reliable subscriber
+has acknowledged everything (``Publisher.wait_for_all_acked``) and reports per
+topic how many messages it published and whether delivery was confirmed.
+
+Exit status: 0 when every message was published and (for reliable
+subscribers) acknowledged; 1 for an error (unreadable bag, bad parameters, no
+subscriber within ``wait_timeout``); 3 when delivery could not be confirmed
+within ``ack_timeout``; 130 when interrupted (the counts so far are printed).
+
+Replaying a bag again, or ``loop:=true``, publishes the same stamps again:
+``sysid_node`` treats stamps that go back as the start of a new segment (a new
+timeline, never fitted across) after ``resync_samples`` samples, and logs it.
 """
 
 from __future__ import annotations
 
 import importlib
+import math
 import sys
 import threading
 import time
@@ -37,6 +51,7 @@ from pathlib import Path
 
 import rclpy
 from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.duration import Duration
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -73,22 +88,32 @@ class BagPlayer(Node):
             description="topics to play (empty: all)", read_only=True))
         self.declare_parameter("remap", [""], ParameterDescriptor(
             description="from:=to topic renames", read_only=True))
-        self.declare_parameter("qos_depth", 1000, ParameterDescriptor(
+        self.declare_parameter("qos_depth", 10000, ParameterDescriptor(
             description="keep-last depth of the publishers", read_only=True))
-        self.declare_parameter("wait_for_subscribers", 0, ParameterDescriptor(
-            description="matched subscribers per topic before playing", read_only=True))
-        self.declare_parameter("wait_timeout", 10.0, ParameterDescriptor(
+        self.declare_parameter("wait_for_subscribers", 1, ParameterDescriptor(
+            description="matched subscribers per topic before playing (0: play at once)",
+            read_only=True))
+        self.declare_parameter("wait_timeout", 30.0, ParameterDescriptor(
             description="longest wait for subscribers, seconds", read_only=True))
         self.declare_parameter("settle_time", 1.0, ParameterDescriptor(
             description="seconds to wait after subscribers matched", read_only=True))
+        self.declare_parameter("ack_timeout", 10.0, ParameterDescriptor(
+            description="longest wait at the end for subscribers to acknowledge, seconds",
+            read_only=True))
 
         p = {name: self.get_parameter(name).value for name in (
             "bag", "rate", "start_delay", "loop", "topics", "remap", "qos_depth",
-            "wait_for_subscribers", "wait_timeout", "settle_time")}
+            "wait_for_subscribers", "wait_timeout", "settle_time", "ack_timeout")}
         if not p["bag"]:
             raise BagError("parameter 'bag' is required (--ros-args -p bag:=PATH)")
-        if not p["rate"] > 0:
+        if not (p["rate"] > 0 and math.isfinite(p["rate"])):
             raise BagError(f"parameter 'rate' must be > 0, got {p['rate']}")
+        for name in ("start_delay", "wait_timeout", "settle_time", "ack_timeout"):
+            if not (p[name] >= 0 and math.isfinite(p[name])):
+                raise BagError(f"parameter '{name}' must be >= 0 seconds, got {p[name]}")
+        if p["wait_for_subscribers"] < 0 or p["qos_depth"] < 1:
+            raise BagError("parameters 'wait_for_subscribers' must be >= 0 and 'qos_depth' "
+                           ">= 1")
         self.bag = Path(p["bag"])
         self.rate = float(p["rate"])
         self.start_delay = max(0.0, float(p["start_delay"]))
@@ -96,6 +121,7 @@ class BagPlayer(Node):
         self.wait_for = int(p["wait_for_subscribers"])
         self.wait_timeout = float(p["wait_timeout"])
         self.settle_time = max(0.0, float(p["settle_time"]))
+        self.ack_timeout = float(p["ack_timeout"])
         selected = [t for t in p["topics"] if t]
         remap = {}
         for item in (r for r in p["remap"] if r):
@@ -121,7 +147,8 @@ class BagPlayer(Node):
             t: self.create_publisher(message_class(m), remap.get(t, t), qos)
             for t, m in self.topics.items()
         }
-        self.published: Counter[str] = Counter()
+        self.published: Counter[str] = Counter({t: 0 for t in self.topics})
+        self.confirmed: dict[str, bool | None] = {}
         self.finished = threading.Event()
         self.error: str | None = None
         self._stop = threading.Event()
@@ -132,22 +159,54 @@ class BagPlayer(Node):
         """Ask the playback thread to end."""
         self._stop.set()
 
-    def _wait_for_subscribers(self) -> None:
+    def _wait_for_subscribers(self) -> bool:
+        """Wait until every topic has its subscribers, then let discovery settle."""
         deadline = time.monotonic() + self.wait_timeout
-        while not self._stop.is_set() and time.monotonic() < deadline:
-            counts = [pub.get_subscription_count() for pub in self.publishers_by_topic.values()]
-            if min(counts, default=0) >= self.wait_for:
+        while not self._stop.is_set():
+            missing = [self._out_name(t) for t, pub in self.publishers_by_topic.items()
+                       if pub.get_subscription_count() < self.wait_for]
+            if not missing:
                 self._stop.wait(self.settle_time)
-                return
+                return True
+            if time.monotonic() >= deadline:
+                self.error = (
+                    f"no subscriber on {', '.join(missing)} after {self.wait_timeout:g} s; "
+                    "nothing was published (start the subscribers first, raise "
+                    "wait_timeout, or set wait_for_subscribers:=0 to play anyway)")
+                return False
             time.sleep(0.02)
-        self.get_logger().warning(
-            f"went on after {self.wait_timeout:.1f} s without {self.wait_for} subscriber(s) "
-            "on every topic")
+        return False
+
+    def _out_name(self, topic: str) -> str:
+        return self.publishers_by_topic[topic].topic_name
+
+    def _confirm_delivery(self) -> None:
+        """Wait until every reliable subscriber acknowledged everything (per topic)."""
+        deadline = time.monotonic() + self.ack_timeout
+        for topic, pub in self.publishers_by_topic.items():
+            left = max(0.0, deadline - time.monotonic())
+            self.confirmed[topic] = bool(pub.wait_for_all_acked(
+                Duration(nanoseconds=int(left * 1e9))))
+
+    def report(self) -> str:
+        """Per topic: published count and whether delivery was confirmed."""
+        parts = []
+        for topic in sorted(self.topics):
+            state = {True: "delivery confirmed", False: "delivery NOT confirmed",
+                     None: "delivery not checked"}[self.confirmed.get(topic)]
+            subs = self.publishers_by_topic[topic].get_subscription_count()
+            parts.append(f"{self._out_name(topic)}: {self.published[topic]} published, "
+                         f"{subs} subscriber(s), {state}")
+        return "; ".join(parts)
+
+    @property
+    def delivery_confirmed(self) -> bool:
+        return bool(self.confirmed) and all(self.confirmed.values())
 
     def _play(self) -> None:
         try:
-            if self.wait_for > 0:
-                self._wait_for_subscribers()
+            if self.wait_for > 0 and not self._wait_for_subscribers():
+                return
             if self.start_delay:
                 self._stop.wait(self.start_delay)
             self.get_logger().info(
@@ -156,9 +215,8 @@ class BagPlayer(Node):
                 self._play_once()
                 if not self.loop:
                     break
-            summary = ", ".join(f"{t}: {n}" for t, n in sorted(self.published.items()))
-            self.get_logger().info(f"published {sum(self.published.values())} messages "
-                                   f"({summary or 'none'})")
+            if not self._stop.is_set():
+                self._confirm_delivery()
         except Exception as exc:  # reported, and main() exits with status 1
             self.error = f"playback failed: {exc}"
         finally:
@@ -186,7 +244,7 @@ class BagPlayer(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    """Run the player until the bag ends (or forever with ``loop``)."""
+    """Run the player until the bag ends (or forever with ``loop``); see the exit statuses."""
     rclpy.init(args=args)
     executor = SingleThreadedExecutor()
     node = None
@@ -196,19 +254,32 @@ def main(args: list[str] | None = None) -> int:
         executor.add_node(node)
         while rclpy.ok() and not node.finished.is_set():
             executor.spin_once(timeout_sec=0.1)
-        if node.error:
-            print(f"error: {node.error}", file=sys.stderr)
-            status = 1
+        if not node.finished.is_set():
+            raise KeyboardInterrupt
     except BagError as exc:
         print(f"error: {exc}", file=sys.stderr)
         status = 1
     except (KeyboardInterrupt, ExternalShutdownException):
-        pass
+        status = 130
     finally:
         if node is not None:
             node.stop()
+            if status == 130:
+                print(f"interrupted: {node.report()}", file=sys.stderr)
+            elif node.error:
+                print(f"error: {node.error}", file=sys.stderr)
+                status = 1
+            else:
+                total = sum(node.published.values())
+                line = f"published {total} messages ({node.report()})"
+                if node.delivery_confirmed:
+                    print(line, file=sys.stderr)
+                else:
+                    print(f"error: {line}: not every subscriber acknowledged every message "
+                          f"within ack_timeout ({node.ack_timeout:g} s)", file=sys.stderr)
+                    status = 3
             node.destroy_node()
-        executor.shutdown()
+        executor.shutdown(timeout_sec=1.0)
         if rclpy.ok():
             rclpy.shutdown()
     return status
