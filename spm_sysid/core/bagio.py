@@ -11,6 +11,17 @@ in ``header.stamp`` and as the bag's log time:
 The robot-arm data set gives no sampling time; :data:`DEFAULT_RATE_HZ` (100 Hz,
 Ts = 0.01 s, the value some third-party examples assume) is a nominal choice.
 
+The MCAP file is written by the ``mcap`` library (through a small rosbags
+storage plugin, so rosbags still writes ``metadata.yaml``) with a CRC-32 of
+every chunk, of the data section and of the summary. Reading checks them
+(:func:`verify_mcap`) before any message is used: a damaged bag is an error,
+never a silently different model. Bags written without CRCs (fields 0) can't
+be checked; :class:`BagSignals` says so.
+
+A bag is never half-written or destroyed: it is written into a temporary
+directory beside the destination and moved into place when complete;
+``overwrite`` replaces only a directory that is a rosbag2 bag.
+
 Reading turns two topics of any supported type and field path into aligned u/y
 arrays by pairing header stamps (see :func:`pair_by_stamp`). Every failure is a
 :class:`BagError` with a message naming the bag and the problem.
@@ -18,7 +29,11 @@ arrays by pairing header stamps (see :func:`pair_by_stamp`). Every failure is a
 
 from __future__ import annotations
 
+import math
+import os
 import shutil
+import struct
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -36,7 +51,9 @@ __all__ = [
     "open_bag",
     "pair_by_stamp",
     "read_bag_signals",
+    "is_rosbag2_dir",
     "typestore",
+    "verify_mcap",
     "write_io_bag",
 ]
 
@@ -81,6 +98,65 @@ def default_qos():
     )
 
 
+class _CrcMcapStorage:
+    """rosbags storage plugin writing MCAP with the ``mcap`` library, CRCs on.
+
+    rosbags' own MCAP writer leaves every CRC field 0 (unchecked); this one keeps
+    rosbags' bag layout and ``metadata.yaml`` and lets ``mcap`` checksum every
+    chunk, the data section and the summary.
+    """
+
+    def __init__(self, path: Path, compression) -> None:
+        from mcap.writer import CompressionType, Writer
+
+        from .. import __version__
+
+        self.path = path / f"{path.name}.mcap"
+        self._file = self.path.open("xb")
+        self._writer = Writer(self._file, compression=CompressionType.NONE, enable_crcs=True,
+                              enable_data_crcs=True)
+        self._writer.start(profile="ros2", library=f"spm_sysid {__version__}")
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[int, int] = {}
+
+    def add_msgtype(self, connection) -> None:
+        fmt = "ros2idl" if connection.msgdef.data.startswith("=" * 80 + "\nIDL: ") \
+            else "ros2msg"
+        self._schemas[connection.msgtype] = self._writer.register_schema(
+            name=connection.msgtype, encoding=fmt, data=connection.msgdef.data.encode())
+
+    def add_connection(self, connection, offered_qos_profiles: str) -> None:
+        self._channels[connection.id] = self._writer.register_channel(
+            topic=connection.topic,
+            message_encoding=connection.ext.serialization_format,
+            schema_id=self._schemas[connection.msgtype],
+            metadata={"offered_qos_profiles": offered_qos_profiles})
+
+    def write(self, connection, timestamp: int, data) -> None:
+        self._writer.add_message(channel_id=self._channels[connection.id], log_time=timestamp,
+                                 data=bytes(data), publish_time=timestamp)
+
+    def close(self, version: int, metadata: str) -> None:
+        self._writer.add_metadata("rosbag2", {"serialized_metadata": metadata})
+        self._writer.finish()
+        self._file.close()
+
+    def abort(self) -> None:
+        self._file.close()
+
+
+def is_rosbag2_dir(path: Path) -> bool:
+    """True for a directory holding a rosbag2 ``metadata.yaml``."""
+    meta = Path(path) / "metadata.yaml"
+    if not (Path(path).is_dir() and meta.is_file()):
+        return False
+    try:
+        head = meta.read_text(errors="replace")[:4096]
+    except OSError:
+        return False
+    return "rosbag2_bagfile_information" in head
+
+
 def write_io_bag(
     path: str | Path,
     u: np.ndarray,
@@ -96,30 +172,43 @@ def write_io_bag(
 ) -> Path:
     """Write u and y as a rosbag2 MCAP bag (format version 9) at directory ``path``.
 
+    Everything is checked before anything is touched; the bag is written into a
+    temporary directory beside ``path`` and moved into place when complete, so
+    a failure leaves an existing bag as it was.
+
     Raises
     ------
     BagError
-        Bad rate, unequal lengths, non-finite values, or an existing bag without
-        ``overwrite``.
+        Bad rate or start, unequal lengths, non-finite values, an existing bag
+        without ``overwrite``, or an existing path that is not a rosbag2 bag.
     """
     from rosbags.rosbag2 import StoragePlugin, Writer
 
     path = Path(path)
     u = np.asarray(u, dtype=float)
     y = np.asarray(y, dtype=float)
-    if not rate_hz > 0:
-        raise BagError(f"rate must be positive, got {rate_hz}")
+    if not (rate_hz > 0 and math.isfinite(rate_hz)):
+        raise BagError(f"rate must be a positive, finite number of Hz, got {rate_hz}")
+    if not (isinstance(start_ns, (int, np.integer)) and 0 <= start_ns < 2**63 - 2**62):
+        raise BagError(f"start must be >= 0 seconds (a ROS time), got {start_ns / 1e9:g} s")
     if len(u) != len(y) or u.ndim != 1:
         raise BagError(f"u and y must be 1-D and equally long, got {u.shape} and {y.shape}")
+    if len(u) == 0:
+        raise BagError("no samples to write")
     if not (np.all(np.isfinite(u)) and np.all(np.isfinite(y))):
         raise BagError("u and y must be finite (NaN or inf found)")
     if input_topic == output_topic:
         raise BagError("input and output topics must differ")
-    if path.exists():
+    if path.exists() or path.is_symlink():
         if not overwrite:
             raise BagError(f"{path} already exists (use --force to replace it)")
-        shutil.rmtree(path) if path.is_dir() else path.unlink()
+        if not is_rosbag2_dir(path):
+            raise BagError(f"{path} exists and is not a rosbag2 bag (no rosbag2 metadata.yaml);"
+                           " refusing to replace it, nothing was changed")
     path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.parent / f".{path.name}.partial-{os.getpid()}"
+    if tmp.exists():
+        shutil.rmtree(tmp)
 
     store = typestore()
     types = store.types
@@ -130,25 +219,44 @@ def write_io_bag(
     zero = Vector3(x=0.0, y=0.0, z=0.0)
     period_ns = 1e9 / rate_hz
 
-    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
-        qos = [default_qos()]
-        c_in = writer.add_connection(input_topic, INPUT_TYPE, typestore=store,
-                                     offered_qos_profiles=qos)
-        c_out = writer.add_connection(output_topic, OUTPUT_TYPE, typestore=store,
-                                      offered_qos_profiles=qos)
-        for k in range(len(u)):
-            t_ns = start_ns + int(round(k * period_ns))
-            stamp = Time(sec=t_ns // 1_000_000_000, nanosec=t_ns % 1_000_000_000)
-            w = WrenchStamped(
-                header=Header(stamp=stamp, frame_id=input_frame),
-                wrench=Wrench(force=zero, torque=Vector3(x=0.0, y=0.0, z=float(u[k]))),
-            )
-            a = AccelStamped(
-                header=Header(stamp=stamp, frame_id=output_frame),
-                accel=Accel(linear=Vector3(x=float(y[k]), y=0.0, z=0.0), angular=zero),
-            )
-            writer.write(c_in, t_ns, store.serialize_cdr(w, INPUT_TYPE))
-            writer.write(c_out, t_ns, store.serialize_cdr(a, OUTPUT_TYPE))
+    try:
+        writer = Writer(tmp, version=9, storage_plugin=StoragePlugin.MCAP)
+        writer.STORAGE_PLUGINS = {StoragePlugin.MCAP: _CrcMcapStorage}
+        with writer:
+            qos = [default_qos()]
+            c_in = writer.add_connection(input_topic, INPUT_TYPE, typestore=store,
+                                         offered_qos_profiles=qos)
+            c_out = writer.add_connection(output_topic, OUTPUT_TYPE, typestore=store,
+                                          offered_qos_profiles=qos)
+            for k in range(len(u)):
+                t_ns = start_ns + int(round(k * period_ns))
+                stamp = Time(sec=t_ns // 1_000_000_000, nanosec=t_ns % 1_000_000_000)
+                w = WrenchStamped(
+                    header=Header(stamp=stamp, frame_id=input_frame),
+                    wrench=Wrench(force=zero, torque=Vector3(x=0.0, y=0.0, z=float(u[k]))),
+                )
+                a = AccelStamped(
+                    header=Header(stamp=stamp, frame_id=output_frame),
+                    accel=Accel(linear=Vector3(x=float(y[k]), y=0.0, z=0.0), angular=zero),
+                )
+                writer.write(c_in, t_ns, store.serialize_cdr(w, INPUT_TYPE))
+                writer.write(c_out, t_ns, store.serialize_cdr(a, OUTPUT_TYPE))
+        # rosbags names the file after the directory: rename it after the destination
+        (tmp / f"{tmp.name}.mcap").rename(tmp / f"{path.name}.mcap")
+        meta = tmp / "metadata.yaml"
+        meta.write_text(meta.read_text().replace(f"{tmp.name}.mcap", f"{path.name}.mcap"))
+    except BaseException as exc:
+        shutil.rmtree(tmp, ignore_errors=True)
+        if isinstance(exc, (OSError, ValueError)) and not isinstance(exc, BagError):
+            raise BagError(f"could not write the bag {path}: {exc}") from None
+        raise
+    if path.exists():
+        old = path.parent / f".{path.name}.old-{os.getpid()}"
+        path.rename(old)
+        tmp.rename(path)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        tmp.rename(path)
     return path
 
 
@@ -186,28 +294,90 @@ class BagSignals:
     input_count: int
     output_count: int
     topics: dict[str, str] = field(default_factory=dict)
+    rejected_nonfinite: int = 0
+    crc_checked: bool = False
 
     @property
     def unpaired(self) -> int:
-        """Messages on either topic without a partner."""
-        return self.input_count + self.output_count - 2 * len(self.u)
+        """Finite messages on either topic without a partner."""
+        return (self.input_count + self.output_count - self.rejected_nonfinite
+                - 2 * len(self.u))
 
 
-def open_bag(path: Path):
-    """An open rosbags AnyReader for a bag directory or ``.mcap`` file, or a BagError."""
+_MAGIC = b"\x89MCAP0\r\n"
+_FOOTER = struct.Struct("<BQQQI")  # opcode, record length, summary start, offsets, crc
+
+
+def verify_mcap(path: Path) -> bool:
+    """Check an MCAP file's CRCs: every chunk, the data section and the summary.
+
+    Returns True when the file carries CRCs and all match, False when it has none
+    (every CRC field 0: written without them, nothing to check).
+
+    Raises
+    ------
+    BagError
+        A CRC mismatch, a truncated file or a record that cannot be read.
+    """
+    from mcap.exceptions import McapError
+    from mcap.records import Chunk, DataEnd
+    from mcap.stream_reader import StreamReader
+
+    path = Path(path)
+    checked = False
+    try:
+        size = path.stat().st_size
+        with path.open("rb") as f:
+            for record in StreamReader(f, validate_crcs=True).records:
+                if isinstance(record, Chunk) and record.uncompressed_crc:
+                    checked = True
+                if isinstance(record, DataEnd) and record.data_section_crc:
+                    checked = True
+            f.seek(size - len(_MAGIC) - _FOOTER.size)
+            opcode, _, summary_start, _, summary_crc = _FOOTER.unpack(f.read(_FOOTER.size))
+            if opcode != 0x02:
+                raise BagError(f"cannot read bag {path}: the file is damaged (no MCAP footer at "
+                               "the end)")
+            if summary_crc and summary_start:
+                f.seek(summary_start)
+                body = f.read(size - len(_MAGIC) - 4 - summary_start)
+                if zlib.crc32(body) != summary_crc:
+                    raise BagError(f"cannot read bag {path}: the file is damaged (the summary "
+                                   "section's CRC does not match)")
+                checked = True
+    except BagError:
+        raise
+    except EOFError:
+        raise BagError(f"cannot read bag {path}: the file ends early (truncated)") from None
+    except (McapError, OSError, ValueError, struct.error) as exc:
+        raise BagError(f"cannot read bag {path}: the file is damaged ({exc})") from None
+    return checked
+
+
+def open_bag(path: Path, verify: bool = True):
+    """An open rosbags AnyReader for a bag directory or ``.mcap`` file, or a BagError.
+
+    With ``verify`` every MCAP file of the bag has its CRCs checked first
+    (:func:`verify_mcap`); the reader's ``crc_checked`` attribute says whether
+    all of them carried CRCs.
+    """
     from rosbags.highlevel import AnyReader
 
+    path = Path(path)
     if not path.exists():
         raise BagError(f"bag not found: {path}")
     if path.is_dir() and not (path / "metadata.yaml").exists():
         raise BagError(f"{path} is not a rosbag2 bag (no metadata.yaml in the directory)")
     if path.is_file() and path.suffix != ".mcap":
         raise BagError(f"{path} is not a bag (expected a bag directory or an .mcap file)")
+    files = sorted(path.glob("*.mcap")) if path.is_dir() else [path]
+    crc_checked = bool(files) and all(verify_mcap(f) for f in files) if verify else False
     try:
         reader = AnyReader([path], default_typestore=typestore())
         reader.open()
     except Exception as exc:  # rosbags raises several types for damaged files
         raise BagError(f"cannot read bag {path}: {exc}") from None
+    reader.crc_checked = crc_checked
     return reader
 
 
@@ -223,16 +393,19 @@ def read_bag_signals(
     """Read u and y from two topics of a bag, paired by header stamp.
 
     Messages without a header are stamped with their log time. Fields default by
-    message type (see :data:`spm_sysid.core.fields.DEFAULT_FIELDS`).
+    message type (see :data:`spm_sysid.core.fields.DEFAULT_FIELDS`). NaN/inf
+    values are rejected and counted, as the node does; the holes they leave show
+    in the stamps (:func:`spm_sysid.core.segments.find_segments`).
 
     Raises
     ------
     BagError
-        Missing or damaged bag, missing topic, unsupported type or bad field path,
-        non-finite values, or no pairs.
+        Missing or damaged bag (CRC mismatch), missing topic, unsupported type or
+        bad field path, or no pairs.
     """
     path = Path(path)
     reader = open_bag(path)
+    crc_checked = reader.crc_checked
     try:
         conns = {c.topic: c for c in reader.connections}
         for topic in (input_topic, output_topic):
@@ -266,17 +439,18 @@ def read_bag_signals(
         reader.close()
 
     (tu, u, type_u), (ty, y, type_y) = series[input_topic], series[output_topic]
-    for name, arr in (("input", u), ("output", y)):
-        bad = np.flatnonzero(~np.isfinite(arr))
-        if bad.size:
-            raise BagError(f"{path}: {bad.size} non-finite {name} value(s), first at message "
-                           f"{bad[0]}")
+    n_u, n_y = len(u), len(y)
+    # like the node: NaN/inf samples are rejected (counted) and leave a gap
+    fu, fy = np.isfinite(u), np.isfinite(y)
+    rejected = int((~fu).sum() + (~fy).sum())
+    tu, u, ty, y = tu[fu], u[fu], ty[fy], y[fy]
     ou, oy = np.argsort(tu, kind="stable"), np.argsort(ty, kind="stable")
     iu, iy = pair_by_stamp(tu[ou], ty[oy], tolerance_ns)
     if len(iu) == 0:
         raise BagError(f"{path}: no input and output messages with matching stamps "
                        f"(tolerance {tolerance_ns} ns)")
     return BagSignals(
-        u=u[ou][iu], y=y[oy][iy], stamps_ns=ty[oy][iy], input_count=len(u),
-        output_count=len(y), topics={input_topic: type_u, output_topic: type_y},
+        u=u[ou][iu], y=y[oy][iy], stamps_ns=ty[oy][iy], input_count=n_u,
+        output_count=n_y, topics={input_topic: type_u, output_topic: type_y},
+        rejected_nonfinite=rejected, crc_checked=crc_checked,
     )

@@ -127,6 +127,10 @@ def correlation_tests(
         raise ValueError(f"residuals and input differ in length: {len(e)} and {len(u)}")
     if max_lag < 1:
         raise ValueError(f"max_lag must be >= 1, got {max_lag}")
+    # the tests are scale-free: scale first so products of data of any magnitude
+    # (1e-100 or 1e100) neither overflow nor underflow
+    e = e / (np.max(np.abs(e)) or 1.0)
+    u = u / (np.max(np.abs(u)) or 1.0)
     band = 1.96 / np.sqrt(len(e))
     sym = np.arange(-max_lag, max_lag + 1)
     u2 = u**2 - np.mean(u**2)

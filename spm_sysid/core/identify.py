@@ -16,6 +16,7 @@ from .criteria import Criterion, get_criterion
 from .data import DataError, check_samples
 from .evaluator import StructureEvaluator
 from .ga import GAConfig, GAResult, GenerationStats, run_ga
+from .memory import check_memory
 from .model import NarxModel
 from .segments import normalise_segments, usable_segments
 from .terms import TermSpace, power_of_two_scale
@@ -134,6 +135,11 @@ def identify(
     if not np.any(y):
         raise DataError("the output y is zero throughout: there is nothing to identify")
     ga = ga or GAConfig()
+    rows = len(y) - term_space.max_lag if segments is None else sum(
+        b - a - term_space.max_lag for a, b in segments)
+    # the matrix, its scaled copy in the evaluator and the QR work space, with margin
+    check_memory(5 * 8 * rows * (term_space.n_terms + 1),
+                 f"the regression matrix of {rows} rows x {term_space.n_terms} candidate terms")
     su, sy = power_of_two_scale(u), power_of_two_scale(y)
     P, target = term_space.regression(u / su, y / sy, segments)
     nonzero = np.any(P != 0, axis=0)

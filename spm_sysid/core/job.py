@@ -17,11 +17,11 @@ import numpy as np
 from .data import DataError
 from .ga import GAConfig
 from .identify import identify
-from .segments import find_segments, usable_segments
+from .segments import describe_data, find_segments, segment_report
 from .terms import TermSpace
 from .validation import split_segments, validate_model
 
-__all__ = ["JobSettings", "describe_data", "run_job"]
+__all__ = ["JobSettings", "run_job"]
 
 
 @dataclass
@@ -108,10 +108,7 @@ def run_job(stamps_ns: np.ndarray, u: np.ndarray, y: np.ndarray, settings: JobSe
     space = settings.term_space()
     period_ns = int(round(settings.sample_period * 1e9)) or None
     info = find_segments(stamps_ns, period_ns, settings.gap_factor)
-    bounds, skipped, skipped_samples = usable_segments(info.bounds, space.max_lag)
-    data = {**info.to_dict(), "used_samples": sum(b - a for a, b in bounds),
-            "used_segments": len(bounds), "skipped_segments": skipped,
-            "skipped_samples": skipped_samples}
+    bounds, data = segment_report(info, space.max_lag)
     if not bounds:
         raise DataError(
             f"no contiguous segment is longer than the largest lag ({space.max_lag}): "
@@ -158,17 +155,3 @@ def run_job(stamps_ns: np.ndarray, u: np.ndarray, y: np.ndarray, settings: JobSe
         "seconds": seconds,
         "data": data,
     }
-
-
-def describe_data(data: dict) -> str:
-    """One phrase on what data a result used: samples, segments, gaps, skipped parts."""
-    text = f"{data['used_samples']} samples"
-    if data["segments"] > 1 or data["gaps"]:
-        text += (f" in {data['used_segments']} contiguous segment(s); {data['gaps']} gap(s) "
-                 f"({data['missing_samples']} samples missing)")
-        if data["restarts"]:
-            text += f", {data['restarts']} restart(s) of the stamps"
-        if data["skipped_segments"]:
-            text += (f", {data['skipped_segments']} segment(s) too short to use "
-                     f"({data['skipped_samples']} samples)")
-    return text

@@ -241,13 +241,40 @@ class NarxModel:
                 f"model schema version {version!r} is not supported (this is version "
                 f"{MODEL_SCHEMA_VERSION})"
             )
+        for key in ("term_space", "terms", "term_indices", "coefficients"):
+            if key not in doc:
+                raise ModelFormatError(f"model document is incomplete: no {key!r}")
+        ts = doc["term_space"]
+        if not isinstance(ts, dict):
+            raise ModelFormatError("'term_space' must be an object")
+        for key in ("ny", "nu", "degree", "delay"):
+            if not _is_int(ts.get(key)):
+                raise ModelFormatError(f"term_space.{key} must be an integer, got "
+                                       f"{ts.get(key)!r}")
+        if not isinstance(ts.get("constant"), bool):
+            raise ModelFormatError(f"term_space.constant must be true or false, got "
+                                   f"{ts.get('constant')!r}")
         try:
-            space = TermSpace.from_dict(doc["term_space"])
-            indices = [int(i) for i in doc["term_indices"]]
-            coefs = np.asarray(doc["coefficients"], dtype=float)
-            names = list(doc["terms"])
-        except (KeyError, TypeError, ValueError) as exc:
-            raise ModelFormatError(f"model document is incomplete or malformed: {exc}") from exc
+            space = TermSpace.from_dict(ts)
+        except (TypeError, ValueError) as exc:
+            raise ModelFormatError(f"term_space is invalid: {exc}") from None
+        indices, coefs, names = doc["term_indices"], doc["coefficients"], doc["terms"]
+        for key, value in (("term_indices", indices), ("coefficients", coefs),
+                           ("terms", names)):
+            if not isinstance(value, list):
+                raise ModelFormatError(f"{key!r} must be a list, got {type(value).__name__}")
+        bad = [i for i in indices if not _is_int(i)]
+        if bad:
+            raise ModelFormatError(f"term_indices must be integers, got {bad[0]!r}")
+        if len(set(indices)) != len(indices):
+            raise ModelFormatError("term_indices lists a term more than once")
+        bad = [c for c in coefs if not _is_number(c)]
+        if bad:
+            raise ModelFormatError(f"coefficients must be numbers, got {bad[0]!r}")
+        if not all(math.isfinite(c) for c in coefs):
+            raise ModelFormatError("coefficients must be finite (NaN or inf found)")
+        if not all(isinstance(n, str) for n in names):
+            raise ModelFormatError("terms must be strings")
         all_names = space.term_names()
         if len(indices) != len(coefs) or len(names) != len(coefs):
             raise ModelFormatError("terms, term_indices and coefficients differ in length")
@@ -255,16 +282,30 @@ class NarxModel:
             raise ModelFormatError("a term index lies outside the term space")
         if [all_names[i] for i in indices] != names:
             raise ModelFormatError("term names do not match the term space's order")
-        crit = doc.get("criterion") or {}
+        crit = doc.get("criterion")
+        if crit is not None and not (isinstance(crit, dict) and isinstance(crit.get("name"), str)
+                                     and (crit.get("value") is None
+                                          or _is_number(crit.get("value")))):
+            raise ModelFormatError("'criterion' must be null or an object with a 'name' "
+                                   "(text) and a 'value' (number or null)")
+        crit = crit or {}
+        for key in ("mse", "n_samples"):
+            value = doc.get(key)
+            if value is not None and not (_is_int(value) if key == "n_samples"
+                                          else _is_number(value)):
+                raise ModelFormatError(f"{key!r} must be a number or null, got {value!r}")
+        metadata = doc.get("metadata") or {}
+        if not isinstance(metadata, dict):
+            raise ModelFormatError("'metadata' must be an object")
         return cls(
             term_space=space,
-            term_indices=indices,
-            coefficients=coefs,
+            term_indices=[int(i) for i in indices],
+            coefficients=np.array(coefs, dtype=float),
             criterion=crit.get("name"),
             criterion_value=crit.get("value"),
             mse=doc.get("mse"),
             n_samples=doc.get("n_samples"),
-            metadata=doc.get("metadata") or {},
+            metadata=metadata,
         )
 
     def to_json(self) -> str:
@@ -280,12 +321,31 @@ class NarxModel:
         """Read a model saved with :meth:`save`."""
         path = Path(path)
         try:
-            doc = json.loads(path.read_text())
+            doc = json.loads(path.read_text(), parse_constant=_reject_constant)
         except FileNotFoundError:
             raise ModelFormatError(f"model file not found: {path}") from None
-        except json.JSONDecodeError as exc:
+        except IsADirectoryError:
+            raise ModelFormatError(f"{path} is a directory, not a model file") from None
+        except UnicodeDecodeError:
+            raise ModelFormatError(f"{path} is not a text (JSON) file") from None
+        except (json.JSONDecodeError, ValueError) as exc:
             raise ModelFormatError(f"{path} is not valid JSON: {exc}") from None
-        return cls.from_dict(doc)
+        try:
+            return cls.from_dict(doc)
+        except ModelFormatError as exc:
+            raise ModelFormatError(f"{path}: {exc}") from None
+
+
+def _reject_constant(name: str):
+    raise ValueError(f"{name} is not a JSON number (NaN and Infinity are not allowed)")
+
+
+def _is_int(x) -> bool:
+    return isinstance(x, int) and not isinstance(x, bool)
+
+
+def _is_number(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool)
 
 
 def _json_float(x: float | None) -> float | None:

@@ -27,6 +27,8 @@ import numpy as np
 
 __all__ = [
     "SegmentInfo",
+    "describe_data",
+    "segment_report",
     "estimate_period_ns",
     "find_segments",
     "normalise_segments",
@@ -158,3 +160,31 @@ def usable_segments(bounds: Sequence[tuple[int, int]], max_lag: int
     keep = [(a, b) for a, b in bounds if b - a > max_lag]
     skipped = [(a, b) for a, b in bounds if b - a <= max_lag]
     return keep, len(skipped), sum(b - a for a, b in skipped)
+
+
+def segment_report(info: SegmentInfo, max_lag: int, rejected: int = 0
+                   ) -> tuple[list[tuple[int, int]], dict]:
+    """The usable segments and a plain-data account of the data a fit will use.
+
+    ``rejected`` counts samples dropped before segmenting (NaN, unpaired ...).
+    """
+    bounds, skipped, skipped_samples = usable_segments(info.bounds, max_lag)
+    return bounds, {**info.to_dict(), "used_samples": sum(b - a for a, b in bounds),
+                    "used_segments": len(bounds), "skipped_segments": skipped,
+                    "skipped_samples": skipped_samples, "rejected_samples": rejected}
+
+
+def describe_data(data: dict) -> str:
+    """One phrase on what data a result used: samples, segments, gaps, skipped parts."""
+    text = f"{data['used_samples']} samples"
+    if data.get("rejected_samples"):
+        text += f" ({data['rejected_samples']} rejected)"
+    if data["segments"] > 1 or data["gaps"]:
+        text += (f" in {data['used_segments']} contiguous segment(s); {data['gaps']} gap(s) "
+                 f"({data['missing_samples']} samples missing)")
+        if data["restarts"]:
+            text += f", {data['restarts']} restart(s) of the stamps"
+        if data["skipped_segments"]:
+            text += (f", {data['skipped_segments']} segment(s) too short to use "
+                     f"({data['skipped_samples']} samples)")
+    return text

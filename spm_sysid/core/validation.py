@@ -100,10 +100,10 @@ class ValidationReport:
         o, f = self.one_step_metrics, self.free_run_metrics
         lines = [
             f"validation on {self.segment} data ({self.n_samples} samples):",
-            f"  one-step: MSE {o['mse']:.4e}, max |e| {o['max_abs']:.5f}, "
-            f"mean |e| {o['mean_abs']:.6f}, fit {o['fit_percent']:.2f} %",
-            f"  free-run: MSE {f['mse']:.4e}, max |e| {f['max_abs']:.5f}, "
-            f"mean |e| {f['mean_abs']:.6f}, fit {f['fit_percent']:.2f} %",
+            f"  one-step: MSE {o['mse']:.4e}, max |e| {o['max_abs']:.4g}, "
+            f"mean |e| {o['mean_abs']:.4g}, fit {o['fit_percent']:.2f} %",
+            f"  free-run: MSE {f['mse']:.4e}, max |e| {f['max_abs']:.4g}, "
+            f"mean |e| {f['mean_abs']:.4g}, fit {f['fit_percent']:.2f} %",
             f"  correlation tests (95 % band ±{self.tests[0].band:.4f}):",
         ]
         for t in self.tests:

@@ -8,6 +8,7 @@ another rclpy node can do the same with its own client (see
 from __future__ import annotations
 
 import json
+import sys
 import time
 
 import rclpy
@@ -66,14 +67,17 @@ def main(action: str, node_name: str = "/spm_sysid", timeout: float = 300.0,
     node = Node("spm_sysid_call")
     try:
         ok, message = call_trigger(node, f"{node_name.rstrip('/')}/{action}", timeout)
-        print(("success: " if ok else "refused: ") + message)
+        if ok:
+            print("success: " + message)
+        else:
+            print("refused: " + message, file=sys.stderr)
         if ok and action == "identify" and show_model:
             doc = wait_for_model(node, f"{node_name.rstrip('/')}/model")
             if doc is not None:
                 print(json.dumps(doc, indent=2))
         return 0 if ok else 1
     except TimeoutError as exc:
-        print(f"error: {exc}")
+        print(f"error: {exc}", file=sys.stderr)
         return 2
     finally:
         node.destroy_node()

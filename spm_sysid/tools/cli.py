@@ -17,10 +17,12 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse  # noqa: E402
 import sys  # noqa: E402
+from dataclasses import dataclass  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from ..core.data import DataError, find_robot_arm, load_io  # noqa: E402
+from ..core.data import DataError, find_robot_arm, load_data, load_io  # noqa: E402
+from ..core.files import check_writable_dir, check_writable_file  # noqa: E402
 from ..core.ga import GAConfig  # noqa: E402
 from ..core.terms import TermSpace  # noqa: E402
 
@@ -84,7 +86,34 @@ def _ga_config(args) -> GAConfig:
         raise UserError(str(exc)) from None
 
 
-def _load(args) -> tuple[np.ndarray, np.ndarray, str]:
+@dataclass
+class Loaded:
+    """Data for a command: samples, where from, and the contiguous segments."""
+
+    u: np.ndarray
+    y: np.ndarray
+    source: str
+    stamps_ns: np.ndarray | None = None
+    rejected: int = 0
+
+    def segments(self, max_lag: int) -> tuple[list[tuple[int, int]] | None, dict]:
+        """Usable segments (None: the whole record) and the account of the data."""
+        from ..core.segments import SegmentInfo, find_segments, segment_report
+
+        if self.stamps_ns is None:
+            info = SegmentInfo([(0, len(self.y))])
+        else:
+            info = find_segments(self.stamps_ns)
+        bounds, data = segment_report(info, max_lag, self.rejected)
+        if not bounds:
+            raise UserError(f"{self.source}: no contiguous segment is longer than the largest "
+                            f"lag ({max_lag}); {len(self.y)} samples in {len(info.bounds)} "
+                            f"segment(s)")
+        whole = len(bounds) == 1 and bounds[0] == (0, len(self.y))
+        return (None if whole else bounds), data
+
+
+def _load(args) -> Loaded:
     if getattr(args, "bag", None) and args.data:
         raise UserError("give either --data or --bag, not both")
     if getattr(args, "bag", None):
@@ -93,13 +122,15 @@ def _load(args) -> tuple[np.ndarray, np.ndarray, str]:
         sig = read_bag_signals(args.bag, input_topic=args.input_topic,
                                output_topic=args.output_topic,
                                input_field=args.input_field, output_field=args.output_field)
-        return sig.u, sig.y, f"bag {args.bag}"
+        return Loaded(sig.u, sig.y, f"bag {args.bag}", sig.stamps_ns,
+                      sig.rejected_nonfinite + sig.unpaired)
     if args.data:
-        u, y = load_io(args.data)
-        return u, y, args.data
+        d = load_data(args.data)
+        stamps = None if d.t is None else np.round(d.t * 1e9).astype(np.int64)
+        return Loaded(d.u, d.y, args.data, stamps, d.rejected)
     path = find_robot_arm()
     u, y = load_io(path)
-    return u, y, f"robot-arm data ({path})"
+    return Loaded(u, y, f"robot-arm data ({path})")
 
 
 class _Progress:
@@ -127,41 +158,78 @@ class _Progress:
 # -- sub-commands -----------------------------------------------------------------------
 
 
+def _check_outputs(args) -> None:
+    """Check --json and --plots destinations before any work (a search must not be lost)."""
+    if getattr(args, "json", None):
+        check_writable_file(args.json, "--json")
+    if getattr(args, "plots", None):
+        check_writable_dir(args.plots, "--plots directory")
+
+
+def _check_corr_lags(corr_lags: int, rows: int) -> None:
+    if not 1 <= corr_lags < rows:
+        raise UserError(f"--corr-lags must be between 1 and {rows - 1} for {rows} validation "
+                        f"rows, got {corr_lags}")
+
+
 def cmd_identify(args) -> int:
     from ..core.identify import identify
-    from ..core.validation import split_data
+    from ..core.segments import describe_data
+    from ..core.validation import split_segments
 
     space = _term_space(args)
     config = _ga_config(args)
     if args.plots and args.validation == "none":
         raise UserError("--plots needs validation (--validation estimation or holdout)")
-    u, y, source = _load(args)
-    u_val, y_val = u, y
+    if args.split is not None and args.validation != "holdout":
+        raise UserError("--split applies to --validation holdout only (the estimation "
+                        "fraction of the data)")
+    if args.corr_lags < 1:
+        raise UserError(f"--corr-lags must be >= 1, got {args.corr_lags}")
+    _check_outputs(args)
+    data = _load(args)
+    u, y = data.u, data.y
+    segments, account = data.segments(space.max_lag)
+    est = val = segments
     if args.validation == "holdout":
-        (u, y), (u_val, y_val) = split_data(u, y, args.split, space.max_lag)
+        bounds = segments or [(0, len(y))]
+        est, val = split_segments(bounds, len(y), 0.5 if args.split is None else args.split,
+                                  space.max_lag)
+    if args.validation != "none":
+        rows = sum(b - a - space.max_lag for a, b in (val or [(0, len(y))]))
+        _check_corr_lags(args.corr_lags, rows)
     progress = _Progress(config.generations, not args.quiet)
     try:
         result = identify(u=u, y=y, term_space=space, criterion=args.criterion, ga=config,
-                          seed=args.seed, callback=progress)
+                          seed=args.seed, callback=progress, segments=est)
     finally:
         progress.close()
     model = result.model
-    model.metadata["source"] = source
-    print(f"data: {source}, {len(y)} samples used for estimation")
+    model.metadata["source"] = data.source
+    model.metadata["data"] = account
+    used = sum(b - a for a, b in (est or [(0, len(y))]))
+    print(f"data: {data.source}, {used} samples used for estimation")
+    if account["segments"] > 1 or account["gaps"] or account["rejected_samples"]:
+        print(f"note: the data has gaps; used {describe_data(account)}; no regression row "
+              "crosses a gap")
+    excluded = model.metadata.get("excluded_zero_terms")
+    if excluded:
+        print(f"note: {len(excluded)} candidate term(s) are zero on this data and were left "
+              f"out of the search (e.g. {excluded[0]}); is the input zero?")
     print(result.summary())
     if args.validation != "none":
-        _validate_and_report(model, u_val, y_val, args.validation, args.plots, args.corr_lags)
+        _validate_and_report(model, u, y, args.validation, args.plots, args.corr_lags, val)
     if args.json:
         path = model.save(args.json)
         print(f"model written to {path}")
     return 0
 
 
-def _validate_and_report(model, u, y, segment, plots, corr_lags) -> None:
+def _validate_and_report(model, u, y, segment, plots, corr_lags, segments=None) -> None:
     """Validate, print the summary, store it in the model, write figures."""
     from ..core.validation import validate_model
 
-    report = validate_model(model, u, y, max_lag=corr_lags, segment=segment)
+    report = validate_model(model, u, y, max_lag=corr_lags, segment=segment, segments=segments)
     model.metadata["validation"] = report.to_dict()
     print(report.summary())
     if plots:
@@ -173,18 +241,27 @@ def _validate_and_report(model, u, y, segment, plots, corr_lags) -> None:
 
 def cmd_validate(args) -> int:
     from ..core.model import NarxModel
+    from ..core.validation import split_segments
 
+    if args.tail is not None and not 0 < args.tail < 1:
+        raise UserError(f"--tail must be between 0 and 1, got {args.tail}")
+    if args.corr_lags < 1:
+        raise UserError(f"--corr-lags must be >= 1, got {args.corr_lags}")
+    _check_outputs(args)
     model = NarxModel.load(args.model)
-    u, y, source = _load(args)
+    data = _load(args)
+    u, y = data.u, data.y
+    lag0 = model.term_space.max_lag
+    segments, _ = data.segments(lag0)
     if args.tail is not None:
-        from ..core.validation import split_data
-
-        _, (u, y) = split_data(u, y, 1.0 - args.tail, model.term_space.max_lag)
+        _, segments = split_segments(segments or [(0, len(y))], len(y), 1.0 - args.tail, lag0)
+    rows = sum(b - a - lag0 for a, b in (segments or [(0, len(y))]))
+    _check_corr_lags(args.corr_lags, rows)
     print(f"model: {args.model}")
     print(model.equation())
-    print(f"data: {source}" + (f", last {args.tail:.0%}" if args.tail is not None else ""))
+    print(f"data: {data.source}" + (f", last {args.tail:.0%}" if args.tail is not None else ""))
     _validate_and_report(model, u, y, "holdout" if args.tail is not None else "supplied",
-                         args.plots, args.corr_lags)
+                         args.plots, args.corr_lags, segments)
     return 0
 
 
@@ -219,7 +296,11 @@ def cmd_experiment(args) -> int:
             config = ExperimentConfig(**{k: v for k, v in overrides.items() if v is not None})
     except TypeError as exc:
         raise UserError(f"bad experiment settings: {exc}") from None
-    u, y, source = _load(args)
+    data = _load(args)
+    u, y, source = data.u, data.y, data.source
+    space = TermSpace.from_dict(config.term_space)
+    if data.segments(space.max_lag)[0] is not None:
+        raise UserError(f"{source} has gaps; the study needs one contiguous record")
     n_runs = (len(config.criteria) * len(config.populations) * len(config.spm_fractions)
               * config.runs)
     print(f"study: {n_runs} runs on {source}, {len(y)} samples")
@@ -279,8 +360,15 @@ def cmd_fetch_data(args) -> int:
 
 
 def cmd_make_bag(args) -> int:
+    import math
+
     from ..core.bagio import write_io_bag
 
+    # everything is checked before anything is read or touched
+    if not (args.rate > 0 and math.isfinite(args.rate)):
+        raise UserError(f"--rate must be a positive number of Hz, got {args.rate}")
+    if not (args.start >= 0 and math.isfinite(args.start) and args.start < 4e9):
+        raise UserError(f"--start must be a time in seconds, 0 <= start < 4e9, got {args.start}")
     u, y = load_io(args.data) if args.data else load_io(find_robot_arm())
     path = write_io_bag(args.output, u, y, rate_hz=args.rate, start_ns=int(args.start * 1e9),
                         input_topic=args.input_topic, output_topic=args.output_topic,
@@ -291,29 +379,47 @@ def cmd_make_bag(args) -> int:
     return 0
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors (``spm-sysid identify: error: ...``), exit status 2."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def _seed(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {value}")
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser (exposed for documentation and tests)."""
     from .. import __version__
 
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="spm-sysid",
         description="Polynomial NARX identification with a single-parent-mating GA.",
     )
     parser.add_argument("--version", action="version", version=f"spm-sysid {__version__}")
-    sub = parser.add_subparsers(dest="command", required=True)
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
     p = sub.add_parser("identify", help="select and fit a NARX model on data")
     _add_data_options(p)
     _add_model_options(p)
     _add_ga_options(p)
     p.add_argument("--criterion", default="aic", help="aic, bic or pmic2 (default aic)")
-    p.add_argument("--seed", type=int, default=None, help="random seed (reproducible runs)")
+    p.add_argument("--seed", type=_seed, default=None,
+                   help="random seed >= 0 (reproducible runs)")
     p.add_argument("--json", metavar="PATH", help="write the model document here")
     p.add_argument("--plots", metavar="DIR", help="write validation figures here")
     p.add_argument("--validation", choices=("none", "estimation", "holdout"),
                    default="estimation",
                    help="validate on the estimation data or a held-out tail")
-    p.add_argument("--split", type=float, default=0.5,
+    p.add_argument("--split", type=float, default=None,
                    help="estimation fraction for --validation holdout (default 0.5)")
     p.add_argument("--corr-lags", type=int, default=20,
                    help="largest lag of the correlation tests (default 20)")
@@ -337,7 +443,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--spm", help="comma-separated SPM fractions (default 0,0.15)")
     p.add_argument("--runs", type=int, help="runs per setting (default 15)")
     p.add_argument("--generations", type=int, help="default 300")
-    p.add_argument("--seed", type=int, help="first seed (default 0)")
+    p.add_argument("--seed", type=_seed, help="first seed (default 0)")
     p.add_argument("--fitness", choices=("akaike", "rank", "window"),
                    help="roulette fitness transform (default akaike)")
     p.add_argument("--workers", type=int, help="processes (default: one per core)")
@@ -391,7 +497,14 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        return int(args.func(args) or 0)
+        status = int(args.func(args) or 0)
+        sys.stdout.flush()
+        return status
+    except BrokenPipeError:
+        # the reader went away (e.g. `| head`): stop quietly, as command-line tools do
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 0
     except (UserError, DataError, ValueError, OSError) as exc:  # ModelFormatError is a ValueError
         print(f"error: {exc}", file=sys.stderr)
         return 2
