@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import fcntl
 import itertools
 import os
 import sys
@@ -19,7 +20,28 @@ from spm_sysid.core.data import find_robot_arm, load_io  # noqa: E402
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 os.environ.setdefault("ROS_DOMAIN_ID", "62")
 
-_domains = itertools.count(int(os.environ.get("SPM_SYSID_TEST_DOMAIN_BASE", "70")))
+# Each ROS test gets a domain of its own, reserved with a lock file, so two suites on
+# one host (two clones, CI and a developer) never share a domain. Domains 1..101 are
+# valid with LOCALHOST discovery; SPM_SYSID_TEST_DOMAIN_BASE picks where to start.
+_LOCK_DIR = Path(os.environ.get("SPM_SYSID_TEST_LOCK_DIR", "/tmp/spm_sysid_test_domains"))
+_next = itertools.count(int(os.environ.get("SPM_SYSID_TEST_DOMAIN_BASE", "20")))
+
+
+def _reserve_domain():
+    """A free ROS domain id and the open lock file that holds it."""
+    _LOCK_DIR.mkdir(parents=True, exist_ok=True)
+    for _ in range(101):
+        domain = next(_next) % 101 + 1
+        if domain in (61, 62, 63):  # make run, make test and CI use these
+            continue
+        f = open(_LOCK_DIR / f"{domain}.lock", "w")
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            f.close()
+            continue
+        return domain, f
+    raise RuntimeError("no free ROS domain id (101 in use)")
 
 
 @pytest.fixture(scope="session")
@@ -34,13 +56,15 @@ def robot_arm_path() -> Path:
 
 
 @pytest.fixture
-def ros_env() -> dict[str, str]:
+def ros_env():
     """Environment for a process that starts ROS: localhost only, its own domain."""
+    domain, lock = _reserve_domain()
     env = dict(os.environ)
     env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-    env["ROS_DOMAIN_ID"] = str(next(_domains) % 100 + 1)
+    env["ROS_DOMAIN_ID"] = str(domain)
     env["PYTHONUNBUFFERED"] = "1"
-    return env
+    yield env
+    lock.close()  # releases the domain
 
 
 EQ1 = ["y(t-1)", "y(t-2)", "y(t-3)", "y(t-4)", "u(t-1)", "u(t-2)", "u(t-3)", "u(t-4)"]

@@ -162,23 +162,28 @@ def usable_segments(bounds: Sequence[tuple[int, int]], max_lag: int
     return keep, len(skipped), sum(b - a for a, b in skipped)
 
 
-def segment_report(info: SegmentInfo, max_lag: int, rejected: int = 0
+def segment_report(info: SegmentInfo, max_lag: int, rejected: int = 0, unpaired: int = 0
                    ) -> tuple[list[tuple[int, int]], dict]:
     """The usable segments and a plain-data account of the data a fit will use.
 
-    ``rejected`` counts samples dropped before segmenting (NaN, unpaired ...).
+    ``rejected`` counts samples dropped before segmenting (NaN/inf), ``unpaired``
+    the input or output samples left without a partner.
     """
     bounds, skipped, skipped_samples = usable_segments(info.bounds, max_lag)
     return bounds, {**info.to_dict(), "used_samples": sum(b - a for a, b in bounds),
                     "used_segments": len(bounds), "skipped_segments": skipped,
-                    "skipped_samples": skipped_samples, "rejected_samples": rejected}
+                    "skipped_samples": skipped_samples, "rejected_samples": rejected,
+                    "unpaired_samples": unpaired}
 
 
 def describe_data(data: dict) -> str:
     """One phrase on what data a result used: samples, segments, gaps, skipped parts."""
     text = f"{data['used_samples']} samples"
-    if data.get("rejected_samples"):
-        text += f" ({data['rejected_samples']} rejected)"
+    dropped = [f"{data[k]} {label}" for k, label in (
+        ("rejected_samples", "rejected as NaN/inf"), ("unpaired_samples", "unpaired"))
+        if data.get(k)]
+    if dropped:
+        text += f" ({', '.join(dropped)})"
     if data["segments"] > 1 or data["gaps"]:
         text += (f" in {data['used_segments']} contiguous segment(s); {data['gaps']} gap(s) "
                  f"({data['missing_samples']} samples missing)")

@@ -95,6 +95,7 @@ class Loaded:
     source: str
     stamps_ns: np.ndarray | None = None
     rejected: int = 0
+    unpaired: int = 0
 
     def segments(self, max_lag: int) -> tuple[list[tuple[int, int]] | None, dict]:
         """Usable segments (None: the whole record) and the account of the data."""
@@ -104,7 +105,7 @@ class Loaded:
             info = SegmentInfo([(0, len(self.y))])
         else:
             info = find_segments(self.stamps_ns)
-        bounds, data = segment_report(info, max_lag, self.rejected)
+        bounds, data = segment_report(info, max_lag, self.rejected, self.unpaired)
         if not bounds:
             raise UserError(f"{self.source}: no contiguous segment is longer than the largest "
                             f"lag ({max_lag}); {len(self.y)} samples in {len(info.bounds)} "
@@ -123,7 +124,7 @@ def _load(args) -> Loaded:
                                output_topic=args.output_topic,
                                input_field=args.input_field, output_field=args.output_field)
         return Loaded(sig.u, sig.y, f"bag {args.bag}", sig.stamps_ns,
-                      sig.rejected_nonfinite + sig.unpaired)
+                      sig.rejected_nonfinite, sig.unpaired)
     if args.data:
         d = load_data(args.data)
         stamps = None if d.t is None else np.round(d.t * 1e9).astype(np.int64)
@@ -209,7 +210,8 @@ def cmd_identify(args) -> int:
     model.metadata["data"] = account
     used = sum(b - a for a, b in (est or [(0, len(y))]))
     print(f"data: {data.source}, {used} samples used for estimation")
-    if account["segments"] > 1 or account["gaps"] or account["rejected_samples"]:
+    if account["segments"] > 1 or account["gaps"] or account["rejected_samples"] \
+            or account["unpaired_samples"]:
         print(f"note: the data has gaps; used {describe_data(account)}; no regression row "
               "crosses a gap")
     excluded = model.metadata.get("excluded_zero_terms")

@@ -8,6 +8,11 @@ import time
 import rclpy
 from geometry_msgs.msg import AccelStamped, WrenchStamped
 from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+# reliable and keep-all: a burst waits instead of being dropped on a loaded machine
+QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE,
+                 durability=DurabilityPolicy.VOLATILE)
 
 
 def main() -> None:
@@ -26,8 +31,8 @@ def main() -> None:
         got["y"].append(m.accel.linear.x)
         got["ty"].append(m.header.stamp.sec * 10**9 + m.header.stamp.nanosec)
 
-    node.create_subscription(WrenchStamped, in_topic, on_u, 10)
-    node.create_subscription(AccelStamped, out_topic, on_y, 10)
+    node.create_subscription(WrenchStamped, in_topic, on_u, QOS)
+    node.create_subscription(AccelStamped, out_topic, on_y, QOS)
     print("ready", flush=True)
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -35,7 +40,7 @@ def main() -> None:
         if len(got["u"]) >= expected and len(got["y"]) >= expected:
             break
     # a short grace period catches anything beyond the expected count
-    end = time.monotonic() + 0.3
+    end = time.monotonic() + 0.5
     while time.monotonic() < end:
         rclpy.spin_once(node, timeout_sec=0.05)
     print(json.dumps(got), flush=True)

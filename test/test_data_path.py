@@ -1,0 +1,362 @@
+"""Issue 8 offline: gaps, safe files, damaged bags, clear errors, big inputs (no ROS)."""
+
+import gzip
+import json
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from spm_sysid.core.bagio import BagError, read_bag_signals, write_io_bag
+from spm_sysid.core.data import DataError, load_data
+from spm_sysid.core.ga import GAConfig
+from spm_sysid.core.identify import identify
+from spm_sysid.core.model import ModelFormatError, NarxModel
+from spm_sysid.core.segments import find_segments
+from spm_sysid.core.terms import TermSpace
+from spm_sysid.tools.experiment import ExperimentConfig
+
+from .conftest import EQ1, ROOT
+
+FAST = GAConfig(population_size=100, generations=120)
+
+
+def cli(*args, env=None, timeout=300):
+    return subprocess.run([sys.executable, "-m", "spm_sysid.tools.cli", *args],
+                          capture_output=True, text=True, cwd=ROOT, timeout=timeout, env=env)
+
+
+# -- gaps -------------------------------------------------------------------------------
+
+
+def test_find_segments_from_stamps():
+    st = np.array([0, 10, 20, 40, 50, 60, 90, 0, 10, 20]) * 1_000_000
+    info = find_segments(st)
+    assert info.period_ns == 10_000_000 and info.period_source == "estimated"
+    assert info.bounds == [(0, 3), (3, 6), (6, 7), (7, 10)]
+    assert info.gaps == 2 and info.missing_samples == 1 + 2 and info.restarts == 1
+    # a given period wins over the estimate
+    assert find_segments(st, period_ns=30_000_000).bounds == [(0, 7), (7, 10)]
+
+
+def test_rows_never_cross_a_gap():
+    ts = TermSpace(ny=1, nu=1, degree=1)
+    u = np.arange(10.0)
+    y = 100 + np.arange(10.0)
+    P, target = ts.regression(u, y, [(0, 4), (6, 10)])
+    # rows t=1..3 of the first segment and t=7..9 of the second: y(t-1), u(t-1)
+    assert target.tolist() == [101, 102, 103, 107, 108, 109]
+    assert P[:, 0].tolist() == [100, 101, 102, 106, 107, 108]
+    assert P[:, 1].tolist() == [0, 1, 2, 6, 7, 8]
+
+
+def test_nan_every_10th_sample_fits_inside_segments(robot_arm):
+    """The review's case: NaN on every 10th sample (as the signal publisher's
+    ``--nan-every 10`` makes it). Rejected samples leave gaps; fitting inside the
+    segments keeps eq. (1)'s eight terms and its error level, where closing the
+    gaps up (the old behaviour) fits regressors that span them and is far worse.
+
+    Not asserted: the *identical* structure. A gap of one sample costs the
+    ``max_lag + 1`` rows that need it, so 510 of 1020 rows remain, and on those
+    AIC prefers eq. (1) plus one product term (its AIC is lower by 1.2 than
+    eq. (1)'s on the same rows: a property of the data, not of the search)."""
+    u, y = robot_arm
+    stamps = np.arange(len(u)) * 10_000_000
+    keep = np.ones(len(u), dtype=bool)
+    keep[::10] = False
+    info = find_segments(stamps[keep])
+    assert info.gaps == 102 and info.missing_samples == 102 and len(info.bounds) == 103
+    clean = identify(u=u, y=y, criterion="aic", seed=1)
+    gapped = identify(u=u[keep], y=y[keep], criterion="aic", seed=1, segments=info.bounds)
+    assert set(EQ1) <= set(gapped.model.terms) and len(gapped.model.terms) <= 9
+    assert gapped.model.mse < 1.2 * clean.model.mse
+    P, target = TermSpace().regression(u[keep], y[keep], info.bounds)
+    assert len(target) == 1020 - 102 * 5 == 510  # no row spans a gap
+    closed_up = identify(u=u[keep], y=y[keep], criterion="aic", seed=1)
+    assert closed_up.model.terms != gapped.model.terms
+    assert closed_up.model.mse > 10 * gapped.model.mse
+
+
+def test_bag_with_nan_samples_identifies_inside_segments(robot_arm, tmp_path):
+    u, y = robot_arm
+    bag = write_io_bag(tmp_path / "bag", u, y)
+    # rewrite the bag with NaN in every 10th input, through rosbags like any recorder
+    u2 = u.copy()
+    u2[::10] = np.nan
+    sig_clean = read_bag_signals(bag)
+    assert sig_clean.crc_checked and sig_clean.rejected_nonfinite == 0
+    from spm_sysid.core import bagio
+
+    bad_bag = tmp_path / "nan_bag"
+    with pytest.raises(BagError, match="finite"):  # our writer refuses NaN ...
+        write_io_bag(bad_bag, u2, y)
+    _write_raw_bag(bad_bag, u2, y, bagio)         # ... a robot's recorder may not
+    sig = read_bag_signals(bad_bag)
+    assert sig.rejected_nonfinite == 103 and len(sig.u) == 1024 - 103
+    r = cli("identify", "--bag", str(bad_bag), "--seed", "1", "--quiet", "--json",
+            str(tmp_path / "m.json"))
+    assert r.returncode == 0, r.stderr
+    assert "note: the data has gaps" in r.stdout
+    assert "(103 rejected as NaN/inf, 103 unpaired)" in r.stdout
+    assert "102 gap(s)" in r.stdout
+    model = NarxModel.load(tmp_path / "m.json")
+    assert set(EQ1) <= set(model.terms) and len(model.terms) <= 9  # as in the test above
+    assert model.metadata["data"]["gaps"] == 102
+
+
+def _write_raw_bag(path, u, y, bagio):
+    """A bag with whatever values, written with rosbags' own writer (no CRCs)."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    store = bagio.typestore()
+    T = store.types
+    zero = T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        ci = w.add_connection(bagio.DEFAULT_INPUT_TOPIC, bagio.INPUT_TYPE, typestore=store)
+        co = w.add_connection(bagio.DEFAULT_OUTPUT_TOPIC, bagio.OUTPUT_TYPE, typestore=store)
+        for k in range(len(u)):
+            t = k * 10_000_000
+            h = T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](
+                sec=t // 10**9, nanosec=t % 10**9), frame_id="f")
+            wr = T[bagio.INPUT_TYPE](header=h, wrench=T["geometry_msgs/msg/Wrench"](
+                force=zero, torque=T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=float(u[k]))))
+            ac = T[bagio.OUTPUT_TYPE](header=h, accel=T["geometry_msgs/msg/Accel"](
+                linear=T["geometry_msgs/msg/Vector3"](x=float(y[k]), y=0.0, z=0.0),
+                angular=zero))
+            w.write(ci, t, store.serialize_cdr(wr, bagio.INPUT_TYPE))
+            w.write(co, t, store.serialize_cdr(ac, bagio.OUTPUT_TYPE))
+
+
+def test_csv_with_a_time_column_keeps_gaps(robot_arm, tmp_path):
+    u, y = robot_arm
+    lines = ["time,u,y"]
+    for k in range(len(u)):
+        if k in (300, 301, 302):
+            continue  # missing rows
+        uu = "" if k == 700 else repr(float(u[k]))  # an empty field
+        yy = "nan" if k == 800 else repr(float(y[k]))
+        lines.append(f"{k * 0.01:.2f},{uu},{yy}")
+    p = tmp_path / "timed.csv"
+    p.write_text("\n".join(lines) + "\n")
+    d = load_data(p)
+    assert d.rejected == 2 and len(d.u) == 1024 - 5
+    r = cli("identify", "--data", str(p), "--seed", "1", "--quiet", "--validation", "none")
+    assert r.returncode == 0, r.stderr
+    assert "3 gap(s) (5 samples missing)" in r.stdout and "2 rejected as NaN/inf" in r.stdout
+
+
+# -- files -------------------------------------------------------------------------------
+
+
+def test_make_bag_force_refuses_a_directory_that_is_not_a_bag(tmp_path):
+    target = tmp_path / "precious"
+    target.mkdir()
+    (target / "thesis.tex").write_text("years of work")
+    r = cli("make-bag", "--output", str(target), "--force")
+    assert r.returncode == 2 and "not a rosbag2 bag" in r.stderr and "nothing was changed" \
+        in r.stderr
+    assert (target / "thesis.tex").read_text() == "years of work"
+    assert sorted(p.name for p in target.iterdir()) == ["thesis.tex"]
+
+
+def test_failed_or_invalid_make_bag_leaves_the_old_bag(tmp_path, robot_arm):
+    bag = tmp_path / "arm"
+    assert cli("make-bag", "--output", str(bag)).returncode == 0
+    before = {p.name: p.read_bytes() for p in bag.iterdir()}
+    for args, message in ((["--start", "-5"], "--start must be"),
+                          (["--rate", "inf"], "--rate must be"),
+                          (["--rate", "0"], "--rate must be"),
+                          (["--start", "nan"], "--start must be")):
+        r = cli("make-bag", "--output", str(bag), "--force", *args)
+        assert r.returncode == 2 and message in r.stderr and "Traceback" not in r.stderr
+        assert {p.name: p.read_bytes() for p in bag.iterdir()} == before
+    # a write that fails half-way (a NaN sample) leaves the old bag and no debris
+    u, y = robot_arm
+    y_bad = y.copy()
+    y_bad[500] = np.inf
+    with pytest.raises(BagError):
+        write_io_bag(bag, u, y_bad, overwrite=True)
+    assert {p.name: p.read_bytes() for p in bag.iterdir()} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["arm"]
+    # and --force on a bag replaces it with a complete new one
+    r = cli("make-bag", "--output", str(bag), "--force", "--rate", "50")
+    assert r.returncode == 0, r.stderr
+    assert read_bag_signals(bag).stamps_ns[1] == 20_000_000
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["arm"]
+
+
+def test_a_flipped_byte_anywhere_in_a_bag_is_an_error(tmp_path, robot_arm):
+    u, y = robot_arm
+    src = write_io_bag(tmp_path / "good", u, y)
+    mcap = next(src.glob("*.mcap"))
+    size = mcap.stat().st_size
+    data_pos = mcap.read_bytes().find(np.float64(y[587]).tobytes())
+    assert data_pos > 0  # the byte the review flipped: a sample's value
+    positions = [data_pos + 7, 0, 8, size // 3, size // 2, size - 40, size - 10, size - 1]
+    for pos in positions:
+        bad = tmp_path / f"flip{pos}"
+        shutil.copytree(src, bad)
+        f = next(bad.glob("*.mcap"))
+        raw = bytearray(f.read_bytes())
+        raw[pos] ^= 0x01
+        f.write_bytes(bytes(raw))
+        with pytest.raises(BagError, match="cannot read bag"):
+            read_bag_signals(bad)
+    r = cli("identify", "--bag", str(tmp_path / f"flip{data_pos + 7}"), "--quiet")
+    assert r.returncode == 2 and "error: cannot read bag" in r.stderr
+
+
+def test_outputs_are_checked_before_the_search(tmp_path):
+    (tmp_path / "file").write_text("x")
+    for args, message in ((["--json", str(tmp_path)], "is a directory"),
+                          (["--json", str(tmp_path / "file" / "m.json")], "not a directory"),
+                          (["--plots", str(tmp_path / "file")], "not a directory")):
+        r = cli("identify", "--generations", "100000", *args)  # would take minutes
+        assert r.returncode == 2 and message in r.stderr, r.stderr
+        assert "criterion" not in r.stdout  # no search ran
+
+
+def test_model_file_is_written_atomically(tmp_path, robot_arm):
+    u, y = robot_arm
+    path = tmp_path / "m.json"
+    path.write_text("old")
+    r = cli("identify", "--seed", "1", "--generations", "50", "--json", str(path), "--quiet",
+            "--validation", "none")
+    assert r.returncode == 0, r.stderr
+    assert NarxModel.load(path).n_samples == 1024
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.json"]  # no temporary left
+
+
+# -- one clear line ----------------------------------------------------------------------
+
+
+def _doc(robot_arm):
+    u, y = robot_arm
+    mask = np.zeros(44, dtype=bool)
+    mask[:8] = True
+    return NarxModel.fit(u, y, mask, TermSpace()).to_dict()
+
+
+@pytest.mark.parametrize("mutate, message", [
+    (lambda d: d.update(criterion="aic"), "'criterion' must be null or an object"),
+    (lambda d: d.update(coefficients=[[1.0]] * 8), "coefficients must be numbers"),
+    (lambda d: d["coefficients"].__setitem__(0, None), "coefficients must be numbers"),
+    (lambda d: d["coefficients"].__setitem__(0, float("nan")), "must be finite"),
+    (lambda d: d["term_indices"].__setitem__(0, 0.5), "term_indices must be integers"),
+    (lambda d: d["term_indices"].__setitem__(0, "0"), "term_indices must be integers"),
+    (lambda d: d["term_indices"].__setitem__(1, 0), "more than once"),
+    (lambda d: d["term_space"].update(ny="4"), "term_space.ny must be an integer"),
+    (lambda d: d.update(metadata=[1]), "'metadata' must be an object"),
+])
+def test_malformed_model_fields_are_one_line_errors(robot_arm, tmp_path, mutate, message):
+    doc = _doc(robot_arm)
+    mutate(doc)
+    with pytest.raises(ModelFormatError, match=message):
+        NarxModel.from_dict(doc)
+    p = tmp_path / "m.json"
+    p.write_text(json.dumps(doc))  # NaN is written as the token NaN
+    r = cli("validate", str(p))
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and r.stderr.startswith("error: ")
+
+
+def test_nan_coefficient_token_in_a_file_is_refused(robot_arm, tmp_path):
+    doc = _doc(robot_arm)
+    p = tmp_path / "m.json"
+    p.write_text(json.dumps(doc).replace(str(doc["coefficients"][0]), "NaN", 1))
+    with pytest.raises(ModelFormatError, match="NaN"):
+        NarxModel.load(p)
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--seed", "-5"], "argument --seed: must be an integer >= 0, got -5"),
+    (["--split", "0.3"], "--split applies to --validation holdout only"),
+    (["--corr-lags", "0"], "--corr-lags must be >= 1"),
+    (["--corr-lags", "5000"], "--corr-lags must be between 1 and 1019"),
+    (["--validation", "holdout", "--corr-lags", "600"], "--corr-lags must be between 1 and"),
+    (["--fitness", "nosuch"], "argument --fitness: invalid choice"),
+])
+def test_cli_errors_are_one_line_before_any_search(args, message):
+    r = cli("identify", "--generations", "100000", *args)
+    assert r.returncode == 2, r.stderr
+    assert message in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    assert "criterion" not in r.stdout
+
+
+def test_output_piped_into_head_exits_quietly():
+    r = subprocess.run(f"{sys.executable} -m spm_sysid.tools.cli identify --seed 1 "
+                       "--generations 30 --quiet | head -1", shell=True, capture_output=True,
+                       text=True, cwd=ROOT, timeout=120)
+    assert r.stdout.startswith("data:") and r.stderr == ""
+
+
+def test_corrupt_and_truncated_gzip_files(tmp_path, robot_arm_path):
+    good = gzip.compress(robot_arm_path.read_bytes())
+    (tmp_path / "trunc.dat.gz").write_bytes(good[: len(good) // 2])
+    (tmp_path / "bad.dat.gz").write_bytes(good[:20] + b"\x00" * 50 + good[70:])
+    for name in ("trunc.dat.gz", "bad.dat.gz"):
+        with pytest.raises(DataError, match="not a readable gzip file"):
+            load_data(tmp_path / name)
+        r = cli("identify", "--data", str(tmp_path / name))
+        assert r.returncode == 2 and "not a readable gzip file" in r.stderr
+        assert "Traceback" not in r.stderr
+
+
+@pytest.mark.parametrize("scale", [1e100, 1e-100])
+def test_extreme_scales_identify_like_the_original(robot_arm, scale):
+    u, y = robot_arm
+    ref = identify(u=u, y=y, criterion="aic", seed=1, ga=FAST)
+    res = identify(u=u * scale, y=y * scale, criterion="aic", seed=1, ga=FAST)
+    assert res.model.terms == ref.model.terms
+    # coefficients are scale-free here (all terms linear): identical to rounding
+    np.testing.assert_allclose(res.model.coefficients, ref.model.coefficients, rtol=1e-12)
+    assert res.model.mse == pytest.approx(ref.model.mse * scale**2, rel=1e-12)
+    # AIC shifts by N ln(scale^2)
+    assert res.ga.best_score == pytest.approx(ref.ga.best_score + 1020 * np.log(scale**2),
+                                              rel=1e-12)
+
+
+def test_zero_input_gives_an_autoregressive_model_and_says_so(robot_arm):
+    _, y = robot_arm
+    res = identify(u=np.zeros_like(y), y=y, criterion="aic", seed=1, ga=FAST)
+    assert all(name.startswith("y(") and "u" not in name for name in res.model.terms)
+    assert len(res.model.metadata["excluded_zero_terms"]) == 30
+    with pytest.raises(DataError, match="output y is zero throughout"):
+        identify(u=y, y=np.zeros_like(y), ga=FAST)
+
+
+def test_zero_input_on_the_command_line(robot_arm, tmp_path):
+    _, y = robot_arm
+    p = tmp_path / "ar.dat"
+    np.savetxt(p, np.column_stack([np.zeros_like(y), y]))
+    r = cli("identify", "--data", str(p), "--seed", "1", "--quiet", "--generations", "60")
+    assert r.returncode == 0, r.stderr
+    assert "note: 30 candidate term(s) are zero on this data" in r.stdout
+
+
+def test_unknown_fitness_is_refused_everywhere(tmp_path):
+    with pytest.raises(ValueError, match="fitness must be one of akaike, rank, window"):
+        GAConfig(fitness="nosuch")
+    with pytest.raises(ValueError, match="fitness must be one of"):
+        ExperimentConfig(fitness="nosuch")
+    p = tmp_path / "exp.yaml"
+    p.write_text("fitness: nosuch\nruns: 1\n")
+    r = cli("experiment", "--config", str(p), "--out", str(tmp_path / "out"))
+    assert r.returncode == 2 and "fitness must be one of" in r.stderr
+
+
+def test_a_file_too_large_for_the_memory_bound_is_refused_early(tmp_path):
+    import os
+
+    p = tmp_path / "big.dat"
+    rng = np.random.default_rng(0)
+    np.savetxt(p, rng.standard_normal((200_000, 2)))
+    env = dict(os.environ, SPM_SYSID_MAX_MEMORY="4M")
+    r = cli("identify", "--data", str(p), env=env, timeout=60)
+    assert r.returncode == 2
+    assert "would need about" in r.stderr and "limit of 4.0 MB (SPM_SYSID_MAX_MEMORY)" \
+        in r.stderr
+    # within the bound the same file loads (numpy's reader, a few MB)
+    assert len(load_data(p).u) == 200_000
