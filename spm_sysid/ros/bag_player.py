@@ -163,8 +163,8 @@ class BagPlayer(Node):
         """Wait until every topic has its subscribers, then let discovery settle."""
         deadline = time.monotonic() + self.wait_timeout
         while not self._stop.is_set():
-            missing = [self._out_name(t) for t, pub in self.publishers_by_topic.items()
-                       if pub.get_subscription_count() < self.wait_for]
+            missing = sorted(self._out_name(t) for t, pub in self.publishers_by_topic.items()
+                             if pub.get_subscription_count() < self.wait_for)
             if not missing:
                 self._stop.wait(self.settle_time)
                 return True
@@ -194,7 +194,10 @@ class BagPlayer(Node):
         for topic in sorted(self.topics):
             state = {True: "delivery confirmed", False: "delivery NOT confirmed",
                      None: "delivery not checked"}[self.confirmed.get(topic)]
-            subs = self.publishers_by_topic[topic].get_subscription_count()
+            try:
+                subs = f"{self.publishers_by_topic[topic].get_subscription_count()}"
+            except Exception:  # the context is already shut down (interrupted)
+                subs = "?"
             parts.append(f"{self._out_name(topic)}: {self.published[topic]} published, "
                          f"{subs} subscriber(s), {state}")
         return "; ".join(parts)
@@ -254,8 +257,8 @@ def main(args: list[str] | None = None) -> int:
         executor.add_node(node)
         while rclpy.ok() and not node.finished.is_set():
             executor.spin_once(timeout_sec=0.1)
-        if not node.finished.is_set():
-            raise KeyboardInterrupt
+        if not rclpy.ok():  # SIGINT/SIGTERM shut the context down (playback may have failed
+            raise KeyboardInterrupt  # on it: that is the interruption, not an error)
     except BagError as exc:
         print(f"error: {exc}", file=sys.stderr)
         status = 1
