@@ -26,7 +26,8 @@ identify: $(STAMP)
 	$(BIN)/spm-sysid identify --criterion aic --seed 1 --json out/model.json --plots out/figures
 
 test: $(STAMP)
-	ROS_DOMAIN_ID=62 $(BIN)/python -m pytest -q test
+	# two workers (2 cores; most ROS tests wait on processes), one test file per worker
+	ROS_DOMAIN_ID=62 $(BIN)/python -m pytest -q -n 2 --dist loadfile test
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

@@ -36,6 +36,7 @@ setup(
         "test": [
             "pytest>=7",
             "pytest-timeout>=2.1",
+            "pytest-xdist>=3.5",
             "ruff>=0.5",
             "colcon-core",
             "colcon-ros",

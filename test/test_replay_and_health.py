@@ -37,7 +37,8 @@ def readme_bag():
         r = subprocess.run([_script("spm-sysid"), "make-bag", "--output", "bags/robot_arm",
                             "--rate", "100"], cwd=ROOT, capture_output=True, text=True,
                            timeout=120)
-        assert r.returncode == 0, r.stderr
+        # another test process may have made it at the same moment
+        assert r.returncode == 0 or is_rosbag2_dir(README_BAG), r.stderr
     return README_BAG
 
 

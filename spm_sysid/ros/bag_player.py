@@ -149,6 +149,7 @@ class BagPlayer(Node):
         }
         self.published: Counter[str] = Counter({t: 0 for t in self.topics})
         self.confirmed: dict[str, bool | None] = {}
+        self.subscribers: dict[str, int] = {}
         self.finished = threading.Event()
         self.error: str | None = None
         self._stop = threading.Event()
@@ -189,15 +190,12 @@ class BagPlayer(Node):
                 Duration(nanoseconds=int(left * 1e9))))
 
     def report(self) -> str:
-        """Per topic: published count and whether delivery was confirmed."""
+        """Per topic: published, subscribers when playback began, delivery confirmed."""
         parts = []
         for topic in sorted(self.topics):
             state = {True: "delivery confirmed", False: "delivery NOT confirmed",
                      None: "delivery not checked"}[self.confirmed.get(topic)]
-            try:
-                subs = f"{self.publishers_by_topic[topic].get_subscription_count()}"
-            except Exception:  # the context is already shut down (interrupted)
-                subs = "?"
+            subs = self.subscribers.get(topic, "?")
             parts.append(f"{self._out_name(topic)}: {self.published[topic]} published, "
                          f"{subs} subscriber(s), {state}")
         return "; ".join(parts)
@@ -212,6 +210,8 @@ class BagPlayer(Node):
                 return
             if self.start_delay:
                 self._stop.wait(self.start_delay)
+            self.subscribers = {t: pub.get_subscription_count()
+                                for t, pub in self.publishers_by_topic.items()}
             self.get_logger().info(
                 f"playing {self.bag} at {self.rate:g}x: {', '.join(sorted(self.topics))}")
             while not self._stop.is_set():

@@ -16,7 +16,10 @@ QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.R
 
 
 def main() -> None:
-    expected, timeout = int(sys.argv[1]), float(sys.argv[2])
+    # expected count on both topics ("N"), or per topic ("NU,NY"); stops when reached
+    counts = [int(x) for x in sys.argv[1].split(",")]
+    expected_u, expected_y = counts if len(counts) == 2 else counts * 2
+    timeout = float(sys.argv[2])
     in_topic = sys.argv[3] if len(sys.argv) > 3 else "/robot_arm/torque"
     out_topic = sys.argv[4] if len(sys.argv) > 4 else "/robot_arm/acceleration"
     rclpy.init()
@@ -37,10 +40,10 @@ def main() -> None:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         rclpy.spin_once(node, timeout_sec=0.05)
-        if len(got["u"]) >= expected and len(got["y"]) >= expected:
+        if len(got["u"]) >= expected_u and len(got["y"]) >= expected_y:
             break
-    # a short grace period catches anything beyond the expected count
-    end = time.monotonic() + 0.5
+    # a grace period catches anything beyond the expected count
+    end = time.monotonic() + 1.0
     while time.monotonic() < end:
         rclpy.spin_once(node, timeout_sec=0.05)
     print(json.dumps(got), flush=True)
