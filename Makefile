@@ -19,7 +19,7 @@ setup: $(STAMP)
 
 ## The main job: the ROS pipeline on the robot-arm data (bag -> node -> identify).
 run: $(STAMP)
-	ROS_DOMAIN_ID=61 $(BIN)/python -m spm_sysid.ros.pipeline --out out/run
+	ROS_DOMAIN_ID=61 $(BIN)/python -m spm_sysid.apps.pipeline --out out/run
 
 ## The offline identification on the robot-arm data.
 identify: $(STAMP)
@@ -49,4 +49,4 @@ clean:
 
 ## Node benchmark: ingest at 1 kHz for 60 s, identify latency, memory with 100000 pairs.
 bench-node: $(STAMP)
-	$(BIN)/python -m spm_sysid.ros.bench_node
+	$(BIN)/python -m spm_sysid.apps.bench_node

@@ -2,7 +2,8 @@
 
 The public Python API (no ROS needed)::
 
-    from spm_sysid import identify, load_robot_arm
+    from . import identify
+    from .core.io.datasets import load_robot_arm
     u, y = load_robot_arm()
     result = identify(u=u, y=y, criterion="aic", seed=1)
     print(result.model.equation())
@@ -16,25 +17,27 @@ from importlib import import_module
 __version__ = "0.1.0"
 
 _API = {
-    "CRITERIA": "core.criteria",
-    "Criterion": "core.criteria",
-    "get_criterion": "core.criteria",
-    "make_pmic2": "core.criteria",
-    "register_criterion": "core.criteria",
-    "DataError": "core.data",
-    "load_io": "core.data",
-    "load_robot_arm": "core.data",
-    "GAConfig": "core.ga",
-    "GAResult": "core.ga",
-    "run_ga": "core.ga",
-    "IdentificationResult": "core.identify",
-    "identify": "core.identify",
-    "NarxModel": "core.model",
-    "TermSpace": "core.terms",
-    "validate_model": "core.validation",
-    "ValidationReport": "core.validation",
-    "read_bag_signals": "core.bagio",
-    "write_io_bag": "core.bagio",
+    "CRITERIA": "core.narx.criteria",
+    "Criterion": "core.narx.criteria",
+    "get_criterion": "core.narx.criteria",
+    "make_pmic2": "core.narx.criteria",
+    "register_criterion": "core.narx.criteria",
+    "DataError": "core.errors",
+    "load_io": "core.io.data",
+    "load_data": "core.io.data",
+    "load_robot_arm": "core.io.datasets",
+    "GAConfig": "core.narx.ga",
+    "GAResult": "core.narx.ga",
+    "run_ga": "core.narx.ga",
+    "IdentificationResult": "core.narx.identify",
+    "identify": "core.narx.identify",
+    "NarxModel": "core.narx.model",
+    "TermSpace": "core.narx.terms",
+    "validate_model": "core.narx.validation",
+    "ValidationReport": "core.narx.validation",
+    "find_segments": "core.narx.segments",
+    "read_bag_signals": "core.io.bagio",
+    "write_io_bag": "core.io.bagio",
 }
 
 __all__ = ["__version__", *_API]

@@ -14,7 +14,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from spm_sysid.core.data import find_robot_arm, load_io  # noqa: E402
+from spm_sysid.core.io.data import load_io  # noqa: E402
+from spm_sysid.core.io.datasets import find_robot_arm  # noqa: E402
 
 # ROS traffic stays on this machine, whatever the caller's environment says.
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"

@@ -17,7 +17,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from std_srvs.srv import Trigger
 
-from spm_sysid.ros.pipeline import stop_process
+from spm_sysid.apps.pipeline import stop_process
 from spm_sysid.ros.sysid_node import LATCHED
 
 ROOT = Path(__file__).resolve().parents[1]

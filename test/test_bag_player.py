@@ -7,7 +7,7 @@ import sys
 import numpy as np
 import pytest
 
-from spm_sysid.core.bagio import write_io_bag
+from spm_sysid.core.io.bagio import write_io_bag
 
 from .conftest import ROOT
 

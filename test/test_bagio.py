@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 import yaml
 
-from spm_sysid.core.bagio import BagError, pair_by_stamp, read_bag_signals, write_io_bag
+from spm_sysid.core.errors import BagError
+from spm_sysid.core.io.bagio import pair_by_stamp, read_bag_signals, write_io_bag
 
 from .conftest import ROOT
 
@@ -160,7 +161,7 @@ def test_error_missing_topic_and_unexpected_type(arm_bag):
 def test_error_topic_of_a_type_without_a_number(tmp_path):
     from rosbags.rosbag2 import StoragePlugin, Writer
 
-    from spm_sysid.core.bagio import typestore
+    from spm_sysid.core.io.bagio import typestore
 
     store = typestore()
     String = store.types["std_msgs/msg/String"]

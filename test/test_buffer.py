@@ -5,7 +5,7 @@ import threading
 import numpy as np
 import pytest
 
-from spm_sysid.core.buffer import SampleBuffer
+from spm_sysid.core.stream.buffer import SampleBuffer
 
 
 def test_pairs_identical_stamps_in_order():
@@ -126,7 +126,7 @@ def test_far_future_stamp_costs_one_sample_and_recovers_by_itself():
 
 
 def test_replayed_timeline_becomes_a_new_segment():
-    from spm_sysid.core.segments import find_segments
+    from spm_sysid.core.narx.segments import find_segments
 
     b = SampleBuffer(1000)
     for rep in range(2):               # the same 50 stamps twice, as a replayed bag

@@ -7,17 +7,16 @@ import threading
 import numpy as np
 import pytest
 
-from spm_sysid.core import data as data_mod
-from spm_sysid.core.data import (
+from spm_sysid.core.errors import DataError
+from spm_sysid.core.io import datasets as data_mod
+from spm_sysid.core.io.data import load_io
+from spm_sysid.core.io.datasets import (
     ROBOT_ARM_SHA256,
-    DataError,
-    check_samples,
     download_robot_arm,
     find_robot_arm,
-    load_io,
     numeric_sha256,
 )
-from spm_sysid.core.identify import identify
+from spm_sysid.core.narx.identify import check_samples, identify
 
 
 def test_robot_arm_file_is_the_known_data(robot_arm):

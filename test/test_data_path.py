@@ -9,13 +9,14 @@ import sys
 import numpy as np
 import pytest
 
-from spm_sysid.core.bagio import BagError, read_bag_signals, write_io_bag
-from spm_sysid.core.data import DataError, load_data
-from spm_sysid.core.ga import GAConfig
-from spm_sysid.core.identify import identify
-from spm_sysid.core.model import ModelFormatError, NarxModel
-from spm_sysid.core.segments import find_segments
-from spm_sysid.core.terms import TermSpace
+from spm_sysid.core.errors import BagError, DataError, ModelFormatError
+from spm_sysid.core.io.bagio import read_bag_signals, write_io_bag
+from spm_sysid.core.io.data import load_data
+from spm_sysid.core.narx.ga import GAConfig
+from spm_sysid.core.narx.identify import identify
+from spm_sysid.core.narx.model import NarxModel
+from spm_sysid.core.narx.segments import find_segments
+from spm_sysid.core.narx.terms import TermSpace
 from spm_sysid.tools.experiment import ExperimentConfig
 
 from .conftest import EQ1, ROOT
@@ -87,7 +88,7 @@ def test_bag_with_nan_samples_identifies_inside_segments(robot_arm, tmp_path):
     u2[::10] = np.nan
     sig_clean = read_bag_signals(bag)
     assert sig_clean.crc_checked and sig_clean.rejected_nonfinite == 0
-    from spm_sysid.core import bagio
+    from spm_sysid.core.io import bagio
 
     bad_bag = tmp_path / "nan_bag"
     with pytest.raises(BagError, match="finite"):  # our writer refuses NaN ...

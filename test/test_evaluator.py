@@ -3,14 +3,10 @@
 import numpy as np
 import pytest
 
-from spm_sysid.core.evaluator import (
-    NaiveEvaluator,
-    StructureEvaluator,
-    reference_fit,
-    reference_score,
-    structure_keys,
-)
-from spm_sysid.core.terms import TermSpace
+from spm_sysid.core.narx.evaluator import StructureEvaluator, structure_keys
+from spm_sysid.core.narx.lstsq import reference_fit, reference_score
+from spm_sysid.core.narx.terms import TermSpace
+from spm_sysid.tools.bench import NaiveEvaluator
 
 from .conftest import EQ1, EQ2
 

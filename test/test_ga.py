@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from spm_sysid.core.evaluator import StructureEvaluator
-from spm_sysid.core.ga import (
+from spm_sysid.core.narx.evaluator import StructureEvaluator
+from spm_sysid.core.narx.ga import (
     GAConfig,
     crossover,
     mutate,
@@ -13,8 +13,8 @@ from spm_sysid.core.ga import (
     run_ga,
     spm_mating,
 )
-from spm_sysid.core.identify import identify
-from spm_sysid.core.terms import TermSpace
+from spm_sysid.core.narx.identify import identify
+from spm_sysid.core.narx.terms import TermSpace
 
 from .conftest import EQ1, EQ2
 

@@ -3,8 +3,9 @@ import json
 import numpy as np
 import pytest
 
-from spm_sysid.core.model import ModelFormatError, NarxModel
-from spm_sysid.core.terms import TermSpace
+from spm_sysid.core.errors import ModelFormatError
+from spm_sysid.core.narx.model import NarxModel
+from spm_sysid.core.narx.terms import TermSpace
 
 from .conftest import EQ1
 

@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 from std_msgs.msg import Float64MultiArray, String
 
-from spm_sysid.core.bagio import is_rosbag2_dir
+from spm_sysid.core.io.bagio import is_rosbag2_dir
 
 from .conftest import EQ1, ROOT
 from .ros_harness import Harness, finish_publisher, publisher, start_node, stop

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from std_msgs.msg import Float64MultiArray, String
 
-from spm_sysid.core.bagio import write_io_bag
-from spm_sysid.core.model import NarxModel
+from spm_sysid.core.io.bagio import write_io_bag
+from spm_sysid.core.narx.model import NarxModel
 
 from .conftest import EQ1, ROOT
 from .ros_harness import Harness, finish_publisher, publisher, start_node, stop

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from spm_sysid.core.correlation import ccf, correlation_tests
-from spm_sysid.core.model import NarxModel
-from spm_sysid.core.terms import TermSpace
-from spm_sysid.core.validation import metrics, split_data, validate_model
+from spm_sysid.core.narx.correlation import ccf, correlation_tests
+from spm_sysid.core.narx.model import NarxModel
+from spm_sysid.core.narx.terms import TermSpace
+from spm_sysid.core.narx.validation import metrics, split_data, validate_model
 from spm_sysid.tools.plots import plot_convergence, write_model_figures
 
 

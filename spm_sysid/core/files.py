@@ -13,12 +13,10 @@ import os
 import tempfile
 from pathlib import Path
 
+from .errors import FileCheckError
+
 __all__ = ["FileCheckError", "atomic_write_bytes", "atomic_write_text",
            "check_writable_dir", "check_writable_file"]
-
-
-class FileCheckError(ValueError):
-    """A destination that cannot be written, with the reason."""
 
 
 def _nearest_existing(path: Path) -> Path:

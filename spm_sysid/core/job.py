@@ -14,12 +14,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .data import DataError
-from .ga import GAConfig
-from .identify import identify
-from .segments import describe_data, find_segments, segment_report
-from .terms import TermSpace
-from .validation import split_segments, validate_model
+from .errors import DataError
+from .narx.ga import GAConfig
+from .narx.identify import identify
+from .narx.segments import describe_data, find_segments, segment_report
+from .narx.terms import TermSpace
+from .narx.validation import split_segments, validate_model
 
 __all__ = ["JobSettings", "run_job"]
 
@@ -62,7 +62,7 @@ class JobSettings:
 
     def check(self) -> None:
         """Raise ValueError with a clear reason when a setting is invalid."""
-        from .criteria import get_criterion
+        from .narx.criteria import get_criterion
 
         self.term_space()
         self.ga()

@@ -11,13 +11,11 @@ from __future__ import annotations
 
 import os
 
+from .errors import MemoryLimitError
+
 __all__ = ["MemoryLimitError", "check_memory", "format_bytes", "memory_limit"]
 
 _SUFFIX = {"K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}
-
-
-class MemoryLimitError(ValueError):
-    """An input or a matrix would need more memory than the bound allows."""
 
 
 def format_bytes(n: float) -> str:

@@ -56,7 +56,8 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from ..core.bagio import BagError, open_bag
+from ..core.errors import BagError
+from ..core.io.bagio import open_bag
 
 __all__ = ["BagPlayer", "main", "message_class"]
 

@@ -44,7 +44,8 @@ def main(argv: list[str] | None = None) -> int:
     from rclpy.node import Node
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-    from ..core.data import load_io, load_robot_arm
+    from ..core.io.data import load_io
+    from ..core.io.datasets import load_robot_arm
 
     if a.data == "robot_arm":
         u, y = load_robot_arm()

@@ -45,11 +45,12 @@ from rclpy.task import Future
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
 from std_srvs.srv import Trigger
 
-from ..core.buffer import SampleBuffer
-from ..core.fields import FieldPathError, default_field, extract, message_stamp_ns, parse_path
+from ..core.errors import FieldPathError, ModelFormatError
 from ..core.files import atomic_write_text, check_writable_file
+from ..core.io.fields import default_field, extract, message_stamp_ns, parse_path
 from ..core.job import JobSettings
-from ..core.model import ModelFormatError, NarxModel
+from ..core.narx.model import NarxModel
+from ..core.stream.buffer import SampleBuffer
 from ..tools.worker import JobCancelledError, JobWorker, WorkerDiedError
 from .bag_player import message_class
 

@@ -14,10 +14,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..core.criteria import get_criterion
-from ..core.evaluator import NaiveEvaluator, StructureEvaluator
-from ..core.ga import GAConfig, run_ga
-from ..core.terms import TermSpace
+from ..core.narx.criteria import Criterion, get_criterion
+from ..core.narx.evaluator import StructureEvaluator
+from ..core.narx.ga import GAConfig, run_ga
+from ..core.narx.lstsq import DEFAULT_RANK_TOL, score_one
+from ..core.narx.terms import TermSpace
 
 __all__ = ["BenchFigures", "run_benchmark"]
 
@@ -37,6 +38,48 @@ class BenchFigures:
     def evals_per_second(self) -> float:
         """Structures scored (look-ups) per second of GA run."""
         return self.lookups / self.seconds
+
+
+
+class NaiveEvaluator:
+    """Benchmark baseline: numpy ``lstsq`` on the raw columns for every chromosome.
+
+    No cache and no shared work; rank handling as in :func:`reference_fit`.
+    """
+
+    def __init__(self, P: np.ndarray, target: np.ndarray, criterion: str | Criterion = "aic",
+                 rank_tol: float = DEFAULT_RANK_TOL) -> None:
+        self.P = np.asarray(P, dtype=float)
+        self.target = np.asarray(target, dtype=float)
+        self.criterion = get_criterion(criterion)
+        self.n, self.n_terms = self.P.shape
+        self.rank_tol = rank_tol
+        self._y_norm = float(np.linalg.norm(self.target)) or 1.0
+        self.evaluations = 0
+        self.lookups = 0
+
+    def score(self, masks: np.ndarray, keys: np.ndarray | None = None) -> np.ndarray:
+        """Criterion values, one lstsq per row (``keys`` is ignored: no cache)."""
+        masks = np.asarray(masks, dtype=bool)
+        out = np.empty(len(masks))
+        for i, mask in enumerate(masks):
+            out[i] = self._one(mask)
+        self.evaluations += len(masks)
+        self.lookups += len(masks)
+        return out
+
+    def _one(self, mask: np.ndarray) -> float:
+        cols = np.flatnonzero(mask)
+        if cols.size == 0:
+            return np.inf
+        A = self.P[:, cols]
+        theta, _, rank, sv = np.linalg.lstsq(A, self.target, rcond=None)
+        norms = np.linalg.norm(A, axis=0)
+        if rank < cols.size or np.any(norms == 0):
+            return np.inf
+        resid = self.target - A @ theta
+        return score_one(self.criterion, float(resid @ resid), self.n, self.n_terms, cols,
+                          theta * norms / self._y_norm)
 
 
 def _measure(name, make_evaluator, config, seeds) -> BenchFigures:

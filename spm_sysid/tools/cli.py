@@ -21,10 +21,12 @@ from dataclasses import dataclass  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from ..core.data import DataError, find_robot_arm, load_data, load_io  # noqa: E402
+from ..core.errors import DataError  # noqa: E402
 from ..core.files import check_writable_dir, check_writable_file  # noqa: E402
-from ..core.ga import GAConfig  # noqa: E402
-from ..core.terms import TermSpace  # noqa: E402
+from ..core.io.data import load_data, load_io  # noqa: E402
+from ..core.io.datasets import find_robot_arm  # noqa: E402
+from ..core.narx.ga import GAConfig  # noqa: E402
+from ..core.narx.terms import TermSpace  # noqa: E402
 
 __all__ = ["main"]
 
@@ -99,7 +101,7 @@ class Loaded:
 
     def segments(self, max_lag: int) -> tuple[list[tuple[int, int]] | None, dict]:
         """Usable segments (None: the whole record) and the account of the data."""
-        from ..core.segments import SegmentInfo, find_segments, segment_report
+        from ..core.narx.segments import SegmentInfo, find_segments, segment_report
 
         if self.stamps_ns is None:
             info = SegmentInfo([(0, len(self.y))])
@@ -118,7 +120,7 @@ def _load(args) -> Loaded:
     if getattr(args, "bag", None) and args.data:
         raise UserError("give either --data or --bag, not both")
     if getattr(args, "bag", None):
-        from ..core.bagio import read_bag_signals
+        from ..core.io.bagio import read_bag_signals
 
         sig = read_bag_signals(args.bag, input_topic=args.input_topic,
                                output_topic=args.output_topic,
@@ -174,9 +176,9 @@ def _check_corr_lags(corr_lags: int, rows: int) -> None:
 
 
 def cmd_identify(args) -> int:
-    from ..core.identify import identify
-    from ..core.segments import describe_data
-    from ..core.validation import split_segments
+    from ..core.narx.identify import identify
+    from ..core.narx.segments import describe_data
+    from ..core.narx.validation import split_segments
 
     space = _term_space(args)
     config = _ga_config(args)
@@ -229,7 +231,7 @@ def cmd_identify(args) -> int:
 
 def _validate_and_report(model, u, y, segment, plots, corr_lags, segments=None) -> None:
     """Validate, print the summary, store it in the model, write figures."""
-    from ..core.validation import validate_model
+    from ..core.narx.validation import validate_model
 
     report = validate_model(model, u, y, max_lag=corr_lags, segment=segment, segments=segments)
     model.metadata["validation"] = report.to_dict()
@@ -242,8 +244,8 @@ def _validate_and_report(model, u, y, segment, plots, corr_lags, segments=None) 
 
 
 def cmd_validate(args) -> int:
-    from ..core.model import NarxModel
-    from ..core.validation import split_segments
+    from ..core.narx.model import NarxModel
+    from ..core.narx.validation import split_segments
 
     if args.tail is not None and not 0 < args.tail < 1:
         raise UserError(f"--tail must be between 0 and 1, got {args.tail}")
@@ -335,7 +337,7 @@ def cmd_call(args) -> int:
     # The one place the command line reaches into the ROS layer, and only when asked,
     # so every other sub-command runs on machines without ROS.
     try:
-        from ..ros.client import main as call_main
+        from ..apps.call import main as call_main
     except ImportError as exc:
         raise UserError(f"`call` needs ROS 2 (rclpy): {exc}") from None
     return call_main(args.action, node_name=args.node, timeout=args.timeout,
@@ -354,7 +356,7 @@ def cmd_bench(args) -> int:
 
 
 def cmd_fetch_data(args) -> int:
-    from ..core.data import DAISY_ROBOT_ARM_URL, download_robot_arm
+    from ..core.io.datasets import DAISY_ROBOT_ARM_URL, download_robot_arm
 
     path = download_robot_arm(url=args.url or DAISY_ROBOT_ARM_URL, dest=args.output)
     print(f"robot-arm data verified and saved to {path}")
@@ -364,7 +366,7 @@ def cmd_fetch_data(args) -> int:
 def cmd_make_bag(args) -> int:
     import math
 
-    from ..core.bagio import write_io_bag
+    from ..core.io.bagio import write_io_bag
 
     # everything is checked before anything is read or touched
     if not (args.rate > 0 and math.isfinite(args.rate)):

@@ -27,9 +27,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.evaluator import StructureEvaluator
-from ..core.ga import GAConfig, run_ga
-from ..core.terms import TermSpace
+from ..core.narx.evaluator import StructureEvaluator
+from ..core.narx.ga import GAConfig, run_ga
+from ..core.narx.terms import TermSpace
 
 __all__ = ["ExperimentConfig", "RunRecord", "SettingSummary", "run_experiment", "summarise"]
 
@@ -55,7 +55,7 @@ class ExperimentConfig:
             raise ValueError("runs must be >= 1 and generations >= 0")
         if not self.criteria or not self.populations or not self.spm_fractions:
             raise ValueError("criteria, populations and spm_fractions must not be empty")
-        from ..core.criteria import get_criterion
+        from ..core.narx.criteria import get_criterion
 
         for c in self.criteria:
             get_criterion(c)  # unknown names fail here, before any run

@@ -21,7 +21,7 @@ matplotlib.use("Agg")  # files only; no display needed
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ..core.validation import ValidationReport  # noqa: E402
+from ..core.narx.validation import ValidationReport  # noqa: E402
 
 __all__ = ["plot_convergence", "plot_correlation_tests", "plot_prediction", "write_model_figures"]
 

@@ -12,8 +12,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..errors import DataError
 from .correlation import CorrelationTest, correlation_tests
-from .data import DataError
 from .model import NarxModel
 
 __all__ = ["ValidationReport", "metrics", "split_data", "split_segments", "validate_model"]
@@ -156,7 +156,7 @@ def validate_model(
     segment : str
         Label for reports (``"estimation"`` or ``"holdout"``).
     segments : list of (start, stop), optional
-        Contiguous parts of the record (see :mod:`spm_sysid.core.segments`):
+        Contiguous parts of the record (see :mod:`spm_sysid.core.narx.segments`):
         predictions never cross from one to the next, and each is simulated from
         its own initial conditions. The correlation tests run on the residuals of
         all segments, concatenated.

@@ -16,18 +16,15 @@ from pathlib import Path
 
 import numpy as np
 
-from .evaluator import reference_fit
-from .files import atomic_write_text
+from ..errors import ModelFormatError
+from ..files import atomic_write_text
+from .lstsq import reference_fit
 from .terms import TermSpace, power_of_two_scale
 
-__all__ = ["MODEL_SCHEMA", "MODEL_SCHEMA_VERSION", "ModelFormatError", "NarxModel"]
+__all__ = ["MODEL_SCHEMA", "MODEL_SCHEMA_VERSION", "NarxModel"]
 
 MODEL_SCHEMA = "spm_sysid/narx-model"
 MODEL_SCHEMA_VERSION = 1
-
-
-class ModelFormatError(ValueError):
-    """A model document that cannot be read (wrong schema, version or content)."""
 
 
 @dataclass
@@ -208,7 +205,7 @@ class NarxModel:
     # -- persistence --------------------------------------------------------------------
     def to_dict(self) -> dict:
         """The versioned JSON document (see ``docs/model_format.md``)."""
-        from .. import __version__
+        from ... import __version__
 
         return {
             "schema": MODEL_SCHEMA,

@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import re
 
-__all__ = ["DEFAULT_FIELDS", "FieldPathError", "default_field", "extract", "message_stamp_ns"]
+from ..errors import FieldPathError
+
+__all__ = ["DEFAULT_FIELDS", "default_field", "extract", "message_stamp_ns"]
 
 #: Field used when none is given, per message type.
 DEFAULT_FIELDS = {
@@ -25,10 +27,6 @@ DEFAULT_FIELDS = {
 }
 
 _STEP = re.compile(r"([A-Za-z_][A-Za-z0-9_]*)((?:\[\d+\])*)")
-
-
-class FieldPathError(ValueError):
-    """A field path that does not fit the message type."""
 
 
 def default_field(msgtype: str) -> str:

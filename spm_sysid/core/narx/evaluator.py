@@ -21,32 +21,20 @@ identifiable, and it gets the worst score, ``+inf``, as does the empty
 structure. Such a structure is never the best: dropping the redundant term gives
 the same SSE with fewer terms.
 
-:func:`reference_fit` is the slow, numerically preferred path (Householder QR of
-the selected columns); it gives the final model's coefficients and is the
-yardstick the fast path is tested against. :class:`NaiveEvaluator` uses numpy's
-``lstsq`` per chromosome with no reuse at all; it exists only as the baseline of
-the benchmark.
+:func:`spm_sysid.core.narx.lstsq.reference_fit` is the slow, numerically
+preferred path (Householder QR of the selected columns); it gives the final
+model's coefficients and is the yardstick the fast path is tested against. The
+benchmark's naive baseline lives with the benchmark (:mod:`spm_sysid.tools.bench`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
-from scipy import linalg
 
 from .criteria import Criterion, get_criterion
+from .lstsq import DEFAULT_RANK_TOL
 
-__all__ = [
-    "FitResult",
-    "NaiveEvaluator",
-    "StructureEvaluator",
-    "reference_fit",
-    "reference_score",
-    "structure_keys",
-]
-
-DEFAULT_RANK_TOL = 1e-9
+__all__ = ["StructureEvaluator", "structure_keys"]
 
 
 def structure_keys(masks: np.ndarray) -> np.ndarray:
@@ -54,59 +42,6 @@ def structure_keys(masks: np.ndarray) -> np.ndarray:
     masks = np.asarray(masks, dtype=bool)
     weights = np.left_shift(np.uint64(1), np.arange(masks.shape[-1], dtype=np.uint64))
     return (masks.astype(np.uint64) * weights).sum(axis=-1, dtype=np.uint64)
-
-
-@dataclass(frozen=True)
-class FitResult:
-    """Least-squares fit of one structure.
-
-    Attributes
-    ----------
-    coefficients : ndarray, shape (k,)
-        Parameters of the selected terms, in term order (NaN when rank-deficient).
-    sse : float
-        Sum of squared one-step residuals.
-    rank_deficient : bool
-        True when the selected regressors are (numerically) linearly dependent.
-    """
-
-    coefficients: np.ndarray
-    sse: float
-    rank_deficient: bool
-
-
-def reference_fit(
-    P: np.ndarray, target: np.ndarray, mask: np.ndarray, rank_tol: float = DEFAULT_RANK_TOL
-) -> FitResult:
-    """Fit one structure by Householder QR of its unit-norm columns.
-
-    Parameters
-    ----------
-    P : ndarray, shape (N, n_terms)
-        Regression matrix of all candidate terms.
-    target : ndarray, shape (N,)
-        y(t) for the regression rows.
-    mask : ndarray of bool, shape (n_terms,)
-        Selected terms.
-    rank_tol : float
-        Squared relative pivot below which the structure is rank-deficient.
-    """
-    cols = np.flatnonzero(mask)
-    k = cols.size
-    if k == 0:
-        return FitResult(np.empty(0), float(target @ target), False)
-    A = P[:, cols]
-    norms = np.linalg.norm(A, axis=0)
-    if np.any(norms == 0):
-        return FitResult(np.full(k, np.nan), np.nan, True)
-    An = A / norms
-    Q, R = np.linalg.qr(An, mode="reduced")
-    if np.min(np.abs(np.diag(R))) ** 2 < rank_tol:
-        return FitResult(np.full(k, np.nan), np.nan, True)
-    z = Q.T @ target
-    theta_n = linalg.solve_triangular(R, z)
-    resid = target - An @ theta_n
-    return FitResult(theta_n / norms, float(resid @ resid), False)
 
 
 class StructureEvaluator:
@@ -119,7 +54,7 @@ class StructureEvaluator:
     target : ndarray, shape (N,)
         y(t) for the regression rows.
     criterion : str, Criterion or callable
-        See :func:`spm_sysid.core.criteria.get_criterion`.
+        See :func:`spm_sysid.core.narx.criteria.get_criterion`.
     rank_tol : float
         See the module docstring.
     sse_scale : float
@@ -168,7 +103,6 @@ class StructureEvaluator:
         self._cache: dict[int, float] = {}
         self.evaluations = 0
         self.lookups = 0
-        self.qr_refits = 0
 
     @property
     def cache_hit_rate(self) -> float:
@@ -250,7 +184,6 @@ class StructureEvaluator:
             err = np.finfo(float).eps * (self._y_norm + np.linalg.norm(theta_n, axis=1)) ** 2
             redo = ~bad & (self.n * err > 1e-7 * sse)
         if redo.any():
-            self.qr_refits += int(redo.sum())
             sse[redo], theta_n[redo] = self._qr_path(idx[redo], valid[redo], kmax)
         beta = None
         if self.criterion.needs_coefficients:
@@ -303,70 +236,3 @@ def _batched_cholesky(mats: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
                 out[i] = eye
                 failed[i] = True
         return out, failed
-
-
-class NaiveEvaluator:
-    """Benchmark baseline: numpy ``lstsq`` on the raw columns for every chromosome.
-
-    No cache and no shared work; rank handling as in :func:`reference_fit`.
-    """
-
-    def __init__(self, P: np.ndarray, target: np.ndarray, criterion: str | Criterion = "aic",
-                 rank_tol: float = DEFAULT_RANK_TOL) -> None:
-        self.P = np.asarray(P, dtype=float)
-        self.target = np.asarray(target, dtype=float)
-        self.criterion = get_criterion(criterion)
-        self.n, self.n_terms = self.P.shape
-        self.rank_tol = rank_tol
-        self._y_norm = float(np.linalg.norm(self.target)) or 1.0
-        self.evaluations = 0
-        self.lookups = 0
-
-    cache_hit_rate = 0.0
-
-    def score(self, masks: np.ndarray, keys: np.ndarray | None = None) -> np.ndarray:
-        """Criterion values, one lstsq per row (``keys`` is ignored: no cache)."""
-        masks = np.asarray(masks, dtype=bool)
-        out = np.empty(len(masks))
-        for i, mask in enumerate(masks):
-            out[i] = self._one(mask)
-        self.evaluations += len(masks)
-        self.lookups += len(masks)
-        return out
-
-    def _one(self, mask: np.ndarray) -> float:
-        cols = np.flatnonzero(mask)
-        if cols.size == 0:
-            return np.inf
-        A = self.P[:, cols]
-        theta, _, rank, sv = np.linalg.lstsq(A, self.target, rcond=None)
-        norms = np.linalg.norm(A, axis=0)
-        if rank < cols.size or np.any(norms == 0):
-            return np.inf
-        resid = self.target - A @ theta
-        return _score_one(self.criterion, float(resid @ resid), self.n, self.n_terms, cols,
-                          theta * norms / self._y_norm)
-
-
-def _score_one(crit: Criterion, sse: float, n: int, n_terms: int, cols: np.ndarray,
-               beta_selected: np.ndarray) -> float:
-    """Criterion value of one fitted structure; non-finite values become +inf."""
-    beta = np.zeros((1, n_terms))
-    beta[0, cols] = beta_selected
-    value = float(crit(sse, n, np.array([cols.size]), beta)[0])
-    return value if np.isfinite(value) else np.inf
-
-
-def reference_score(
-    P: np.ndarray, target: np.ndarray, mask: np.ndarray, criterion: str | Criterion = "aic",
-    rank_tol: float = DEFAULT_RANK_TOL,
-) -> float:
-    """Criterion value of one structure from :func:`reference_fit` (inf if not fittable)."""
-    crit = get_criterion(criterion)
-    mask = np.asarray(mask, dtype=bool)
-    fit = reference_fit(P, target, mask, rank_tol)
-    if fit.rank_deficient or not mask.any():
-        return np.inf
-    cols = np.flatnonzero(mask)
-    beta = fit.coefficients * np.linalg.norm(P[:, cols], axis=0) / (np.linalg.norm(target) or 1.0)
-    return _score_one(crit, fit.sse, P.shape[0], P.shape[1], cols, beta)

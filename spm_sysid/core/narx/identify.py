@@ -12,16 +12,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import DataError
+from ..memory import check_memory
 from .criteria import Criterion, get_criterion
-from .data import DataError, check_samples
 from .evaluator import StructureEvaluator
 from .ga import GAConfig, GAResult, GenerationStats, run_ga
-from .memory import check_memory
 from .model import NarxModel
 from .segments import normalise_segments, usable_segments
 from .terms import TermSpace, power_of_two_scale
 
-__all__ = ["IdentificationResult", "identify", "validate_signals"]
+__all__ = ["IdentificationResult", "check_samples", "identify", "validate_signals"]
 
 
 @dataclass
@@ -43,6 +43,21 @@ class IdentificationResult:
             f"{m.n_samples} samples, {self.ga.elapsed:.2f} s "
             f"({self.ga.evaluations} structures fitted, "
             f"cache hit rate {self.ga.cache_hit_rate:.0%})"
+        )
+
+
+def check_samples(n_samples: int, max_lag: int, n_terms: int = 1) -> None:
+    """Raise DataError when there are too few samples to fit with these lags.
+
+    A fit needs more regression rows (``n_samples - max_lag``) than the largest
+    possible structure has terms.
+    """
+    rows = n_samples - max_lag
+    if rows <= n_terms:
+        raise DataError(
+            f"too few samples: {n_samples} samples give {max(rows, 0)} regression rows "
+            f"with maximum lag {max_lag}, but {n_terms + 1} or more are needed for "
+            f"{n_terms} candidate terms (need at least {max_lag + n_terms + 1} samples)"
         )
 
 
@@ -108,10 +123,10 @@ def identify(
     seed : int, optional
         Makes the run reproducible.
     callback : callable, optional
-        Progress hook, see :func:`spm_sysid.core.ga.run_ga`.
+        Progress hook, see :func:`spm_sysid.core.narx.ga.run_ga`.
     segments : list of (start, stop), optional
         Contiguous parts of the record (``[start, stop)`` indices, e.g. from
-        :func:`spm_sysid.core.segments.find_segments`): regression rows are built
+        :func:`spm_sysid.core.narx.segments.find_segments`): regression rows are built
         inside each and fitted together, never across a gap. Segments no longer
         than the largest lag are skipped. Default: the whole record.
 

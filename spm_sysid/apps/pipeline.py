@@ -74,8 +74,9 @@ def wait_for_buffer(node, done, timeout: float) -> dict:
 
 def run(args) -> int:
     """Run the pipeline; raises PipelineError on a failed step."""
-    from ..core.bagio import read_bag_signals, write_io_bag
-    from ..core.data import find_robot_arm, load_io
+    from ..core.io.bagio import read_bag_signals, write_io_bag
+    from ..core.io.data import load_io
+    from ..core.io.datasets import find_robot_arm
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -98,7 +99,7 @@ def run(args) -> int:
     from rclpy.node import Node
     from std_srvs.srv import Trigger
 
-    from .client import call_trigger, wait_for_model
+    from .call import call_trigger, wait_for_model
 
     rclpy.init()
     client = Node("spm_sysid_pipeline")
@@ -147,8 +148,8 @@ def run(args) -> int:
         client.destroy_node()
         rclpy.shutdown()
 
-    from ..core.model import NarxModel
-    from ..core.validation import validate_model
+    from ..core.narx.model import NarxModel
+    from ..core.narx.validation import validate_model
     from ..tools.plots import write_model_figures
 
     model = NarxModel.from_dict(doc)
@@ -166,7 +167,7 @@ def run(args) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Command-line entry (``python -m spm_sysid.ros.pipeline``)."""
+    """Command-line entry (``python -m spm_sysid.apps.pipeline``)."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--out", default="out/run", help="output directory (default out/run)")
     p.add_argument("--data", help="data file (default: the robot-arm data)")

@@ -21,7 +21,7 @@ stream stamped after them are discarded (counted). A lone late sample followed
 by in-order ones is rejected (counted). So a single far-future stamp costs
 itself and never blocks a stream, and a bag replayed into a running node
 becomes a new segment after ``resync_samples`` samples. Pair stamps that go
-back mark a new segment (see :mod:`spm_sysid.core.segments`).
+back mark a new segment (see :mod:`spm_sysid.core.narx.segments`).
 
 Pairing: each stream is in stamp order, so a sample pairs with the oldest
 waiting sample of the other stream when their stamps differ by at most

@@ -36,7 +36,7 @@ def run(args) -> None:
     import rclpy
     from rclpy.node import Node
 
-    from .client import call_trigger
+    from .call import call_trigger
     from .pipeline import wait_for_buffer
 
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",

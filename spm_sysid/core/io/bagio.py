@@ -39,14 +39,13 @@ from pathlib import Path
 
 import numpy as np
 
-from .data import DataError
-from .fields import FieldPathError, default_field, extract, message_stamp_ns, parse_path
+from ..errors import BagError, FieldPathError
+from .fields import default_field, extract, message_stamp_ns, parse_path
 
 __all__ = [
     "DEFAULT_INPUT_TOPIC",
     "DEFAULT_OUTPUT_TOPIC",
     "DEFAULT_RATE_HZ",
-    "BagError",
     "BagSignals",
     "open_bag",
     "pair_by_stamp",
@@ -62,10 +61,6 @@ DEFAULT_INPUT_TOPIC = "/robot_arm/torque"
 DEFAULT_OUTPUT_TOPIC = "/robot_arm/acceleration"
 INPUT_TYPE = "geometry_msgs/msg/WrenchStamped"
 OUTPUT_TYPE = "geometry_msgs/msg/AccelStamped"
-
-
-class BagError(DataError):
-    """A bag that cannot be written or read as asked."""
 
 
 def typestore():
@@ -109,7 +104,7 @@ class _CrcMcapStorage:
     def __init__(self, path: Path, compression) -> None:
         from mcap.writer import CompressionType, Writer
 
-        from .. import __version__
+        from ... import __version__
 
         self.path = path / f"{path.name}.mcap"
         self._file = self.path.open("xb")
@@ -393,9 +388,9 @@ def read_bag_signals(
     """Read u and y from two topics of a bag, paired by header stamp.
 
     Messages without a header are stamped with their log time. Fields default by
-    message type (see :data:`spm_sysid.core.fields.DEFAULT_FIELDS`). NaN/inf
+    message type (see :data:`spm_sysid.core.io.fields.DEFAULT_FIELDS`). NaN/inf
     values are rejected and counted, as the node does; the holes they leave show
-    in the stamps (:func:`spm_sysid.core.segments.find_segments`).
+    in the stamps (:func:`spm_sysid.core.narx.segments.find_segments`).
 
     Raises
     ------

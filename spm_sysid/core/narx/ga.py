@@ -1,7 +1,7 @@
 """Genetic algorithm with single parent mating (SPM) for NARX structure selection.
 
 A chromosome is one bit per candidate term, in the order of
-:attr:`spm_sysid.core.terms.TermSpace.terms` (1 = term present). One generation,
+:attr:`spm_sysid.core.narx.terms.TermSpace.terms` (1 = term present). One generation,
 as in section 2 of the paper:
 
 1. score the population with the criterion (lower is better);

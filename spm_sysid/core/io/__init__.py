@@ -1,0 +1,1 @@
+"""Input and output: data files, the robot-arm data set, bags, message fields."""

@@ -1,0 +1,1 @@
+"""The model and its search: terms, criteria, least squares, evaluator, GA, validation."""

@@ -1,0 +1,98 @@
+"""Least-squares fits of one structure, shared by the model and the evaluator.
+
+:func:`reference_fit` is the numerically preferred path (Householder QR of the
+selected, unit-norm columns): it gives a model's coefficients and is the
+yardstick the evaluator's fast path is tested against. Both use one rank rule
+(see :mod:`spm_sysid.core.narx.evaluator`): a squared relative pivot below
+``rank_tol`` makes a structure rank-deficient.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import linalg
+
+from .criteria import Criterion, get_criterion
+
+__all__ = ["DEFAULT_RANK_TOL", "FitResult", "reference_fit", "reference_score", "score_one"]
+
+DEFAULT_RANK_TOL = 1e-9
+
+
+@dataclass(frozen=True)
+class FitResult:
+    """Least-squares fit of one structure.
+
+    Attributes
+    ----------
+    coefficients : ndarray, shape (k,)
+        Parameters of the selected terms, in term order (NaN when rank-deficient).
+    sse : float
+        Sum of squared one-step residuals.
+    rank_deficient : bool
+        True when the selected regressors are (numerically) linearly dependent.
+    """
+
+    coefficients: np.ndarray
+    sse: float
+    rank_deficient: bool
+
+
+def reference_fit(
+    P: np.ndarray, target: np.ndarray, mask: np.ndarray, rank_tol: float = DEFAULT_RANK_TOL
+) -> FitResult:
+    """Fit one structure by Householder QR of its unit-norm columns.
+
+    Parameters
+    ----------
+    P : ndarray, shape (N, n_terms)
+        Regression matrix of all candidate terms.
+    target : ndarray, shape (N,)
+        y(t) for the regression rows.
+    mask : ndarray of bool, shape (n_terms,)
+        Selected terms.
+    rank_tol : float
+        Squared relative pivot below which the structure is rank-deficient.
+    """
+    cols = np.flatnonzero(mask)
+    k = cols.size
+    if k == 0:
+        return FitResult(np.empty(0), float(target @ target), False)
+    A = P[:, cols]
+    norms = np.linalg.norm(A, axis=0)
+    if np.any(norms == 0):
+        return FitResult(np.full(k, np.nan), np.nan, True)
+    An = A / norms
+    Q, R = np.linalg.qr(An, mode="reduced")
+    if np.min(np.abs(np.diag(R))) ** 2 < rank_tol:
+        return FitResult(np.full(k, np.nan), np.nan, True)
+    z = Q.T @ target
+    theta_n = linalg.solve_triangular(R, z)
+    resid = target - An @ theta_n
+    return FitResult(theta_n / norms, float(resid @ resid), False)
+
+
+def score_one(crit: Criterion, sse: float, n: int, n_terms: int, cols: np.ndarray,
+               beta_selected: np.ndarray) -> float:
+    """Criterion value of one fitted structure; non-finite values become +inf."""
+    beta = np.zeros((1, n_terms))
+    beta[0, cols] = beta_selected
+    value = float(crit(sse, n, np.array([cols.size]), beta)[0])
+    return value if np.isfinite(value) else np.inf
+
+
+def reference_score(
+    P: np.ndarray, target: np.ndarray, mask: np.ndarray, criterion: str | Criterion = "aic",
+    rank_tol: float = DEFAULT_RANK_TOL,
+) -> float:
+    """Criterion value of one structure from :func:`reference_fit` (inf if not fittable)."""
+    crit = get_criterion(criterion)
+    mask = np.asarray(mask, dtype=bool)
+    fit = reference_fit(P, target, mask, rank_tol)
+    if fit.rank_deficient or not mask.any():
+        return np.inf
+    cols = np.flatnonzero(mask)
+    beta = fit.coefficients * np.linalg.norm(P[:, cols], axis=0) / (np.linalg.norm(target) or 1.0)
+    return score_one(crit, fit.sse, P.shape[0], P.shape[1], cols, beta)

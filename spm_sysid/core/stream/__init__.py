@@ -1,0 +1,1 @@
+"""What the streaming node needs: the sample buffer and its diagnostics."""
