@@ -50,7 +50,7 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
-            "spm-sysid = spm_sysid.tools.cli:main",
+            "spm-sysid = spm_sysid.apps.main:main",
             "sysid_node = spm_sysid.ros.sysid_node:main",
             "bag_player = spm_sysid.ros.bag_player:main",
         ],

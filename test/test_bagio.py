@@ -92,7 +92,7 @@ def test_pairing_by_stamp_with_tolerance():
 
 
 def _spm(*args):
-    return subprocess.run([sys.executable, "-m", "spm_sysid.tools.cli", *args],
+    return subprocess.run([sys.executable, "-m", "spm_sysid.apps.main", *args],
                           capture_output=True, text=True, cwd=ROOT, timeout=120)
 
 

@@ -10,7 +10,7 @@ from .conftest import EQ1, ROOT
 
 
 def spm(*args, **kw):
-    return subprocess.run([sys.executable, "-m", "spm_sysid.tools.cli", *args],
+    return subprocess.run([sys.executable, "-m", "spm_sysid.apps.main", *args],
                           capture_output=True, text=True, cwd=ROOT, timeout=300, **kw)
 
 

@@ -25,7 +25,7 @@ FAST = GAConfig(population_size=100, generations=120)
 
 
 def cli(*args, env=None, timeout=300):
-    return subprocess.run([sys.executable, "-m", "spm_sysid.tools.cli", *args],
+    return subprocess.run([sys.executable, "-m", "spm_sysid.apps.main", *args],
                           capture_output=True, text=True, cwd=ROOT, timeout=timeout, env=env)
 
 
@@ -272,11 +272,12 @@ def test_nan_coefficient_token_in_a_file_is_refused(robot_arm, tmp_path):
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--seed", "-5"], "argument --seed: must be an integer >= 0, got -5"),
-    (["--split", "0.3"], "--split applies to --validation holdout only"),
-    (["--corr-lags", "0"], "--corr-lags must be >= 1"),
-    (["--corr-lags", "5000"], "--corr-lags must be between 1 and 1019"),
-    (["--validation", "holdout", "--corr-lags", "600"], "--corr-lags must be between 1 and"),
+    (["--seed", "-5"], "argument --seed: seed must be between -1 and 2147483647, got -5"),
+    (["--split", "0.3"], "--validation-split (--split) applies to --validation holdout only"),
+    (["--corr-lags", "0"], "argument --correlation-lags/--corr-lags: correlation_lags must"
+                           " be between 1 and 10000, got 0"),
+    (["--corr-lags", "5000"], "--correlation-lags must be between 1 and 1019"),
+    (["--validation", "holdout", "--corr-lags", "600"], "--correlation-lags must be between"),
     (["--fitness", "nosuch"], "argument --fitness: invalid choice"),
 ])
 def test_cli_errors_are_one_line_before_any_search(args, message):
@@ -287,7 +288,7 @@ def test_cli_errors_are_one_line_before_any_search(args, message):
 
 
 def test_output_piped_into_head_exits_quietly():
-    r = subprocess.run(f"{sys.executable} -m spm_sysid.tools.cli identify --seed 1 "
+    r = subprocess.run(f"{sys.executable} -m spm_sysid.apps.main identify --seed 1 "
                        "--generations 30 --quiet | head -1", shell=True, capture_output=True,
                        text=True, cwd=ROOT, timeout=120)
     assert r.stdout.startswith("data:") and r.stderr == ""

@@ -13,7 +13,7 @@ from .conftest import ROOT
 
 
 def _study(out, report=None, extra=()):
-    args = [sys.executable, "-m", "spm_sysid.tools.cli", "experiment", "--criteria", "aic,bic",
+    args = [sys.executable, "-m", "spm_sysid.apps.main", "experiment", "--criteria", "aic,bic",
             "--populations", "30", "--spm", "0,0.15", "--runs", "3", "--generations", "15",
             "--seed", "5", "--out", str(out), *extra]
     if report:
@@ -58,7 +58,7 @@ def test_yaml_config_and_bad_settings(tmp_path):
         ExperimentConfig(criteria=["nope"])
     with pytest.raises(ValueError, match="spm_fraction"):
         ExperimentConfig(spm_fractions=[0.7])
-    r = subprocess.run([sys.executable, "-m", "spm_sysid.tools.cli", "experiment", "--spm",
+    r = subprocess.run([sys.executable, "-m", "spm_sysid.apps.main", "experiment", "--spm",
                         "0,x"], capture_output=True, text=True, cwd=ROOT)
     assert r.returncode == 2 and "comma-separated" in r.stderr
 

@@ -349,7 +349,7 @@ def test_unknown_fitness_parameter_is_refused(ros_env, harness):
 
 
 def test_call_errors_go_to_stderr(ros_env):
-    r = subprocess.run([sys.executable, "-m", "spm_sysid.tools.cli", "call", "identify",
+    r = subprocess.run([sys.executable, "-m", "spm_sysid.apps.main", "call", "identify",
                         "--timeout", "1"], capture_output=True, text=True, env=ros_env,
                        timeout=60, cwd=ROOT)
     assert r.returncode == 2 and r.stdout == ""

@@ -81,7 +81,7 @@ def test_replay_identify_and_latched_results(ros_env, harness, arm_bag, robot_ar
     assert np.allclose(resid.data, expected, atol=1e-12)
     # the saved model loads and validates with the command line
     assert NarxModel.load(model_path).terms == EQ1
-    r = subprocess.run([sys.executable, "-m", "spm_sysid.tools.cli", "validate",
+    r = subprocess.run([sys.executable, "-m", "spm_sysid.apps.main", "validate",
                         str(model_path), "--tail", "0.5"], capture_output=True, text=True,
                        cwd=ROOT, timeout=120)
     assert r.returncode == 0 and "validation on holdout data" in r.stdout

@@ -1,157 +1,261 @@
-"""One identification job on a snapshot of recorded samples: identify + validate.
+"""One job: identify and validate, with frozen settings and a typed result.
 
-This is what the ROS node runs for ``~/identify``, in a worker process so the
-node keeps recording meanwhile. Settings come in as a plain dictionary (the
-node's parameters) and the result goes out as plain data (the model document,
-the residuals, a summary), so the job crosses a process boundary cheaply and
-the node only turns it into messages.
+The command line, the node's worker process, the ``make run`` pipeline and the
+benchmarks all call :func:`run_job`. Settings are a frozen
+:class:`JobSettings` built once, at the edge, from the settings schema
+(:mod:`spm_sysid.core.settings`); the result is a :class:`JobResult` (model,
+validation report, search statistics, data account, timings) with the one
+summary formatter, :meth:`JobResult.summary`.
 """
 
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
-from .errors import DataError
-from .narx.ga import GAConfig
+from .errors import DataError, SettingsError
+from .narx.criteria import get_criterion
+from .narx.ga import GAConfig, GAResult
 from .narx.identify import identify
-from .narx.segments import describe_data, find_segments, segment_report
+from .narx.model import NarxModel
+from .narx.segments import SegmentInfo, describe_data, find_segments, segment_report
 from .narx.terms import TermSpace
-from .narx.validation import split_segments, validate_model
+from .narx.validation import ValidationReport, split_segments, validate_model
+from .settings import JOB_GROUPS, check, defaults
 
-__all__ = ["JobSettings", "run_job"]
+__all__ = ["JobResult", "JobSettings", "run_job"]
+
+_TERM_FIELDS = ("ny", "nu", "degree", "delay", "constant")
+_GA_FIELDS = ("population_size", "generations", "crossover_prob", "mutation_prob",
+              "spm_fraction", "fitness", "init_prob", "elitism")
+
+
+@dataclass(frozen=True)
+class JobSettings:
+    """Everything a job needs besides the data; build it with :meth:`from_values`.
+
+    Attributes
+    ----------
+    term_space : TermSpace
+    ga : GAConfig
+    criterion : str
+        A registered criterion name (``aic``, ``bic``, ``pmic2``, ...).
+    seed : int or None
+        None: a new random seed (the schema's -1).
+    validation : str
+        ``estimation``, ``holdout`` or ``none``.
+    validation_split, correlation_lags, sample_period, gap_factor
+        See the settings schema.
+    """
+
+    term_space: TermSpace = field(default_factory=TermSpace)
+    ga: GAConfig = field(default_factory=GAConfig)
+    criterion: str = "aic"
+    seed: int | None = None
+    validation: str = "estimation"
+    validation_split: float = 0.5
+    correlation_lags: int = 20
+    sample_period: float = 0.0
+    gap_factor: float = 1.5
+
+    @classmethod
+    def from_values(cls, values: Mapping[str, Any]) -> JobSettings:
+        """Checked settings from a mapping of schema names (others are ignored).
+
+        Missing names take the schema's defaults. Raises SettingsError (a
+        ValueError) naming the first invalid setting.
+        """
+        v = defaults(JOB_GROUPS)
+        v.update({k: values[k] for k in v if k in values and values[k] is not None})
+        for name in ("criterion", "seed", "validation", "validation_split",
+                     "correlation_lags", "sample_period", "gap_factor"):
+            v[name] = check(name, v[name])
+        criterion = v["criterion"].lower()
+        try:
+            get_criterion(criterion)
+        except (KeyError, ValueError) as exc:
+            raise SettingsError(str(exc).strip("'\"")) from None
+        return cls(
+            term_space=TermSpace(**{k: v[k] for k in _TERM_FIELDS}),
+            ga=GAConfig(**{k: v[k] for k in _GA_FIELDS}),
+            criterion=criterion,
+            seed=None if v["seed"] < 0 else v["seed"],
+            validation=v["validation"],
+            validation_split=v["validation_split"],
+            correlation_lags=v["correlation_lags"],
+            sample_period=v["sample_period"],
+            gap_factor=v["gap_factor"],
+        )
+
+    def values(self) -> dict[str, Any]:
+        """Back to schema names (for documents and logs)."""
+        out = {**self.term_space.to_dict(), **self.ga.to_dict()}
+        out.update(criterion=self.criterion, seed=-1 if self.seed is None else self.seed,
+                   validation=self.validation, validation_split=self.validation_split,
+                   correlation_lags=self.correlation_lags, sample_period=self.sample_period,
+                   gap_factor=self.gap_factor)
+        return out
 
 
 @dataclass
-class JobSettings:
-    """Everything an identification job needs besides the data."""
+class JobResult:
+    """What a job produced.
 
-    ny: int = 4
-    nu: int = 4
-    degree: int = 2
-    delay: int = 1
-    constant: bool = False
-    criterion: str = "aic"
-    population_size: int = 200
-    generations: int = 300
-    crossover_prob: float = 0.6
-    mutation_prob: float = 0.01
-    spm_fraction: float = 0.15
-    fitness: str = "akaike"
-    seed: int | None = None
-    validation: str = "estimation"  # or "holdout"
-    validation_split: float = 0.5
-    correlation_lags: int = 20
-    sample_period: float = 0.0  # seconds; 0: estimated from the stamps
-    gap_factor: float = 1.5
-    progress_every: int = 25
-    extra: dict = field(default_factory=dict)
+    Attributes
+    ----------
+    model : NarxModel
+        With ``metadata["data"]`` (the data account) and, when validated,
+        ``metadata["validation"]``.
+    report : ValidationReport or None
+        None with ``validation="none"``.
+    search : GAResult
+        The GA run (best score, evaluations, history, seconds).
+    data : dict
+        Samples, segments, gaps ... (:func:`spm_sysid.core.narx.segments.segment_report`).
+    estimation_samples : int
+        Samples the fit used.
+    seconds : dict
+        ``search``, ``validation`` and ``total`` wall-clock seconds.
+    """
 
-    def term_space(self) -> TermSpace:
-        """The candidate terms."""
-        return TermSpace(ny=self.ny, nu=self.nu, degree=self.degree, delay=self.delay,
-                         constant=self.constant)
+    model: NarxModel
+    report: ValidationReport | None
+    search: GAResult
+    data: dict
+    estimation_samples: int
+    seconds: dict = field(default_factory=dict)
 
-    def ga(self) -> GAConfig:
-        """The GA settings."""
-        return GAConfig(population_size=self.population_size, generations=self.generations,
-                        crossover_prob=self.crossover_prob, mutation_prob=self.mutation_prob,
-                        spm_fraction=self.spm_fraction, fitness=self.fitness)
+    @property
+    def residuals(self) -> np.ndarray:
+        """One-step residuals of the validation rows (empty without validation)."""
+        return np.empty(0) if self.report is None else self.report.residuals
 
-    def check(self) -> None:
-        """Raise ValueError with a clear reason when a setting is invalid."""
-        from .narx.criteria import get_criterion
+    def summary(self, style: str = "lines") -> str:
+        """The one summary formatter.
 
-        self.term_space()
-        self.ga()
-        get_criterion(self.criterion)
-        if self.validation not in ("estimation", "holdout"):
-            raise ValueError(f"validation must be 'estimation' or 'holdout', got "
-                             f"{self.validation!r}")
-        if not 0.1 <= self.validation_split <= 0.9:
-            raise ValueError(f"validation_split must be in [0.1, 0.9], got "
-                             f"{self.validation_split}")
-        if self.correlation_lags < 1:
-            raise ValueError("correlation_lags must be >= 1")
-        if not (self.sample_period >= 0 and np.isfinite(self.sample_period)):
-            raise ValueError(f"sample_period must be >= 0 seconds (0: estimate from the "
-                             f"stamps), got {self.sample_period}")
-        if not self.gap_factor > 1:
-            raise ValueError(f"gap_factor must be > 1, got {self.gap_factor}")
+        ``"line"``: one paragraph (the node's answer, logs). ``"lines"``: the
+        command line's block (equation, criterion, data, validation).
+        """
+        m, crit = self.model, self.model.criterion.upper()
+        value = self.search.best_score
+        if style == "line":
+            text = (f"{m.equation()} | {crit} {value:.2f}, {len(m.term_indices)} terms, "
+                    f"one-step MSE {m.mse:.4e}, {describe_data(self.data)}")
+            if self.report is not None:
+                o, f = self.report.one_step_metrics, self.report.free_run_metrics
+                failed = [t.name for t in self.report.tests if not t.passed]
+                text += (f" ({self.report.segment} validation: one-step fit "
+                         f"{o['fit_percent']:.1f} %, free-run fit {f['fit_percent']:.1f} %, "
+                         "correlation tests " + ("all inside the band" if not failed
+                                                 else "outside the band: " + ", ".join(failed))
+                         + ")")
+            return text + f", {self.seconds.get('total', 0.0):.2f} s"
+        lines = [m.equation(),
+                 f"criterion {crit} = {value:.2f}, {len(m.term_indices)} terms, one-step MSE "
+                 f"{m.mse:.4e}, {m.n_samples} samples, {self.search.elapsed:.2f} s "
+                 f"({self.search.evaluations} structures fitted, cache hit rate "
+                 f"{self.search.cache_hit_rate:.0%})"]
+        if self.report is not None:
+            lines.append(self.report.summary())
+        return "\n".join(lines)
 
 
-def run_job(stamps_ns: np.ndarray, u: np.ndarray, y: np.ndarray, settings: JobSettings,
-            progress=None) -> dict:
-    """Identify and validate; return plain data.
+def run_job(
+    u: np.ndarray,
+    y: np.ndarray,
+    settings: JobSettings,
+    *,
+    stamps_ns: np.ndarray | None = None,
+    segments: SegmentInfo | None = None,
+    rejected: int = 0,
+    unpaired: int = 0,
+    progress: Callable[[int, float, int], None] | None = None,
+    progress_every: int = 25,
+    metadata: Mapping[str, Any] | None = None,
+) -> JobResult:
+    """Identify and validate.
 
     Parameters
     ----------
-    stamps_ns, u, y : ndarray, shape (n,)
-        The snapshot, oldest first.
+    u, y : ndarray, shape (n,)
+        The record, oldest first.
     settings : JobSettings
-        Term space, criterion, GA and validation settings.
+        Term space, GA, criterion, validation and timeline settings.
+    stamps_ns : ndarray of int, optional
+        Sample stamps: gaps and restarts in them split the record into segments
+        (:func:`spm_sysid.core.narx.segments.find_segments`) and no regression
+        row crosses one. Without stamps (and ``segments``) the record is one
+        contiguous segment.
+    segments : SegmentInfo, optional
+        Segments already found (instead of ``stamps_ns``).
+    rejected, unpaired : int
+        Samples dropped before (NaN/inf, without a partner), for the account.
     progress : callable, optional
-        Called as ``progress(generation, best, evaluations)`` every
-        ``settings.progress_every`` generations.
+        ``progress(generation, best, evaluations)`` every ``progress_every``
+        generations and at the last.
+    progress_every : int
+        Generations between progress calls.
+    metadata : mapping, optional
+        Extra entries for the model document's metadata.
 
-    Returns
-    -------
-    dict
-        ``model`` (the JSON model document, with validation and stamps in its
-        metadata), ``residuals`` (one-step, list of float), ``summary`` (one
-        paragraph), ``seconds``.
+    Raises
+    ------
+    DataError
+        Too little usable data, or nothing could be fitted.
     """
     t0 = time.perf_counter()
-    settings.check()
-    space = settings.term_space()
-    period_ns = int(round(settings.sample_period * 1e9)) or None
-    info = find_segments(stamps_ns, period_ns, settings.gap_factor)
-    bounds, data = segment_report(info, space.max_lag)
+    u = np.asarray(u, dtype=float)
+    y = np.asarray(y, dtype=float)
+    space = settings.term_space
+    if segments is None:
+        if stamps_ns is None:
+            segments = SegmentInfo([(0, len(y))] if len(y) else [])
+        else:
+            period = int(round(settings.sample_period * 1e9)) or None
+            segments = find_segments(stamps_ns, period, settings.gap_factor)
+    bounds, data = segment_report(segments, space.max_lag, rejected, unpaired)
     if not bounds:
         raise DataError(
             f"no contiguous segment is longer than the largest lag ({space.max_lag}): "
-            f"{len(y)} samples in {len(info.bounds)} segment(s) with {info.gaps} gap(s)")
-    est, val = bounds, bounds
+            f"{len(y)} samples in {len(segments.bounds)} segment(s) with {segments.gaps} gap(s)")
+    whole = bounds == [(0, len(y))]
+    est = val = None if whole else bounds
     if settings.validation == "holdout":
         est, val = split_segments(bounds, len(y), settings.validation_split, space.max_lag)
+    if settings.validation != "none":
+        rows = sum(b - a - space.max_lag for a, b in (val or [(0, len(y))]))
+        if not 1 <= settings.correlation_lags < rows:
+            raise SettingsError(f"correlation_lags must be between 1 and {rows - 1} for "
+                                f"{rows} validation rows, got {settings.correlation_lags}")
 
     def callback(stats):
-        if progress is not None and (stats.generation % settings.progress_every == 0
-                                     or stats.generation == settings.generations):
+        if progress is not None and (stats.generation % progress_every == 0
+                                     or stats.generation == settings.ga.generations):
             progress(stats.generation, stats.best, stats.evaluations)
 
-    result = identify(u=u, y=y, term_space=space, criterion=settings.criterion,
-                      ga=settings.ga(), seed=settings.seed, callback=callback, segments=est)
-    model = result.model
-    report = validate_model(model, u, y, max_lag=settings.correlation_lags,
-                            segment=settings.validation, segments=val)
-    seconds = time.perf_counter() - t0
-    model.metadata.update({
-        "validation": report.to_dict(),
-        "samples_used": data["used_samples"],
-        "data": data,
-        "first_stamp_ns": int(stamps_ns[0]),
-        "last_stamp_ns": int(stamps_ns[-1]),
-        "identify_seconds": round(seconds, 4),
-        **settings.extra,
-    })
-    o = report.one_step_metrics
-    f = report.free_run_metrics
-    failed = [t.name for t in report.tests if not t.passed]
-    summary = (
-        f"{model.equation()} | {settings.criterion.upper()} {result.ga.best_score:.2f}, "
-        f"{len(model.term_indices)} terms, one-step MSE {model.mse:.4e}, "
-        f"{describe_data(data)} ({settings.validation} validation: one-step fit "
-        f"{o['fit_percent']:.1f} %, free-run fit {f['fit_percent']:.1f} %, correlation tests "
-        f"{'all inside the band' if not failed else 'outside the band: ' + ', '.join(failed)}"
-        f"), {seconds:.2f} s"
-    )
-    return {
-        "model": model.to_dict(),
-        "residuals": report.residuals.tolist(),
-        "summary": summary,
-        "seconds": seconds,
-        "data": data,
-    }
+    ident = identify(u=u, y=y, term_space=space, criterion=settings.criterion,
+                     ga=settings.ga, seed=settings.seed, callback=callback, segments=est)
+    t1 = time.perf_counter()
+    model = ident.model
+    report = None
+    if settings.validation != "none":
+        report = validate_model(model, u, y, max_lag=settings.correlation_lags,
+                                segment=settings.validation, segments=val)
+        model.metadata["validation"] = report.to_dict()
+    t2 = time.perf_counter()
+    seconds = {"search": t1 - t0, "validation": t2 - t1, "total": t2 - t0}
+    model.metadata["data"] = data
+    model.metadata["samples_used"] = data["used_samples"]
+    if stamps_ns is not None and len(stamps_ns):
+        model.metadata["first_stamp_ns"] = int(stamps_ns[0])
+        model.metadata["last_stamp_ns"] = int(stamps_ns[-1])
+    model.metadata["identify_seconds"] = round(seconds["total"], 4)
+    model.metadata.update(metadata or {})
+    used = sum(b - a for a, b in (est or [(0, len(y))]))
+    return JobResult(model=model, report=report, search=ident.ga, data=data,
+                     estimation_samples=used, seconds=seconds)
+

@@ -1,9 +1,10 @@
 """The ``spm-sysid`` command line.
 
 Sub-commands: ``identify`` (the main offline job), ``validate``, ``experiment``,
-``make-bag``, ``bench``, ``fetch-data`` and ``call`` (a service client for the
-ROS node). Every failure a user can cause ends with one ``error: ...`` line and
-exit status 2, never a traceback.
+``make-bag``, ``bench`` and ``fetch-data``; :mod:`spm_sysid.apps.main` adds
+``call`` (a service client for the ROS node). Options of the job's settings come
+from the settings schema (:mod:`spm_sysid.core.settings`). Every failure a user
+can cause ends with one ``error: ...`` line and exit status 2, never a traceback.
 """
 
 from __future__ import annotations
@@ -21,12 +22,12 @@ from dataclasses import dataclass  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from ..core.errors import DataError  # noqa: E402
+from ..core.errors import DataError, SettingsError  # noqa: E402
 from ..core.files import check_writable_dir, check_writable_file  # noqa: E402
 from ..core.io.data import load_data, load_io  # noqa: E402
 from ..core.io.datasets import find_robot_arm  # noqa: E402
-from ..core.narx.ga import GAConfig  # noqa: E402
 from ..core.narx.terms import TermSpace  # noqa: E402
+from ..core.settings import SETTINGS, check  # noqa: E402
 
 __all__ = ["main"]
 
@@ -51,40 +52,65 @@ def _add_data_options(p: argparse.ArgumentParser, bag: bool = True) -> None:
                        help="field path of y in the output message (default by type)")
 
 
-def _add_model_options(p: argparse.ArgumentParser) -> None:
-    g = p.add_argument_group("term space (default: the paper's)")
-    g.add_argument("--ny", type=int, default=4, help="output lags 1..ny (default 4)")
-    g.add_argument("--nu", type=int, default=4, help="number of input lags (default 4)")
-    g.add_argument("--degree", type=int, default=2, help="polynomial degree (default 2)")
-    g.add_argument("--delay", type=int, default=1, help="input delay (default 1)")
-    g.add_argument("--constant", action="store_true", help="add a constant candidate term")
+def _schema_type(name: str):
+    """An argparse type that checks a value against the settings schema."""
+    setting = SETTINGS[name]
+
+    def convert(text: str):
+        try:
+            value = setting.kind(text) if setting.kind is not bool else text
+        except ValueError:
+            kind = {int: "an integer", float: "a number"}.get(setting.kind, "text")
+            raise argparse.ArgumentTypeError(f"must be {kind}, got {text!r}") from None
+        try:
+            return check(name, value)
+        except SettingsError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
+
+    convert.__name__ = setting.kind.__name__
+    return convert
 
 
-def _add_ga_options(p: argparse.ArgumentParser) -> None:
-    g = p.add_argument_group("genetic algorithm (default: the paper's settings)")
-    g.add_argument("--population", type=int, default=200)
-    g.add_argument("--generations", type=int, default=300)
-    g.add_argument("--crossover", type=float, default=0.6, help="crossover probability")
-    g.add_argument("--mutation", type=float, default=0.01, help="per-bit mutation probability")
-    g.add_argument("--spm", type=float, default=0.15, help="single parent mating fraction s")
-    g.add_argument("--fitness", choices=("akaike", "rank", "window"), default="akaike",
-                   help="roulette fitness transform (see docs/method.md)")
+def add_schema_options(p: argparse.ArgumentParser, groups: tuple[str, ...],
+                       titles: dict[str, str]) -> None:
+    """Options for every command-line setting of ``groups``, from the schema.
+
+    The option is ``--`` + the setting's name with dashes; older spellings are
+    aliases; the default and the allowed values come from the schema.
+    """
+    for group in groups:
+        g = p.add_argument_group(titles.get(group, group))
+        for s in SETTINGS.values():
+            if s.group != group or not s.cli:
+                continue
+            names = [s.option, *s.aliases]
+            rng = s.describe_range()
+            text = f"{s.help} (default {s.default!r}{'; ' + rng if rng else ''})"
+            # default None: "not given" (the schema's default applies in JobSettings)
+            if s.kind is bool:
+                g.add_argument(*names, dest=s.name, action="store_true", default=None,
+                               help=f"{s.help}")
+            elif s.choices:
+                g.add_argument(*names, dest=s.name, choices=s.choices, help=text)
+            else:
+                g.add_argument(*names, dest=s.name, type=_schema_type(s.name),
+                               metavar=s.kind.__name__.upper(), help=text)
 
 
-def _term_space(args) -> TermSpace:
+JOB_TITLES = {
+    "term_space": "term space (default: the paper's)",
+    "ga": "genetic algorithm (default: the paper's settings)",
+    "criterion": "criterion and seed",
+    "validation": "validation",
+}
+
+
+def _job_settings(args):
+    from ..core.job import JobSettings
+
     try:
-        return TermSpace(ny=args.ny, nu=args.nu, degree=args.degree, delay=args.delay,
-                         constant=args.constant)
+        return JobSettings.from_values(vars(args))
     except (TypeError, ValueError) as exc:
-        raise UserError(str(exc)) from None
-
-
-def _ga_config(args) -> GAConfig:
-    try:
-        return GAConfig(population_size=args.population, generations=args.generations,
-                        crossover_prob=args.crossover, mutation_prob=args.mutation,
-                        spm_fraction=args.spm, fitness=args.fitness)
-    except ValueError as exc:
         raise UserError(str(exc)) from None
 
 
@@ -147,11 +173,11 @@ class _Progress:
             self.bar = tqdm(total=total, desc="GA", unit="gen", file=sys.stderr, leave=False,
                             disable=None)  # None: silent when stderr is not a terminal
 
-    def __call__(self, stats) -> None:
+    def __call__(self, generation: int, best: float, evaluations: int) -> None:
         if self.bar is not None:
-            if stats.generation:
+            if generation:
                 self.bar.update(1)
-            self.bar.set_postfix(best=f"{stats.best:.2f}", fits=stats.evaluations)
+            self.bar.set_postfix(best=f"{best:.2f}", fits=evaluations)
 
     def close(self) -> None:
         if self.bar is not None:
@@ -171,47 +197,36 @@ def _check_outputs(args) -> None:
 
 def _check_corr_lags(corr_lags: int, rows: int) -> None:
     if not 1 <= corr_lags < rows:
-        raise UserError(f"--corr-lags must be between 1 and {rows - 1} for {rows} validation "
-                        f"rows, got {corr_lags}")
+        raise UserError(f"--correlation-lags must be between 1 and {rows - 1} for {rows} "
+                        f"validation rows, got {corr_lags}")
 
 
 def cmd_identify(args) -> int:
-    from ..core.narx.identify import identify
-    from ..core.narx.segments import describe_data
-    from ..core.narx.validation import split_segments
+    from ..core.job import run_job
+    from ..core.narx.segments import SegmentInfo, describe_data, find_segments
 
-    space = _term_space(args)
-    config = _ga_config(args)
-    if args.plots and args.validation == "none":
+    settings = _job_settings(args)
+    if args.plots and settings.validation == "none":
         raise UserError("--plots needs validation (--validation estimation or holdout)")
-    if args.split is not None and args.validation != "holdout":
-        raise UserError("--split applies to --validation holdout only (the estimation "
-                        "fraction of the data)")
-    if args.corr_lags < 1:
-        raise UserError(f"--corr-lags must be >= 1, got {args.corr_lags}")
+    if args.validation_split is not None and settings.validation != "holdout":
+        raise UserError("--validation-split (--split) applies to --validation holdout only "
+                        "(the estimation fraction of the data)")
     _check_outputs(args)
     data = _load(args)
-    u, y = data.u, data.y
-    segments, account = data.segments(space.max_lag)
-    est = val = segments
-    if args.validation == "holdout":
-        bounds = segments or [(0, len(y))]
-        est, val = split_segments(bounds, len(y), 0.5 if args.split is None else args.split,
-                                  space.max_lag)
-    if args.validation != "none":
-        rows = sum(b - a - space.max_lag for a, b in (val or [(0, len(y))]))
-        _check_corr_lags(args.corr_lags, rows)
-    progress = _Progress(config.generations, not args.quiet)
+    segments = (SegmentInfo([(0, len(data.y))]) if data.stamps_ns is None
+                else find_segments(data.stamps_ns))
+    progress = _Progress(settings.ga.generations, not args.quiet)
     try:
-        result = identify(u=u, y=y, term_space=space, criterion=args.criterion, ga=config,
-                          seed=args.seed, callback=progress, segments=est)
+        result = run_job(data.u, data.y, settings, segments=segments, rejected=data.rejected,
+                         unpaired=data.unpaired, progress=lambda g, b, e: progress(g, b, e),
+                         progress_every=1, metadata={"source": data.source})
+    except SettingsError as exc:  # a setting that depends on the data (correlation_lags)
+        raise UserError(str(exc).replace("correlation_lags", "--correlation-lags")) from None
     finally:
         progress.close()
     model = result.model
-    model.metadata["source"] = data.source
-    model.metadata["data"] = account
-    used = sum(b - a for a, b in (est or [(0, len(y))]))
-    print(f"data: {data.source}, {used} samples used for estimation")
+    print(f"data: {data.source}, {result.estimation_samples} samples used for estimation")
+    account = result.data
     if account["segments"] > 1 or account["gaps"] or account["rejected_samples"] \
             or account["unpaired_samples"]:
         print(f"note: the data has gaps; used {describe_data(account)}; no regression row "
@@ -220,9 +235,12 @@ def cmd_identify(args) -> int:
     if excluded:
         print(f"note: {len(excluded)} candidate term(s) are zero on this data and were left "
               f"out of the search (e.g. {excluded[0]}); is the input zero?")
-    print(result.summary())
-    if args.validation != "none":
-        _validate_and_report(model, u, y, args.validation, args.plots, args.corr_lags, val)
+    print(result.summary("lines"))
+    if args.plots:
+        from .plots import write_model_figures
+
+        paths = write_model_figures(result.report, args.plots)
+        print(f"figures written to {args.plots}: {', '.join(p.name for p in paths)}")
     if args.json:
         path = model.save(args.json)
         print(f"model written to {path}")
@@ -249,8 +267,6 @@ def cmd_validate(args) -> int:
 
     if args.tail is not None and not 0 < args.tail < 1:
         raise UserError(f"--tail must be between 0 and 1, got {args.tail}")
-    if args.corr_lags < 1:
-        raise UserError(f"--corr-lags must be >= 1, got {args.corr_lags}")
     _check_outputs(args)
     model = NarxModel.load(args.model)
     data = _load(args)
@@ -260,12 +276,12 @@ def cmd_validate(args) -> int:
     if args.tail is not None:
         _, segments = split_segments(segments or [(0, len(y))], len(y), 1.0 - args.tail, lag0)
     rows = sum(b - a - lag0 for a, b in (segments or [(0, len(y))]))
-    _check_corr_lags(args.corr_lags, rows)
+    _check_corr_lags(args.correlation_lags, rows)
     print(f"model: {args.model}")
     print(model.equation())
     print(f"data: {data.source}" + (f", last {args.tail:.0%}" if args.tail is not None else ""))
     _validate_and_report(model, u, y, "holdout" if args.tail is not None else "supplied",
-                         args.plots, args.corr_lags, segments)
+                         args.plots, args.correlation_lags, segments)
     return 0
 
 
@@ -290,7 +306,7 @@ def cmd_experiment(args) -> int:
     )
 
     overrides = dict(criteria=_list(args.criteria, str), populations=_list(args.populations, int),
-                     spm_fractions=_list(args.spm, float), runs=args.runs,
+                     spm_fractions=_list(args.spm_fractions, float), runs=args.runs,
                      generations=args.generations, seed=args.seed, fitness=args.fitness,
                      workers=args.workers)
     try:
@@ -333,25 +349,13 @@ def cmd_experiment(args) -> int:
     return 0
 
 
-def cmd_call(args) -> int:
-    # The one place the command line reaches into the ROS layer, and only when asked,
-    # so every other sub-command runs on machines without ROS.
-    try:
-        from ..apps.call import main as call_main
-    except ImportError as exc:
-        raise UserError(f"`call` needs ROS 2 (rclpy): {exc}") from None
-    return call_main(args.action, node_name=args.node, timeout=args.timeout,
-                     show_model=args.show_model)
-
-
 def cmd_bench(args) -> int:
     from .bench import run_benchmark
 
+    settings = _job_settings(args)
     u, y = load_io(args.data) if args.data else load_io(find_robot_arm())
-    run_benchmark(u, y, criterion=args.criterion, repeats=args.repeats,
-                  naive_repeats=args.naive_repeats,
-                  config=GAConfig(population_size=args.population,
-                                  generations=args.generations, spm_fraction=args.spm))
+    run_benchmark(u, y, criterion=settings.criterion, repeats=args.repeats,
+                  naive_repeats=args.naive_repeats, config=settings.ga)
     return 0
 
 
@@ -413,21 +417,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("identify", help="select and fit a NARX model on data")
     _add_data_options(p)
-    _add_model_options(p)
-    _add_ga_options(p)
-    p.add_argument("--criterion", default="aic", help="aic, bic or pmic2 (default aic)")
-    p.add_argument("--seed", type=_seed, default=None,
-                   help="random seed >= 0 (reproducible runs)")
-    p.add_argument("--json", metavar="PATH", help="write the model document here")
-    p.add_argument("--plots", metavar="DIR", help="write validation figures here")
-    p.add_argument("--validation", choices=("none", "estimation", "holdout"),
-                   default="estimation",
-                   help="validate on the estimation data or a held-out tail")
-    p.add_argument("--split", type=float, default=None,
-                   help="estimation fraction for --validation holdout (default 0.5)")
-    p.add_argument("--corr-lags", type=int, default=20,
-                   help="largest lag of the correlation tests (default 20)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_schema_options(p, ("term_space", "ga", "criterion", "validation"), JOB_TITLES)
+    g = p.add_argument_group("output")
+    g.add_argument("--json", metavar="PATH", help="write the model document here")
+    g.add_argument("--plots", metavar="DIR", help="write validation figures here")
+    g.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_identify)
 
     p = sub.add_parser("validate", help="validate a saved model on data")
@@ -436,7 +430,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tail", type=float, default=None,
                    help="validate on this final fraction of the data only (e.g. 0.5)")
     p.add_argument("--plots", metavar="DIR", help="write validation figures here")
-    p.add_argument("--corr-lags", type=int, default=20)
+    p.add_argument("--correlation-lags", "--corr-lags", dest="correlation_lags",
+                   type=_schema_type("correlation_lags"),
+                   default=SETTINGS["correlation_lags"].default,
+                   help=SETTINGS["correlation_lags"].help)
     p.set_defaults(func=cmd_validate)
 
     p = sub.add_parser("experiment", help="the paper's study: SPM vs plain GA, repeated runs")
@@ -444,11 +441,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", metavar="YAML", help="settings file (options below override)")
     p.add_argument("--criteria", help="comma-separated (default aic,bic,pmic2)")
     p.add_argument("--populations", help="comma-separated (default 200,100)")
-    p.add_argument("--spm", help="comma-separated SPM fractions (default 0,0.15)")
+    p.add_argument("--spm-fractions", "--spm", dest="spm_fractions",
+                   help="comma-separated SPM fractions (default 0,0.15)")
     p.add_argument("--runs", type=int, help="runs per setting (default 15)")
-    p.add_argument("--generations", type=int, help="default 300")
+    p.add_argument("--generations", type=_schema_type("generations"), help="default 300")
     p.add_argument("--seed", type=_seed, help="first seed (default 0)")
-    p.add_argument("--fitness", choices=("akaike", "rank", "window"),
+    p.add_argument("--fitness", choices=SETTINGS["fitness"].choices,
                    help="roulette fitness transform (default akaike)")
     p.add_argument("--workers", type=int, help="processes (default: one per core)")
     p.add_argument("--out", metavar="DIR", default="out/experiment")
@@ -456,22 +454,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_experiment)
 
-    p = sub.add_parser("call", help="call the sysid node's identify or clear service")
-    p.add_argument("action", choices=("identify", "clear"))
-    p.add_argument("--node", default="/spm_sysid", help="node name (default /spm_sysid)")
-    p.add_argument("--timeout", type=float, default=300.0, help="seconds to wait")
-    p.add_argument("--show-model", action="store_true",
-                   help="print the published model document after identify")
-    p.set_defaults(func=cmd_call)
-
     p = sub.add_parser("bench", help="time the engine against a naive evaluator")
     p.add_argument("--data", metavar="PATH")
-    p.add_argument("--criterion", default="aic")
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--naive-repeats", type=int, default=3)
-    p.add_argument("--population", type=int, default=200)
-    p.add_argument("--generations", type=int, default=300)
-    p.add_argument("--spm", type=float, default=0.15)
+    add_schema_options(p, ("ga", "criterion"), JOB_TITLES)
     p.set_defaults(func=cmd_bench)
 
     p = sub.add_parser("make-bag", help="write u, y data as a rosbag2 MCAP bag")
@@ -497,8 +484,16 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``spm-sysid`` console script."""
-    parser = build_parser()
+    """The offline command line (every sub-command but ``call``, which needs ROS).
+
+    The ``spm-sysid`` console script is :func:`spm_sysid.apps.main.main`: this
+    parser plus ``call``.
+    """
+    return run(build_parser(), argv)
+
+
+def run(parser: argparse.ArgumentParser, argv: list[str] | None = None) -> int:
+    """Parse and run a sub-command; user errors become one ``error:`` line, status 2."""
     args = parser.parse_args(argv)
     try:
         status = int(args.func(args) or 0)

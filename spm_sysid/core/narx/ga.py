@@ -33,6 +33,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from ..settings import SETTINGS, check_all
 from .evaluator import structure_keys
 
 __all__ = [
@@ -50,7 +51,7 @@ __all__ = [
 
 
 #: Roulette-wheel fitness transforms (see :func:`roulette_fitness`).
-FITNESS_TRANSFORMS = ("akaike", "rank", "window")
+FITNESS_TRANSFORMS = SETTINGS["fitness"].choices
 
 
 @dataclass(frozen=True)
@@ -86,24 +87,9 @@ class GAConfig:
     fitness: str = "akaike"
 
     def __post_init__(self) -> None:
-        if not isinstance(self.population_size, (int, np.integer)) or self.population_size < 2:
-            raise ValueError(
-                f"population_size must be an integer >= 2, got {self.population_size!r}"
-            )
-        if not isinstance(self.generations, (int, np.integer)) or self.generations < 0:
-            raise ValueError(f"generations must be an integer >= 0, got {self.generations!r}")
-        for name in ("crossover_prob", "mutation_prob", "init_prob"):
-            value = getattr(self, name)
-            if not 0.0 <= value <= 1.0:
-                raise ValueError(f"{name} must be in [0, 1], got {value!r}")
-        if self.fitness not in FITNESS_TRANSFORMS:
-            raise ValueError(f"fitness must be one of {', '.join(FITNESS_TRANSFORMS)}, got "
-                             f"{self.fitness!r}")
-        if not 0.0 <= self.spm_fraction <= 0.5:
-            raise ValueError(
-                f"spm_fraction must be in [0, 0.5] (pairs with inverses make 2s of the "
-                f"population), got {self.spm_fraction!r}"
-            )
+        # ranges, types and choices are declared once, in the settings schema
+        for name, value in check_all(asdict(self)).items():
+            object.__setattr__(self, name, value)
 
     def to_dict(self) -> dict:
         """Plain-data form for JSON documents."""

@@ -33,17 +33,6 @@ class IdentificationResult:
     criterion: str
     seed: int | None
 
-    def summary(self) -> str:
-        """A few lines for people: equation, criterion, size, error, time."""
-        m = self.model
-        return (
-            f"{m.equation()}\n"
-            f"criterion {self.criterion.upper()} = {self.ga.best_score:.2f}, "
-            f"{len(m.term_indices)} terms, one-step MSE {m.mse:.4e}, "
-            f"{m.n_samples} samples, {self.ga.elapsed:.2f} s "
-            f"({self.ga.evaluations} structures fitted, "
-            f"cache hit rate {self.ga.cache_hit_rate:.0%})"
-        )
 
 
 def check_samples(n_samples: int, max_lag: int, n_terms: int = 1) -> None:

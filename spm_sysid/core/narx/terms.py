@@ -21,6 +21,8 @@ from itertools import combinations_with_replacement
 
 import numpy as np
 
+from ..settings import check_all
+
 __all__ = ["TermSpace", "power_of_two_scale"]
 
 
@@ -64,18 +66,11 @@ class TermSpace:
     constant: bool = False
 
     def __post_init__(self) -> None:
-        for name in ("ny", "nu", "degree", "delay"):
-            value = getattr(self, name)
-            if not isinstance(value, (int, np.integer)) or isinstance(value, bool):
-                raise TypeError(f"{name} must be an integer, got {value!r}")
-        if self.ny < 0 or self.nu < 0:
-            raise ValueError(f"lags must be >= 0, got ny={self.ny}, nu={self.nu}")
+        # ranges and types are declared once, in the settings schema
+        for name, value in check_all(asdict(self)).items():
+            object.__setattr__(self, name, value)
         if self.ny + self.nu == 0:
             raise ValueError("at least one of ny, nu must be positive")
-        if self.degree < 1:
-            raise ValueError(f"degree must be >= 1, got {self.degree}")
-        if self.delay < 1:
-            raise ValueError(f"delay must be >= 1 (a causal model), got {self.delay}")
         if self.n_terms > 63:
             raise ValueError(
                 f"this term space has {self.n_terms} candidate terms; at most 63 "

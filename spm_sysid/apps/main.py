@@ -1,0 +1,41 @@
+"""The ``spm-sysid`` console script: the offline command line plus ``call``.
+
+``call`` is the one sub-command that needs ROS; it is added here, where tools
+and ROS may meet, and imports rclpy only when it runs, so every other
+sub-command works on machines without ROS.
+"""
+
+from __future__ import annotations
+
+import sys
+
+from ..tools.cli import UserError, build_parser, run
+
+__all__ = ["main"]
+
+
+def _cmd_call(args) -> int:
+    try:
+        from .call import main as call_main
+    except ImportError as exc:
+        raise UserError(f"`call` needs ROS 2 (rclpy): {exc}") from None
+    return call_main(args.action, node_name=args.node, timeout=args.timeout,
+                     show_model=args.show_model)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``spm-sysid``."""
+    parser = build_parser()
+    sub = next(a for a in parser._actions if a.dest == "command")  # argparse's subparsers
+    p = sub.add_parser("call", help="call the sysid node's identify or clear service")
+    p.add_argument("action", choices=("identify", "clear"))
+    p.add_argument("--node", default="/spm_sysid", help="node name (default /spm_sysid)")
+    p.add_argument("--timeout", type=float, default=300.0, help="seconds to wait")
+    p.add_argument("--show-model", action="store_true",
+                   help="print the published model document after identify")
+    p.set_defaults(func=_cmd_call)
+    return run(parser, argv)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

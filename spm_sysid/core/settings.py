@@ -1,0 +1,239 @@
+"""Every setting, declared once: name, type, default, range or choices, help, where it applies.
+
+The command line options, the node's parameters (with their descriptors),
+``config/sysid_node.yaml``, the experiment configuration and the validation of
+every value all come from :data:`SETTINGS` (in the spirit of scikit-learn's
+``_parameter_constraints``). One name per setting across layers: the node
+parameter, the YAML key, the Python keyword and the long option
+(``population_size`` is ``--population-size``); older option spellings stay as
+aliases. A value is checked where it enters (an option, a parameter, a YAML
+file, a Python constructor) with :func:`check`, which names the setting and
+the rule it broke.
+
+This module sits at the bottom of the core (it imports nothing of the
+package but its errors), so the model's own settings classes
+(:class:`~spm_sysid.core.narx.terms.TermSpace`,
+:class:`~spm_sysid.core.narx.ga.GAConfig`) validate through it too.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+import operator
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from .errors import SettingsError
+
+__all__ = ["SETTINGS", "Setting", "check", "check_all", "defaults", "node_settings"]
+
+
+@dataclass(frozen=True)
+class Setting:
+    """One setting.
+
+    Attributes
+    ----------
+    name : str
+        The one name: node parameter, YAML key, Python keyword.
+    kind : type
+        ``int``, ``float``, ``bool`` or ``str``.
+    default : object
+    help : str
+    group : str
+        ``term_space``, ``ga``, ``criterion``, ``validation``, ``data`` (the job) or
+        ``node`` (the node's own: topics, buffer, files).
+    low, high : float, optional
+        Inclusive range of numbers.
+    choices : tuple of str, optional
+        Allowed values of text settings.
+    aliases : tuple of str
+        Older command-line spellings still accepted (``--population``).
+    cli : bool
+        Offered by ``spm-sysid identify`` (and the commands sharing its options).
+    node : bool
+        A parameter of ``sysid_node``.
+    read_only : bool
+        Node parameter set at start only.
+    """
+
+    name: str
+    kind: type
+    default: Any
+    help: str
+    group: str
+    low: float | None = None
+    high: float | None = None
+    choices: tuple[str, ...] | None = None
+    aliases: tuple[str, ...] = ()
+    cli: bool = True
+    node: bool = True
+    read_only: bool = False
+
+    @property
+    def option(self) -> str:
+        """The long command-line option, e.g. ``--population-size``."""
+        return "--" + self.name.replace("_", "-")
+
+    def describe_range(self) -> str:
+        """The rule in words: ``between 1 and 100``, ``one of a, b``, or empty."""
+        def show(x):
+            return str(int(x)) if self.kind is int else f"{x:g}"
+
+        if self.choices:
+            return "one of " + ", ".join(self.choices)
+        if self.low is not None and self.high is not None:
+            return f"between {show(self.low)} and {show(self.high)}"
+        if self.low is not None:
+            return f">= {show(self.low)}"
+        return ""
+
+
+def _s(name, kind, default, help, group, **kw) -> Setting:  # noqa: A002 - a field name
+    return Setting(name, kind, default, help, group, **kw)
+
+
+_LIST = [
+    # -- the candidate terms -------------------------------------------------------------
+    _s("ny", int, 4, "output lags 1..ny", "term_space", low=0, high=100),
+    _s("nu", int, 4, "number of input lags (delay .. delay+nu-1)", "term_space", low=0,
+       high=100),
+    _s("degree", int, 2, "polynomial degree (the paper's nonlinearity)", "term_space", low=1,
+       high=5),
+    _s("delay", int, 1, "input delay, the smallest input lag (>= 1: causal)", "term_space",
+       low=1, high=100),
+    _s("constant", bool, False, "include a constant candidate term", "term_space"),
+    # -- the genetic algorithm -------------------------------------------------------------
+    _s("population_size", int, 200, "GA population (paper: 200 and 100)", "ga", low=2,
+       high=100_000, aliases=("--population",)),
+    _s("generations", int, 300, "GA generations (paper: 300)", "ga", low=0, high=1_000_000),
+    _s("crossover_prob", float, 0.6, "single-point crossover probability", "ga", low=0.0,
+       high=1.0, aliases=("--crossover",)),
+    _s("mutation_prob", float, 0.01, "per-bit mutation probability", "ga", low=0.0, high=1.0,
+       aliases=("--mutation",)),
+    _s("spm_fraction", float, 0.15, "single parent mating fraction s (0: plain GA)", "ga",
+       low=0.0, high=0.5, aliases=("--spm",)),
+    _s("fitness", str, "akaike", "roulette fitness transform (docs/method.md)", "ga",
+       choices=("akaike", "rank", "window")),
+    _s("init_prob", float, 0.5, "probability that a term is in an initial structure", "ga",
+       low=0.0, high=1.0, cli=False, node=False),
+    _s("elitism", bool, True, "carry the best structure into the next generation", "ga",
+       cli=False, node=False),
+    # -- criterion and seed ----------------------------------------------------------------
+    _s("criterion", str, "aic", "information criterion: aic, bic, pmic2 (or a registered "
+       "name)", "criterion"),
+    _s("seed", int, -1, "random seed; -1: a new random seed each run", "criterion", low=-1,
+       high=2**31 - 1),
+    # -- validation ----------------------------------------------------------------------
+    _s("validation", str, "estimation", "validate on the estimation data, a held-out tail, "
+       "or not at all", "validation", choices=("estimation", "holdout", "none")),
+    _s("validation_split", float, 0.5, "estimation fraction for holdout validation",
+       "validation", low=0.1, high=0.9, aliases=("--split",)),
+    _s("correlation_lags", int, 20, "largest lag of the correlation tests", "validation",
+       low=1, high=10_000, aliases=("--corr-lags",)),
+    # -- the data's timeline ---------------------------------------------------------------
+    _s("sample_period", float, 0.0, "sampling period, s, for finding gaps in stamps "
+       "(0: estimated from the stamps)", "data", low=0.0, high=3600.0, cli=False),
+    _s("gap_factor", float, 1.5, "a stamp difference above gap_factor periods is a gap",
+       "data", low=1.01, high=1000.0, cli=False),
+    # -- the node's own ---------------------------------------------------------------------
+    _s("input_topic", str, "/robot_arm/torque", "input signal topic", "node", cli=False,
+       read_only=True),
+    _s("input_type", str, "geometry_msgs/msg/WrenchStamped", "input message type", "node",
+       cli=False, read_only=True),
+    _s("input_field", str, "", "field path of u (empty: the type's default)", "node",
+       cli=False, read_only=True),
+    _s("output_topic", str, "/robot_arm/acceleration", "output signal topic", "node",
+       cli=False, read_only=True),
+    _s("output_type", str, "geometry_msgs/msg/AccelStamped", "output message type", "node",
+       cli=False, read_only=True),
+    _s("output_field", str, "", "field path of y (empty: the type's default)", "node",
+       cli=False, read_only=True),
+    _s("best_effort", bool, False, "subscribe best-effort, keep-last qos_depth (for "
+       "best-effort sensors); default: reliable, keep-all", "node", cli=False,
+       read_only=True),
+    _s("qos_depth", int, 1000, "subscription queue depth (keep-last history only)", "node",
+       low=1, high=100_000, cli=False, read_only=True),
+    _s("buffer_capacity", int, 100_000, "most sample pairs kept (the oldest are dropped, "
+       "counted)", "node", low=10, high=10_000_000, cli=False, read_only=True),
+    _s("stamp_tolerance", float, 0.0005, "largest input/output stamp difference of a pair, s",
+       "node", low=0.0, high=1.0, cli=False, read_only=True),
+    _s("resync_samples", int, 10, "in-order samples behind a stream's last stamp that "
+       "start a new segment (a jump back in time)", "node", low=1, high=100_000, cli=False,
+       read_only=True),
+    _s("diagnostics_period", float, 1.0, "seconds between /diagnostics messages", "node",
+       low=0.05, high=60.0, cli=False, read_only=True),
+    _s("min_samples", int, 100, "fewest paired samples for an identification", "node",
+       low=10, high=10_000_000, cli=False),
+    _s("job_timeout", float, 600.0, "seconds an identification may run before it is "
+       "stopped (0: no limit)", "node", low=0.0, high=1e6, cli=False),
+    _s("model_path", str, "", "save each model's JSON document here and publish it again "
+       "at start-up (empty: don't)", "node", cli=False),
+]
+
+#: Every setting by name, in documentation order.
+SETTINGS: dict[str, Setting] = {s.name: s for s in _LIST}
+
+JOB_GROUPS = ("term_space", "ga", "criterion", "validation", "data")
+
+
+def check(name: str, value: Any) -> Any:
+    """Check one value against its setting; return it in the setting's type.
+
+    Integers are accepted for float settings; booleans are not numbers here.
+
+    Raises
+    ------
+    SettingsError
+        Unknown setting, wrong type, out of range, or not one of the choices; the
+        message names the setting.
+    """
+    try:
+        s = SETTINGS[name]
+    except KeyError:
+        raise SettingsError(f"unknown setting {name!r}") from None
+    if s.kind is bool:
+        if not isinstance(value, bool):
+            raise SettingsError(f"{name} must be true or false, got {value!r}")
+        return value
+    if s.kind is int:
+        try:
+            if isinstance(value, bool):
+                raise TypeError
+            value = operator.index(value)  # int and numpy integers; not 4.0 or "4"
+        except TypeError:
+            raise SettingsError(f"{name} must be an integer, got {value!r}") from None
+    elif s.kind is float:
+        if isinstance(value, bool) or not isinstance(value, numbers.Real):
+            raise SettingsError(f"{name} must be a number, got {value!r}")
+        value = float(value)
+        if not math.isfinite(value):
+            raise SettingsError(f"{name} must be a finite number, got {value!r}")
+    elif s.kind is str:
+        if not isinstance(value, str):
+            raise SettingsError(f"{name} must be text, got {value!r}")
+        if s.choices and value not in s.choices:
+            raise SettingsError(f"{name} must be one of {', '.join(s.choices)}, got {value!r}")
+        return value
+    if (s.low is not None and value < s.low) or (s.high is not None and value > s.high):
+        raise SettingsError(f"{name} must be {s.describe_range()}, got {value!r} ({s.help})")
+    return value
+
+
+def check_all(values: Mapping[str, Any], names: Iterable[str] | None = None) -> dict[str, Any]:
+    """Check several values (all of ``values``, or only ``names``); a checked copy."""
+    keys = list(values) if names is None else [n for n in names if n in values]
+    return {k: check(k, values[k]) for k in keys}
+
+
+def defaults(groups: Iterable[str] | None = None) -> dict[str, Any]:
+    """Default values of the settings in ``groups`` (all when None)."""
+    groups = None if groups is None else set(groups)
+    return {s.name: s.default for s in _LIST if groups is None or s.group in groups}
+
+
+def node_settings() -> list[Setting]:
+    """The node's parameters, in documentation order."""
+    return [s for s in _LIST if s.node]
