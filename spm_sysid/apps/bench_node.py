@@ -36,7 +36,7 @@ def run(args) -> None:
     import rclpy
     from rclpy.node import Node
 
-    from .call import call_trigger
+    from .call import call_trigger, wait_for_model
     from .pipeline import wait_for_buffer
 
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
@@ -98,7 +98,8 @@ def run(args) -> None:
             rounds.append(time.perf_counter() - t0)
             if not ok:
                 raise RuntimeError(message)
-            searches.append(float(message.rsplit(", ", 1)[-1].rstrip(" s")))
+            doc = wait_for_model(client, "/spm_sysid/model")  # the seconds, from the document
+            searches.append(float(doc["metadata"]["identify_seconds"]))
         print(f"identify latency (1024 samples, population 200, 300 generations, SPM 0.15, "
               f"AIC): median service round trip {statistics.median(rounds):.3f} s, median "
               f"identify+validate in the worker {statistics.median(searches):.3f} s "

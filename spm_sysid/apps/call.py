@@ -16,7 +16,7 @@ from rclpy.node import Node
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from ..ros.sysid_node import LATCHED
+from ..ros.common import LATCHED
 
 __all__ = ["call_trigger", "main", "wait_for_model"]
 

@@ -11,7 +11,6 @@ error line if any step fails). ROS traffic stays on this machine
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import signal
 import subprocess
@@ -152,8 +151,9 @@ def run(args) -> int:
     from ..core.narx.validation import validate_model
     from ..tools.plots import write_model_figures
 
-    model = NarxModel.from_dict(doc)
-    (out / "model.json").write_text(json.dumps(doc, indent=2) + "\n")
+    model = NarxModel.from_dict(doc)  # the node saved it to out/model.json (model_path)
+    if NarxModel.load(out / "model.json").coefficients.tolist() != model.coefficients.tolist():
+        raise PipelineError(f"{out / 'model.json'} differs from the published model")
     report = validate_model(model, signals.u, signals.y)
     figures = write_model_figures(report, out / "figures")
     print("[6/6] model (published on /spm_sysid/model):")

@@ -41,7 +41,6 @@ timeline, never fitted across) after ``resync_samples`` samples, and logs it.
 
 from __future__ import annotations
 
-import importlib
 import math
 import sys
 import threading
@@ -49,27 +48,16 @@ import time
 from collections import Counter
 from pathlib import Path
 
-import rclpy
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.duration import Duration
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from ..core.errors import BagError
 from ..core.io.bagio import open_bag
+from .common import message_class, run_node
 
-__all__ = ["BagPlayer", "main", "message_class"]
-
-
-def message_class(msgtype: str):
-    """The rclpy message class for a type name such as ``geometry_msgs/msg/Twist``."""
-    package, kind, name = msgtype.split("/")
-    try:
-        return getattr(importlib.import_module(f"{package}.{kind}"), name)
-    except (ImportError, AttributeError):
-        raise BagError(f"message type {msgtype} is not installed in this ROS environment") \
-            from None
+__all__ = ["BagPlayer", "main"]
 
 
 class BagPlayer(Node):
@@ -247,46 +235,28 @@ class BagPlayer(Node):
             reader.close()
 
 
+def _finish(node: BagPlayer, interrupted: bool) -> int:
+    """Print the per-topic report; the exit status (see the module docstring)."""
+    node.stop()
+    if interrupted:
+        print(f"interrupted: {node.report()}", file=sys.stderr)
+        return 130
+    if node.error:
+        print(f"error: {node.error}", file=sys.stderr)
+        return 1
+    line = f"published {sum(node.published.values())} messages ({node.report()})"
+    if node.delivery_confirmed:
+        print(line, file=sys.stderr)
+        return 0
+    print(f"error: {line}: not every subscriber acknowledged every message within "
+          f"ack_timeout ({node.ack_timeout:g} s)", file=sys.stderr)
+    return 3
+
+
 def main(args: list[str] | None = None) -> int:
     """Run the player until the bag ends (or forever with ``loop``); see the exit statuses."""
-    rclpy.init(args=args)
-    executor = SingleThreadedExecutor()
-    node = None
-    status = 0
-    try:
-        node = BagPlayer()
-        executor.add_node(node)
-        while rclpy.ok() and not node.finished.is_set():
-            executor.spin_once(timeout_sec=0.1)
-        if not rclpy.ok():  # SIGINT/SIGTERM shut the context down (playback may have failed
-            raise KeyboardInterrupt  # on it: that is the interruption, not an error)
-    except BagError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        status = 1
-    except (KeyboardInterrupt, ExternalShutdownException):
-        status = 130
-    finally:
-        if node is not None:
-            node.stop()
-            if status == 130:
-                print(f"interrupted: {node.report()}", file=sys.stderr)
-            elif node.error:
-                print(f"error: {node.error}", file=sys.stderr)
-                status = 1
-            else:
-                total = sum(node.published.values())
-                line = f"published {total} messages ({node.report()})"
-                if node.delivery_confirmed:
-                    print(line, file=sys.stderr)
-                else:
-                    print(f"error: {line}: not every subscriber acknowledged every message "
-                          f"within ack_timeout ({node.ack_timeout:g} s)", file=sys.stderr)
-                    status = 3
-            node.destroy_node()
-        executor.shutdown(timeout_sec=1.0)
-        if rclpy.ok():
-            rclpy.shutdown()
-    return status
+    return run_node(BagPlayer, until=lambda node: node.finished.is_set(), errors=(BagError,),
+                    finish=_finish, args=args)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -62,7 +62,7 @@ def _recv(stream) -> Any:
 
 
 class JobWorker:
-    """One worker process that runs ``function(*args, progress=callback)`` per job.
+    """One worker process that runs ``function(*args, **kwargs, progress=callback)`` per job.
 
     Parameters
     ----------
@@ -109,8 +109,12 @@ class JobWorker:
         return self._ready.wait(timeout)
 
     # -- jobs ------------------------------------------------------------------------------
-    def submit(self, *args: Any) -> Future:
-        """Start a job; a Future of its result (WorkerDiedError / JobCancelledError on failure)."""
+    def submit(self, *args: Any, **kwargs: Any) -> Future:
+        """Start ``function(*args, **kwargs, progress=...)``; a Future of its result.
+
+        It fails with WorkerDiedError or JobCancelledError when the process dies or
+        the job is cancelled, and with RuntimeError(message) when the job raises.
+        """
         with self._lock:
             if self._job is not None:
                 raise RuntimeError("the worker is already running a job")
@@ -119,7 +123,7 @@ class JobWorker:
             self._job = Future()
             job = self._job
             try:
-                _send(self._proc.stdin, ("job", args))
+                _send(self._proc.stdin, ("job", args, kwargs))
             except (BrokenPipeError, OSError):
                 self._job = None
                 raise WorkerDiedError("the worker process is not running") from None
@@ -245,9 +249,9 @@ def _worker_main(function: str) -> int:
     with lock:
         _send(out, ("ready",))
     while True:
-        kind, args = jobs.get()
+        _, args, kwargs = jobs.get()
         try:
-            result = func(*args, progress=progress)
+            result = func(*args, **kwargs, progress=progress)
             reply = ("result", result)
         except Exception as exc:  # reported to the parent as the job's error
             reply = ("error", str(exc) or type(exc).__name__)

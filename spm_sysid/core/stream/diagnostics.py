@@ -1,0 +1,106 @@
+"""The node's /diagnostics statuses, built by pure functions from plain data.
+
+The node turns :class:`Status` into ``diagnostic_msgs/msg/DiagnosticStatus``;
+everything about what is reported, and how severe it is, lives here and is
+tested without ROS.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+__all__ = ["ERROR", "OK", "WARN", "Status", "diagnostic_statuses"]
+
+OK, WARN, ERROR = 0, 1, 2
+
+
+@dataclass(frozen=True)
+class Status:
+    """One status: level (OK, WARN, ERROR), name, message and key/value pairs."""
+
+    level: int
+    name: str
+    message: str
+    values: dict[str, str] = field(default_factory=dict)
+
+
+def _values(values: dict) -> dict[str, str]:
+    return {str(k): str(v) for k, v in values.items()}
+
+
+def diagnostic_statuses(name: str, stats: dict, *, field_errors: int = 0,
+                        worker_ready: bool = True, worker_restarts: int = 0,
+                        type_mismatches: list[str] | None = None,
+                        running: tuple | None = None, last_error: str | None = None,
+                        model: dict | None = None, restored_from: str | None = None,
+                        ) -> list[Status]:
+    """The node's statuses: buffer, identification, one per correlation test.
+
+    Parameters
+    ----------
+    name : str
+        The node's name (prefix of every status name).
+    stats : dict
+        :meth:`spm_sysid.core.stream.buffer.SampleBuffer.stats_dict`.
+    field_errors, worker_ready, worker_restarts, type_mismatches
+        The node's own health: messages whose field could not be read, the worker
+        process, publishers of another message type on a subscribed topic.
+    running : tuple, optional
+        ``(generation, best, evaluations, seconds)`` of a running search.
+    last_error : str, optional
+        Why the last identification failed.
+    model : dict, optional
+        The last model document (its ``metadata`` has ``data`` and ``validation``).
+    restored_from : str, optional
+        Where the last model was loaded from at start-up.
+    """
+    type_mismatches = type_mismatches or []
+    lost = stats["rejected_nonfinite"] + stats["rejected_out_of_order"]
+    problems = []
+    if lost:
+        problems.append(f"{lost} rejected")
+    if stats.get("time_jumps"):
+        problems.append(f"{stats['time_jumps']} jump(s) back in time")
+    if type_mismatches:
+        problems.append("a publisher of the wrong message type")
+    if not worker_ready:
+        problems.append("worker not ready")
+    level = OK
+    if lost or field_errors or stats.get("time_jumps") or not worker_ready:
+        level = WARN
+    if type_mismatches:
+        level = ERROR
+    statuses = [Status(
+        level, f"{name}: buffer",
+        f"{stats['samples']} paired samples" + "".join(f", {p}" for p in problems),
+        {**_values(stats), **_values({"field_errors": field_errors,
+                                      "worker_ready": worker_ready,
+                                      "worker_restarts": worker_restarts,
+                                      "type_mismatch": "; ".join(type_mismatches)})})]
+    ident = f"{name}: identification"
+    if running is not None:
+        gen, best, evals, seconds = running
+        statuses.append(Status(OK, ident, f"running: generation {gen}", _values(
+            {"generation": gen, "best": f"{best:.4f}", "evaluations": evals,
+             "seconds": f"{seconds:.2f}"})))
+    elif last_error:
+        statuses.append(Status(ERROR, ident, last_error))
+    elif model is not None:
+        meta = model.get("metadata") or {}
+        data = meta.get("data") or {}
+        incomplete = bool(data.get("gaps") or data.get("skipped_segments"))
+        crit = model.get("criterion") or {}
+        message = f"model with {len(model['terms'])} terms"
+        if incomplete:
+            message += f", fitted around {data['gaps']} gap(s) in the data"
+        if restored_from:
+            message += f", restored from {restored_from}"
+        statuses.append(Status(WARN if incomplete else OK, ident, message, _values(
+            {"criterion": crit.get("name"), "value": crit.get("value"),
+             "mse": model.get("mse"), **{f"data_{k}": v for k, v in data.items()}})))
+        for t in (meta.get("validation") or {}).get("correlation_tests", []):
+            statuses.append(Status(
+                OK if t["passed"] else WARN, f"{name}: correlation {t['name']}",
+                ("inside the 95 % band" if t["passed"] else "outside the 95 % band")
+                + f" ({t['fraction_inside']:.0%} of lags inside)", _values(t)))
+    return statuses
