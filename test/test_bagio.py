@@ -8,7 +8,8 @@ import pytest
 import yaml
 
 from spm_sysid.core.errors import BagError
-from spm_sysid.core.io.bagio import pair_by_stamp, read_bag_signals, write_io_bag
+from spm_sysid.core.io.bagio import read_bag_signals, write_io_bag
+from spm_sysid.core.stream.buffer import pair_streams
 
 from .conftest import ROOT
 
@@ -85,10 +86,17 @@ def test_options_rate_topics_and_overwrite(tmp_path):
 
 
 def test_pairing_by_stamp_with_tolerance():
-    iu, iy = pair_by_stamp([0, 10, 20, 30], [1, 21, 50], tolerance_ns=2)
-    assert iu.tolist() == [0, 2] and iy.tolist() == [0, 1]
-    iu, iy = pair_by_stamp([0, 10], [0, 10], 0)
-    assert iu.tolist() == [0, 1]
+    # one pairing rule, offline and in the node (the values are the sample indices)
+    def pairs(tu, ty, tol):
+        events = sorted([("u", t, float(i)) for i, t in enumerate(tu)]
+                        + [("y", t, float(i)) for i, t in enumerate(ty)], key=lambda e: e[1])
+        _, u, y, _ = pair_streams(events, tol)
+        return u.tolist(), y.tolist()
+
+    iu, iy = pairs([0, 10, 20, 30], [1, 21, 50], 2)
+    assert iu == [0, 2] and iy == [0, 1]
+    iu, iy = pairs([0, 10], [0, 10], 0)
+    assert iu == [0, 1]
 
 
 def _spm(*args):

@@ -75,7 +75,7 @@ def test_reach_counts_and_fisher_test_against_hand_values():
     recs += [_rec("aic", 0.0, -10.0, best, i) for i in range(1)]
     recs += [_rec("aic", 0.0, -9.0, other, i) for i in range(1, 5)]
     mark_reached(recs)
-    rows = {r.spm: r for r in summarise(recs)}
+    rows = {r.spm_fraction: r for r in summarise(recs)}
     assert rows[0.15].reached == 5 and rows[0.0].reached == 1
     assert rows[0.15].fisher_p == pytest.approx(fisher_exact([[5, 0], [1, 4]])[1])
     assert rows[0.0].fisher_p is None

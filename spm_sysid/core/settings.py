@@ -27,7 +27,8 @@ from typing import Any
 
 from .errors import SettingsError
 
-__all__ = ["SETTINGS", "Setting", "check", "check_all", "defaults", "node_settings"]
+__all__ = ["SETTINGS", "Setting", "check", "check_all", "defaults", "node_settings",
+           "node_yaml", "settings_table"]
 
 
 @dataclass(frozen=True)
@@ -52,7 +53,8 @@ class Setting:
     aliases : tuple of str
         Older command-line spellings still accepted (``--population``).
     cli : bool
-        Offered by ``spm-sysid identify`` (and the commands sharing its options).
+        Offered by ``spm-sysid identify`` (and the commands sharing its options;
+        the signal topics and fields there read bags).
     node : bool
         A parameter of ``sysid_node``.
     read_only : bool
@@ -139,18 +141,18 @@ _LIST = [
     _s("gap_factor", float, 1.5, "a stamp difference above gap_factor periods is a gap",
        "data", low=1.01, high=1000.0, cli=False),
     # -- the node's own ---------------------------------------------------------------------
-    _s("input_topic", str, "/robot_arm/torque", "input signal topic", "node", cli=False,
+    _s("input_topic", str, "/robot_arm/torque", "input signal topic", "node",
        read_only=True),
     _s("input_type", str, "geometry_msgs/msg/WrenchStamped", "input message type", "node",
        cli=False, read_only=True),
     _s("input_field", str, "", "field path of u (empty: the type's default)", "node",
-       cli=False, read_only=True),
+       read_only=True),
     _s("output_topic", str, "/robot_arm/acceleration", "output signal topic", "node",
-       cli=False, read_only=True),
+       read_only=True),
     _s("output_type", str, "geometry_msgs/msg/AccelStamped", "output message type", "node",
        cli=False, read_only=True),
     _s("output_field", str, "", "field path of y (empty: the type's default)", "node",
-       cli=False, read_only=True),
+       read_only=True),
     _s("best_effort", bool, False, "subscribe best-effort, keep-last qos_depth (for "
        "best-effort sensors); default: reliable, keep-all", "node", cli=False,
        read_only=True),
@@ -237,3 +239,46 @@ def defaults(groups: Iterable[str] | None = None) -> dict[str, Any]:
 def node_settings() -> list[Setting]:
     """The node's parameters, in documentation order."""
     return [s for s in _LIST if s.node]
+
+
+def _yaml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return '""' if value == "" else value
+    return repr(value)
+
+
+def node_yaml() -> str:
+    """``config/sysid_node.yaml``: every node parameter, its default and what it is."""
+    lines = ["# Parameters of sysid_node (node name spm_sysid), generated from the settings",
+             "# schema (spm_sysid/core/settings.py) by `spm-sysid settings --yaml`. Load with",
+             "#   ros2 run spm_sysid sysid_node --ros-args --params-file config/sysid_node.yaml",
+             "# (or: sysid_node --ros-args --params-file config/sysid_node.yaml).",
+             "# read-only: set at start only; the others may change at run time and are",
+             "# checked when set (an invalid value is refused with the reason).",
+             "spm_sysid:", "  ros__parameters:"]
+    group = None
+    for st in node_settings():
+        if st.group != group:
+            group = st.group
+            lines.append(f"    # -- {group.replace('_', ' ')}")
+        rng = st.describe_range()
+        note = st.help + (f"; {rng}" if rng else "") + ("; read-only" if st.read_only else "")
+        lines.append(f"    {st.name}: {_yaml_value(st.default)}  # {note}")
+    return "\n".join(lines) + "\n"
+
+
+def settings_table() -> str:
+    """Every setting as a Markdown table: name, default, rule, where, help."""
+    rows = ["| name | default | allowed | where | what |", "|---|---|---|---|---|"]
+    for st in _LIST:
+        where = ", ".join(w for w, on in (("command line", st.cli), ("node", st.node))
+                          if on) or "Python"
+        opt = f" (`{st.option}`" + "".join(f", `{a}`" for a in st.aliases) + ")" if st.cli \
+            else ""
+        rows.append(f"| `{st.name}`{opt} | `{_yaml_value(st.default)}` | "
+                    f"{st.describe_range() or ('true/false' if st.kind is bool else '')} | "
+                    f"{where}{', read-only' if st.read_only else ''} | {st.help} |")
+    return "\n".join(rows) + "\n"
+

@@ -44,12 +44,10 @@ def _add_data_options(p: argparse.ArgumentParser, bag: bool = True) -> None:
     g.add_argument("--data", metavar="PATH", help="two-column or CSV file of u, y")
     if bag:
         g.add_argument("--bag", metavar="PATH", help="rosbag2 bag (MCAP) to read u, y from")
-        g.add_argument("--input-topic", default="/robot_arm/torque")
-        g.add_argument("--input-field", default=None,
-                       help="field path of u in the input message (default by type)")
-        g.add_argument("--output-topic", default="/robot_arm/acceleration")
-        g.add_argument("--output-field", default=None,
-                       help="field path of y in the output message (default by type)")
+        for name in ("input_topic", "input_field", "output_topic", "output_field"):
+            s = SETTINGS[name]
+            g.add_argument(s.option, dest=name, default=s.default or None,
+                           help=f"{s.help} (default {s.default!r})")
 
 
 def _schema_type(name: str):
@@ -359,6 +357,13 @@ def cmd_bench(args) -> int:
     return 0
 
 
+def cmd_settings(args) -> int:
+    from ..core.settings import node_yaml, settings_table
+
+    print(node_yaml() if args.yaml else settings_table(), end="")
+    return 0
+
+
 def cmd_fetch_data(args) -> int:
     from ..core.io.datasets import DAISY_ROBOT_ARM_URL, download_robot_arm
 
@@ -474,6 +479,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--output-frame", default="robot_arm_tip")
     p.add_argument("--force", action="store_true", help="replace an existing bag")
     p.set_defaults(func=cmd_make_bag)
+
+    p = sub.add_parser("settings", help="every setting: default, allowed values, where")
+    p.add_argument("--yaml", action="store_true",
+                   help="print the node's parameter file (config/sysid_node.yaml)")
+    p.set_defaults(func=cmd_settings)
 
     p = sub.add_parser("fetch-data", help="download the robot-arm data into the user cache")
     p.add_argument("--url", help="alternative download address")

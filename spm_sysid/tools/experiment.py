@@ -27,16 +27,25 @@ from pathlib import Path
 
 import numpy as np
 
+from ..core.errors import SettingsError
 from ..core.narx.evaluator import StructureEvaluator
 from ..core.narx.ga import GAConfig, run_ga
 from ..core.narx.terms import TermSpace
+from ..core.settings import check
 
 __all__ = ["ExperimentConfig", "RunRecord", "SettingSummary", "run_experiment", "summarise"]
 
 
 @dataclass
 class ExperimentConfig:
-    """What to run; defaults are the paper's study (180 runs)."""
+    """What to run; defaults are the paper's study (180 runs).
+
+    ``criteria``, ``populations`` and ``spm_fractions`` are the grid: lists of
+    values of the settings ``criterion``, ``population_size`` and ``spm_fraction``;
+    the other fields have the settings schema's names and rules
+    (:mod:`spm_sysid.core.settings`), ``term_space`` a mapping of ``ny``, ``nu``,
+    ``degree``, ``delay``, ``constant``. ``seed`` is the first of ``runs`` seeds.
+    """
 
     criteria: list[str] = field(default_factory=lambda: ["aic", "bic", "pmic2"])
     populations: list[int] = field(default_factory=lambda: [200, 100])
@@ -51,13 +60,26 @@ class ExperimentConfig:
     term_space: dict = field(default_factory=lambda: TermSpace().to_dict())
 
     def __post_init__(self) -> None:
-        if self.runs < 1 or self.generations < 0:
-            raise ValueError("runs must be >= 1 and generations >= 0")
-        if not self.criteria or not self.populations or not self.spm_fractions:
-            raise ValueError("criteria, populations and spm_fractions must not be empty")
+        if not isinstance(self.runs, int) or self.runs < 1:
+            raise SettingsError(f"runs must be an integer >= 1, got {self.runs!r}")
+        if not isinstance(self.workers, int) or self.workers < 0:
+            raise SettingsError(f"workers must be an integer >= 0, got {self.workers!r}")
+        for name in ("criteria", "populations", "spm_fractions"):
+            if not isinstance(getattr(self, name), list) or not getattr(self, name):
+                raise SettingsError(f"{name} must be a non-empty list")
+        if check("seed", self.seed) < 0:
+            raise SettingsError(f"seed (the study's first seed) must be >= 0, got {self.seed}")
+        if not isinstance(self.term_space, dict):
+            raise SettingsError("term_space must be a mapping of ny, nu, degree, delay, "
+                                "constant")
+        unknown = set(self.term_space) - {"ny", "nu", "degree", "delay", "constant"}
+        if unknown:
+            raise SettingsError(f"term_space: unknown setting(s) {sorted(unknown)}")
+        TermSpace(**self.term_space)  # checked against the schema
         from ..core.narx.criteria import get_criterion
 
         for c in self.criteria:
+            check("criterion", c)
             get_criterion(c)  # unknown names fail here, before any run
         for pop in self.populations:
             for s in self.spm_fractions:
@@ -89,8 +111,8 @@ class RunRecord:
     """One GA run of the study."""
 
     criterion: str
-    population: int
-    spm: float
+    population_size: int
+    spm_fraction: float
     run: int
     seed: int
     final_value: float
@@ -121,7 +143,7 @@ def _one_run(task: tuple) -> RunRecord:
     seconds = time.perf_counter() - t0
     names = _DATA["names"]
     return RunRecord(
-        criterion=criterion, population=population, spm=spm, run=run, seed=seed,
+        criterion=criterion, population_size=population, spm_fraction=spm, run=run, seed=seed,
         final_value=res.best_score, terms=[names[i] for i in np.flatnonzero(res.best_mask)],
         n_terms=int(res.best_mask.sum()), first_best_generation=res.first_best_generation,
         seconds=seconds, evaluations=res.evaluations,
@@ -181,8 +203,8 @@ class SettingSummary:
     """One row of the study's table."""
 
     criterion: str
-    population: int
-    spm: float
+    population_size: int
+    spm_fraction: float
     runs: int
     reached: int
     mean_final: float
@@ -198,7 +220,7 @@ def summarise(records: Sequence[RunRecord]) -> list[SettingSummary]:
 
     groups: dict[tuple, list[RunRecord]] = defaultdict(list)
     for r in records:
-        groups[(r.criterion, r.population, r.spm)].append(r)
+        groups[(r.criterion, r.population_size, r.spm_fraction)].append(r)
     rows = []
     for (crit, pop, s), runs in groups.items():
         reached = sum(r.reached_best for r in runs)
@@ -208,7 +230,7 @@ def summarise(records: Sequence[RunRecord]) -> list[SettingSummary]:
             b = sum(r.reached_best for r in base)
             p = float(fisher_exact([[reached, len(runs) - reached], [b, len(base) - b]])[1])
         rows.append(SettingSummary(
-            criterion=crit, population=pop, spm=s, runs=len(runs), reached=reached,
+            criterion=crit, population_size=pop, spm_fraction=s, runs=len(runs), reached=reached,
             mean_final=float(np.mean([r.final_value for r in runs])),
             best_final=float(np.min([r.final_value for r in runs])),
             mean_generation_to_best=float(np.mean([r.first_best_generation for r in runs])),
@@ -224,7 +246,8 @@ def summary_table(rows: Sequence[SettingSummary]) -> str:
             "mean gen. to best | mean s/run | Fisher p vs s=0 |\n"
             "|---|---|---|---|---|---|---|---|---|\n")
     body = "".join(
-        f"| {r.criterion.upper()} | {r.population} | {r.spm:g} | {r.reached}/{r.runs} | "
+        f"| {r.criterion.upper()} | {r.population_size} | {r.spm_fraction:g} | "
+        f"{r.reached}/{r.runs} | "
         f"{r.mean_final:.2f} | {r.best_final:.2f} | {r.mean_generation_to_best:.1f} | "
         f"{r.mean_seconds:.2f} | {'—' if r.fisher_p is None else f'{r.fisher_p:.3g}'} |\n"
         for r in rows
@@ -257,6 +280,7 @@ def write_results(records: Sequence[RunRecord], rows: Sequence[SettingSummary],
     (out / "summary.md").write_text(summary_table(rows))
     curves: dict[str, dict[float, list]] = defaultdict(lambda: defaultdict(list))
     for r in records:
-        curves[f"{r.criterion.upper()}, population {r.population}"][r.spm].append(r.best_curve)
+        key = f"{r.criterion.upper()}, population {r.population_size}"
+        curves[key][r.spm_fraction].append(r.best_curve)
     figs = plot_convergence(curves, out / "convergence")
     return [out / "runs.csv", out / "runs.json", out / "summary.csv", out / "summary.md", *figs]

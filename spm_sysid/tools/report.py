@@ -21,7 +21,7 @@ PAPER_REACH_COUNTS = {
 
 
 def _comparison(rows: Sequence[SettingSummary]) -> str:
-    by = {(r.criterion, r.population, r.spm): r for r in rows}
+    by = {(r.criterion, r.population_size, r.spm_fraction): r for r in rows}
     lines = ["| criterion | population | paper SPM 0.15 | ours SPM 0.15 | paper plain | "
              "ours plain | our Fisher p |", "|---|---|---|---|---|---|---|"]
     for (crit, pop), (p_spm, p_plain) in PAPER_REACH_COUNTS.items():
@@ -36,7 +36,7 @@ def _comparison(rows: Sequence[SettingSummary]) -> str:
 
 
 def _interpretation(rows: Sequence[SettingSummary], config: ExperimentConfig) -> str:
-    by = {(r.criterion, r.population, r.spm): r for r in rows}
+    by = {(r.criterion, r.population_size, r.spm_fraction): r for r in rows}
     diffs, better, worse, same = [], 0, 0, 0
     for (crit, pop), (p_spm, p_plain) in PAPER_REACH_COUNTS.items():
         spm, plain = by.get((crit, pop, 0.15)), by.get((crit, pop, 0.0))

@@ -23,7 +23,9 @@ directory beside the destination and moved into place when complete;
 ``overwrite`` replaces only a directory that is a rosbag2 bag.
 
 Reading turns two topics of any supported type and field path into aligned u/y
-arrays by pairing header stamps (see :func:`pair_by_stamp`). Every failure is a
+arrays by pairing header stamps with the node's own rule
+(:func:`spm_sysid.core.stream.buffer.pair_streams`, the node's default
+tolerance), so a bag pairs the same offline and in the node. Every failure is a
 :class:`BagError` with a message naming the bag and the problem.
 """
 
@@ -40,6 +42,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import BagError, FieldPathError
+from ..settings import SETTINGS
+from ..stream.buffer import pair_streams
 from .fields import default_field, extract, message_stamp_ns, parse_path
 
 __all__ = [
@@ -48,7 +52,6 @@ __all__ = [
     "DEFAULT_RATE_HZ",
     "BagSignals",
     "open_bag",
-    "pair_by_stamp",
     "read_bag_signals",
     "is_rosbag2_dir",
     "typestore",
@@ -255,30 +258,6 @@ def write_io_bag(
     return path
 
 
-def pair_by_stamp(
-    t_u: np.ndarray, t_y: np.ndarray, tolerance_ns: int = 0
-) -> tuple[np.ndarray, np.ndarray]:
-    """Indices ``(iu, iy)`` pairing each output stamp with the nearest input stamp.
-
-    Pairs are one-to-one and kept only when the stamps differ by at most
-    ``tolerance_ns``; both stamp arrays must be sorted.
-    """
-    t_u = np.asarray(t_u, dtype=np.int64)
-    t_y = np.asarray(t_y, dtype=np.int64)
-    if len(t_u) == 0 or len(t_y) == 0:
-        return np.empty(0, dtype=int), np.empty(0, dtype=int)
-    pos = np.searchsorted(t_u, t_y).clip(1, len(t_u) - 1) if len(t_u) > 1 else np.zeros(
-        len(t_y), dtype=int)
-    left = pos - 1 if len(t_u) > 1 else pos
-    nearest = np.where(np.abs(t_u[left] - t_y) <= np.abs(t_u[pos] - t_y), left, pos)
-    ok = np.abs(t_u[nearest] - t_y) <= tolerance_ns
-    iy = np.flatnonzero(ok)
-    iu = nearest[ok]
-    # one-to-one: an input sample pairs with its first matching output only
-    _, first = np.unique(iu, return_index=True)
-    return iu[first], iy[first]
-
-
 @dataclass
 class BagSignals:
     """Aligned signals read from a bag."""
@@ -383,14 +362,17 @@ def read_bag_signals(
     output_topic: str = DEFAULT_OUTPUT_TOPIC,
     input_field: str | None = None,
     output_field: str | None = None,
-    tolerance_ns: int = 0,
+    tolerance_ns: int | None = None,
 ) -> BagSignals:
-    """Read u and y from two topics of a bag, paired by header stamp.
+    """Read u and y from two topics of a bag, paired by header stamp as the node pairs.
 
     Messages without a header are stamped with their log time. Fields default by
-    message type (see :data:`spm_sysid.core.io.fields.DEFAULT_FIELDS`). NaN/inf
-    values are rejected and counted, as the node does; the holes they leave show
-    in the stamps (:func:`spm_sysid.core.narx.segments.find_segments`).
+    message type (see :data:`spm_sysid.core.io.fields.DEFAULT_FIELDS`). Messages
+    go through the node's pairing rule in log-time order
+    (:func:`spm_sysid.core.stream.buffer.pair_streams`; ``tolerance_ns`` defaults to
+    the node's ``stamp_tolerance``): NaN/inf values are rejected and counted, stamps
+    that go back start a new segment, and the holes show in the stamps
+    (:func:`spm_sysid.core.narx.segments.find_segments`).
 
     Raises
     ------
@@ -398,6 +380,8 @@ def read_bag_signals(
         Missing or damaged bag (CRC mismatch), missing topic, unsupported type or
         bad field path, or no pairs.
     """
+    if tolerance_ns is None:
+        tolerance_ns = int(round(SETTINGS["stamp_tolerance"].default * 1e9))
     path = Path(path)
     reader = open_bag(path)
     crc_checked = reader.crc_checked
@@ -408,44 +392,34 @@ def read_bag_signals(
                 raise BagError(
                     f"{path} has no topic {topic}; it has: {', '.join(sorted(conns)) or 'none'}"
                 )
-        series = {}
+        steps, streams = {}, {input_topic: "u", output_topic: "y"}
         for topic, fpath in ((input_topic, input_field), (output_topic, output_field)):
-            conn = conns[topic]
             try:
-                steps = parse_path(fpath or default_field(conn.msgtype))
+                steps[topic] = parse_path(fpath or default_field(conns[topic].msgtype))
             except FieldPathError as exc:
-                raise BagError(f"topic {topic} ({conn.msgtype}): {exc}") from None
-            stamps, values = [], []
-            try:
-                for c, log_ns, raw in reader.messages(connections=[conn]):
-                    msg = reader.deserialize(raw, c.msgtype)
-                    values.append(extract(msg, steps))
-                    st = message_stamp_ns(msg)
-                    stamps.append(log_ns if st is None else st)
-            except FieldPathError as exc:
-                raise BagError(f"topic {topic} has type {conn.msgtype}: {exc}") from None
-            except BagError:
-                raise
-            except Exception as exc:
-                raise BagError(f"cannot read messages of {topic} from {path}: {exc}") from None
-            series[topic] = (np.array(stamps, dtype=np.int64), np.array(values, dtype=float),
-                             conn.msgtype)
+                raise BagError(f"topic {topic} ({conns[topic].msgtype}): {exc}") from None
+        events = []
+        try:
+            for c, log_ns, raw in reader.messages(connections=[conns[input_topic],
+                                                               conns[output_topic]]):
+                msg = reader.deserialize(raw, c.msgtype)
+                st = message_stamp_ns(msg)
+                events.append((streams[c.topic], log_ns if st is None else st,
+                               extract(msg, steps[c.topic])))
+        except FieldPathError as exc:
+            raise BagError(f"topic {c.topic} has type {c.msgtype}: {exc}") from None
+        except Exception as exc:
+            raise BagError(f"cannot read messages from {path}: {exc}") from None
     finally:
         reader.close()
-
-    (tu, u, type_u), (ty, y, type_y) = series[input_topic], series[output_topic]
-    n_u, n_y = len(u), len(y)
-    # like the node: NaN/inf samples are rejected (counted) and leave a gap
-    fu, fy = np.isfinite(u), np.isfinite(y)
-    rejected = int((~fu).sum() + (~fy).sum())
-    tu, u, ty, y = tu[fu], u[fu], ty[fy], y[fy]
-    ou, oy = np.argsort(tu, kind="stable"), np.argsort(ty, kind="stable")
-    iu, iy = pair_by_stamp(tu[ou], ty[oy], tolerance_ns)
-    if len(iu) == 0:
+    stamps, u, y, stats = pair_streams(events, tolerance_ns)
+    if len(u) == 0:
         raise BagError(f"{path}: no input and output messages with matching stamps "
                        f"(tolerance {tolerance_ns} ns)")
     return BagSignals(
-        u=u[ou][iu], y=y[oy][iy], stamps_ns=ty[oy][iy], input_count=n_u,
-        output_count=n_y, topics={input_topic: type_u, output_topic: type_y},
-        rejected_nonfinite=rejected, crc_checked=crc_checked,
+        u=u, y=y, stamps_ns=stamps, input_count=stats.received_inputs,
+        output_count=stats.received_outputs,
+        topics={input_topic: conns[input_topic].msgtype,
+                output_topic: conns[output_topic].msgtype},
+        rejected_nonfinite=stats.rejected_nonfinite, crc_checked=crc_checked,
     )

@@ -88,7 +88,7 @@ def make_pmic2(rho: float = 1.0) -> Criterion:
     but its formula is not printed there and could not be found. What this function
     computes is **this project's reconstruction, not the published formula**:
 
-    ``PMIC2 = N ln(SSE/N) + ln(N) * sum_j (1 + rho / |beta_j|)``
+    ``PMIC2 = N ln(SSE/N) + ln(N) * sum_j (1 + rho * ln(1 + 1/|beta_j|))``
 
     summed over the selected terms, with ``beta_j`` the standardised coefficient
     (see the module docstring). It is BIC plus, per term, an extra penalty that grows

@@ -17,12 +17,15 @@ as in section 2 of the paper:
 6. elitism: the best chromosome of the generation replaces one child, unchanged.
 
 Fitness for the roulette wheel (a design choice, since criteria are minimised
-and may be negative): *windowing*, ``F_i = (f_worst - f_i) + 0.01 (f_worst -
-f_best)``, with f_worst and f_best the largest and smallest finite scores of the
-generation. It is shift-invariant (AIC of -10744 and of +5 behave alike), gives
-the worst structure a small but non-zero chance, and structures with an infinite
-score (empty or rank-deficient) get zero fitness. When every finite score is
-equal, selection is uniform.
+and may be negative; ``GAConfig.fitness``, see :func:`roulette_fitness`):
+
+* ``akaike`` (the default): Akaike weights, ``F_i = exp(-(f_i - f_best) / 2)``;
+* ``rank``: ``F_i`` = population size minus the rank of ``f_i``;
+* ``window``: windowing, ``F_i = (f_worst - f_i) + 0.01 (f_worst - f_best)``.
+
+All are shift-invariant (AIC of -10744 and of +5 behave alike); structures with
+an infinite score (empty or rank-deficient) get zero fitness; when no score is
+finite, selection is uniform.
 """
 
 from __future__ import annotations
@@ -75,6 +78,11 @@ class GAConfig:
         Carry the best chromosome unchanged into the next generation.
     init_prob : float
         Probability that a term is present in the random initial population.
+    fitness : str
+        Roulette fitness transform: ``akaike`` (default), ``rank`` or ``window``.
+
+    Ranges and choices are those of the settings schema
+    (:mod:`spm_sysid.core.settings`), checked on construction.
     """
 
     population_size: int = 200
@@ -150,7 +158,7 @@ class GAResult:
 # -- operators (pure functions of their inputs and the generator) -------------------
 
 
-def roulette_fitness(scores: np.ndarray, kind: str = "window") -> np.ndarray:
+def roulette_fitness(scores: np.ndarray, kind: str = "akaike") -> np.ndarray:
     """Positive roulette-wheel fitness from minimised scores (see the module doc).
 
     Raises

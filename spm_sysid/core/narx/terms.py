@@ -209,14 +209,3 @@ class TermSpace:
         if not parts:
             return np.empty((0, self.n_terms)), np.empty(0)
         return np.vstack([p for p, _ in parts]), np.concatenate([t for _, t in parts])
-
-    def regressor_row(self, past_y: np.ndarray, past_u: np.ndarray) -> np.ndarray:
-        """Regressors for one time step from the recent history.
-
-        ``past_y[i]`` is y(t-1-i) and ``past_u[i]`` is u(t-1-i); used by free-run
-        simulation, where y(t-1..) are the model's own predictions.
-        """
-        vals = np.array(
-            [past_y[lag - 1] if sig == "y" else past_u[lag - 1] for sig, lag in self.linear]
-        )
-        return np.array([np.prod(vals[list(t)]) if t else 1.0 for t in self.terms])

@@ -8,7 +8,7 @@ paper's eq. (1) predicts one step ahead very well and simulates poorly.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -74,7 +74,6 @@ class ValidationReport:
     tests: list[CorrelationTest]
     segment: str = "estimation"
     n_samples: int = 0
-    extra: dict = field(default_factory=dict)
 
     @property
     def residuals(self) -> np.ndarray:

@@ -42,7 +42,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-__all__ = ["BufferStats", "SampleBuffer"]
+__all__ = ["BufferStats", "SampleBuffer", "pair_streams"]
 
 
 @dataclass
@@ -239,3 +239,32 @@ class SampleBuffer:
             self.stats.cleared += removed
             self._update_pending()
             return removed
+
+
+def pair_streams(events, tolerance_ns: int, resync_samples: int = 10
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, BufferStats]:
+    """Pair recorded samples offline exactly as the node pairs them live.
+
+    Parameters
+    ----------
+    events : iterable of (stream, stamp_ns, value)
+        ``stream`` is ``"u"`` or ``"y"``, in arrival (log) order.
+    tolerance_ns, resync_samples : int
+        As for :class:`SampleBuffer` (the node's ``stamp_tolerance`` and
+        ``resync_samples``).
+
+    Returns
+    -------
+    stamps_ns, u, y : ndarray
+        The pairs, in order.
+    stats : BufferStats
+        What was rejected, left unpaired, or held.
+    """
+    events = list(events)
+    buf = SampleBuffer(max(1, len(events)), tolerance_ns, max_pending=max(1, len(events)),
+                       resync_samples=resync_samples)
+    for stream, stamp, value in events:
+        (buf.add_input if stream == "u" else buf.add_output)(stamp, value)
+    stamps, u, y = buf.snapshot()
+    return stamps, u, y, buf.stats
+
