@@ -86,3 +86,15 @@ def test_identify_plots_and_validate_saved_model_on_other_data(tmp_path, robot_a
     assert (tmp_path / "v" / "model_free_run.png").stat().st_size > 1000
     r = spm("validate", str(tmp_path / "missing.json"))
     assert r.returncode == 2 and "model file not found" in r.stderr
+
+
+def test_readme_python_example_runs_as_written(tmp_path):
+    import re
+
+    text = (ROOT / "README.md").read_text()
+    code = re.search(r"## Python\n\n```python\n(.*?)```", text, re.S).group(1)
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       cwd=tmp_path, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert "y(t) = 3.128y(t-1)" in r.stdout and "-10707.48" in r.stdout  # eq. (2), BIC
+    assert (tmp_path / "model.json").exists()
