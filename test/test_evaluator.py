@@ -136,4 +136,10 @@ def test_structure_keys_are_unique_bit_patterns():
     masks = np.eye(44, dtype=bool)
     keys = structure_keys(masks)
     assert len(set(keys.tolist())) == 44
-    assert keys[0] == 1 and keys[43] == 1 << 43
+    # bit j of the (little-endian) key is term j
+    as_int = [int.from_bytes(k, "little") for k in keys.tolist()]
+    assert as_int[0] == 1 and as_int[43] == 1 << 43
+    big = np.zeros((2, 2000), dtype=bool)  # any size of term space
+    big[0, 1999] = big[1, 1998] = True
+    k = structure_keys(big).tolist()
+    assert k[0] != k[1] and int.from_bytes(k[0], "little") == 1 << 1999

@@ -31,7 +31,7 @@ __all__ = ["JobResult", "JobSettings", "run_job"]
 
 _TERM_FIELDS = ("ny", "nu", "degree", "delay", "constant")
 _GA_FIELDS = ("population_size", "generations", "crossover_prob", "mutation_prob",
-              "spm_fraction", "fitness", "init_prob", "elitism")
+              "spm_fraction", "fitness", "init_terms", "mutation_per_structure", "elitism")
 
 
 @dataclass(frozen=True)

@@ -119,8 +119,12 @@ _LIST = [
        low=0.0, high=0.5, aliases=("--spm",)),
     _s("fitness", str, "akaike", "roulette fitness transform (docs/method.md)", "ga",
        choices=("akaike", "rank", "window")),
-    _s("init_prob", float, 0.5, "probability that a term is in an initial structure", "ga",
-       low=0.0, high=1.0, cli=False, node=False),
+    _s("init_terms", float, 22.0, "expected terms in a random initial structure (the "
+       "probability of each term is min(0.5, init_terms / M): the paper's 0.5 for its 44 "
+       "terms)", "ga", low=0.0, high=100_000.0),
+    _s("mutation_per_structure", float, 0.44, "most expected bit flips per child (the "
+       "per-bit rate is min(mutation_prob, mutation_per_structure / M): the paper's 0.01 "
+       "for its 44 terms)", "ga", low=0.0, high=100_000.0),
     _s("elitism", bool, True, "carry the best structure into the next generation", "ga",
        cli=False, node=False),
     # -- criterion and seed ----------------------------------------------------------------

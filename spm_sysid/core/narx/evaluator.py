@@ -38,10 +38,14 @@ __all__ = ["StructureEvaluator", "structure_keys"]
 
 
 def structure_keys(masks: np.ndarray) -> np.ndarray:
-    """One integer per structure: bit j set when term j is selected. Shape (B,)."""
+    """One hashable key per structure: its bits packed into bytes. Shape (B,).
+
+    Any number of candidate terms (``ceil(M / 8)`` bytes per key); ``tolist()``
+    gives ``bytes`` objects for dictionaries, ``np.unique`` works on the array.
+    """
     masks = np.asarray(masks, dtype=bool)
-    weights = np.left_shift(np.uint64(1), np.arange(masks.shape[-1], dtype=np.uint64))
-    return (masks.astype(np.uint64) * weights).sum(axis=-1, dtype=np.uint64)
+    packed = np.ascontiguousarray(np.packbits(masks, axis=-1, bitorder="little"))
+    return packed.view(np.dtype((np.void, packed.shape[-1]))).reshape(masks.shape[:-1])
 
 
 class StructureEvaluator:

@@ -76,8 +76,15 @@ class GAConfig:
         (paper: 0 and 0.15).
     elitism : bool
         Carry the best chromosome unchanged into the next generation.
-    init_prob : float
-        Probability that a term is present in the random initial population.
+    init_terms : float
+        Expected number of terms in a random initial structure: each of the M
+        candidate terms is present with probability ``min(0.5, init_terms / M)``
+        (the paper's 0.5 on its 44 terms; about 22 terms in any larger space, where
+        half of all candidates would make every initial model huge).
+    mutation_per_structure : float
+        Ceiling on the expected bit flips per child: the per-bit rate is
+        ``min(mutation_prob, mutation_per_structure / M)`` (the paper's 0.01 on 44
+        terms; in 2000 terms 0.01 would flip 20 bits of every child).
     fitness : str
         Roulette fitness transform: ``akaike`` (default), ``rank`` or ``window``.
 
@@ -91,13 +98,20 @@ class GAConfig:
     mutation_prob: float = 0.01
     spm_fraction: float = 0.15
     elitism: bool = True
-    init_prob: float = 0.5
+    init_terms: float = 22.0
+    mutation_per_structure: float = 0.44
     fitness: str = "akaike"
 
     def __post_init__(self) -> None:
         # ranges, types and choices are declared once, in the settings schema
         for name, value in check_all(asdict(self)).items():
             object.__setattr__(self, name, value)
+
+    def rates(self, n_terms: int) -> tuple[float, float]:
+        """Initial-term probability and per-bit mutation rate for ``n_terms`` candidates."""
+        n = max(1, int(n_terms))
+        return (min(0.5, self.init_terms / n),
+                min(self.mutation_prob, self.mutation_per_structure / n))
 
     def to_dict(self) -> dict:
         """Plain-data form for JSON documents."""
@@ -278,7 +292,8 @@ def run_ga(
     start = time.perf_counter()
     evals0, lookups0 = evaluator.evaluations, evaluator.lookups
 
-    pop = rng.random((size, length)) < config.init_prob
+    init_prob, mutation = config.rates(length)
+    pop = rng.random((size, length)) < init_prob
     result = GAResult(best_mask=pop[0].copy(), best_score=np.inf, first_best_generation=0)
     best_key: bytes | None = None
     for gen in range(config.generations + 1):
@@ -308,7 +323,7 @@ def run_ga(
         pool = pop[roulette_select(roulette_fitness(scores, config.fitness), size, rng)]
         n_children = size - 1 if config.elitism else size
         children = mutate(spm_mating(pool, n_children, config.spm_fraction, config, rng),
-                          config.mutation_prob, rng)
+                          mutation, rng)
         pop = np.concatenate([result.best_mask[None, :], children]) if config.elitism else children
 
     result.evaluations = evaluator.evaluations - evals0

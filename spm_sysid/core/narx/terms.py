@@ -23,7 +23,10 @@ import numpy as np
 
 from ..settings import check_all
 
-__all__ = ["TermSpace", "power_of_two_scale"]
+__all__ = ["MAX_TERMS", "TermSpace", "power_of_two_scale"]
+
+#: Largest term space (the memory bound usually refuses earlier, with the size needed).
+MAX_TERMS = 100_000
 
 
 def power_of_two_scale(x: np.ndarray) -> float:
@@ -71,11 +74,10 @@ class TermSpace:
             object.__setattr__(self, name, value)
         if self.ny + self.nu == 0:
             raise ValueError("at least one of ny, nu must be positive")
-        if self.n_terms > 63:
+        if self.n_terms > MAX_TERMS:
             raise ValueError(
-                f"this term space has {self.n_terms} candidate terms; at most 63 "
-                "are supported (a structure is a 64-bit key)"
-            )
+                f"this term space has {self.n_terms} candidate terms; at most {MAX_TERMS} "
+                "are supported (lower the lags or the degree)")
 
     # -- the linear building blocks -------------------------------------------------
     @property
