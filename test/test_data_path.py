@@ -362,3 +362,43 @@ def test_a_file_too_large_for_the_memory_bound_is_refused_early(tmp_path):
         in r.stderr
     # within the bound the same file loads (numpy's reader, a few MB)
     assert len(load_data(p).u) == 200_000
+
+
+# -- several records (issue 10, item 2) ---------------------------------------------------
+
+
+def _simulate(u, y0):
+    """y(t) = 0.6 y(t-1) - 0.2 y(t-2) + 0.8 u(t-1) + 0.1 y(t-1) u(t-1), from y0."""
+    y = np.zeros(len(u))
+    y[:2] = y0
+    for t in range(2, len(u)):
+        y[t] = 0.6 * y[t - 1] - 0.2 * y[t - 2] + 0.8 * u[t - 1] + 0.1 * y[t - 1] * u[t - 1]
+    return y
+
+
+def test_two_records_identified_exactly_and_unlike_their_concatenation(tmp_path):
+    rng = np.random.default_rng(7)
+    files = []
+    for k, y0 in enumerate((0.0, 40.0)):  # the second take starts far from rest
+        u = rng.uniform(-1, 1, 400)
+        y = _simulate(u, y0) + 1e-3 * rng.standard_normal(400)
+        files.append(tmp_path / f"take{k}.dat")
+        np.savetxt(files[-1], np.column_stack([u, y]))
+    both = np.vstack([np.loadtxt(f) for f in files])
+    np.savetxt(tmp_path / "joined.dat", both)
+    common = ["--ny", "2", "--nu", "1", "--degree", "2", "--criterion", "bic", "--seed", "1",
+              "--quiet", "--validation", "none", "--generations", "100"]
+    r = cli("identify", "--data", str(files[0]), "--data", str(files[1]), *common,
+            "--json", str(tmp_path / "records.json"))
+    assert r.returncode == 0, r.stderr
+    model = NarxModel.load(tmp_path / "records.json")
+    assert sorted(model.terms) == sorted(["y(t-1)", "y(t-2)", "u(t-1)", "y(t-1)*u(t-1)"])
+    np.testing.assert_allclose(model.coefficients, [0.6, -0.2, 0.8, 0.1], atol=5e-3)
+    assert [r["samples"] for r in model.metadata["records"]] == [400, 400]
+    assert model.metadata["data"]["segments"] == 2 and model.n_samples == 800
+    naive = cli("identify", "--data", str(tmp_path / "joined.dat"), *common,
+                "--json", str(tmp_path / "joined.json"))
+    assert naive.returncode == 0, naive.stderr
+    joined = NarxModel.load(tmp_path / "joined.json")
+    assert sorted(joined.terms) != sorted(model.terms)  # the junction rows mislead it
+    assert joined.mse > 100 * model.mse

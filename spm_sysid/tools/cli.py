@@ -41,7 +41,9 @@ class UserError(Exception):
 
 def _add_data_options(p: argparse.ArgumentParser, bag: bool = True) -> None:
     g = p.add_argument_group("data (default: the robot-arm data)")
-    g.add_argument("--data", metavar="PATH", help="two-column or CSV file of u, y")
+    g.add_argument("--data", metavar="PATH", action="append",
+                   help="two-column or CSV file of u, y; give it several times for several "
+                        "records (no regression row crosses from one to the next)")
     if bag:
         g.add_argument("--bag", metavar="PATH", help="rosbag2 bag (MCAP) to read u, y from")
         for name in ("input_topic", "input_field", "output_topic", "output_field"):
@@ -114,7 +116,11 @@ def _job_settings(args):
 
 @dataclass
 class Loaded:
-    """Data for a command: samples, where from, and the contiguous segments."""
+    """Data for a command: samples, where from, and how they split into segments.
+
+    Several records (``--data`` given several times) are concatenated; each keeps
+    its own segments, and no regression row crosses from one record to the next.
+    """
 
     u: np.ndarray
     y: np.ndarray
@@ -122,15 +128,24 @@ class Loaded:
     stamps_ns: np.ndarray | None = None
     rejected: int = 0
     unpaired: int = 0
+    info: object = None  # a SegmentInfo when the records were combined
+    records: list = None  # [{"source", "samples"}] for data files
+
+    def segment_info(self):
+        """The contiguous segments (:class:`~spm_sysid.core.narx.segments.SegmentInfo`)."""
+        from ..core.narx.segments import SegmentInfo, find_segments
+
+        if self.info is not None:
+            return self.info
+        if self.stamps_ns is None:
+            return SegmentInfo([(0, len(self.y))])
+        return find_segments(self.stamps_ns)
 
     def segments(self, max_lag: int) -> tuple[list[tuple[int, int]] | None, dict]:
-        """Usable segments (None: the whole record) and the account of the data."""
-        from ..core.narx.segments import SegmentInfo, find_segments, segment_report
+        """Usable segments (None: one whole record) and the account of the data."""
+        from ..core.narx.segments import segment_report
 
-        if self.stamps_ns is None:
-            info = SegmentInfo([(0, len(self.y))])
-        else:
-            info = find_segments(self.stamps_ns)
+        info = self.segment_info()
         bounds, data = segment_report(info, max_lag, self.rejected, self.unpaired)
         if not bounds:
             raise UserError(f"{self.source}: no contiguous segment is longer than the largest "
@@ -138,6 +153,34 @@ class Loaded:
                             f"segment(s)")
         whole = len(bounds) == 1 and bounds[0] == (0, len(self.y))
         return (None if whole else bounds), data
+
+
+def _load_file(path: str) -> Loaded:
+    d = load_data(path)
+    stamps = None if d.t is None else np.round(d.t * 1e9).astype(np.int64)
+    return Loaded(d.u, d.y, path, stamps, d.rejected,
+                  records=[{"source": path, "samples": int(len(d.y))}])
+
+
+def _combine(records: list[Loaded]) -> Loaded:
+    """Several records as one: arrays concatenated, segments kept apart (offsets)."""
+    from ..core.narx.segments import SegmentInfo
+
+    bounds, gaps, missing, restarts, start = [], 0, 0, 0, 0
+    periods = set()
+    for r in records:
+        info = r.segment_info()
+        bounds += [(a + start, b + start) for a, b in info.bounds]
+        gaps, missing, restarts = gaps + info.gaps, missing + info.missing_samples, \
+            restarts + info.restarts
+        periods.add((info.period_ns, info.period_source))
+        start += len(r.y)
+    period, source = periods.pop() if len(periods) == 1 else (None, "per record")
+    info = SegmentInfo(bounds, period, source, gaps, missing, restarts)
+    return Loaded(np.concatenate([r.u for r in records]), np.concatenate([r.y for r in records]),
+                  f"{len(records)} records ({', '.join(r.source for r in records)})",
+                  rejected=sum(r.rejected for r in records), info=info,
+                  records=[x for r in records for x in r.records])
 
 
 def _load(args) -> Loaded:
@@ -152,9 +195,9 @@ def _load(args) -> Loaded:
         return Loaded(sig.u, sig.y, f"bag {args.bag}", sig.stamps_ns,
                       sig.rejected_nonfinite, sig.unpaired)
     if args.data:
-        d = load_data(args.data)
-        stamps = None if d.t is None else np.round(d.t * 1e9).astype(np.int64)
-        return Loaded(d.u, d.y, args.data, stamps, d.rejected)
+        files = args.data if isinstance(args.data, list) else [args.data]
+        loaded = [_load_file(f) for f in files]
+        return loaded[0] if len(loaded) == 1 else _combine(loaded)
     path = find_robot_arm()
     u, y = load_io(path)
     return Loaded(u, y, f"robot-arm data ({path})")
@@ -201,7 +244,7 @@ def _check_corr_lags(corr_lags: int, rows: int) -> None:
 
 def cmd_identify(args) -> int:
     from ..core.job import run_job
-    from ..core.narx.segments import SegmentInfo, describe_data, find_segments
+    from ..core.narx.segments import describe_data
 
     settings = _job_settings(args)
     if args.plots and settings.validation == "none":
@@ -211,13 +254,14 @@ def cmd_identify(args) -> int:
                         "(the estimation fraction of the data)")
     _check_outputs(args)
     data = _load(args)
-    segments = (SegmentInfo([(0, len(data.y))]) if data.stamps_ns is None
-                else find_segments(data.stamps_ns))
+    segments = data.segment_info()
     progress = _Progress(settings.ga.generations, not args.quiet)
     try:
         result = run_job(data.u, data.y, settings, segments=segments, rejected=data.rejected,
                          unpaired=data.unpaired, progress=lambda g, b, e: progress(g, b, e),
-                         progress_every=1, metadata={"source": data.source})
+                         progress_every=1,
+                         metadata={"source": data.source,
+                                   **({"records": data.records} if data.records else {})})
     except SettingsError as exc:  # a setting that depends on the data (correlation_lags)
         raise UserError(str(exc).replace("correlation_lags", "--correlation-lags")) from None
     finally:

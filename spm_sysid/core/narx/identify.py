@@ -141,9 +141,11 @@ def identify(
     ga = ga or GAConfig()
     rows = len(y) - term_space.max_lag if segments is None else sum(
         b - a - term_space.max_lag for a, b in segments)
-    # the matrix, its scaled copy in the evaluator and the QR work space, with margin
-    check_memory(5 * 8 * rows * (term_space.n_terms + 1),
-                 f"the regression matrix of {rows} rows x {term_space.n_terms} candidate terms")
+    # the matrix, its scaled copy in the evaluator and the QR work space, with margin,
+    # plus the evaluator's Gram matrix and triangular factor of all candidate terms
+    m = term_space.n_terms
+    check_memory(5 * 8 * rows * (m + 1) + 2 * 8 * (m + 2) ** 2,
+                 f"the regression matrix of {rows} rows x {m} candidate terms")
     su, sy = power_of_two_scale(u), power_of_two_scale(y)
     P, target = term_space.regression(u / su, y / sy, segments)
     nonzero = np.any(P != 0, axis=0)
