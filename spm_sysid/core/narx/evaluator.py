@@ -30,6 +30,7 @@ benchmark's naive baseline lives with the benchmark (:mod:`spm_sysid.tools.bench
 from __future__ import annotations
 
 import numpy as np
+from scipy import linalg
 
 from .criteria import Criterion, get_criterion
 from .lstsq import DEFAULT_RANK_TOL
@@ -178,8 +179,7 @@ class StructureEvaluator:
         bad |= failed | (pivots < self.rank_tol).any(axis=1)
         sse = diag[:, kmax] ** 2
         # Gram = L L^T with L = [[Ls, 0], [z^T, sqrt(SSE)]], so Ls^T theta_n = z.
-        theta_n = np.linalg.solve(np.swapaxes(L[:, :kmax, :kmax], 1, 2),
-                                  L[:, kmax, :kmax, None])[:, :, 0]
+        theta_n = _solve_upper(np.swapaxes(L[:, :kmax, :kmax], 1, 2), L[:, kmax, :kmax])
         if self.criterion.needs_coefficients:
             redo = ~bad
         else:
@@ -217,8 +217,20 @@ class StructureEvaluator:
         sse = (np.where(pad, z, 0.0) ** 2).sum(axis=1) + R[:, kmax, kmax] ** 2
         Rs[:, np.arange(kmax), np.arange(kmax)] += pad
         z[pad] = 0.0
-        theta_n = np.linalg.solve(Rs, z[:, :, None])[:, :, 0]
+        theta_n = _solve_upper(Rs, z)
         return sse, theta_n
+
+
+def _solve_upper(R: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Solve a stack of upper-triangular systems ``R x = b``; shapes (B, k, k), (B, k).
+
+    Small systems go to numpy's batched solver in one call; from 32 unknowns on,
+    back substitution (scipy, one call per matrix) is cheaper than the LU it does.
+    """
+    if R.shape[-1] < 32:
+        return np.linalg.solve(R, b[:, :, None])[:, :, 0]
+    return np.stack([linalg.solve_triangular(r, v, lower=False, check_finite=False)
+                     for r, v in zip(R, b)]) if len(R) else np.empty(b.shape)
 
 
 def _batched_cholesky(mats: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
