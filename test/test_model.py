@@ -40,7 +40,7 @@ def test_json_round_trip_then_predict_and_simulate_on_new_data(robot_arm, tmp_pa
     m.metadata["note"] = "test"
     path = m.save(tmp_path / "sub" / "model.json")
     doc = json.loads(path.read_text())
-    assert doc["schema"] == "spm_sysid/narx-model" and doc["schema_version"] == 1
+    assert doc["schema"] == "spm_sysid/narx-model" and doc["schema_version"] == 2
     assert doc["terms"] == EQ1 and doc["criterion"] == {"name": "aic", "value": -10744.78}
     back = NarxModel.load(path)
     assert back.terms == m.terms and np.array_equal(back.coefficients, m.coefficients)
@@ -108,3 +108,54 @@ def test_fit_rejects_empty_and_dependent_structures():
         NarxModel.fit(u, y, np.zeros(4, dtype=bool), ts)
     with pytest.raises(ValueError, match="linearly dependent"):
         NarxModel.fit(u, y, np.array([True, False, False, True]), ts)
+
+
+def test_version_1_documents_still_load(robot_arm):
+    u, y = robot_arm
+    doc = _eq1(robot_arm).to_dict()
+    doc["schema_version"] = 1
+    for key in ("inputs", "output"):
+        del doc["term_space"][key]  # version 1 had neither
+    m = NarxModel.from_dict(doc)
+    assert m.terms == EQ1 and m.term_space.inputs == ("u",)
+    assert np.array_equal(m.predict(u, y), _eq1(robot_arm).predict(u, y))
+
+
+def test_two_input_term_space_names_lags_and_products():
+    ts = TermSpace(ny=1, nu=(2, 1), delay=(1, 0), degree=2, inputs=("torque", "cmd"))
+    assert ts.n_inputs == 2 and ts.max_lag == 2
+    assert [ts.term_names()[i] for i in range(4)] == ["y(t-1)", "torque(t-1)", "torque(t-2)",
+                                                      "cmd(t)"]
+    assert "y(t-1)*cmd(t)" in ts.term_names() and "torque(t-1)*cmd(t)" in ts.term_names()
+    assert ts.n_terms == 4 + 10
+    assert TermSpace(nu=2, inputs=("a", "b")).nus == (2, 2)  # one value for all inputs
+    assert TermSpace(nu=(1, 1)).inputs == ("u1", "u2")        # unnamed inputs
+    with pytest.raises(ValueError, match="delay gives 2 values for 3 inputs"):
+        TermSpace(nu=(1, 1, 1), delay=(1, 1))
+    back = TermSpace.from_dict(ts.to_dict())
+    assert back == ts and back.term_names() == ts.term_names()
+
+
+def test_two_input_system_with_a_cross_product_is_recovered_exactly():
+    from spm_sysid.core.narx.identify import identify
+
+    rng = np.random.default_rng(3)
+    n = 800
+    u = rng.uniform(-1, 1, (n, 2))
+    y = np.zeros(n)
+    for t in range(2, n):  # y(t) = 0.5 y(t-1) + 0.7 u1(t-1) - 0.4 u2(t) + 0.3 u1(t-2) u2(t)
+        y[t] = (0.5 * y[t - 1] + 0.7 * u[t - 1, 0] - 0.4 * u[t, 1]
+                + 0.3 * u[t - 2, 0] * u[t, 1])
+    y += 1e-3 * rng.standard_normal(n)
+    ts = TermSpace(ny=2, nu=(2, 2), delay=(1, 0), degree=2, inputs=("u1", "u2"))
+    res = identify(u=u, y=y, term_space=ts, criterion="bic", seed=1)
+    assert sorted(res.model.terms) == sorted(["y(t-1)", "u1(t-1)", "u2(t)", "u1(t-2)*u2(t)"])
+    coef = dict(zip(res.model.terms, res.model.coefficients))
+    assert coef["y(t-1)"] == pytest.approx(0.5, abs=2e-3)
+    assert coef["u1(t-2)*u2(t)"] == pytest.approx(0.3, abs=5e-3)
+    # the free-run simulation with both inputs reproduces the system
+    sim = res.model.simulate(u, y)
+    assert np.sqrt(np.mean((sim - y[ts.max_lag:]) ** 2)) < 5e-3
+    doc = res.model.to_dict()
+    assert doc["term_space"]["inputs"] == ["u1", "u2"] and doc["term_space"]["nu"] == [2, 2]
+    assert NarxModel.from_dict(doc).terms == res.model.terms

@@ -59,11 +59,12 @@ def test_replay_identify_and_latched_results(ros_env, harness, arm_bag, robot_ar
         resid = harness.latched(Float64MultiArray, "/spm_sysid/residuals")
     finally:
         stop(node)
-    assert doc["schema"] == "spm_sysid/narx-model" and doc["schema_version"] == 1
+    assert doc["schema"] == "spm_sysid/narx-model" and doc["schema_version"] == 2
     assert doc["terms"] == EQ1
     assert doc["criterion"]["name"] == "aic"
     assert doc["criterion"]["value"] == pytest.approx(-10744.78, abs=0.01)
-    assert doc["term_space"] == {"ny": 4, "nu": 4, "degree": 2, "delay": 1, "constant": False}
+    assert doc["term_space"] == {"ny": 4, "nu": 4, "degree": 2, "delay": 1, "constant": False,
+                                 "inputs": ["u"], "output": "y"}
     meta = doc["metadata"]
     assert meta["samples_used"] == 1024
     assert meta["first_stamp_ns"] == 0 and meta["last_stamp_ns"] == 1023 * 10_000_000

@@ -49,7 +49,7 @@ def test_regression_matrix_matches_hand_built_rows():
 
 @pytest.mark.parametrize("kwargs, message", [
     ({"degree": 0}, "degree"),
-    ({"delay": 0}, "delay"),
+    ({"delay": -1}, "delay"),  # 0 is allowed since several inputs: feed-through
     ({"ny": -1}, "lags"),
     ({"ny": 0, "nu": 0}, "at least one"),
     ({"ny": 100, "nu": 100, "degree": 3}, "at most 100000"),

@@ -104,8 +104,8 @@ _LIST = [
        high=100),
     _s("degree", int, 2, "polynomial degree (the paper's nonlinearity)", "term_space", low=1,
        high=5),
-    _s("delay", int, 1, "input delay, the smallest input lag (>= 1: causal)", "term_space",
-       low=1, high=100),
+    _s("delay", int, 1, "input delay, the smallest input lag (0: u(t) acts on y(t))",
+       "term_space", low=0, high=100),
     _s("constant", bool, False, "include a constant candidate term", "term_space"),
     # -- the genetic algorithm -------------------------------------------------------------
     _s("population_size", int, 200, "GA population (paper: 200 and 100)", "ga", low=2,

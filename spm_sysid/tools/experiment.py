@@ -72,10 +72,11 @@ class ExperimentConfig:
         if not isinstance(self.term_space, dict):
             raise SettingsError("term_space must be a mapping of ny, nu, degree, delay, "
                                 "constant")
-        unknown = set(self.term_space) - {"ny", "nu", "degree", "delay", "constant"}
+        unknown = set(self.term_space) - {"ny", "nu", "degree", "delay", "constant", "inputs",
+                                          "output"}
         if unknown:
             raise SettingsError(f"term_space: unknown setting(s) {sorted(unknown)}")
-        TermSpace(**self.term_space)  # checked against the schema
+        TermSpace.from_dict(self.term_space)  # checked against the schema
         from ..core.narx.criteria import get_criterion
 
         for c in self.criteria:

@@ -62,8 +62,10 @@ def validate_signals(u, y, term_space: TermSpace,
     """
     u = np.asarray(u, dtype=float)
     y = np.asarray(y, dtype=float)
-    if u.ndim != 1 or y.ndim != 1:
-        raise DataError(f"u and y must be 1-D arrays, got shapes {u.shape} and {y.shape}")
+    m = term_space.n_inputs
+    if y.ndim != 1 or not (u.ndim == 1 and m == 1 or u.ndim == 2 and u.shape[1] == m):
+        raise DataError(f"y must be 1-D and u of shape (n,) or (n, {m}) for {m} input(s) "
+                        f"{', '.join(term_space.inputs)}; got shapes {u.shape} and {y.shape}")
     if len(u) != len(y):
         raise DataError(f"u and y must have the same length, got {len(u)} and {len(y)}")
     for name, arr in (("u", u), ("y", y)):
@@ -101,8 +103,10 @@ def identify(
 
     Parameters
     ----------
-    u, y : ndarray, shape (n,)
-        Input and output samples, equally spaced (within each segment).
+    u : ndarray, shape (n,) or (n, m)
+        Input samples (one column per input of the term space).
+    y : ndarray, shape (n,)
+        Output samples, equally spaced (within each segment).
     term_space : TermSpace, optional
         Candidate terms; default: the paper's (ny=4, nu=4, degree 2, delay 1).
     criterion : str, Criterion or callable
@@ -146,8 +150,10 @@ def identify(
     m = term_space.n_terms
     check_memory(5 * 8 * rows * (m + 1) + 2 * 8 * (m + 2) ** 2,
                  f"the regression matrix of {rows} rows x {m} candidate terms")
-    su, sy = power_of_two_scale(u), power_of_two_scale(y)
-    P, target = term_space.regression(u / su, y / sy, segments)
+    u2 = term_space.inputs_2d(u)
+    su = np.array([power_of_two_scale(c) for c in u2.T])
+    sy = power_of_two_scale(y)
+    P, target = term_space.regression(u2 / su, y / sy, segments)
     nonzero = np.any(P != 0, axis=0)
     names = term_space.term_names()
     excluded = [names[i] for i in np.flatnonzero(~nonzero)]

@@ -24,7 +24,9 @@ from .terms import TermSpace, power_of_two_scale
 __all__ = ["MODEL_SCHEMA", "MODEL_SCHEMA_VERSION", "NarxModel"]
 
 MODEL_SCHEMA = "spm_sysid/narx-model"
-MODEL_SCHEMA_VERSION = 1
+MODEL_SCHEMA_VERSION = 2
+#: Versions this code reads (1: one input named u, no "inputs" in the term space).
+READABLE_VERSIONS = (1, 2)
 
 
 @dataclass
@@ -80,10 +82,11 @@ class NarxModel:
             raise ValueError(f"mask must have {term_space.n_terms} entries, got {mask.shape}")
         if not mask.any():
             raise ValueError("cannot fit a structure with no terms")
-        u = np.asarray(u, dtype=float)
+        u = term_space.inputs_2d(u)
         y = np.asarray(y, dtype=float)
         # exact power-of-two scaling keeps data of any magnitude clear of overflow
-        su, sy = power_of_two_scale(u), power_of_two_scale(y)
+        su = np.array([power_of_two_scale(c) for c in u.T])
+        sy = power_of_two_scale(y)
         P, target = term_space.regression(u / su, y / sy, segments)
         res = reference_fit(P, target, mask)
         if res.rank_deficient:
@@ -172,8 +175,8 @@ class NarxModel:
         ndarray, shape (n - max_lag,)
             Simulated y(t) for t = max_lag..n-1 (same rows as :meth:`predict`).
         """
-        u = np.asarray(u, dtype=float)
         ts = self.term_space
+        u = ts.inputs_2d(u)
         lag0 = ts.max_lag
         y_initial = np.asarray(y_initial, dtype=float)
         if len(y_initial) < lag0:
@@ -190,15 +193,17 @@ class NarxModel:
         gather = np.full((len(self.term_indices), width), n_lin)
         for row, i in enumerate(self.term_indices):
             gather[row, : len(all_terms[i])] = all_terms[i]
-        y_lags = np.array([lag for sig, lag in lin if sig == "y"], dtype=int)
-        u_lags = np.array([lag for sig, lag in lin if sig == "u"], dtype=int)
+        # the output's lags come first in term order, then each input's
+        y_lags = np.array([lag for src, lag in lin if src < 0], dtype=int)
+        u_lags = np.array([lag for src, lag in lin if src >= 0], dtype=int)
+        u_cols = np.array([src for src, lag in lin if src >= 0], dtype=int)
         vals = np.ones(n_lin + 1)
         n_y = len(y_lags)
         theta = self.coefficients
         with np.errstate(over="ignore", invalid="ignore"):
             for t in range(lag0, n):
                 vals[:n_y] = ysim[t - y_lags]
-                vals[n_y:n_lin] = u[t - u_lags]
+                vals[n_y:n_lin] = u[t - u_lags, u_cols]
                 ysim[t] = np.prod(vals[gather], axis=1) @ theta
         return ysim[lag0:]
 
@@ -233,7 +238,7 @@ class NarxModel:
                 f"not a spm_sysid model document (schema must be {MODEL_SCHEMA!r})"
             )
         version = doc.get("schema_version")
-        if version != MODEL_SCHEMA_VERSION:
+        if version not in READABLE_VERSIONS:
             raise ModelFormatError(
                 f"model schema version {version!r} is not supported (this is version "
                 f"{MODEL_SCHEMA_VERSION})"
@@ -245,9 +250,15 @@ class NarxModel:
         if not isinstance(ts, dict):
             raise ModelFormatError("'term_space' must be an object")
         for key in ("ny", "nu", "degree", "delay"):
-            if not _is_int(ts.get(key)):
-                raise ModelFormatError(f"term_space.{key} must be an integer, got "
-                                       f"{ts.get(key)!r}")
+            value = ts.get(key)
+            ok = _is_int(value) or (key in ("nu", "delay") and version >= 2
+                                    and isinstance(value, list) and value
+                                    and all(_is_int(v) for v in value))
+            if not ok:
+                raise ModelFormatError(f"term_space.{key} must be an integer, got {value!r}")
+        if version >= 2 and not (isinstance(ts.get("inputs", []), list)
+                                 and all(isinstance(v, str) for v in ts.get("inputs", []))):
+            raise ModelFormatError("term_space.inputs must be a list of names")
         if not isinstance(ts.get("constant"), bool):
             raise ModelFormatError(f"term_space.constant must be true or false, got "
                                    f"{ts.get('constant')!r}")

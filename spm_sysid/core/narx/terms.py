@@ -16,12 +16,12 @@ With the paper's setting (ny=4, nu=4, degree=2, delay=1, no constant) this gives
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from itertools import combinations_with_replacement
 
 import numpy as np
 
-from ..settings import check_all
+from ..settings import check
 
 __all__ = ["MAX_TERMS", "TermSpace", "power_of_two_scale"]
 
@@ -46,33 +46,64 @@ def power_of_two_scale(x: np.ndarray) -> float:
 
 @dataclass(frozen=True)
 class TermSpace:
-    """The space of candidate NARX terms.
+    """The space of candidate NARX terms: one output and one or several inputs.
 
     Parameters
     ----------
     ny : int
         Maximum output lag; output lags are 1..ny.
-    nu : int
-        Number of input lags; input lags are delay..delay+nu-1.
+    nu : int or tuple of int
+        Number of lags of each input (one value for all inputs, or one per input);
+        input i's lags are ``delay_i .. delay_i + nu_i - 1``.
     degree : int
-        Highest polynomial degree (the paper's "nonlinearity").
-    delay : int
-        Input delay (the smallest input lag), at least 1 so the model is causal.
+        Highest polynomial degree (the paper's "nonlinearity"): products across
+        the output and all inputs up to this degree.
+    delay : int or tuple of int
+        Each input's smallest lag. 0 lets u(t) act on y(t) (direct feed-through);
+        the output's lags start at 1, so the model stays causal.
     constant : bool
         Whether a constant term is a candidate.
+    inputs : tuple of str
+        Input names for term names (``torque(t-2)``); default ``u`` for one input,
+        ``u1, u2, ...`` for several. Their number fixes the number of inputs when
+        ``nu`` and ``delay`` are single values.
+    output : str
+        The output's name in term names (default ``y``).
     """
 
     ny: int = 4
-    nu: int = 4
+    nu: int | tuple[int, ...] = 4
     degree: int = 2
-    delay: int = 1
+    delay: int | tuple[int, ...] = 1
     constant: bool = False
+    inputs: tuple[str, ...] = ()
+    output: str = "y"
 
     def __post_init__(self) -> None:
         # ranges and types are declared once, in the settings schema
-        for name, value in check_all(asdict(self)).items():
-            object.__setattr__(self, name, value)
-        if self.ny + self.nu == 0:
+        for name in ("ny", "degree", "constant"):
+            object.__setattr__(self, name, check(name, getattr(self, name)))
+        nus = self.nu if isinstance(self.nu, (tuple, list)) else (self.nu,)
+        delays = self.delay if isinstance(self.delay, (tuple, list)) else (self.delay,)
+        names = tuple(self.inputs) if isinstance(self.inputs, (tuple, list)) else (self.inputs,)
+        m = max(len(nus), len(delays), len(names), 1)
+        for label, values in (("nu", nus), ("delay", delays), ("inputs", names)):
+            if len(values) not in (0, 1, m) or (label != "inputs" and not values):
+                raise ValueError(f"{label} gives {len(values)} values for {m} inputs (give "
+                                 f"one value for all inputs, or one per input)")
+        nus = tuple(check("nu", v) for v in (nus * m if len(nus) == 1 else nus))
+        delays = tuple(check("delay", v) for v in (delays * m if len(delays) == 1 else delays))
+        if not names:
+            names = ("u",) if m == 1 else tuple(f"u{i + 1}" for i in range(m))
+        if len(set(names + (self.output,))) != m + 1 or not all(
+                isinstance(n, str) and n.isidentifier() for n in names + (self.output,)):
+            raise ValueError(f"signal names must be distinct identifiers, got inputs {names} "
+                             f"and output {self.output!r}")
+        # one value per input is stored as a plain int (the single-input form)
+        object.__setattr__(self, "nu", nus[0] if m == 1 else nus)
+        object.__setattr__(self, "delay", delays[0] if m == 1 else delays)
+        object.__setattr__(self, "inputs", names)
+        if self.ny + sum(nus) == 0:
             raise ValueError("at least one of ny, nu must be positive")
         if self.n_terms > MAX_TERMS:
             raise ValueError(
@@ -81,16 +112,38 @@ class TermSpace:
 
     # -- the linear building blocks -------------------------------------------------
     @property
-    def linear(self) -> list[tuple[str, int]]:
-        """The lagged signals as ``(signal, lag)`` pairs, in term order."""
-        ys = [("y", lag) for lag in range(1, self.ny + 1)]
-        us = [("u", lag) for lag in range(self.delay, self.delay + self.nu)]
-        return ys + us
+    def n_inputs(self) -> int:
+        return len(self.inputs)
+
+    @property
+    def nus(self) -> tuple[int, ...]:
+        """Lags per input."""
+        return self.nu if isinstance(self.nu, tuple) else (self.nu,)
+
+    @property
+    def delays(self) -> tuple[int, ...]:
+        """Delay per input."""
+        return self.delay if isinstance(self.delay, tuple) else (self.delay,)
+
+    @property
+    def linear(self) -> list[tuple[int, int]]:
+        """The lagged signals as ``(source, lag)`` pairs, in term order.
+
+        ``source`` is -1 for the output and 0, 1, ... for the inputs.
+        """
+        out = [(-1, lag) for lag in range(1, self.ny + 1)]
+        for i, (nu, d) in enumerate(zip(self.nus, self.delays)):
+            out += [(i, lag) for lag in range(d, d + nu)]
+        return out
+
+    def signal_name(self, source: int) -> str:
+        """The output's or input ``source``'s name."""
+        return self.output if source < 0 else self.inputs[source]
 
     @property
     def max_lag(self) -> int:
         """Largest lag; the first regression row is at t = max_lag."""
-        return max(self.ny, self.delay + self.nu - 1 if self.nu else 0)
+        return max([self.ny] + [d + nu - 1 for nu, d in zip(self.nus, self.delays) if nu])
 
     @property
     def terms(self) -> list[tuple[int, ...]]:
@@ -109,13 +162,13 @@ class TermSpace:
         """Number of candidate terms (chromosome length)."""
         from math import comb
 
-        n_lin = (self.ny + self.nu)
+        n_lin = self.ny + sum(self.nus)
         return int(self.constant) + sum(
             comb(n_lin + deg - 1, deg) for deg in range(1, self.degree + 1)
         )
 
     def term_names(self) -> list[str]:
-        """Readable names such as ``y(t-1)*u(t-2)`` and ``u(t-1)^2``, in term order."""
+        """Readable names such as ``y(t-1)*u(t-2)``, ``u(t-1)^2``, ``y(t-1)*torque(t)``."""
         lin = self.linear
         names = []
         for term in self.terms:
@@ -124,49 +177,76 @@ class TermSpace:
                 continue
             parts = []
             for idx in sorted(set(term)):
-                sig, lag = lin[idx]
+                src, lag = lin[idx]
                 power = term.count(idx)
-                parts.append(f"{sig}(t-{lag})" + (f"^{power}" if power > 1 else ""))
+                at = "t" if lag == 0 else f"t-{lag}"
+                parts.append(f"{self.signal_name(src)}({at})"
+                             + (f"^{power}" if power > 1 else ""))
             names.append("*".join(parts))
         return names
 
     def to_dict(self) -> dict:
-        """Plain-data form for JSON documents."""
-        return {k: (bool(v) if k == "constant" else int(v)) for k, v in asdict(self).items()}
+        """Plain-data form for JSON documents (model schema version 2)."""
+        one = self.n_inputs == 1
+        return {"ny": int(self.ny), "nu": int(self.nu) if one else list(self.nu),
+                "degree": int(self.degree),
+                "delay": int(self.delay) if one else list(self.delay),
+                "constant": bool(self.constant), "inputs": list(self.inputs),
+                "output": self.output}
 
     @classmethod
     def from_dict(cls, data: dict) -> TermSpace:
-        """Inverse of :meth:`to_dict`."""
-        return cls(**{k: data[k] for k in ("ny", "nu", "degree", "delay", "constant")})
+        """Inverse of :meth:`to_dict`; version-1 documents (one input ``u``) load too.
 
-    def coefficient_factors(self, u_scale: float, y_scale: float) -> np.ndarray:
+        Missing keys take the defaults (a configuration may give only some).
+        """
+        def seq(v):
+            return tuple(v) if isinstance(v, list) else v
+
+        d = cls.__dataclass_fields__
+        return cls(ny=data.get("ny", d["ny"].default), nu=seq(data.get("nu", d["nu"].default)),
+                   degree=data.get("degree", d["degree"].default),
+                   delay=seq(data.get("delay", d["delay"].default)),
+                   constant=data.get("constant", d["constant"].default),
+                   inputs=tuple(data.get("inputs") or ()), output=data.get("output", "y"))
+
+    def coefficient_factors(self, u_scale, y_scale: float) -> np.ndarray:
         """Per-term factors from scaled-data coefficients to the user's units, (n_terms,).
 
-        The coefficients were fitted on ``u / u_scale`` and ``y / y_scale``.
-
-        A term with ``a`` output and ``b`` input factors has coefficient
-        ``theta = theta_scaled * y_scale**(1 - a) * u_scale**(-b)``; with powers of
-        two the factors are exact (computed as ``ldexp``, no overflow on the way).
+        The coefficients were fitted on ``u / u_scale`` (one scale per input) and
+        ``y / y_scale``. A term with ``a`` output factors and ``b_i`` factors of input
+        i has ``theta = theta_scaled * y_scale**(1 - a) * prod_i u_scale_i**(-b_i)``;
+        with powers of two the factors are exact (``ldexp``, no overflow on the way).
         """
-        ey, eu = np.frexp(y_scale)[1] - 1, np.frexp(u_scale)[1] - 1
+        ey = np.frexp(y_scale)[1] - 1
+        eu = [np.frexp(s)[1] - 1 for s in np.atleast_1d(np.asarray(u_scale, dtype=float))]
         lin = self.linear
         out = np.empty(self.n_terms)
         for j, term in enumerate(self.terms):
-            a = sum(1 for i in term if lin[i][0] == "y")
-            b = len(term) - a
-            out[j] = np.ldexp(1.0, int(ey * (1 - a) - eu * b))
+            a = sum(1 for i in term if lin[i][0] < 0)
+            exp = ey * (1 - a) - sum(eu[lin[i][0]] for i in term if lin[i][0] >= 0)
+            out[j] = np.ldexp(1.0, int(exp))
         return out
 
     # -- the regression matrix -------------------------------------------------------
-    def lagged(self, u: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """Matrix of the linear terms, shape ``(N, ny + nu)``, rows t = max_lag..len-1."""
+    def inputs_2d(self, u: np.ndarray) -> np.ndarray:
+        """``u`` as shape (n, n_inputs) (a 1-D array is the single input)."""
         u = np.asarray(u, dtype=float)
+        u = u[:, None] if u.ndim == 1 else u
+        if u.ndim != 2 or u.shape[1] != self.n_inputs:
+            raise ValueError(f"this term space has {self.n_inputs} input(s); u has shape "
+                             f"{np.shape(u)}")
+        return u
+
+    def lagged(self, u: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Matrix of the linear terms, shape ``(N, n_linear)``, rows t = max_lag..len-1."""
+        u = self.inputs_2d(u)
         y = np.asarray(y, dtype=float)
         start, stop = self.max_lag, len(y)
         cols = []
-        for sig, lag in self.linear:
-            src = y if sig == "y" else u
-            cols.append(src[start - lag : stop - lag])
+        for src, lag in self.linear:
+            sig = y if src < 0 else u[:, src]
+            cols.append(sig[start - lag : stop - lag])
         if not cols:
             return np.empty((stop - start, 0))
         return np.column_stack(cols)

@@ -160,7 +160,10 @@ def validate_model(
         its own initial conditions. The correlation tests run on the residuals of
         all segments, concatenated.
     """
-    u = np.asarray(u, dtype=float)
+    try:
+        u = model.term_space.inputs_2d(u)
+    except ValueError as exc:
+        raise DataError(str(exc)) from None
     y = np.asarray(y, dtype=float)
     lag0 = model.term_space.max_lag
     if len(y) != len(u):
@@ -175,8 +178,9 @@ def validate_model(
     one_step = model.predict(u, y, segments)
     free_run = model.simulate_segments(u, y, segments)
     residuals = measured - one_step
-    u_rows = u[lag0:] if segments is None else np.concatenate(
-        [u[a + lag0:b] for a, b in segments])
+    # the correlation tests use the first input (several inputs: docs/method.md)
+    u_rows = u[lag0:, 0] if segments is None else np.concatenate(
+        [u[a + lag0:b, 0] for a, b in segments])
     return ValidationReport(
         measured=measured,
         one_step=one_step,
