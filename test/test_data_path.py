@@ -402,3 +402,30 @@ def test_two_records_identified_exactly_and_unlike_their_concatenation(tmp_path)
     joined = NarxModel.load(tmp_path / "joined.json")
     assert sorted(joined.terms) != sorted(model.terms)  # the junction rows mislead it
     assert joined.mse > 100 * model.mse
+
+
+def test_two_inputs_from_a_csv_by_column_name(tmp_path):
+    rng = np.random.default_rng(3)
+    n = 800
+    u = rng.uniform(-1, 1, (n, 2))
+    y = np.zeros(n)
+    for t in range(2, n):
+        y[t] = 0.5 * y[t - 1] + 0.7 * u[t - 1, 0] - 0.4 * u[t, 1] + 0.3 * u[t - 2, 0] * u[t, 1]
+    y += 1e-3 * rng.standard_normal(n)
+    p = tmp_path / "miso.csv"
+    p.write_text("time,torque,cmd,acc\n" + "".join(
+        f"{k * 0.01:.2f},{float(u[k, 0])!r},{float(u[k, 1])!r},{float(y[k])!r}\n"
+        for k in range(n)))
+    r = cli("identify", "--data", str(p), "--inputs", "torque,cmd", "--output", "acc",
+            "--ny", "2", "--nu", "2", "--delay", "1,0", "--criterion", "bic", "--seed", "1",
+            "--quiet", "--json", str(tmp_path / "m.json"))
+    assert r.returncode == 0, r.stderr
+    assert ("acc(t) = 0.500acc(t-1) + 0.700torque(t-1) - 0.400cmd(t) + 0.300torque(t-2)*cmd(t)"
+            in r.stdout)
+    m = NarxModel.load(tmp_path / "m.json")
+    assert m.term_space.inputs == ("torque", "cmd") and m.term_space.delays == (1, 0)
+    r = cli("validate", str(tmp_path / "m.json"), "--data", str(p), "--inputs", "torque,cmd",
+            "--output", "acc")
+    assert r.returncode == 0 and "one-step" in r.stdout, r.stderr
+    r = cli("identify", "--data", str(p), "--inputs", "torque,nope", "--quiet")
+    assert r.returncode == 2 and "no column 'nope' (it has time, torque, cmd, acc)" in r.stderr

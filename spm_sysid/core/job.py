@@ -63,11 +63,14 @@ class JobSettings:
     gap_factor: float = 1.5
 
     @classmethod
-    def from_values(cls, values: Mapping[str, Any]) -> JobSettings:
+    def from_values(cls, values: Mapping[str, Any], inputs: tuple[str, ...] = (),
+                    output: str = "y") -> JobSettings:
         """Checked settings from a mapping of schema names (others are ignored).
 
-        Missing names take the schema's defaults. Raises SettingsError (a
-        ValueError) naming the first invalid setting.
+        Missing names take the schema's defaults; ``nu`` and ``delay`` may be one
+        value per input. ``inputs``/``output`` name the signals (their number fixes
+        the number of inputs). Raises SettingsError (a ValueError) naming the first
+        invalid setting.
         """
         v = defaults(JOB_GROUPS)
         v.update({k: values[k] for k in v if k in values and values[k] is not None})
@@ -80,7 +83,8 @@ class JobSettings:
         except (KeyError, ValueError) as exc:
             raise SettingsError(str(exc).strip("'\"")) from None
         return cls(
-            term_space=TermSpace(**{k: v[k] for k in _TERM_FIELDS}),
+            term_space=TermSpace(**{k: v[k] for k in _TERM_FIELDS}, inputs=tuple(inputs),
+                                 output=output),
             ga=GAConfig(**{k: v[k] for k in _GA_FIELDS}),
             criterion=criterion,
             seed=None if v["seed"] < 0 else v["seed"],

@@ -46,10 +46,18 @@ def _add_data_options(p: argparse.ArgumentParser, bag: bool = True) -> None:
                         "records (no regression row crosses from one to the next)")
     if bag:
         g.add_argument("--bag", metavar="PATH", help="rosbag2 bag (MCAP) to read u, y from")
+        g.add_argument("--inputs", metavar="NAMES", type=lambda t: [c for c in t.split(",") if c],
+                       help="input columns of --data files, by header name or 0-based index "
+                            "(comma-separated; several inputs make a MISO model)")
+        g.add_argument("--output", dest="output_column", metavar="NAME",
+                       help="output column of --data files (default: 'y', else the last)")
         for name in ("input_topic", "input_field", "output_topic", "output_field"):
             s = SETTINGS[name]
             g.add_argument(s.option, dest=name, default=s.default or None,
                            help=f"{s.help} (default {s.default!r})")
+
+
+PER_INPUT = ("nu", "delay")  # one value for all inputs, or a comma list: one per input
 
 
 def _schema_type(name: str):
@@ -57,6 +65,8 @@ def _schema_type(name: str):
     setting = SETTINGS[name]
 
     def convert(text: str):
+        if name in PER_INPUT and "," in text:
+            return tuple(convert(part) for part in text.split(","))
         try:
             value = setting.kind(text) if setting.kind is not bool else text
         except ValueError:
@@ -105,11 +115,14 @@ JOB_TITLES = {
 }
 
 
-def _job_settings(args):
+def _job_settings(args, data=None):
+    """Checked job settings; with ``data``, the signals are named (and counted) from it."""
     from ..core.job import JobSettings
 
+    names = {} if data is None or not data.input_names else {
+        "inputs": data.input_names, "output": data.output_name}
     try:
-        return JobSettings.from_values(vars(args))
+        return JobSettings.from_values(vars(args), **names)
     except (TypeError, ValueError) as exc:
         raise UserError(str(exc)) from None
 
@@ -130,6 +143,8 @@ class Loaded:
     unpaired: int = 0
     info: object = None  # a SegmentInfo when the records were combined
     records: list = None  # [{"source", "samples"}] for data files
+    input_names: tuple = ()
+    output_name: str = "y"
 
     def segment_info(self):
         """The contiguous segments (:class:`~spm_sysid.core.narx.segments.SegmentInfo`)."""
@@ -155,11 +170,12 @@ class Loaded:
         return (None if whole else bounds), data
 
 
-def _load_file(path: str) -> Loaded:
-    d = load_data(path)
+def _load_file(path: str, inputs=None, output=None) -> Loaded:
+    d = load_data(path, inputs, output)
     stamps = None if d.t is None else np.round(d.t * 1e9).astype(np.int64)
     return Loaded(d.u, d.y, path, stamps, d.rejected,
-                  records=[{"source": path, "samples": int(len(d.y))}])
+                  records=[{"source": path, "samples": int(len(d.y))}],
+                  input_names=d.input_names, output_name=d.output_name)
 
 
 def _combine(records: list[Loaded]) -> Loaded:
@@ -177,10 +193,14 @@ def _combine(records: list[Loaded]) -> Loaded:
         start += len(r.y)
     period, source = periods.pop() if len(periods) == 1 else (None, "per record")
     info = SegmentInfo(bounds, period, source, gaps, missing, restarts)
+    if len({(r.input_names, r.output_name, np.ndim(r.u)) for r in records}) > 1:
+        raise UserError("the records differ in their signals (columns); give files of the "
+                        "same layout")
     return Loaded(np.concatenate([r.u for r in records]), np.concatenate([r.y for r in records]),
                   f"{len(records)} records ({', '.join(r.source for r in records)})",
                   rejected=sum(r.rejected for r in records), info=info,
-                  records=[x for r in records for x in r.records])
+                  records=[x for r in records for x in r.records],
+                  input_names=records[0].input_names, output_name=records[0].output_name)
 
 
 def _load(args) -> Loaded:
@@ -196,7 +216,8 @@ def _load(args) -> Loaded:
                       sig.rejected_nonfinite, sig.unpaired)
     if args.data:
         files = args.data if isinstance(args.data, list) else [args.data]
-        loaded = [_load_file(f) for f in files]
+        inputs, output = getattr(args, "inputs", None), getattr(args, "output_column", None)
+        loaded = [_load_file(f, inputs, output) for f in files]
         return loaded[0] if len(loaded) == 1 else _combine(loaded)
     path = find_robot_arm()
     u, y = load_io(path)
@@ -254,6 +275,7 @@ def cmd_identify(args) -> int:
                         "(the estimation fraction of the data)")
     _check_outputs(args)
     data = _load(args)
+    settings = _job_settings(args, data)  # the signals' names and number from the data
     segments = data.segment_info()
     progress = _Progress(settings.ga.generations, not args.quiet)
     try:

@@ -41,7 +41,8 @@ import numpy as np
 from ..errors import DataError
 from ..memory import check_memory
 
-__all__ = ["IOData", "load_data", "load_io", "parse_data_text", "parse_io_text"]
+__all__ = ["IOData", "load_data", "load_io", "parse_columns", "parse_data_text",
+           "parse_io_text"]
 
 
 def _parse_float(token: str, where: str) -> float:
@@ -129,12 +130,16 @@ class IOData:
 
     Attributes
     ----------
-    u, y : ndarray, shape (n,)
+    u : ndarray, shape (n,) or (n, m)
+        One column per input when several were selected.
+    y : ndarray, shape (n,)
     t : ndarray of float, shape (n,), or None
         Row times in seconds when the file has a time column.
     rejected : int
         Rows dropped because u or y was missing, NaN or inf (time column only).
     source : str
+    input_names, output_name : str
+        Signal names from the file's header (empty: unnamed).
     """
 
     u: np.ndarray
@@ -142,6 +147,8 @@ class IOData:
     t: np.ndarray | None = None
     rejected: int = 0
     source: str = ""
+    input_names: tuple[str, ...] = ()
+    output_name: str = "y"
 
 
 def _read_bytes(path: Path) -> bytes:
@@ -170,8 +177,14 @@ def _read_bytes(path: Path) -> bytes:
     return raw
 
 
-def load_data(path: str | os.PathLike) -> IOData:
+def load_data(path: str | os.PathLike, inputs: list[str] | None = None,
+              output: str | None = None) -> IOData:
     """Read a data file into :class:`IOData` (u, y and, for CSV with a time column, t).
+
+    ``inputs`` and ``output`` choose columns by header name (CSV) or by 0-based
+    index (any layout); with them a file may have any number of columns. Without
+    them the two-column layouts of the module docstring apply. Default output
+    with ``inputs`` given: the column named ``y``, else the last one.
 
     Raises
     ------
@@ -187,7 +200,81 @@ def load_data(path: str | os.PathLike) -> IOData:
     except UnicodeDecodeError:
         raise DataError(f"{path} is not a text file (not UTF-8)") from None
     del raw
-    return parse_data_text(text, str(path))
+    if inputs is None and output is None:
+        return parse_data_text(text, str(path))
+    return parse_columns(text, str(path), inputs, output)
+
+
+def parse_columns(text: str, source: str, inputs: list[str] | None,
+                  output: str | None) -> IOData:
+    """Several columns chosen by name or index; see :func:`load_data`."""
+    rows = [ln for ln in text.splitlines() if ln.strip() and ln.lstrip()[0] not in "#%"]
+    if not rows:
+        raise DataError(f"{source}: no data (the file is empty)")
+    sep = "," if "," in rows[0] else None
+    first = [c.strip() for c in (rows[0].split(sep))]
+    header = not all(_is_number(c) for c in first)
+    names = [c.lower() for c in first] if header else None
+    body = rows[1:] if header else rows
+    width = len(first)
+    table = np.full((len(body), width), np.nan)
+    for i, line in enumerate(body):
+        cells = [c.strip() for c in line.split(sep)]
+        if len(cells) != width:
+            raise DataError(f"{source}: row {i + 1 + header} has {len(cells)} columns, "
+                            f"expected {width}")
+        for j, c in enumerate(cells):
+            if c:
+                try:
+                    table[i, j] = float(c)
+                except ValueError:
+                    raise DataError(f"{source}: row {i + 1 + header}: {c!r} is not a "
+                                    "number") from None
+
+    def column(sel: str) -> int:
+        sel = str(sel).strip()
+        if names and sel.lower() in names:
+            return names.index(sel.lower())
+        try:
+            j = int(sel)
+        except ValueError:
+            have = ", ".join(names) if names else f"{width} unnamed columns"
+            raise DataError(f"{source}: no column {sel!r} (it has {have})") from None
+        if not 0 <= j < width:
+            raise DataError(f"{source}: column index {j} outside 0..{width - 1}")
+        return j
+
+    it = next((k for k, n in enumerate(names or []) if n in TIME_COLUMNS), None)
+    iy = column(output) if output is not None else (
+        names.index("y") if names and "y" in names else width - 1)
+    iu = [column(c) for c in inputs] if inputs else [
+        k for k in range(width) if k not in (iy, it)]
+    if not iu or iy in iu or (it is not None and (it in iu or it == iy)):
+        raise DataError(f"{source}: choose distinct input and output columns")
+    t = None
+    rejected = 0
+    data = table
+    if it is not None:  # rows with missing values are dropped and counted (gaps by time)
+        if not np.all(np.isfinite(table[:, it])):
+            raise DataError(f"{source}: the time column has missing or non-numeric values")
+        ok = np.all(np.isfinite(table[:, iu + [iy]]), axis=1)
+        rejected = int((~ok).sum())
+        data = table[ok]
+        t = data[:, it]
+        if np.any(np.diff(t) <= 0):
+            raise DataError(f"{source}: the time column must increase")
+    elif not np.all(np.isfinite(table[:, iu + [iy]])):
+        r = int(np.flatnonzero(~np.all(np.isfinite(table[:, iu + [iy]]), axis=1))[0])
+        raise DataError(f"{source}: row {r + 1 + header} has a missing or non-finite value "
+                        "(add a time column to have such rows dropped as gaps)")
+    u = data[:, iu] if len(iu) > 1 else data[:, iu[0]]
+
+    def label(j: int, default: str) -> str:
+        return names[j] if names and names[j].isidentifier() else default
+
+    in_names = tuple(label(j, f"u{k + 1}" if len(iu) > 1 else "u") for k, j in enumerate(iu))
+    return IOData(np.ascontiguousarray(u), data[:, iy].copy(), t, rejected, source,
+                  in_names, label(iy, "y"))
 
 
 def parse_data_text(text: str, source: str = "<text>") -> IOData:

@@ -128,7 +128,7 @@ class NarxModel:
                 parts.append(f"{'-' if c < 0 else ''}{num}{term}")
             else:
                 parts.append(f" {sign} {num}{term}")
-        return "y(t) = " + ("".join(parts) if parts else "0")
+        return f"{self.term_space.output}(t) = " + ("".join(parts) if parts else "0")
 
     # -- prediction -------------------------------------------------------------------
     def predict(self, u: np.ndarray, y: np.ndarray,
