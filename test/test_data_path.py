@@ -429,3 +429,22 @@ def test_two_inputs_from_a_csv_by_column_name(tmp_path):
     assert r.returncode == 0 and "one-step" in r.stdout, r.stderr
     r = cli("identify", "--data", str(p), "--inputs", "torque,nope", "--quiet")
     assert r.returncode == 2 and "no column 'nope' (it has time, torque, cmd, acc)" in r.stderr
+
+
+def test_propose_lags_finds_the_order_and_degree_of_a_known_system(tmp_path):
+    from spm_sysid.core.narx.orders import propose_orders
+
+    rng = np.random.default_rng(5)
+    n = 1500
+    u = rng.uniform(-1, 1, n)
+    y = np.zeros(n)
+    for t in range(3, n):  # order 3, one quadratic term
+        y[t] = (1.2 * y[t - 1] - 0.6 * y[t - 2] + 0.1 * y[t - 3] + 0.5 * u[t - 1]
+                + 0.2 * u[t - 3] + 0.3 * u[t - 1] * u[t - 2])
+    y += 1e-3 * rng.standard_normal(n)
+    p = propose_orders(u, y, max_order=8, max_degree=3)
+    assert (p.order, p.degree) == (3, 2)
+    np.savetxt(tmp_path / "sys.dat", np.column_stack([u, y]))
+    r = cli("propose-lags", "--data", str(tmp_path / "sys.dat"), "--max-order", "8")
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip().endswith("proposal: --ny 3 --nu 3 --degree 2 --delay 1")

@@ -423,6 +423,23 @@ def cmd_bench(args) -> int:
     return 0
 
 
+def cmd_propose_lags(args) -> int:
+    from ..core.narx.orders import propose_orders
+
+    data = _load(args)
+    if data.segment_info().gaps or len(data.segment_info().bounds) > 1:
+        raise UserError(f"{data.source} has gaps or several records; propose lags on one "
+                        "contiguous record")
+    proposal = propose_orders(data.u, data.y, max_order=args.max_order,
+                              max_degree=args.max_degree, delay=args.delay,
+                              criterion=args.criterion, inputs=data.input_names)
+    print(f"data: {data.source}, {len(data.y)} samples")
+    print(proposal.summary())
+    n, d = proposal.order, proposal.degree
+    print(f"proposal: --ny {n} --nu {n} --degree {d} --delay {args.delay}")
+    return 0
+
+
 def cmd_settings(args) -> int:
     from ..core.settings import node_yaml, settings_table
 
@@ -545,6 +562,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--output-frame", default="robot_arm_tip")
     p.add_argument("--force", action="store_true", help="replace an existing bag")
     p.set_defaults(func=cmd_make_bag)
+
+    p = sub.add_parser("propose-lags", help="propose lags and degree from the data")
+    _add_data_options(p, bag=True)
+    p.add_argument("--max-order", type=int, default=10, help="largest lag order (default 10)")
+    p.add_argument("--max-degree", type=int, default=3, help="largest degree (default 3)")
+    p.add_argument("--delay", type=_schema_type("delay"), default=1,
+                   help="input delay of the candidates (default 1)")
+    p.add_argument("--criterion", choices=("aic", "bic"), default="bic",
+                   help="criterion of both scans (default bic)")
+    p.set_defaults(func=cmd_propose_lags)
 
     p = sub.add_parser("settings", help="every setting: default, allowed values, where")
     p.add_argument("--yaml", action="store_true",
