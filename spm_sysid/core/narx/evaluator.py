@@ -184,11 +184,11 @@ class StructureEvaluator:
             redo = ~bad
         else:
             # First-order error of the Gram path: eps * (||y|| + ||theta_n||)^2 in SSE.
-            # Where that could move a log-SSE criterion by more than 1e-7, use QR.
+            # Where that could move a log-SSE criterion by more than 1e-7, refine.
             err = np.finfo(float).eps * (self._y_norm + np.linalg.norm(theta_n, axis=1)) ** 2
             redo = ~bad & (self.n * err > 1e-7 * sse)
         if redo.any():
-            sse[redo], theta_n[redo] = self._qr_path(idx[redo], valid[redo], kmax)
+            sse[redo], theta_n[redo] = self._refine(idx[redo], kmax, L[redo], theta_n[redo])
         beta = None
         if self.criterion.needs_coefficients:
             beta = np.zeros((B, m))
@@ -200,25 +200,31 @@ class StructureEvaluator:
         sse = np.where(bad, np.nan, sse)
         return sse, beta, bad
 
-    def _qr_path(self, idx, valid, kmax):
-        """SSE and unit-norm coefficients by QR, for accuracy where the Gram path is not.
+    def _refine(self, idx, kmax, L, theta_n, chunk: int = 64):
+        """Accurate SSE and coefficients where the Gram path's SSE is not accurate enough.
 
-        R_aug (from the QR of the unit-norm ``[P y]``) has the same least-squares
-        solutions as ``[P y]`` itself, so each structure's problem shrinks from N
-        rows to ``m + 1`` while keeping QR's backward stability.
+        Corrected semi-normal equations: one step of iterative refinement of the
+        Gram path's coefficients (with its Cholesky factor), then the SSE from the
+        residual itself, whose error is second order in the coefficients' error.
+        The residual is taken on ``R_aug`` (the triangular factor of the unit-norm
+        ``[P y]``: the same least-squares problem in ``min(N, m + 1)`` rows), so a
+        structure of k terms costs O(rows * k) instead of a QR's O(rows * k^2).
         """
-        sub = np.moveaxis(self._r_ext[:, idx], 1, 0)  # (B, m+1, kmax+1)
-        R = np.linalg.qr(sub, mode="r")[:, : kmax + 1, : kmax + 1]
-        Rs = R[:, :kmax, :kmax].copy()
-        z = R[:, :kmax, kmax].copy()
-        pad = ~valid
-        # Padding columns are zero: their diagonal becomes 1 and their right-hand side
-        # 0, so their coefficients are 0; their rows' z entries belong to the residual.
-        sse = (np.where(pad, z, 0.0) ** 2).sum(axis=1) + R[:, kmax, kmax] ** 2
-        Rs[:, np.arange(kmax), np.arange(kmax)] += pad
-        z[pad] = 0.0
-        theta_n = _solve_upper(Rs, z)
-        return sse, theta_n
+        sse = np.empty(len(idx))
+        theta = theta_n.copy()
+        target = self._r_ext[:, self.n_terms]
+        for s0 in range(0, len(idx), chunk):
+            sl = slice(s0, s0 + chunk)
+            A = np.moveaxis(self._r_ext[:, idx[sl, :kmax]], 1, 0)  # (b, rows, kmax)
+            Lk = L[sl, :kmax, :kmax]
+            th = theta[sl]
+            r = target[None, :] - np.einsum("brk,bk->br", A, th)
+            g = np.einsum("brk,br->bk", A, r)
+            th = th + _solve_upper(np.swapaxes(Lk, 1, 2), _solve_lower(Lk, g))
+            r = target[None, :] - np.einsum("brk,bk->br", A, th)
+            sse[sl] = np.einsum("br,br->b", r, r)
+            theta[sl] = th
+        return sse, theta
 
 
 def _solve_upper(R: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -231,6 +237,14 @@ def _solve_upper(R: np.ndarray, b: np.ndarray) -> np.ndarray:
         return np.linalg.solve(R, b[:, :, None])[:, :, 0]
     return np.stack([linalg.solve_triangular(r, v, lower=False, check_finite=False)
                      for r, v in zip(R, b)]) if len(R) else np.empty(b.shape)
+
+
+def _solve_lower(L: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Solve a stack of lower-triangular systems ``L x = b`` (see :func:`_solve_upper`)."""
+    if L.shape[-1] < 32:
+        return np.linalg.solve(L, b[:, :, None])[:, :, 0]
+    return np.stack([linalg.solve_triangular(m, v, lower=True, check_finite=False)
+                     for m, v in zip(L, b)]) if len(L) else np.empty(b.shape)
 
 
 def _batched_cholesky(mats: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
