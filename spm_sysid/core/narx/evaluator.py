@@ -247,12 +247,25 @@ def _solve_lower(L: np.ndarray, b: np.ndarray) -> np.ndarray:
                      for m, v in zip(L, b)]) if len(L) else np.empty(b.shape)
 
 
+try:  # numpy's batched Cholesky without the raise (one bad matrix must not cost a loop)
+    from numpy.linalg._umath_linalg import cholesky_lo as _cholesky_lo
+except ImportError:  # pragma: no cover - another numpy layout: the loop below is used
+    _cholesky_lo = None
+
+
 def _batched_cholesky(mats: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Lower Cholesky factors of a stack, and which ones failed.
 
     Matrices that are not positive definite are factorised as identity and flagged
     instead of failing the whole batch.
     """
+    if _cholesky_lo is not None:  # numpy's own gufunc: NaN marks a failed matrix
+        with np.errstate(invalid="ignore"):
+            out = _cholesky_lo(mats, signature="d->d")
+        failed = np.isnan(out).any(axis=(1, 2))
+        if failed.any():
+            out[failed] = np.eye(mats.shape[-1])
+        return out, failed
     try:
         return np.linalg.cholesky(mats), np.zeros(len(mats), dtype=bool)
     except np.linalg.LinAlgError:
