@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 # ROS traffic stays on this machine; each target picks its own domain.
 export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
 
-.PHONY: setup run identify test lint bench bench-node bag experiment report clean
+.PHONY: setup run identify test lint bench bench-sizes bench-node bag experiment report clean
 
 $(STAMP): setup.py package.xml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -34,6 +34,11 @@ lint: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/spm-sysid bench
+
+## GA time and memory against term-space size and samples, with the FastCan baseline.
+bench-sizes: $(STAMP)
+	$(BIN)/python -m pip install --quiet '.[bench]'
+	$(BIN)/spm-sysid bench-sizes --fastcan
 
 bag: $(STAMP)
 	$(BIN)/spm-sysid make-bag --output bags/robot_arm --force

@@ -33,6 +33,8 @@ setup(
             "ros-jazzy-common-interfaces",
             "ros-jazzy-std-srvs",
         ],
+        # benchmark-only: the forward-selection baseline of `spm-sysid bench-sizes --fastcan`
+        "bench": ["fastcan>=0.4"],
         "test": [
             "pytest>=7",
             "pytest-timeout>=2.1",

@@ -423,6 +423,12 @@ def cmd_bench(args) -> int:
     return 0
 
 
+def cmd_bench_sizes(args) -> int:
+    from .bench_sizes import main as bench_sizes
+
+    return bench_sizes(args.rest)
+
+
 def cmd_propose_lags(args) -> int:
     from ..core.narx.orders import propose_orders
 
@@ -562,6 +568,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--output-frame", default="robot_arm_tip")
     p.add_argument("--force", action="store_true", help="replace an existing bag")
     p.set_defaults(func=cmd_make_bag)
+
+    p = sub.add_parser("bench-sizes", add_help=False,
+                       help="GA time and memory against term-space size and samples")
+    p.add_argument("rest", nargs=argparse.REMAINDER)
+    p.set_defaults(func=cmd_bench_sizes)
 
     p = sub.add_parser("propose-lags", help="propose lags and degree from the data")
     _add_data_options(p, bag=True)
