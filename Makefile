@@ -37,7 +37,7 @@ bench: $(STAMP)
 
 ## GA time and memory against term-space size and samples, with the FastCan baseline.
 bench-sizes: $(STAMP)
-	$(BIN)/python -m pip install --quiet '.[bench]'
+	$(BIN)/python -m pip install --quiet -e '.[bench]'
 	$(BIN)/spm-sysid bench-sizes --fastcan
 
 bag: $(STAMP)

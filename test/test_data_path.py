@@ -448,3 +448,21 @@ def test_propose_lags_finds_the_order_and_degree_of_a_known_system(tmp_path):
     r = cli("propose-lags", "--data", str(tmp_path / "sys.dat"), "--max-order", "8")
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip().endswith("proposal: --ny 3 --nu 3 --degree 2 --delay 1")
+
+
+def test_large_term_spaces_run_to_the_end_and_too_large_is_refused(robot_arm, monkeypatch):
+    from spm_sysid.core.errors import MemoryLimitError
+
+    u, y = robot_arm
+    short = GAConfig(population_size=20, generations=3)
+    for ny, degree, n_terms in ((6, 3, 454), (10, 3, 1770)):
+        space = TermSpace(ny=ny, nu=ny, degree=degree)
+        assert space.n_terms == n_terms
+        res = identify(u=u, y=y, term_space=space, criterion="bic", seed=1, ga=short)
+        assert len(res.ga.history) == 4 and np.isfinite(res.ga.best_score)
+        # about init_terms (22) terms per initial structure, not half of all;
+        # at most 0.44 expected mutations per child
+        assert short.rates(n_terms) == pytest.approx((22 / n_terms, 0.44 / n_terms))
+    monkeypatch.setenv("SPM_SYSID_MAX_MEMORY", "20M")
+    with pytest.raises(MemoryLimitError, match="1770 candidate terms would need about"):
+        identify(u=u, y=y, term_space=TermSpace(ny=10, nu=10, degree=3), ga=short)

@@ -7,7 +7,7 @@
 the generations done (marked ``~``). Rows:
 
 * term spaces on the robot-arm data: 44 (paper), 164 (degree 3), 454 (6 lags,
-  degree 3), 968 (8 lags, degree 3), 1 771 (10 lags, degree 3);
+  degree 3), 968 (8 lags, degree 3), 1 770 (10 lags, degree 3);
 * samples on the paper's space: 1 k, 10 k, 100 k samples of a synthetic NARX
   system (the robot-arm record has only 1 024).
 
@@ -28,7 +28,7 @@ import time
 
 import numpy as np
 
-__all__ = ["main"]
+__all__ = ["add_options", "main", "run"]
 
 SPACES = [(4, 4, 2), (4, 4, 3), (6, 6, 3), (8, 8, 3), (10, 10, 3)]
 SAMPLES = [1_000, 10_000, 100_000]
@@ -93,21 +93,31 @@ def _fastcan(space, u, y, criterion) -> dict:
     return {"value": best, "model_terms": best_k, "seconds": time.perf_counter() - t0}
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Entry of ``spm-sysid bench-sizes`` (and of each cell's process)."""
-    import argparse
-
-    p = argparse.ArgumentParser(prog="spm-sysid bench-sizes")
+def add_options(p) -> None:
+    """The command's options (``spm-sysid bench-sizes --help``)."""
     p.add_argument("--budget", type=float, default=60.0,
                    help="seconds per cell before extrapolating (default 60)")
     p.add_argument("--criterion", default="bic", choices=("aic", "bic"))
     p.add_argument("--fastcan", action="store_true", help="compare with FastCan")
     p.add_argument("--max-terms", type=int, default=2000, help="skip larger spaces")
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry of each cell's process (``--cell JSON``) and of a direct run."""
+    import argparse
+
+    p = argparse.ArgumentParser(prog="spm-sysid bench-sizes")
+    add_options(p)
     p.add_argument("--cell", help=argparse.SUPPRESS)  # internal: one cell, JSON
     args = p.parse_args(argv)
     if args.cell:
         print(json.dumps(_cell(json.loads(args.cell))))
         return 0
+    return run(args)
+
+
+def run(args) -> int:
+    """Print the table."""
     print(f"GA run time and peak memory (population 200, 300 generations, SPM 0.15, "
           f"{args.criterion.upper()}, one BLAS thread, budget {args.budget:g} s per cell)")
     print(f"{'data':<12} {'terms':>6} {'samples':>8} {'s/run':>9} {'peak MB':>8} "

@@ -424,9 +424,9 @@ def cmd_bench(args) -> int:
 
 
 def cmd_bench_sizes(args) -> int:
-    from .bench_sizes import main as bench_sizes
+    from .bench_sizes import run
 
-    return bench_sizes(args.rest)
+    return run(args)
 
 
 def cmd_propose_lags(args) -> int:
@@ -569,9 +569,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="replace an existing bag")
     p.set_defaults(func=cmd_make_bag)
 
-    p = sub.add_parser("bench-sizes", add_help=False,
+    from .bench_sizes import add_options as bench_sizes_options
+
+    p = sub.add_parser("bench-sizes",
                        help="GA time and memory against term-space size and samples")
-    p.add_argument("rest", nargs=argparse.REMAINDER)
+    bench_sizes_options(p)
     p.set_defaults(func=cmd_bench_sizes)
 
     p = sub.add_parser("propose-lags", help="propose lags and degree from the data")

@@ -35,6 +35,10 @@ class IdentificationResult:
 
 
 
+#: In larger term spaces the data need rows for structures of this many terms only.
+LARGE_SPACE = 100
+
+
 def check_samples(n_samples: int, max_lag: int, n_terms: int = 1) -> None:
     """Raise DataError when there are too few samples to fit with these lags.
 
@@ -75,16 +79,19 @@ def validate_signals(u, y, term_space: TermSpace,
                 f"{name} has {bad.size} non-finite value(s) (NaN or inf), first at index "
                 f"{bad[0]}"
             )
+    # Rows for the largest structure of the space -- or, in spaces of more than
+    # LARGE_SPACE terms, for structures of LARGE_SPACE terms: larger ones simply cannot
+    # be fitted on this data (rank-deficient, never selected).
+    need = min(term_space.n_terms, LARGE_SPACE)
     if segments is None:
-        check_samples(len(y), term_space.max_lag, term_space.n_terms)
+        check_samples(len(y), term_space.max_lag, need)
     else:
         rows = sum(b - a - term_space.max_lag for a, b in segments)
-        if rows <= term_space.n_terms:
+        if rows <= need:
             raise DataError(
                 f"too few samples: {len(segments)} segment(s) longer than the largest lag "
                 f"({term_space.max_lag}) give {max(rows, 0)} regression rows, but "
-                f"{term_space.n_terms + 1} or more are needed for {term_space.n_terms} "
-                "candidate terms")
+                f"{need + 1} or more are needed for {term_space.n_terms} candidate terms")
     return u, y
 
 
