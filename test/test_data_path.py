@@ -186,6 +186,14 @@ def test_failed_or_invalid_make_bag_leaves_the_old_bag(tmp_path, robot_arm):
     assert r.returncode == 0, r.stderr
     assert read_bag_signals(bag).stamps_ns[1] == 20_000_000
     assert sorted(p.name for p in tmp_path.iterdir()) == ["arm"]
+    # every file name inside the bag is the final one (metadata.yaml and MCAP's record)
+    from mcap.reader import make_reader
+
+    assert sorted(p.name for p in bag.iterdir()) == ["arm.mcap", "metadata.yaml"]
+    with (bag / "arm.mcap").open("rb") as f:
+        embedded = next(make_reader(f).iter_metadata()).metadata["serialized_metadata"]
+    assert "- arm.mcap" in embedded and "partial" not in embedded
+    assert "- arm.mcap" in (bag / "metadata.yaml").read_text()
 
 
 def test_a_flipped_byte_anywhere_in_a_bag_is_an_error(tmp_path, robot_arm):

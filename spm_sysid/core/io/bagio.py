@@ -204,9 +204,13 @@ def write_io_bag(
             raise BagError(f"{path} exists and is not a rosbag2 bag (no rosbag2 metadata.yaml);"
                            " refusing to replace it, nothing was changed")
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.parent / f".{path.name}.partial-{os.getpid()}"
-    if tmp.exists():
-        shutil.rmtree(tmp)
+    # written as STAGE/NAME, so every file name inside (metadata.yaml and the rosbag2
+    # record in the MCAP file) is already the final one; then moved into place
+    stage = path.parent / f".{path.name}.partial-{os.getpid()}"
+    if stage.exists():
+        shutil.rmtree(stage)
+    stage.mkdir()
+    tmp = stage / path.name
 
     store = typestore()
     types = store.types
@@ -239,12 +243,8 @@ def write_io_bag(
                 )
                 writer.write(c_in, t_ns, store.serialize_cdr(w, INPUT_TYPE))
                 writer.write(c_out, t_ns, store.serialize_cdr(a, OUTPUT_TYPE))
-        # rosbags names the file after the directory: rename it after the destination
-        (tmp / f"{tmp.name}.mcap").rename(tmp / f"{path.name}.mcap")
-        meta = tmp / "metadata.yaml"
-        meta.write_text(meta.read_text().replace(f"{tmp.name}.mcap", f"{path.name}.mcap"))
     except BaseException as exc:
-        shutil.rmtree(tmp, ignore_errors=True)
+        shutil.rmtree(stage, ignore_errors=True)
         if isinstance(exc, (OSError, ValueError)) and not isinstance(exc, BagError):
             raise BagError(f"could not write the bag {path}: {exc}") from None
         raise
@@ -255,6 +255,7 @@ def write_io_bag(
         shutil.rmtree(old, ignore_errors=True)
     else:
         tmp.rename(path)
+    stage.rmdir()
     return path
 
 
