@@ -24,7 +24,12 @@ from .narx.identify import identify
 from .narx.model import NarxModel
 from .narx.segments import SegmentInfo, describe_data, find_segments, segment_report
 from .narx.terms import TermSpace
-from .narx.validation import ValidationReport, split_segments, validate_model
+from .narx.validation import (
+    ValidationReport,
+    check_correlation_lags,
+    split_segments,
+    validate_model,
+)
 from .settings import JOB_GROUPS, check, defaults
 
 __all__ = ["JobResult", "JobSettings", "run_job"]
@@ -231,10 +236,8 @@ def run_job(
     if settings.validation == "holdout":
         est, val = split_segments(bounds, len(y), settings.validation_split, space.max_lag)
     if settings.validation != "none":
-        rows = sum(b - a - space.max_lag for a, b in (val or [(0, len(y))]))
-        if not 1 <= settings.correlation_lags < rows:
-            raise SettingsError(f"correlation_lags must be between 1 and {rows - 1} for "
-                                f"{rows} validation rows, got {settings.correlation_lags}")
+        check_correlation_lags(settings.correlation_lags,
+                               sum(b - a - space.max_lag for a, b in (val or [(0, len(y))])))
 
     def callback(stats):
         if progress is not None and (stats.generation % progress_every == 0

@@ -125,8 +125,9 @@ class SysidNode(Node):
             raise ValueError(str(exc)) from None
 
     def _check(self, values: dict) -> JobSettings:
-        for name, value in values.items():
-            check(name, value)
+        for s in node_settings():  # the job's own settings are checked by JobSettings
+            if s.group == "node":
+                check(s.name, values[s.name])
         if values["model_path"]:
             check_writable_file(values["model_path"], "model_path")
         return JobSettings.from_values(values)
@@ -288,8 +289,8 @@ class SysidNode(Node):
         if not os.path.isfile(path):
             return
         try:
-            NarxModel.load(path)  # checks the document
             doc = json.loads(Path(path).read_text())  # as saved, with its 'created' stamp
+            NarxModel.from_dict(doc)  # checks the document
         except (ModelFormatError, OSError, ValueError) as exc:
             self.get_logger().warning(f"model_path {path} holds no readable model ({exc}); "
                                       "nothing re-published")

@@ -258,9 +258,13 @@ def _check_outputs(args) -> None:
 
 
 def _check_corr_lags(corr_lags: int, rows: int) -> None:
-    if not 1 <= corr_lags < rows:
-        raise UserError(f"--correlation-lags must be between 1 and {rows - 1} for {rows} "
-                        f"validation rows, got {corr_lags}")
+    """The validation rule, named as the option (before any work)."""
+    from ..core.narx.validation import check_correlation_lags
+
+    try:
+        check_correlation_lags(corr_lags, rows)
+    except SettingsError as exc:
+        raise UserError(str(exc).replace("correlation_lags", "--correlation-lags")) from None
 
 
 def cmd_identify(args) -> int:

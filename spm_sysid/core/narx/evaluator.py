@@ -179,7 +179,8 @@ class StructureEvaluator:
         bad |= failed | (pivots < self.rank_tol).any(axis=1)
         sse = diag[:, kmax] ** 2
         # Gram = L L^T with L = [[Ls, 0], [z^T, sqrt(SSE)]], so Ls^T theta_n = z.
-        theta_n = _solve_upper(np.swapaxes(L[:, :kmax, :kmax], 1, 2), L[:, kmax, :kmax])
+        theta_n = _solve_triangular(np.swapaxes(L[:, :kmax, :kmax], 1, 2), L[:, kmax, :kmax],
+                                    lower=False)
         if self.criterion.needs_coefficients:
             redo = ~bad
         else:
@@ -220,31 +221,24 @@ class StructureEvaluator:
             th = theta[sl]
             r = target[None, :] - np.einsum("brk,bk->br", A, th)
             g = np.einsum("brk,br->bk", A, r)
-            th = th + _solve_upper(np.swapaxes(Lk, 1, 2), _solve_lower(Lk, g))
+            th = th + _solve_triangular(np.swapaxes(Lk, 1, 2),
+                                        _solve_triangular(Lk, g, lower=True), lower=False)
             r = target[None, :] - np.einsum("brk,bk->br", A, th)
             sse[sl] = np.einsum("br,br->b", r, r)
             theta[sl] = th
         return sse, theta
 
 
-def _solve_upper(R: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Solve a stack of upper-triangular systems ``R x = b``; shapes (B, k, k), (B, k).
+def _solve_triangular(T: np.ndarray, b: np.ndarray, lower: bool) -> np.ndarray:
+    """Solve a stack of triangular systems ``T x = b``; shapes (B, k, k), (B, k).
 
     Small systems go to numpy's batched solver in one call; from 32 unknowns on,
-    back substitution (scipy, one call per matrix) is cheaper than the LU it does.
+    substitution (scipy, one call per matrix) is cheaper than the LU it does.
     """
-    if R.shape[-1] < 32:
-        return np.linalg.solve(R, b[:, :, None])[:, :, 0]
-    return np.stack([linalg.solve_triangular(r, v, lower=False, check_finite=False)
-                     for r, v in zip(R, b)]) if len(R) else np.empty(b.shape)
-
-
-def _solve_lower(L: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Solve a stack of lower-triangular systems ``L x = b`` (see :func:`_solve_upper`)."""
-    if L.shape[-1] < 32:
-        return np.linalg.solve(L, b[:, :, None])[:, :, 0]
-    return np.stack([linalg.solve_triangular(m, v, lower=True, check_finite=False)
-                     for m, v in zip(L, b)]) if len(L) else np.empty(b.shape)
+    if T.shape[-1] < 32:
+        return np.linalg.solve(T, b[:, :, None])[:, :, 0]
+    return np.stack([linalg.solve_triangular(t, v, lower=lower, check_finite=False)
+                     for t, v in zip(T, b)]) if len(T) else np.empty(b.shape)
 
 
 try:  # numpy's batched Cholesky without the raise (one bad matrix must not cost a loop)

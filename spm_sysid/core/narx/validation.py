@@ -12,11 +12,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import DataError
+from ..errors import DataError, SettingsError
 from .correlation import CorrelationTest, correlation_tests
 from .model import NarxModel
 
-__all__ = ["ValidationReport", "metrics", "split_data", "split_segments", "validate_model"]
+__all__ = ["ValidationReport", "metrics", "split_data", "split_segments", "validate_model",
+           "check_correlation_lags"]
 
 
 def metrics(y: np.ndarray, yhat: np.ndarray) -> dict[str, float]:
@@ -135,6 +136,13 @@ def split_segments(bounds: list[tuple[int, int]], n: int, fraction: float, max_l
         raise DataError(f"cannot split {n} samples at {fraction:g}: a part would have no "
                         "segment longer than the largest lag")
     return est, val
+
+
+def check_correlation_lags(lags: int, rows: int) -> None:
+    """Raise SettingsError unless 1 <= ``lags`` < ``rows`` (the validation rows)."""
+    if not 1 <= lags < rows:
+        raise SettingsError(f"correlation_lags must be between 1 and {rows - 1} for {rows} "
+                            f"validation rows, got {lags}")
 
 
 def validate_model(
