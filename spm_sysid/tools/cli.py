@@ -295,10 +295,12 @@ def cmd_identify(args) -> int:
     model = result.model
     print(f"data: {data.source}, {result.estimation_samples} samples used for estimation")
     account = result.data
-    if account["segments"] > 1 or account["gaps"] or account["rejected_samples"] \
-            or account["unpaired_samples"]:
+    if account["gaps"] or account["rejected_samples"] or account["unpaired_samples"]:
         print(f"note: the data has gaps; used {describe_data(account)}; no regression row "
               "crosses a gap")
+    elif account["segments"] > 1:  # several records, or stamps that went back
+        print(f"note: the data comes in {account['segments']} parts (records or restarts); "
+              f"used {describe_data(account)}; no regression row crosses from one to the next")
     excluded = model.metadata.get("excluded_zero_terms")
     if excluded:
         print(f"note: {len(excluded)} candidate term(s) are zero on this data and were left "
