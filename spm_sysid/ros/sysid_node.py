@@ -45,6 +45,9 @@ from .common import LATCHED, RELIABLE_KEEP_ALL, message_class, run_node
 
 __all__ = ["LATCHED", "SysidNode", "main", "parameter_descriptor"]
 
+#: Graph checks (1 s apart) to wait for discovery to name a publisher of a wrong type.
+UNNAMED_CHECKS = 10
+
 
 def parameter_descriptor(s: Setting) -> ParameterDescriptor:
     """A node parameter's descriptor from its setting (range, read-only, description)."""
@@ -105,6 +108,7 @@ class SysidNode(Node):
         self._last_error: str | None = None
         self._field_errors = 0
         self._type_mismatch: dict[tuple[str, str], str] = {}
+        self._unnamed_checks = 0
         self._logged = {"rejected_out_of_order": 0, "time_jumps": 0}
         self.worker = JobWorker("spm_sysid.core.job:run_job", on_progress=self._on_progress,
                                 on_event=self.get_logger().info)
@@ -167,8 +171,14 @@ class SysidNode(Node):
         """
         for role, (topic, expected) in self._topics.items():
             for info in self.get_publishers_info_by_topic(topic):
+                if info.topic_type == expected:
+                    continue
+                if "UNKNOWN" in info.node_name and self._unnamed_checks < UNNAMED_CHECKS:
+                    # Discovery has seen the endpoint but not yet its node: name it later.
+                    self._unnamed_checks += 1
+                    continue
                 key = (topic, f"{info.node_namespace.rstrip('/')}/{info.node_name}")
-                if info.topic_type != expected and key not in self._type_mismatch:
+                if key not in self._type_mismatch:
                     self._type_mismatch[key] = (
                         f"{key[1]} publishes {topic} as {info.topic_type}, but the {role} is "
                         f"read as {expected}: its messages are not received (set "
