@@ -25,6 +25,7 @@ setup(
         "mcap-ros2-support>=0.5",
         "tqdm>=4.60",
         "pyyaml>=6.0",
+        "numba>=0.59",
     ],
     extras_require={
         # ROS 2 Jazzy from PyPI for machines without a ROS install (see README).

@@ -137,3 +137,30 @@ def test_replayed_timeline_becomes_a_new_segment():
     assert len(u) == 100 and b.stats.time_jumps == 2  # each stream jumped once
     info = find_segments(st)
     assert info.bounds == [(0, 50), (50, 100)] and info.restarts == 1 and info.gaps == 0
+
+
+def test_several_input_streams_align_with_the_output():
+    # stream 0 carries two inputs (e.g. two joint efforts), stream 1 one more
+    b = SampleBuffer(100, tolerance_ns=5, input_widths=(2, 1))
+    for k in range(6):
+        b.add_input(k * 100, (k, 10 * k), stream=0)
+        b.add_output(k * 100 + 2, -k)
+    for k in range(6):  # the second input topic lags behind: nothing is lost meanwhile
+        if k != 3:      # ... and loses one message: that sample cannot be aligned
+            b.add_input(k * 100 + 4, 100 * k, stream=1)
+    st, u, y = b.snapshot()
+    assert u.shape == (5, 3)
+    assert u.tolist() == [[k, 10 * k, 100 * k] for k in (0, 1, 2, 4, 5)]
+    assert y.tolist() == [0, -1, -2, -4, -5]
+    assert st.tolist() == [4, 104, 204, 404, 504]  # the latest stamp of each sample
+    s = b.stats
+    assert s.unpaired_inputs == 1 and s.unpaired_outputs == 1  # sample 3's others
+    assert s.received_inputs == 11 and s.pending_inputs == s.pending_outputs == 0
+
+
+def test_a_stream_of_the_wrong_width_is_an_error():
+    b = SampleBuffer(10, input_widths=(2,))
+    with pytest.raises(ValueError, match="carries 2 value"):
+        b.add_input(0, 1.0)
+    with pytest.raises(ValueError, match="input_widths"):
+        SampleBuffer(10, input_widths=())

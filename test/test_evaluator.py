@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from spm_sysid.core.narx.evaluator import StructureEvaluator, structure_keys
+from spm_sysid.core.narx.evaluator import StructureEvaluator, size_groups, structure_keys
+from spm_sysid.core.narx.kernels import HAVE_NUMBA
 from spm_sysid.core.narx.lstsq import reference_fit, reference_score
 from spm_sysid.core.narx.terms import TermSpace
 from spm_sysid.tools.bench import NaiveEvaluator
@@ -58,12 +59,21 @@ def test_reference_fit_equals_independent_lstsq(arm_problem):
     assert fit.sse == pytest.approx(sse, rel=1e-10)
 
 
+PATHS = pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "numpy"])
+
+
+def test_the_compiled_kernel_is_used_here():
+    assert HAVE_NUMBA, "numba is a dependency; the compiled path must be what runs"
+    assert StructureEvaluator(np.eye(3), np.ones(3)).compiled
+
+
+@PATHS
 @pytest.mark.parametrize("criterion", ["aic", "bic", "pmic2"])
-def test_fast_path_agrees_with_reference_fit(arm_problem, criterion):
+def test_fast_path_agrees_with_reference_fit(arm_problem, criterion, compiled):
     ts, P, t = arm_problem
     rng = np.random.default_rng(11)
     masks = rng.random((300, 44)) < rng.uniform(0.05, 0.95, size=(300, 1))
-    fast = StructureEvaluator(P, t, criterion).evaluate(masks)
+    fast = StructureEvaluator(P, t, criterion, compiled=compiled).evaluate(masks)
     ref = np.array([reference_score(P, t, m, criterion) for m in masks])
     assert np.array_equal(np.isfinite(fast), np.isfinite(ref))
     finite = np.isfinite(ref)
@@ -71,7 +81,8 @@ def test_fast_path_agrees_with_reference_fit(arm_problem, criterion):
     assert np.max(np.abs(fast[finite] - ref[finite])) < 1e-6
 
 
-def test_rank_deficient_and_empty_structures_get_the_worst_score():
+@PATHS
+def test_rank_deficient_and_empty_structures_get_the_worst_score(compiled):
     # y(t) = u(t-1) exactly, so the column y(t-1) equals u(t-2): dependent regressors.
     rng = np.random.default_rng(5)
     u = rng.normal(size=200)
@@ -82,7 +93,7 @@ def test_rank_deficient_and_empty_structures_get_the_worst_score():
     fine = _mask(ts, ["u(t-1)"])
     empty = np.zeros(ts.n_terms, dtype=bool)
     for crit in ("aic", "pmic2"):
-        ev = StructureEvaluator(P, t, crit)
+        ev = StructureEvaluator(P, t, crit, compiled=compiled)
         scores = ev.score(np.array([dependent, fine, empty]))
         assert scores[0] == np.inf and scores[2] == np.inf
         # fine is an exact fit: finite (clamped), and the best possible
@@ -92,18 +103,20 @@ def test_rank_deficient_and_empty_structures_get_the_worst_score():
     assert reference_fit(P, t, dependent).rank_deficient
 
 
-def test_zero_column_is_rank_deficient_not_a_crash():
+@PATHS
+def test_zero_column_is_rank_deficient_not_a_crash(compiled):
     rng = np.random.default_rng(2)
     u = np.zeros(100)
     y = rng.normal(size=100)
     ts = TermSpace(ny=2, nu=2, degree=1)
     P, t = ts.regression_matrix(u, y), ts.target(y)
-    ev = StructureEvaluator(P, t, "aic")
+    ev = StructureEvaluator(P, t, "aic", compiled=compiled)
     scores = ev.score(np.array([[True, False, True, False], [True, True, False, False]]))
     assert scores[0] == np.inf and np.isfinite(scores[1])
 
 
-def test_ill_conditioned_structures_keep_the_reference_score():
+@PATHS
+def test_ill_conditioned_structures_keep_the_reference_score(compiled):
     # strongly collinear but independent regressors: a slowly varying output
     rng = np.random.default_rng(9)
     u = rng.normal(size=500)
@@ -113,7 +126,7 @@ def test_ill_conditioned_structures_keep_the_reference_score():
     ts = TermSpace(ny=4, nu=2, degree=1)
     P, t = ts.regression_matrix(u, y), ts.target(y)
     masks = np.array([[1, 1, 1, 1, 1, 1], [1, 1, 0, 0, 1, 0], [1, 1, 1, 0, 1, 1]], dtype=bool)
-    fast = StructureEvaluator(P, t, "aic").evaluate(masks)
+    fast = StructureEvaluator(P, t, "aic", compiled=compiled).evaluate(masks)
     ref = np.array([reference_score(P, t, m, "aic") for m in masks])
     assert np.allclose(fast, ref, atol=1e-6, rtol=0)
 
@@ -143,3 +156,11 @@ def test_structure_keys_are_unique_bit_patterns():
     big[0, 1999] = big[1, 1998] = True
     k = structure_keys(big).tolist()
     assert k[0] != k[1] and int.from_bytes(k[0], "little") == 1 << 1999
+
+
+def test_size_groups_cover_every_row_once_with_bounded_padding():
+    k = np.array([3, 300, 40, 41, 5, 299, 0, 120])
+    groups = size_groups(k)
+    assert sorted(np.concatenate(groups).tolist()) == list(range(len(k)))
+    for g in groups:
+        assert k[g].max() <= 1.25 * k[g].min() + 4

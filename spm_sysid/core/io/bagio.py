@@ -36,6 +36,7 @@ import os
 import shutil
 import struct
 import zlib
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -44,6 +45,7 @@ import numpy as np
 from ..errors import BagError, FieldPathError
 from ..settings import SETTINGS
 from ..stream.buffer import pair_streams
+from .channels import parse_channels, stream_order, topic_streams
 from .fields import default_field, extract, message_stamp_ns, parse_path
 
 __all__ = [
@@ -271,12 +273,13 @@ class BagSignals:
     topics: dict[str, str] = field(default_factory=dict)
     rejected_nonfinite: int = 0
     crc_checked: bool = False
+    input_names: tuple[str, ...] = ("u",)
 
     @property
     def unpaired(self) -> int:
-        """Finite messages on either topic without a partner."""
+        """Finite messages on any topic that are not part of an aligned sample."""
         return (self.input_count + self.output_count - self.rejected_nonfinite
-                - 2 * len(self.u))
+                - len(self.topics) * len(self.u))
 
 
 _MAGIC = b"\x89MCAP0\r\n"
@@ -359,17 +362,22 @@ def open_bag(path: Path, verify: bool = True):
 def read_bag_signals(
     path: str | Path,
     *,
-    input_topic: str = DEFAULT_INPUT_TOPIC,
+    input_topic: str | Sequence[str] = DEFAULT_INPUT_TOPIC,
     output_topic: str = DEFAULT_OUTPUT_TOPIC,
-    input_field: str | None = None,
+    input_field: str | Sequence[str] | None = None,
     output_field: str | None = None,
+    input_names: str | Sequence[str] | None = None,
     tolerance_ns: int | None = None,
 ) -> BagSignals:
-    """Read u and y from two topics of a bag, paired by header stamp as the node pairs.
+    """Read the inputs and y from topics of a bag, aligned by header stamp as the node does.
 
+    Several inputs: ``input_topic``, ``input_field`` and ``input_names`` are
+    comma-separated lists (one entry for all inputs, or one per input; see
+    :func:`spm_sysid.core.io.channels.parse_channels`), e.g. one
+    ``sensor_msgs/msg/JointState`` topic with fields ``effort[0],effort[1]``.
     Messages without a header are stamped with their log time. Fields default by
     message type (see :data:`spm_sysid.core.io.fields.DEFAULT_FIELDS`). Messages
-    go through the node's pairing rule in log-time order
+    go through the node's alignment rule in log-time order
     (:func:`spm_sysid.core.stream.buffer.pair_streams`; ``tolerance_ns`` defaults to
     the node's ``stamp_tolerance``): NaN/inf values are rejected and counted, stamps
     that go back start a new segment, and the holes show in the stamps
@@ -379,48 +387,64 @@ def read_bag_signals(
     ------
     BagError
         Missing or damaged bag (CRC mismatch), missing topic, unsupported type or
-        bad field path, or no pairs.
+        bad field path, inconsistent input lists, or no aligned samples.
     """
     if tolerance_ns is None:
         tolerance_ns = int(round(SETTINGS["stamp_tolerance"].default * 1e9))
+    try:
+        channels = parse_channels(input_topic, input_field, None, input_names)
+    except ValueError as exc:
+        raise BagError(str(exc)) from None
+    groups = topic_streams(channels)
     path = Path(path)
     reader = open_bag(path)
     crc_checked = reader.crc_checked
     try:
         conns = {c.topic: c for c in reader.connections}
-        for topic in (input_topic, output_topic):
+        for topic in [g[0] for g in groups] + [output_topic]:
             if topic not in conns:
                 raise BagError(
                     f"{path} has no topic {topic}; it has: {', '.join(sorted(conns)) or 'none'}"
                 )
-        steps, streams = {}, {input_topic: "u", output_topic: "y"}
-        for topic, fpath in ((input_topic, input_field), (output_topic, output_field)):
-            try:
-                steps[topic] = parse_path(fpath or default_field(conns[topic].msgtype))
-            except FieldPathError as exc:
-                raise BagError(f"topic {topic} ({conns[topic].msgtype}): {exc}") from None
+        if output_topic in {g[0] for g in groups}:
+            raise BagError(f"{output_topic} is given as both an input and the output topic")
+        # stream: "y", or the index of the input topic; steps: one field path per value
+        streams: dict[str, tuple[str | int, list]] = {}
+        try:
+            for i, (topic, _, idx) in enumerate(groups):
+                msgtype = conns[topic].msgtype
+                streams[topic] = (i, [parse_path(channels[j].field or default_field(msgtype))
+                                      for j in idx])
+            streams[output_topic] = ("y", [parse_path(
+                output_field or default_field(conns[output_topic].msgtype))])
+        except FieldPathError as exc:
+            raise BagError(f"topic {topic} ({conns[topic].msgtype}): {exc}") from None
         events = []
         try:
-            for c, log_ns, raw in reader.messages(connections=[conns[input_topic],
-                                                               conns[output_topic]]):
+            for c, log_ns, raw in reader.messages(connections=[conns[t] for t in streams]):
                 msg = reader.deserialize(raw, c.msgtype)
                 st = message_stamp_ns(msg)
-                events.append((streams[c.topic], log_ns if st is None else st,
-                               extract(msg, steps[c.topic])))
+                stream, steps = streams[c.topic]
+                values = [extract(msg, s) for s in steps]
+                events.append((stream, log_ns if st is None else st,
+                               values[0] if stream == "y" else values))
         except FieldPathError as exc:
             raise BagError(f"topic {c.topic} has type {c.msgtype}: {exc}") from None
         except Exception as exc:
             raise BagError(f"cannot read messages from {path}: {exc}") from None
     finally:
         reader.close()
-    stamps, u, y, stats = pair_streams(events, tolerance_ns)
+    stamps, u, y, stats = pair_streams(events, tolerance_ns,
+                                       input_widths=[len(g[2]) for g in groups])
     if len(u) == 0:
         raise BagError(f"{path}: no input and output messages with matching stamps "
                        f"(tolerance {tolerance_ns} ns)")
+    if u.ndim == 2:  # the buffer numbers inputs topic by topic: back to the given order
+        u = u[:, np.argsort(stream_order(channels))]
     return BagSignals(
         u=u, y=y, stamps_ns=stamps, input_count=stats.received_inputs,
         output_count=stats.received_outputs,
-        topics={input_topic: conns[input_topic].msgtype,
-                output_topic: conns[output_topic].msgtype},
+        topics={t: conns[t].msgtype for t in streams},
         rejected_nonfinite=stats.rejected_nonfinite, crc_checked=crc_checked,
+        input_names=tuple(c.name for c in channels),
     )

@@ -10,7 +10,10 @@ A GA run scores tens of thousands of chromosomes, most of them repeats. The fast
   A structure's least-squares fit is then a Cholesky factorisation of its
   ``(k+1) x (k+1)`` sub-matrix, independent of the number of samples N: the
   last pivot of the factor is ``sqrt(SSE)``, the others give the coefficients;
-* factorises all new structures of a generation in one batched LAPACK call.
+* fits all new structures of a generation in one compiled call
+  (:mod:`spm_sysid.core.narx.kernels`), each at its own size, stopping a
+  factorisation at the first pivot that shows the structure rank-deficient
+  (without numba: batched LAPACK calls over structures of similar size).
 
 Rank handling (both paths use the same rule, so they agree): with unit-norm
 columns, the squared Cholesky pivot of term j is ``1 - R^2`` of regressing that
@@ -30,12 +33,12 @@ benchmark's naive baseline lives with the benchmark (:mod:`spm_sysid.tools.bench
 from __future__ import annotations
 
 import numpy as np
-from scipy import linalg
 
 from .criteria import Criterion, get_criterion
+from .kernels import HAVE_NUMBA, fit_structures
 from .lstsq import DEFAULT_RANK_TOL
 
-__all__ = ["StructureEvaluator", "structure_keys"]
+__all__ = ["StructureEvaluator", "size_groups", "structure_keys"]
 
 
 def structure_keys(masks: np.ndarray) -> np.ndarray:
@@ -65,6 +68,9 @@ class StructureEvaluator:
     sse_scale : float
         Factor from the SSE of ``target`` to the SSE in the user's units (when
         the caller scaled the data).
+    compiled : bool, optional
+        Fit with the compiled kernel (default: when numba is installed) or with
+        the batched numpy path (the same arithmetic; results agree to rounding).
 
     Attributes
     ----------
@@ -81,6 +87,7 @@ class StructureEvaluator:
         criterion: str | Criterion = "aic",
         rank_tol: float = DEFAULT_RANK_TOL,
         sse_scale: float = 1.0,
+        compiled: bool | None = None,
     ) -> None:
         P = np.asarray(P, dtype=float)
         target = np.asarray(target, dtype=float)
@@ -90,6 +97,7 @@ class StructureEvaluator:
         self.sse_scale = float(sse_scale)
         self.n, self.n_terms = P.shape
         self.rank_tol = rank_tol
+        self.compiled = HAVE_NUMBA if compiled is None else bool(compiled) and HAVE_NUMBA
         norms = np.linalg.norm(P, axis=0)
         self._zero_cols = norms == 0
         self._scale = np.where(norms > 0, norms, 1.0)
@@ -140,8 +148,9 @@ class StructureEvaluator:
 
     def evaluate(self, masks: np.ndarray) -> np.ndarray:
         """Criterion values for distinct structures without touching the cache."""
-        sse, beta, bad = self.fit_batch(masks)
+        masks = np.asarray(masks, dtype=bool)
         k = masks.sum(axis=1)
+        sse, beta, bad = self.fit_batch(masks)
         with np.errstate(invalid="ignore", divide="ignore"):
             values = self.criterion(sse * self.sse_scale, self.n, k, beta)
         return np.where(bad | (k == 0) | ~np.isfinite(values), np.inf, values)
@@ -149,12 +158,48 @@ class StructureEvaluator:
     def fit_batch(self, masks: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
         """SSE, standardised coefficients and rank-deficiency flags for a batch.
 
+        One compiled call (:func:`~spm_sysid.core.narx.kernels.fit_structures`)
+        fits every structure at its own size; without numba, structures are fitted
+        in numpy batches of similar size (see :func:`size_groups`), so one large
+        structure does not pad a whole generation to its size.
+
         Returns
         -------
-        sse : ndarray, shape (B,)
+        sse : ndarray, shape (B,)  NaN where rank-deficient
         beta : ndarray, shape (B, n_terms), or None when the criterion needs none
         bad : ndarray of bool, shape (B,)  rank-deficient structures
         """
+        masks = np.asarray(masks, dtype=bool)
+        if self.compiled:
+            return self._fit_compiled(masks)
+        B = len(masks)
+        sse, bad = np.empty(B), np.empty(B, dtype=bool)
+        beta = np.zeros((B, self.n_terms)) if self.criterion.needs_coefficients else None
+        for rows in size_groups(masks.sum(axis=1)):
+            sse[rows], b, bad[rows] = self._fit_numpy(masks[rows])
+            if beta is not None:
+                beta[rows] = b
+        return sse, beta, bad
+
+    def _fit_compiled(self, masks: np.ndarray):
+        rows, cols = np.nonzero(masks)
+        offsets = np.zeros(len(masks) + 1, dtype=np.int64)
+        np.cumsum(masks.sum(axis=1), out=offsets[1:])
+        sse = np.empty(len(masks))
+        theta = np.zeros(len(cols))
+        bad = np.empty(len(masks), dtype=np.bool_)
+        fit_structures(self._gram, self._r_ext, cols.astype(np.int64), offsets,
+                       float(self.rank_tol), self._y_norm, self.n,
+                       self.criterion.needs_coefficients, sse, theta, bad)
+        beta = None
+        if self.criterion.needs_coefficients:
+            beta = np.zeros(masks.shape)
+            keep = ~bad[rows]
+            beta[rows[keep], cols[keep]] = theta[keep] / self._y_norm
+        return sse, beta, bad
+
+    def _fit_numpy(self, masks: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+        """The batched numpy path of :meth:`fit_batch` for structures of similar size."""
         masks = np.asarray(masks, dtype=bool)
         B, m = masks.shape
         k = masks.sum(axis=1)
@@ -229,16 +274,38 @@ class StructureEvaluator:
         return sse, theta
 
 
+def size_groups(k: np.ndarray, growth: float = 1.25, slack: int = 4) -> list[np.ndarray]:
+    """Row indices grouped by structure size, for the batched numpy path.
+
+    Each group's largest structure has at most ``growth * smallest + slack`` terms,
+    so padding a group to its largest costs at most about 2x in flops.
+    """
+    order = np.argsort(k, kind="stable")
+    groups, start = [], 0
+    ks = k[order]
+    while start < len(order):
+        stop = int(np.searchsorted(ks, growth * ks[start] + slack, side="right"))
+        groups.append(order[start:stop])
+        start = stop
+    return groups
+
+
 def _solve_triangular(T: np.ndarray, b: np.ndarray, lower: bool) -> np.ndarray:
     """Solve a stack of triangular systems ``T x = b``; shapes (B, k, k), (B, k).
 
-    Small systems go to numpy's batched solver in one call; from 32 unknowns on,
-    substitution (scipy, one call per matrix) is cheaper than the LU it does.
+    Substitution vectorised over the stack: k steps of O(B k) work each, instead of
+    B library calls (whose overhead dominates for the GA's many small systems).
     """
-    if T.shape[-1] < 32:
-        return np.linalg.solve(T, b[:, :, None])[:, :, 0]
-    return np.stack([linalg.solve_triangular(t, v, lower=lower, check_finite=False)
-                     for t, v in zip(T, b)]) if len(T) else np.empty(b.shape)
+    B, k = b.shape
+    x = np.zeros((B, k))
+    steps = range(k) if lower else range(k - 1, -1, -1)
+    for j in steps:
+        if lower:
+            acc = np.einsum("bi,bi->b", T[:, j, :j], x[:, :j])
+        else:
+            acc = np.einsum("bi,bi->b", T[:, j, j + 1:], x[:, j + 1:])
+        x[:, j] = (b[:, j] - acc) / T[:, j, j]
+    return x
 
 
 try:  # numpy's batched Cholesky without the raise (one bad matrix must not cost a loop)

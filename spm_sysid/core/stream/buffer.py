@@ -1,8 +1,10 @@
-"""A bounded, time-aligned buffer of (input, output) sample pairs.
+"""A bounded, time-aligned buffer of (inputs, output) samples.
 
-Input and output samples arrive separately (two topics); the buffer pairs them
-by stamp, keeps at most ``capacity`` pairs (the oldest are dropped first) and
-counts everything it does not keep, so nothing is lost silently:
+Input and output samples arrive separately (one output topic, one or several
+input topics, each carrying one or several inputs); the buffer aligns them by
+stamp, keeps at most ``capacity`` aligned samples ("pairs"; the oldest are
+dropped first) and counts everything it does not keep, so nothing is lost
+silently:
 
 ``rejected_nonfinite``     NaN or inf values
 ``rejected_out_of_order``  a stamp not later than the previous one of its stream
@@ -23,11 +25,13 @@ itself and never blocks a stream, and a bag replayed into a running node
 becomes a new segment after ``resync_samples`` samples. Pair stamps that go
 back mark a new segment (see :mod:`spm_sysid.core.narx.segments`).
 
-Pairing: each stream is in stamp order, so a sample pairs with the oldest
-waiting sample of the other stream when their stamps differ by at most
-``tolerance_ns``; waiting samples that are older than that by more than the
-tolerance can never pair and are counted as unpaired. At most ``max_pending``
-samples wait per stream (a silent partner stream must not grow memory).
+Alignment: each stream is in stamp order, so the oldest waiting samples of all
+streams form one aligned sample when their stamps lie within ``tolerance_ns``
+(its stamp is the latest of them). A waiting sample older than a newly arrived
+sample of another stream by more than the tolerance, with no partner waiting in
+that stream, can never align and is counted as unpaired. At most
+``max_pending`` samples wait per stream (a silent partner stream must not grow
+memory). Counters of inputs sum over the input streams.
 
 Independent of ROS and thread-safe: the node's subscription callbacks add
 samples while an identification works on a :meth:`snapshot`.
@@ -72,95 +76,119 @@ class BufferStats:
 
 
 class SampleBuffer:
-    """Pairs input/output samples by stamp into a bounded ring buffer.
+    """Aligns input and output samples by stamp into a bounded ring buffer.
 
     Parameters
     ----------
     capacity : int
-        Most pairs kept; when full the oldest pair is dropped (and counted).
+        Most aligned samples kept; when full the oldest is dropped (and counted).
     tolerance_ns : int
-        Largest stamp difference of a pair, nanoseconds.
+        Largest stamp difference within one aligned sample, nanoseconds.
     max_pending : int
-        Most unpaired samples waiting per stream.
+        Most unaligned samples waiting per stream.
     resync_samples : int
         Consecutive in-order samples behind a stream's last stamp that make the
         buffer accept a jump back in time (see the module docstring).
+    input_widths : sequence of int
+        One entry per input stream (topic): how many input values each of its
+        samples carries (e.g. two joint efforts of one ``JointState``). The
+        default, ``(1,)``, is one input; the inputs are numbered stream by stream.
     """
 
     def __init__(self, capacity: int, tolerance_ns: int = 0, max_pending: int = 10_000,
-                 resync_samples: int = 10) -> None:
+                 resync_samples: int = 10, input_widths=(1,)) -> None:
         if capacity < 1:
             raise ValueError(f"capacity must be >= 1, got {capacity}")
         if tolerance_ns < 0:
             raise ValueError(f"tolerance must be >= 0, got {tolerance_ns}")
+        if resync_samples < 1:
+            raise ValueError(f"resync_samples must be >= 1, got {resync_samples}")
+        widths = [int(w) for w in input_widths]
+        if not widths or min(widths) < 1:
+            raise ValueError(f"input_widths must be one or more positive counts, got {widths}")
         self.capacity = int(capacity)
         self.tolerance_ns = int(tolerance_ns)
         self.max_pending = int(max_pending)
-        if resync_samples < 1:
-            raise ValueError(f"resync_samples must be >= 1, got {resync_samples}")
         self.resync_samples = int(resync_samples)
-        self._held: dict[str, list[tuple[int, float]]] = {"u": [], "y": []}
+        # stream 0 is the output, streams 1.. the input topics
+        self.names = ["y"] + (["u"] if len(widths) == 1 else
+                              [f"u{i + 1}" for i in range(len(widths))])
+        self._widths = [1] + widths
+        self.n_inputs = sum(widths)
+        self._slices = []
+        at = 0
+        for w in widths:
+            self._slices.append(slice(at, at + w))
+            at += w
+        n = len(self._widths)
+        self._held: list[list[tuple[int, tuple]]] = [[] for _ in range(n)]
         self.jumps: list[tuple[str, int, int]] = []  # (stream, from stamp, to stamp)
         self._lock = threading.Lock()
         self._stamps = np.zeros(self.capacity, dtype=np.int64)
-        self._u = np.zeros(self.capacity)
+        self._u = np.zeros((self.capacity, self.n_inputs))
         self._y = np.zeros(self.capacity)
         self._start = 0
         self._size = 0
-        self._pending = {"u": deque(), "y": deque()}
-        self._last = {"u": None, "y": None}
+        self._pending: list[deque] = [deque() for _ in range(n)]
+        self._last: list[int | None] = [None] * n
         self.stats = BufferStats(capacity=self.capacity)
 
     def __len__(self) -> int:
         return self._size
 
     # -- input ----------------------------------------------------------------------
-    def add_input(self, stamp_ns: int, value: float) -> bool:
-        """Add an input sample; True when it was accepted (paired or waiting).
+    def add_input(self, stamp_ns: int, value, stream: int = 0) -> bool:
+        """Add a sample of input stream ``stream`` (a number, or one per input of it).
 
-        False when it was rejected or is held as out of order (see the module
-        docstring: held samples are accepted later if their stream jumped back).
+        True when it was accepted (aligned or waiting); False when it was rejected
+        or is held as out of order (see the module docstring: held samples are
+        accepted later if their stream jumped back).
         """
-        return self._add("u", int(stamp_ns), value)
+        return self._add(1 + int(stream), int(stamp_ns), value)
 
     def add_output(self, stamp_ns: int, value: float) -> bool:
-        """Add an output sample; True when it was accepted (paired or waiting)."""
-        return self._add("y", int(stamp_ns), value)
+        """Add an output sample; True when it was accepted (aligned or waiting)."""
+        return self._add(0, int(stamp_ns), value)
 
-    def _add(self, stream: str, stamp: int, value: float) -> bool:
+    def _add(self, stream: int, stamp: int, value) -> bool:
+        values = ((float(value),) if isinstance(value, (int, float))
+                  else tuple(float(v) for v in np.ravel(value)))
+        if len(values) != self._widths[stream]:
+            raise ValueError(f"stream {self.names[stream]} carries {self._widths[stream]} "
+                             f"value(s) per sample, got {len(values)}")
         with self._lock:
             st = self.stats
-            if stream == "u":
+            if stream:
                 st.received_inputs += 1
             else:
                 st.received_outputs += 1
-            if not math.isfinite(value):
+            if not all(math.isfinite(v) for v in values):
                 st.rejected_nonfinite += 1
                 return False
             last = self._last[stream]
             if last is not None and stamp <= last:
-                return self._hold(stream, stamp, float(value))
+                return self._hold(stream, stamp, values)
             if self._held[stream]:  # a run of late samples ended: they were outliers
                 st.rejected_out_of_order += len(self._held[stream])
                 self._held[stream].clear()
                 self._update_pending()
-            self._accept(stream, stamp, float(value))
+            self._accept(stream, stamp, values)
             return True
 
-    def _hold(self, stream: str, stamp: int, value: float) -> bool:
+    def _hold(self, stream: int, stamp: int, values: tuple) -> bool:
         """Keep a sample stamped before its stream's last one; resync after a run."""
         held = self._held[stream]
         if held and stamp <= held[-1][0]:  # not in order among the held: start over
             self.stats.rejected_out_of_order += len(held)
             held.clear()
-        held.append((stamp, value))
+        held.append((stamp, values))
         if len(held) < self.resync_samples:
             self._update_pending()
             return False  # not accepted (yet): held, see the module docstring
         # the stream's clock went back for good: a new timeline starts at held[0]
         first = held[0][0]
         self.stats.time_jumps += 1
-        self.jumps.append((stream, int(self._last[stream]), int(first)))
+        self.jumps.append((self.names[stream], int(self._last[stream]), int(first)))
         mine = self._pending[stream]
         stale = [item for item in mine if item[0] >= first]
         if stale:
@@ -172,38 +200,47 @@ class SampleBuffer:
             self._accept(stream, t, v)
         return True
 
-    def _accept(self, stream: str, stamp: int, value: float) -> None:
-        other = "y" if stream == "u" else "u"
+    def _accept(self, stream: int, stamp: int, values: tuple) -> None:
+        """Queue a sample, drop what can no longer align, emit what aligns."""
+        tol = self.tolerance_ns
         self._last[stream] = stamp
-        waiting = self._pending[other]
-        # partners older than stamp - tolerance can never pair any more
-        while waiting and waiting[0][0] < stamp - self.tolerance_ns:
-            waiting.popleft()
-            self._count_unpaired(other, 1)
-        if waiting and abs(waiting[0][0] - stamp) <= self.tolerance_ns:
-            other_stamp, other_value = waiting.popleft()
-            u, y = (value, other_value) if stream == "u" else (other_value, value)
-            self._append(max(stamp, other_stamp), u, y)
-        else:
-            mine = self._pending[stream]
-            mine.append((stamp, value))
-            if len(mine) > self.max_pending:
-                mine.popleft()
-                self._count_unpaired(stream, 1)
+        mine = self._pending[stream]
+        mine.append((stamp, values))
+        if len(mine) > self.max_pending:
+            mine.popleft()
+            self._count_unpaired(stream, 1)
+        # A waiting sample of another stream older than stamp - tol can no longer get a
+        # partner from this stream (its stamps only grow) unless one is waiting here.
+        for other, waiting in enumerate(self._pending):
+            if other == stream:
+                continue
+            while waiting and waiting[0][0] < stamp - tol and not any(
+                    abs(t - waiting[0][0]) <= tol for t, _ in mine):
+                waiting.popleft()
+                self._count_unpaired(other, 1)
+        # Emit while the oldest waiting sample of every stream align within tol.
+        queues = self._pending
+        while all(queues):
+            heads = [q[0][0] for q in queues]
+            if max(heads) - min(heads) > tol:
+                break
+            items = [q.popleft() for q in queues]
+            u = [v for _, vals in items[1:] for v in vals]
+            self._append(max(heads), u, items[0][1][0])
         self._update_pending()
 
-    def _count_unpaired(self, stream: str, n: int) -> None:
-        if stream == "u":
+    def _count_unpaired(self, stream: int, n: int) -> None:
+        if stream:
             self.stats.unpaired_inputs += n
         else:
             self.stats.unpaired_outputs += n
 
     def _update_pending(self) -> None:
-        self.stats.pending_inputs = len(self._pending["u"])
-        self.stats.pending_outputs = len(self._pending["y"])
-        self.stats.held_out_of_order = len(self._held["u"]) + len(self._held["y"])
+        self.stats.pending_inputs = sum(len(q) for q in self._pending[1:])
+        self.stats.pending_outputs = len(self._pending[0])
+        self.stats.held_out_of_order = sum(len(h) for h in self._held)
 
-    def _append(self, stamp: int, u: float, y: float) -> None:
+    def _append(self, stamp: int, u, y: float) -> None:
         if self._size == self.capacity:
             self._start = (self._start + 1) % self.capacity
             self._size -= 1
@@ -216,10 +253,15 @@ class SampleBuffer:
 
     # -- output ---------------------------------------------------------------------
     def snapshot(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Copies of ``(stamps_ns, u, y)``, oldest first; recording goes on meanwhile."""
+        """Copies of ``(stamps_ns, u, y)``, oldest first; recording goes on meanwhile.
+
+        ``u`` has shape (n,) for one input and (n, n_inputs) for several.
+        """
         with self._lock:
             idx = (self._start + np.arange(self._size)) % self.capacity
-            return self._stamps[idx].copy(), self._u[idx].copy(), self._y[idx].copy()
+            u = self._u[idx].copy()
+            return (self._stamps[idx].copy(), u[:, 0] if self.n_inputs == 1 else u,
+                    self._y[idx].copy())
 
     def stats_dict(self) -> dict[str, int]:
         """A consistent copy of the counters."""
@@ -231,40 +273,45 @@ class SampleBuffer:
         with self._lock:
             removed = self._size
             self._start = self._size = 0
-            self._pending["u"].clear()
-            self._pending["y"].clear()
-            self._held = {"u": [], "y": []}
-            self._last = {"u": None, "y": None}
+            for q in self._pending:
+                q.clear()
+            self._held = [[] for _ in self._widths]
+            self._last = [None] * len(self._widths)
             self.stats.samples = 0
             self.stats.cleared += removed
             self._update_pending()
             return removed
 
 
-def pair_streams(events, tolerance_ns: int, resync_samples: int = 10
+def pair_streams(events, tolerance_ns: int, resync_samples: int = 10, input_widths=(1,)
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, BufferStats]:
-    """Pair recorded samples offline exactly as the node pairs them live.
+    """Align recorded samples offline exactly as the node aligns them live.
 
     Parameters
     ----------
     events : iterable of (stream, stamp_ns, value)
-        ``stream`` is ``"u"`` or ``"y"``, in arrival (log) order.
+        ``stream`` is ``"y"`` for the output, ``"u"`` (the first input stream) or
+        the index of an input stream; events in arrival (log) order.
     tolerance_ns, resync_samples : int
         As for :class:`SampleBuffer` (the node's ``stamp_tolerance`` and
         ``resync_samples``).
+    input_widths : sequence of int
+        Values per sample of each input stream, as for :class:`SampleBuffer`.
 
     Returns
     -------
     stamps_ns, u, y : ndarray
-        The pairs, in order.
+        The aligned samples, in order (``u`` of shape (n, n_inputs) when several).
     stats : BufferStats
         What was rejected, left unpaired, or held.
     """
     events = list(events)
     buf = SampleBuffer(max(1, len(events)), tolerance_ns, max_pending=max(1, len(events)),
-                       resync_samples=resync_samples)
+                       resync_samples=resync_samples, input_widths=input_widths)
     for stream, stamp, value in events:
-        (buf.add_input if stream == "u" else buf.add_output)(stamp, value)
+        if stream == "y":
+            buf.add_output(stamp, value)
+        else:
+            buf.add_input(stamp, value, 0 if stream == "u" else int(stream))
     stamps, u, y = buf.snapshot()
     return stamps, u, y, buf.stats
-

@@ -1,0 +1,113 @@
+"""Input channels: which topic, message type and field each model input is read from.
+
+A model has one output and one or several inputs. Each input is a *channel*:
+a topic, its message type, a field path in the message, and a signal name. The
+same topic may carry several inputs (``sensor_msgs/msg/JointState`` with fields
+``effort[0]`` and ``effort[1]``); inputs on one topic share a stamp, so they are
+read from one message and aligned as one stream.
+
+Settings give the channels as comma-separated lists (node parameters are plain
+strings, so ``ros2 param`` and YAML files stay simple): one entry for all, or
+one per input::
+
+    input_topic: /joint_states            input_field: effort[0],effort[1]
+    input_type:  sensor_msgs/msg/JointState   input_names: tau1,tau2
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from ..errors import FieldPathError
+from .fields import default_field, parse_path
+
+__all__ = ["Channel", "parse_channels", "split_list", "stream_order", "topic_streams"]
+
+
+@dataclass(frozen=True)
+class Channel:
+    """One model input: where it is read from and what it is called."""
+
+    topic: str
+    msgtype: str | None
+    field: str
+    name: str
+
+
+def split_list(value: str | Sequence[str] | None) -> list[str]:
+    """A comma-separated string (or a list) as a list of stripped, non-empty items."""
+    if value is None:
+        return []
+    items = value.split(",") if isinstance(value, str) else list(value)
+    return [str(v).strip() for v in items if str(v).strip()]
+
+
+def parse_channels(topics, fields=None, types=None, names=None) -> list[Channel]:
+    """The input channels from per-input lists (each of length 1 or n).
+
+    Parameters
+    ----------
+    topics, fields, types, names : str (comma-separated) or sequence of str
+        Topics; field paths (empty: the type's default, resolved when the type is
+        known); message types (None: unknown yet, e.g. read from a bag); signal
+        names (default ``u`` for one input, ``u1, u2, ...`` for several).
+
+    Raises
+    ------
+    ValueError
+        Lists of different lengths (other than 1), no topic, a bad field path,
+        names that are not distinct identifiers.
+    """
+    lists = {"input_topic": split_list(topics), "input_field": split_list(fields),
+             "input_type": split_list(types), "input_names": split_list(names)}
+    if not lists["input_topic"]:
+        raise ValueError("input_topic: give at least one topic")
+    n = max(len(v) for v in lists.values())
+    for label, values in lists.items():
+        if len(values) not in (0, 1, n):
+            raise ValueError(f"{label} lists {len(values)} entries for {n} inputs (give one "
+                             f"entry for all inputs, or one per input)")
+
+    def pick(label: str, i: int) -> str | None:
+        values = lists[label]
+        return values[0] if len(values) == 1 else (values[i] if values else None)
+
+    names_ = lists["input_names"] or (["u"] if n == 1 else [f"u{i + 1}" for i in range(n)])
+    if len(names_) == 1 and n > 1:
+        raise ValueError(f"input_names gives one name for {n} inputs")
+    if len(set(names_)) != n or not all(nm.isidentifier() for nm in names_):
+        raise ValueError(f"input_names must be distinct identifiers, got {', '.join(names_)}")
+    channels = []
+    for i in range(n):
+        msgtype, field = pick("input_type", i), pick("input_field", i) or ""
+        try:
+            parse_path(field or (default_field(msgtype) if msgtype else "x"))
+        except FieldPathError as exc:
+            raise ValueError(f"input {names_[i]}: {exc}") from None
+        channels.append(Channel(pick("input_topic", i), msgtype, field, names_[i]))
+    if len({(c.topic, c.field) for c in channels}) != n:
+        raise ValueError("two inputs read the same field of the same topic")
+    for c in channels:
+        same = {d.msgtype for d in channels if d.topic == c.topic}
+        if len(same) > 1:
+            raise ValueError(f"topic {c.topic} is given two types: {', '.join(map(str, same))}")
+    return channels
+
+
+def topic_streams(channels: Sequence[Channel]) -> list[tuple[str, str | None, list[int]]]:
+    """Channels grouped by topic, in order of first appearance: (topic, type, inputs).
+
+    Each group is one stream of the sample buffer; ``inputs`` are the indices of
+    its channels, in order (the buffer numbers inputs stream by stream, so the
+    model's input order is the order of :func:`stream_order`).
+    """
+    groups: dict[str, tuple[str | None, list[int]]] = {}
+    for i, c in enumerate(channels):
+        groups.setdefault(c.topic, (c.msgtype, []))[1].append(i)
+    return [(topic, msgtype, idx) for topic, (msgtype, idx) in groups.items()]
+
+
+def stream_order(channels: Sequence[Channel]) -> list[int]:
+    """Channel indices in the buffer's input order (stream by stream)."""
+    return [i for _, _, idx in topic_streams(channels) for i in idx]

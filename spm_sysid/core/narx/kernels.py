@@ -1,0 +1,156 @@
+"""Compiled inner loops: least-squares fits of many structures from one Gram matrix.
+
+The GA scores a few dozen new structures per generation, each of its own size.
+Done with numpy, every generation pays for gathering, padding to the largest
+size and a dozen library calls; here one compiled call fits the whole batch,
+each structure at its own size, and stops a factorisation at the first pivot
+that shows the structure rank-deficient. The arithmetic is the evaluator's
+(see :mod:`spm_sysid.core.narx.evaluator`): an up-looking Cholesky factor of the
+structure's Gram sub-matrix with the target last, coefficients by back
+substitution, and, where the Gram path may not be accurate enough, one step of
+corrected semi-normal equations on the triangular factor of ``[P y]``.
+
+``numba`` compiles the kernels (cached on disk after the first use). Without it,
+or with ``SPM_SYSID_NO_NUMBA=1``, the same Python functions run uncompiled (slow;
+the evaluator then uses its batched numpy path instead; see
+:data:`HAVE_NUMBA`).
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+__all__ = ["HAVE_NUMBA", "fit_structures", "jit"]
+
+try:
+    if os.environ.get("SPM_SYSID_NO_NUMBA"):
+        raise ImportError("disabled by SPM_SYSID_NO_NUMBA")
+    import numba
+
+    HAVE_NUMBA = True
+
+    def jit(fn):
+        """Compile ``fn`` in nopython mode, cached on disk."""
+        return numba.njit(cache=True, nogil=True, fastmath={"reassoc", "contract"})(fn)
+
+except ImportError:  # pragma: no cover - numba is a dependency; kept for odd installs
+    HAVE_NUMBA = False
+
+    def jit(fn):
+        """No compiler: the plain Python function."""
+        return fn
+
+
+@jit
+def fit_structures(gram, r_ext, idx, offsets, rank_tol, y_norm, n, refine_all,
+                   sse, theta, bad):  # pragma: no cover - compiled
+    """Fit the structures ``idx[offsets[b]:offsets[b + 1]]`` for every b.
+
+    Parameters
+    ----------
+    gram : ndarray, shape (m + 2, m + 2)
+        Gram matrix of the unit-norm ``[P y]`` (target at index m).
+    r_ext : ndarray, shape (rows, m + 2)
+        Triangular factor of ``[P y]``.
+    idx : ndarray of int64
+        The structures' term indices, concatenated.
+    offsets : ndarray of int64, shape (B + 1,)
+        Where each structure starts in ``idx``.
+    rank_tol : float
+        Smallest squared pivot of an identifiable structure.
+    y_norm : float
+        Norm of the target (for the refinement test).
+    n : int
+        Number of regression rows (for the refinement test).
+    refine_all : bool
+        Refine every identifiable structure (criteria that use coefficients).
+    sse : ndarray, shape (B,)
+        Output: residual sum of squares (NaN where rank-deficient).
+    theta : ndarray, shape (len(idx),)
+        Output: coefficients of the unit-norm columns.
+    bad : ndarray of bool, shape (B,)
+        Output: rank-deficient (or empty) structures.
+    """
+    m = gram.shape[0] - 2
+    eps = 2.220446049250313e-16
+    kmax = 0
+    for b in range(len(offsets) - 1):
+        kmax = max(kmax, offsets[b + 1] - offsets[b])
+    L = np.zeros((kmax + 1, kmax + 1))
+    cols = np.empty(kmax + 1, dtype=np.int64)
+    rows = r_ext.shape[0]
+    r = np.empty(rows)
+    g = np.empty(kmax)
+    for b in range(len(offsets) - 1):
+        s = offsets[b]
+        k = offsets[b + 1] - s
+        bad[b] = k == 0
+        sse[b] = np.nan
+        if k == 0:
+            continue
+        for j in range(k):
+            cols[j] = idx[s + j]
+        cols[k] = m
+        # up-looking Cholesky: row j of L from rows 0..j-1, pivot j known at once
+        for j in range(k + 1):
+            cj = cols[j]
+            for i in range(j):
+                acc = gram[cj, cols[i]]
+                for p in range(i):
+                    acc -= L[j, p] * L[i, p]
+                L[j, i] = acc / L[i, i]
+            d = gram[cj, cj]
+            for p in range(j):
+                d -= L[j, p] * L[j, p]
+            if not d > rank_tol and j < k:  # also catches NaN
+                bad[b] = True
+                break
+            if not d > 0.0:  # target reproduced exactly: not a least-squares problem
+                bad[b] = True
+                break
+            L[j, j] = np.sqrt(d)
+        if bad[b]:
+            continue
+        ssq = L[k, k] * L[k, k]
+        # L = [[Ls, 0], [z^T, sqrt(SSE)]]: Ls^T theta = z
+        tnorm = 0.0
+        for j in range(k - 1, -1, -1):
+            acc = L[k, j]
+            for p in range(j + 1, k):
+                acc -= L[p, j] * theta[s + p]
+            theta[s + j] = acc / L[j, j]
+            tnorm += theta[s + j] * theta[s + j]
+        err = eps * (y_norm + np.sqrt(tnorm)) ** 2
+        if refine_all or n * err > 1e-7 * ssq:
+            # corrected semi-normal equations on R_ext: theta += (Ls Ls^T)^-1 A^T r
+            for rnd in range(2):
+                for q in range(rows):
+                    acc = r_ext[q, m]
+                    for j in range(k):
+                        acc -= r_ext[q, cols[j]] * theta[s + j]
+                    r[q] = acc
+                if rnd == 1:
+                    break
+                for j in range(k):
+                    acc = 0.0
+                    for q in range(rows):
+                        acc += r_ext[q, cols[j]] * r[q]
+                    g[j] = acc
+                for j in range(k):  # Ls w = g
+                    acc = g[j]
+                    for p in range(j):
+                        acc -= L[j, p] * g[p]
+                    g[j] = acc / L[j, j]
+                for j in range(k - 1, -1, -1):  # Ls^T d = w
+                    acc = g[j]
+                    for p in range(j + 1, k):
+                        acc -= L[p, j] * g[p]
+                    g[j] = acc / L[j, j]
+                for j in range(k):
+                    theta[s + j] += g[j]
+            ssq = 0.0
+            for q in range(rows):
+                ssq += r[q] * r[q]
+        sse[b] = ssq
