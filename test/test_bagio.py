@@ -191,3 +191,88 @@ def test_error_topic_of_a_type_without_a_number(tmp_path):
 def test_bag_errors_exit_nonzero_without_traceback(args, message):
     r = _spm(*args)
     assert r.returncode == 2 and message in r.stderr and "Traceback" not in r.stderr
+
+
+def _miso(n=800, seed=3):
+    rng = np.random.default_rng(seed)
+    u = rng.uniform(-1, 1, (n, 2))
+    y = np.zeros(n)
+    for t in range(2, n):
+        y[t] = 0.5 * y[t - 1] + 0.7 * u[t - 1, 0] - 0.4 * u[t - 1, 1] \
+            + 0.3 * u[t - 2, 0] * u[t - 1, 1]
+    return u, y + 1e-3 * rng.standard_normal(n)
+
+
+def test_two_joint_efforts_from_one_jointstate_topic(tmp_path):
+    u, y = _miso()
+    bag = write_io_bag(tmp_path / "joints", u, y, input_topic="/joint_states",
+                       input_names=["shoulder", "elbow"])
+    # an independent reader: the mcap library sees JointState messages with two efforts
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    with open(next(bag.glob("*.mcap")), "rb") as f:
+        msgs = [(ch.topic, m) for _, ch, _, m in
+                make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages()]
+    joint = [m for t, m in msgs if t == "/joint_states"]
+    assert len(joint) == 800 and list(joint[5].name) == ["shoulder", "elbow"]
+    assert list(joint[5].effort) == u[5].tolist()
+
+    sig = read_bag_signals(bag, input_topic="/joint_states", input_field="effort[0],effort[1]",
+                           input_names="shoulder,elbow")
+    assert np.array_equal(sig.u, u) and np.array_equal(sig.y, y) and sig.unpaired == 0
+    assert sig.input_names == ("shoulder", "elbow")
+    # the same topic, fields in the other order: the columns follow the given order
+    swapped = read_bag_signals(bag, input_topic="/joint_states",
+                               input_field="effort[1],effort[0]")
+    assert np.array_equal(swapped.u, u[:, ::-1]) and swapped.input_names == ("u1", "u2")
+    with pytest.raises(BagError, match="input_field lists 2 entries for 3 inputs"):
+        read_bag_signals(bag, input_topic="/joint_states", input_field="effort[0],effort[1]",
+                         input_names="a,b,c")
+    r = _spm("identify", "--bag", str(bag), "--input-topic", "/joint_states",
+             "--input-field", "effort[0],effort[1]", "--input-names", "shoulder,elbow",
+             "--ny", "2", "--nu", "2", "--criterion", "bic", "--seed", "1", "--quiet",
+             "--json", str(tmp_path / "m.json"))
+    assert r.returncode == 0, r.stderr
+    assert ("y(t) = 0.500y(t-1) + 0.700shoulder(t-1) - 0.400elbow(t-1) "
+            "+ 0.300shoulder(t-2)*elbow(t-1)") in r.stdout
+
+
+def test_inputs_on_two_topics_are_aligned_by_stamp(tmp_path):
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    u, y = _miso(300)
+    store = get_typestore(Stores.ROS2_JAZZY)
+    T = store.types
+    Header, Time = T["std_msgs/msg/Header"], T["builtin_interfaces/msg/Time"]
+    Float, Vec = T["std_msgs/msg/Float64"], T["geometry_msgs/msg/Vector3Stamped"]
+    Accel, A, V3 = T["geometry_msgs/msg/AccelStamped"], T["geometry_msgs/msg/Accel"], \
+        T["geometry_msgs/msg/Vector3"]
+    with Writer(tmp_path / "two", version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        c1 = w.add_connection("/torque", "geometry_msgs/msg/Vector3Stamped", typestore=store)
+        c2 = w.add_connection("/cmd", "geometry_msgs/msg/Vector3Stamped", typestore=store)
+        c3 = w.add_connection("/acc", "geometry_msgs/msg/AccelStamped", typestore=store)
+        del Float
+        for k in range(300):
+            t = 10_000_000 * k
+            h = Header(stamp=Time(sec=t // 10**9, nanosec=t % 10**9), frame_id="")
+            zero = V3(x=0.0, y=0.0, z=0.0)
+            # the second input topic arrives late in the log (queued), which must not matter
+            w.write(c1, t, store.serialize_cdr(Vec(header=h, vector=V3(
+                x=float(u[k, 0]), y=0.0, z=0.0)), c1.msgtype))
+            if k >= 5:
+                t5 = 10_000_000 * (k - 5)
+                h5 = Header(stamp=Time(sec=t5 // 10**9, nanosec=t5 % 10**9), frame_id="")
+                w.write(c2, t, store.serialize_cdr(Vec(header=h5, vector=V3(
+                    x=0.0, y=float(u[k - 5, 1]), z=0.0)), c2.msgtype))
+            w.write(c3, t, store.serialize_cdr(Accel(header=h, accel=A(
+                linear=V3(x=float(y[k]), y=0.0, z=0.0), angular=zero)), c3.msgtype))
+    sig = read_bag_signals(tmp_path / "two", input_topic="/torque,/cmd",
+                           input_field="vector.x,vector.y", output_topic="/acc")
+    # the last 5 /cmd messages were never written: those samples cannot be aligned
+    assert np.array_equal(sig.u, u[:295]) and np.array_equal(sig.y, y[:295])
+    assert sig.topics == {"/torque": "geometry_msgs/msg/Vector3Stamped",
+                          "/cmd": "geometry_msgs/msg/Vector3Stamped",
+                          "/acc": "geometry_msgs/msg/AccelStamped"}
+    assert sig.input_count == 595 and sig.unpaired == 10

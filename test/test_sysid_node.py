@@ -229,3 +229,41 @@ def test_invalid_startup_parameters_exit_with_a_clear_error(ros_env):
                         "-p", "criterion:=xyz"],
                        capture_output=True, text=True, env=ros_env, timeout=60, cwd=ROOT)
     assert r.returncode == 1 and "unknown criterion" in r.stderr
+
+
+def test_two_joint_efforts_recorded_from_one_jointstate_topic(ros_env, harness, tmp_path):
+    """The node with a list of inputs: effort[0] and effort[1] of sensor_msgs/JointState."""
+    rng = np.random.default_rng(3)
+    n = 600
+    u = rng.uniform(-1, 1, (n, 2))
+    y = np.zeros(n)
+    for t in range(2, n):
+        y[t] = 0.5 * y[t - 1] + 0.7 * u[t - 1, 0] - 0.4 * u[t - 1, 1] \
+            + 0.3 * u[t - 2, 0] * u[t - 1, 1]
+    y += 1e-3 * rng.standard_normal(n)
+    bag = write_io_bag(tmp_path / "joints", u, y, input_topic="/arm/joint_states")
+    node = start_node(ros_env, "seed:=1", "criterion:=bic", "ny:=2", "nu:=2",
+                      "input_topic:=/arm/joint_states",
+                      "input_type:=sensor_msgs/msg/JointState",
+                      "input_field:=effort[0],effort[1]", "input_names:=shoulder,elbow")
+    try:
+        harness.wait_ready()
+        play(ros_env, bag)
+        kv = harness.wait_buffer(lambda kv: int(kv["samples"]) >= n)
+        assert kv["samples"] == str(n) and kv["received_inputs"] == str(n)
+        res = harness.call("/spm_sysid/identify")
+        assert res.success, res.message
+        assert ("y(t) = 0.500y(t-1) + 0.700shoulder(t-1) - 0.400elbow(t-1) "
+                "+ 0.300shoulder(t-2)*elbow(t-1)") in res.message
+        doc = json.loads(harness.latched(String, "/spm_sysid/model").data)
+        assert doc["term_space"]["inputs"] == ["shoulder", "elbow"]
+    finally:
+        stop(node)
+
+
+def test_inconsistent_input_lists_stop_the_node_with_a_message(ros_env):
+    r = subprocess.run([sys.executable, "-m", "spm_sysid.ros.sysid_node", "--ros-args",
+                        "-p", "input_topic:=/a,/b,/c", "-p", "input_field:=x,y"],
+                       capture_output=True, text=True, env=ros_env, timeout=60, cwd=ROOT)
+    assert r.returncode != 0
+    assert "input_field lists 2 entries for 3 inputs" in r.stderr + r.stdout

@@ -145,12 +145,16 @@ _LIST = [
     _s("gap_factor", float, 1.5, "a stamp difference above gap_factor periods is a gap",
        "data", low=1.01, high=1000.0, cli=False),
     # -- the node's own ---------------------------------------------------------------------
-    _s("input_topic", str, "/robot_arm/torque", "input signal topic", "node",
+    _s("input_topic", str, "/robot_arm/torque", "input signal topic(s): one, or a comma "
+       "list, one per input (inputs on one topic share its messages)", "node",
        read_only=True),
-    _s("input_type", str, "geometry_msgs/msg/WrenchStamped", "input message type", "node",
+    _s("input_type", str, "geometry_msgs/msg/WrenchStamped", "input message type(s): one "
+       "for all input topics, or a comma list, one per input", "node",
        cli=False, read_only=True),
-    _s("input_field", str, "", "field path of u (empty: the type's default)", "node",
-       read_only=True),
+    _s("input_field", str, "", "field path(s) of the inputs (e.g. effort[0],effort[1]; "
+       "empty: the type's default)", "node", read_only=True),
+    _s("input_names", str, "", "names of the inputs in the model, a comma list (empty: u, "
+       "or u1, u2, ... for several)", "node", read_only=True),
     _s("output_topic", str, "/robot_arm/acceleration", "output signal topic", "node",
        read_only=True),
     _s("output_type", str, "geometry_msgs/msg/AccelStamped", "output message type", "node",

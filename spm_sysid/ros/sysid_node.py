@@ -18,6 +18,7 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import (
     FloatingPointRange,
@@ -34,6 +35,7 @@ from std_srvs.srv import Trigger
 
 from ..core.errors import FieldPathError, ModelFormatError
 from ..core.files import atomic_write_text, check_writable_file
+from ..core.io.channels import parse_channels, stream_order, topic_streams
 from ..core.io.fields import default_field, extract, message_stamp_ns, parse_path
 from ..core.job import JobSettings
 from ..core.narx.model import NarxModel
@@ -73,12 +75,18 @@ class SysidNode(Node):
         p = self._params()
         self._check(p)
 
+        self.channels = parse_channels(p["input_topic"], p["input_field"], p["input_type"],
+                                       p["input_names"])
+        streams = topic_streams(self.channels)
+        self._order = np.argsort(stream_order(self.channels))  # buffer -> given order
         self.buffer = SampleBuffer(p["buffer_capacity"], int(round(p["stamp_tolerance"] * 1e9)),
-                                   resync_samples=p["resync_samples"])
-        self._in = self._signal(p["input_type"], p["input_field"])
-        self._out = self._signal(p["output_type"], p["output_field"])
-        self._topics = {"input": (p["input_topic"], p["input_type"]),
-                        "output": (p["output_topic"], p["output_type"])}
+                                   resync_samples=p["resync_samples"],
+                                   input_widths=[len(idx) for _, _, idx in streams])
+        self._in = [(topic, self._signal(msgtype, [self.channels[i].field for i in idx]))
+                    for topic, msgtype, idx in streams]
+        self._out = self._signal(p["output_type"], [p["output_field"]])
+        self._topics = {f"input {topic}": (topic, msgtype) for topic, msgtype, _ in streams}
+        self._topics["output"] = (p["output_topic"], p["output_type"])
         qos = RELIABLE_KEEP_ALL if not p["best_effort"] else QoSProfile(
             history=HistoryPolicy.KEEP_LAST, depth=p["qos_depth"],
             reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE)
@@ -87,7 +95,8 @@ class SysidNode(Node):
         # the worker process, so recording goes on while it runs; its group is
         # reentrant so a second request is answered (refused) meanwhile.
         services = ReentrantCallbackGroup()
-        self.create_subscription(self._in[0], p["input_topic"], self._on_input, qos)
+        for stream, (topic, (cls, steps)) in enumerate(self._in):
+            self.create_subscription(cls, topic, self._input_callback(stream, steps), qos)
         self.create_subscription(self._out[0], p["output_topic"], self._on_output, qos)
         self.model_pub = self.create_publisher(String, "~/model", LATCHED)
         self.coef_pub = self.create_publisher(Float64MultiArray, "~/coefficients", LATCHED)
@@ -113,8 +122,8 @@ class SysidNode(Node):
         self.worker = JobWorker("spm_sysid.core.job:run_job", on_progress=self._on_progress,
                                 on_event=self.get_logger().info)
         self.get_logger().info(
-            f"recording {p['input_topic']} ({p['input_type']}) and {p['output_topic']} "
-            f"({p['output_type']}); buffer of {p['buffer_capacity']} pairs")
+            f"recording {self._describe_inputs()} and {p['output_topic']} "
+            f"({p['output_type']}); buffer of {p['buffer_capacity']} samples")
         if p["model_path"]:
             self._republish_saved(p["model_path"])
 
@@ -122,11 +131,16 @@ class SysidNode(Node):
     def _params(self) -> dict:
         return {s.name: self.get_parameter(s.name).value for s in node_settings()}
 
-    def _signal(self, msgtype: str, field: str):
+    def _signal(self, msgtype: str, fields: list[str]):
         try:
-            return message_class(msgtype), parse_path(field or default_field(msgtype))
+            return message_class(msgtype), [parse_path(f or default_field(msgtype))
+                                            for f in fields]
         except (FieldPathError, ValueError) as exc:
             raise ValueError(str(exc)) from None
+
+    def _describe_inputs(self) -> str:
+        return ", ".join(f"{c.name} = {c.topic} {c.field or default_field(c.msgtype)} "
+                         f"({c.msgtype})" for c in self.channels)
 
     def _check(self, values: dict) -> JobSettings:
         for s in node_settings():  # the job's own settings are checked by JobSettings
@@ -134,7 +148,14 @@ class SysidNode(Node):
                 check(s.name, values[s.name])
         if values["model_path"]:
             check_writable_file(values["model_path"], "model_path")
-        return JobSettings.from_values(values)
+        channels = parse_channels(values["input_topic"], values["input_field"],
+                                  values["input_type"], values["input_names"])
+        return self._settings(values, channels)
+
+    @staticmethod
+    def _settings(values: dict, channels) -> JobSettings:
+        names = tuple(c.name for c in channels)
+        return JobSettings.from_values(values, inputs=names if names != ("u",) else ())
 
     def _check_parameters(self, changes) -> SetParametersResult:
         """Reject a parameter change that would make an identification impossible."""
@@ -147,15 +168,17 @@ class SysidNode(Node):
         return SetParametersResult(successful=True)
 
     # -- recording ---------------------------------------------------------------------
-    def _on_input(self, msg) -> None:
-        self._record(msg, self._in[1], self.buffer.add_input)
+    def _input_callback(self, stream: int, steps: list):
+        def on_input(msg) -> None:
+            self._record(msg, steps, lambda t, v: self.buffer.add_input(t, v, stream))
+        return on_input
 
     def _on_output(self, msg) -> None:
-        self._record(msg, self._out[1], self.buffer.add_output)
+        self._record(msg, self._out[1], lambda t, v: self.buffer.add_output(t, v[0]))
 
     def _record(self, msg, steps, add) -> None:
         try:
-            value = extract(msg, steps)
+            value = [extract(msg, step) for step in steps]
         except FieldPathError as exc:
             self._field_errors += 1
             if self._field_errors == 1:
@@ -180,9 +203,9 @@ class SysidNode(Node):
                 key = (topic, f"{info.node_namespace.rstrip('/')}/{info.node_name}")
                 if key not in self._type_mismatch:
                     self._type_mismatch[key] = (
-                        f"{key[1]} publishes {topic} as {info.topic_type}, but the {role} is "
-                        f"read as {expected}: its messages are not received (set "
-                        f"{role}_type, or fix the publisher)")
+                        f"{key[1]} publishes {topic} as {info.topic_type}, but the "
+                        f"{role.split()[0]} is read as {expected}: its messages are not "
+                        f"received (set {role.split()[0]}_type, or fix the publisher)")
                     self.get_logger().error(self._type_mismatch[key])
         stats = self.buffer.stats_dict()
         new = stats["rejected_out_of_order"] - self._logged["rejected_out_of_order"]
@@ -215,12 +238,14 @@ class SysidNode(Node):
         try:
             values = self._params()
             stamps, u, y = self.buffer.snapshot()
+            if u.ndim == 2:
+                u = u[:, self._order]
             if len(y) < values["min_samples"]:
                 response.success = False
                 response.message = (f"too few samples: {len(y)} paired samples in the buffer, "
                                     f"at least {values['min_samples']} needed (min_samples)")
                 return response
-            settings = JobSettings.from_values(values)
+            settings = self._settings(values, self.channels)
             if not self.worker.wait_ready(30.0):
                 raise RuntimeError("the worker process is not ready (see the log)")
             self._started, self._progress = time.monotonic(), (0, float("nan"), 0)

@@ -51,7 +51,8 @@ def _add_data_options(p: argparse.ArgumentParser, bag: bool = True) -> None:
                             "(comma-separated; several inputs make a MISO model)")
         g.add_argument("--output", dest="output_column", metavar="NAME",
                        help="output column of --data files (default: 'y', else the last)")
-        for name in ("input_topic", "input_field", "output_topic", "output_field"):
+        for name in ("input_topic", "input_field", "input_names", "output_topic",
+                     "output_field"):
             s = SETTINGS[name]
             g.add_argument(s.option, dest=name, default=s.default or None,
                            help=f"{s.help} (default {s.default!r})")
@@ -211,9 +212,12 @@ def _load(args) -> Loaded:
 
         sig = read_bag_signals(args.bag, input_topic=args.input_topic,
                                output_topic=args.output_topic,
-                               input_field=args.input_field, output_field=args.output_field)
+                               input_field=args.input_field, output_field=args.output_field,
+                               input_names=args.input_names)
         return Loaded(sig.u, sig.y, f"bag {args.bag}", sig.stamps_ns,
-                      sig.rejected_nonfinite, sig.unpaired)
+                      sig.rejected_nonfinite, sig.unpaired,
+                      input_names=sig.input_names if np.ndim(sig.u) == 2 or args.input_names
+                      else ())
     if args.data:
         files = args.data if isinstance(args.data, list) else [args.data]
         inputs, output = getattr(args, "inputs", None), getattr(args, "output_column", None)

@@ -66,6 +66,7 @@ DEFAULT_INPUT_TOPIC = "/robot_arm/torque"
 DEFAULT_OUTPUT_TOPIC = "/robot_arm/acceleration"
 INPUT_TYPE = "geometry_msgs/msg/WrenchStamped"
 OUTPUT_TYPE = "geometry_msgs/msg/AccelStamped"
+JOINT_TYPE = "sensor_msgs/msg/JointState"
 
 
 def typestore():
@@ -168,9 +169,15 @@ def write_io_bag(
     output_topic: str = DEFAULT_OUTPUT_TOPIC,
     input_frame: str = "robot_arm_base",
     output_frame: str = "robot_arm_tip",
+    input_names: Sequence[str] | None = None,
     overwrite: bool = False,
 ) -> Path:
     """Write u and y as a rosbag2 MCAP bag (format version 9) at directory ``path``.
+
+    One input (``u`` of shape (n,)) is written as ``geometry_msgs/msg/WrenchStamped``
+    (torque.z), several (shape (n, m)) as ``sensor_msgs/msg/JointState`` with
+    ``effort[i]`` = input i and joint names ``input_names`` (default u1, u2, ...);
+    the output as ``geometry_msgs/msg/AccelStamped`` (linear.x).
 
     Everything is checked before anything is touched; the bag is written into a
     temporary directory beside ``path`` and moved into place when complete, so
@@ -191,8 +198,15 @@ def write_io_bag(
         raise BagError(f"rate must be a positive, finite number of Hz, got {rate_hz}")
     if not (isinstance(start_ns, (int, np.integer)) and 0 <= start_ns < 2**63 - 2**62):
         raise BagError(f"start must be >= 0 seconds (a ROS time), got {start_ns / 1e9:g} s")
-    if len(u) != len(y) or u.ndim != 1:
-        raise BagError(f"u and y must be 1-D and equally long, got {u.shape} and {y.shape}")
+    if u.ndim == 2 and u.shape[1] == 1:
+        u = u[:, 0]
+    if len(u) != len(y) or u.ndim not in (1, 2) or y.ndim != 1:
+        raise BagError(f"u must be (n,) or (n, inputs) and y (n,), got {u.shape} and {y.shape}")
+    joints = None
+    if u.ndim == 2:
+        joints = list(input_names or [f"u{i + 1}" for i in range(u.shape[1])])
+        if len(joints) != u.shape[1]:
+            raise BagError(f"{len(joints)} input names for {u.shape[1]} inputs")
     if len(u) == 0:
         raise BagError("no samples to write")
     if not (np.all(np.isfinite(u)) and np.all(np.isfinite(y))):
@@ -220,7 +234,10 @@ def write_io_bag(
     Vector3 = types["geometry_msgs/msg/Vector3"]
     WrenchStamped, Wrench = types[INPUT_TYPE], types["geometry_msgs/msg/Wrench"]
     AccelStamped, Accel = types[OUTPUT_TYPE], types["geometry_msgs/msg/Accel"]
+    JointState = types[JOINT_TYPE]
+    in_type = INPUT_TYPE if joints is None else JOINT_TYPE
     zero = Vector3(x=0.0, y=0.0, z=0.0)
+    empty = np.zeros(0)
     period_ns = 1e9 / rate_hz
 
     try:
@@ -228,22 +245,27 @@ def write_io_bag(
         writer.STORAGE_PLUGINS = {StoragePlugin.MCAP: _CrcMcapStorage}
         with writer:
             qos = [default_qos()]
-            c_in = writer.add_connection(input_topic, INPUT_TYPE, typestore=store,
+            c_in = writer.add_connection(input_topic, in_type, typestore=store,
                                          offered_qos_profiles=qos)
             c_out = writer.add_connection(output_topic, OUTPUT_TYPE, typestore=store,
                                           offered_qos_profiles=qos)
             for k in range(len(u)):
                 t_ns = start_ns + int(round(k * period_ns))
                 stamp = Time(sec=t_ns // 1_000_000_000, nanosec=t_ns % 1_000_000_000)
-                w = WrenchStamped(
-                    header=Header(stamp=stamp, frame_id=input_frame),
-                    wrench=Wrench(force=zero, torque=Vector3(x=0.0, y=0.0, z=float(u[k]))),
-                )
+                if joints is None:
+                    w = WrenchStamped(
+                        header=Header(stamp=stamp, frame_id=input_frame),
+                        wrench=Wrench(force=zero, torque=Vector3(x=0.0, y=0.0, z=float(u[k]))),
+                    )
+                else:
+                    w = JointState(header=Header(stamp=stamp, frame_id=input_frame),
+                                   name=joints, position=empty, velocity=empty,
+                                   effort=np.ascontiguousarray(u[k]))
                 a = AccelStamped(
                     header=Header(stamp=stamp, frame_id=output_frame),
                     accel=Accel(linear=Vector3(x=float(y[k]), y=0.0, z=0.0), angular=zero),
                 )
-                writer.write(c_in, t_ns, store.serialize_cdr(w, INPUT_TYPE))
+                writer.write(c_in, t_ns, store.serialize_cdr(w, in_type))
                 writer.write(c_out, t_ns, store.serialize_cdr(a, OUTPUT_TYPE))
     except BaseException as exc:
         shutil.rmtree(stage, ignore_errors=True)

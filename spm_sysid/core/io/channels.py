@@ -20,7 +20,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from ..errors import FieldPathError
-from .fields import default_field, parse_path
+from .fields import parse_path
 
 __all__ = ["Channel", "parse_channels", "split_list", "stream_order", "topic_streams"]
 
@@ -82,7 +82,8 @@ def parse_channels(topics, fields=None, types=None, names=None) -> list[Channel]
     for i in range(n):
         msgtype, field = pick("input_type", i), pick("input_field", i) or ""
         try:
-            parse_path(field or (default_field(msgtype) if msgtype else "x"))
+            if field:  # an empty field is the type's default, resolved with the type
+                parse_path(field)
         except FieldPathError as exc:
             raise ValueError(f"input {names_[i]}: {exc}") from None
         channels.append(Channel(pick("input_topic", i), msgtype, field, names_[i]))
