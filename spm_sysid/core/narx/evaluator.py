@@ -182,6 +182,14 @@ class StructureEvaluator:
         return sse, beta, bad
 
     def _fit_compiled(self, masks: np.ndarray):
+        # lexicographic order of the term lists: neighbours share factorised prefixes
+        order = np.lexsort(~masks.T[::-1]) if len(masks) > 1 else np.arange(len(masks))
+        sse, beta, bad = self._fit_sorted(masks[order])
+        back = np.empty_like(order)
+        back[order] = np.arange(len(order))
+        return sse[back], None if beta is None else beta[back], bad[back]
+
+    def _fit_sorted(self, masks: np.ndarray):
         rows, cols = np.nonzero(masks)
         offsets = np.zeros(len(masks) + 1, dtype=np.int64)
         np.cumsum(masks.sum(axis=1), out=offsets[1:])

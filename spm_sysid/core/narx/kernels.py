@@ -55,7 +55,9 @@ def fit_structures(gram, r_ext, idx, offsets, rank_tol, y_norm, n, refine_all,
     r_ext : ndarray, shape (rows, m + 2)
         Triangular factor of ``[P y]``.
     idx : ndarray of int64
-        The structures' term indices, concatenated.
+        The structures' term indices, concatenated, each in increasing order.
+        Structures in lexicographic order of their index lists fit fastest (a
+        prefix shared with the previous structure is not factorised again).
     offsets : ndarray of int64, shape (B + 1,)
         Where each structure starts in ``idx``.
     rank_tol : float
@@ -83,18 +85,26 @@ def fit_structures(gram, r_ext, idx, offsets, rank_tol, y_norm, n, refine_all,
     rows = r_ext.shape[0]
     r = np.empty(rows)
     g = np.empty(kmax)
+    valid = 0  # leading rows of L that hold the previous structure's factor
     for b in range(len(offsets) - 1):
         s = offsets[b]
         k = offsets[b + 1] - s
         bad[b] = k == 0
         sse[b] = np.nan
         if k == 0:
+            valid = 0
             continue
+        # rows of L depend only on the terms up to them: a prefix shared with the
+        # previous structure is already factorised (callers sort structures so)
+        same = 0
+        while same < min(k, valid) and cols[same] == idx[s + same]:
+            same += 1
         for j in range(k):
             cols[j] = idx[s + j]
         cols[k] = m
+        valid = k
         # up-looking Cholesky: row j of L from rows 0..j-1, pivot j known at once
-        for j in range(k + 1):
+        for j in range(same, k + 1):
             cj = cols[j]
             for i in range(j):
                 acc = gram[cj, cols[i]]
@@ -106,6 +116,7 @@ def fit_structures(gram, r_ext, idx, offsets, rank_tol, y_norm, n, refine_all,
                 d -= L[j, p] * L[j, p]
             if not d > rank_tol and j < k:  # also catches NaN
                 bad[b] = True
+                valid = j
                 break
             if not d > 0.0:  # target reproduced exactly: not a least-squares problem
                 bad[b] = True
