@@ -164,3 +164,26 @@ def test_size_groups_cover_every_row_once_with_bounded_padding():
     assert sorted(np.concatenate(groups).tolist()) == list(range(len(k)))
     for g in groups:
         assert k[g].max() <= 1.25 * k[g].min() + 4
+
+
+@PATHS
+def test_noise_free_data_identify_the_true_structure_not_a_superset(compiled):
+    # exact fits: the true structure and its supersets all reproduce y to rounding;
+    # the SSE floor makes them equal on fit, so the fewest terms win
+    rng = np.random.default_rng(4)
+    u = rng.uniform(-1, 1, 400)
+    y = np.zeros(400)
+    for t in range(2, 400):
+        y[t] = 0.5 * y[t - 1] - 0.2 * y[t - 2] + 0.7 * u[t - 1] + 0.3 * y[t - 1] * u[t - 2]
+    ts = TermSpace(ny=2, nu=2, degree=2)
+    P, t = ts.regression_matrix(u, y), ts.target(y)
+    true = _mask(ts, ["y(t-1)", "y(t-2)", "u(t-1)", "y(t-1)*u(t-2)"])
+    superset = true | _mask(ts, ["u(t-2)^2"])
+    ev = StructureEvaluator(P, t, "bic", compiled=compiled)
+    s_true, s_super = ev.score(np.array([true, superset]))
+    assert np.isfinite(s_true) and s_super == pytest.approx(s_true + np.log(len(t)))
+    assert reference_score(P, t, true, "bic") == pytest.approx(s_true)
+    # the whole space (14 terms) searched exhaustively: the true structure is the best
+    masks = ((np.arange(2 ** ts.n_terms)[:, None] >> np.arange(ts.n_terms)) & 1).astype(bool)
+    scores = ev.evaluate(masks[1:])
+    assert np.array_equal(masks[1:][np.argmin(scores)], true)

@@ -64,7 +64,9 @@ def test_metrics_fit_percent():
     assert m["fit_percent"] == pytest.approx(expected)
     assert m["max_abs"] == 0.5 and m["mean_abs"] == 0.25 and m["rmse"] == pytest.approx(
         np.sqrt(0.125))
-    assert metrics(y, np.array([1, np.inf, 1, 1]))["fit_percent"] == -np.inf
+    diverged = metrics(y, np.array([1, np.inf, 1, 1]))
+    assert np.isnan(diverged["fit_percent"]) and np.isnan(diverged["mse"])
+    assert diverged["diverged_at"] == 1
 
 
 def test_validation_of_eq1_matches_the_paper(robot_arm):

@@ -155,13 +155,17 @@ class JobResult:
             text = (f"{m.equation()} | {crit} {value:.2f}, {len(m.term_indices)} terms, "
                     f"one-step MSE {m.mse:.4e}, {describe_data(self.data)}")
             if self.report is not None:
-                o, f = self.report.one_step_metrics, self.report.free_run_metrics
-                failed = [t.name for t in self.report.tests if not t.passed]
-                text += (f" ({self.report.segment} validation: one-step fit "
-                         f"{o['fit_percent']:.1f} %, free-run fit {f['fit_percent']:.1f} %, "
+                r = self.report
+                o, f = r.one_step_metrics, r.free_run_metrics
+                failed = [t.name for t in r.tests if not t.passed]
+                free = (f"free-run DIVERGED at sample {f['diverged_at']}"
+                        if f.get("diverged_at") is not None
+                        else f"free-run fit {f['fit_percent']:.1f} %")
+                tests = ("correlation tests not computed" if r.tests_skipped else
                          "correlation tests " + ("all inside the band" if not failed
-                                                 else "outside the band: " + ", ".join(failed))
-                         + ")")
+                                                 else "outside the band: " + ", ".join(failed)))
+                text += (f" ({r.segment} validation: one-step fit {o['fit_percent']:.1f} %, "
+                         f"{free}, {tests})")
             return text + f", {self.seconds.get('total', 0.0):.2f} s"
         lines = [m.equation(),
                  f"criterion {crit} = {value:.2f}, {len(m.term_indices)} terms, one-step MSE "

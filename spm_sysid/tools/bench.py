@@ -17,7 +17,7 @@ import numpy as np
 from ..core.narx.criteria import Criterion, get_criterion
 from ..core.narx.evaluator import StructureEvaluator
 from ..core.narx.ga import GAConfig, run_ga
-from ..core.narx.lstsq import DEFAULT_RANK_TOL, score_one
+from ..core.narx.lstsq import DEFAULT_RANK_TOL, score_one, sse_floor
 from ..core.narx.terms import TermSpace
 
 __all__ = ["BenchFigures", "run_benchmark"]
@@ -78,7 +78,8 @@ class NaiveEvaluator:
         if rank < cols.size or np.any(norms == 0):
             return np.inf
         resid = self.target - A @ theta
-        return score_one(self.criterion, float(resid @ resid), self.n, self.n_terms, cols,
+        sse = max(float(resid @ resid), sse_floor(float(np.linalg.norm(self.target))))
+        return score_one(self.criterion, sse, self.n, self.n_terms, cols,
                           theta * norms / self._y_norm)
 
 

@@ -481,13 +481,25 @@ def cmd_make_bag(args) -> int:
         raise UserError(f"--rate must be a positive number of Hz, got {args.rate}")
     if not (args.start >= 0 and math.isfinite(args.start) and args.start < 4e9):
         raise UserError(f"--start must be a time in seconds, 0 <= start < 4e9, got {args.start}")
-    u, y = load_io(args.data) if args.data else load_io(find_robot_arm())
+    names = None
+    if args.data and (args.inputs or args.output_column):
+        from ..core.io.data import load_data
+
+        d = load_data(args.data, args.inputs, args.output_column)
+        if d.rejected:
+            raise UserError(f"{args.data}: {d.rejected} row(s) with NaN/inf; a bag replays "
+                            "every sample, so clean the file first")
+        u, y, names = d.u, d.y, d.input_names
+    else:
+        u, y = load_io(args.data) if args.data else load_io(find_robot_arm())
     path = write_io_bag(args.output, u, y, rate_hz=args.rate, start_ns=int(args.start * 1e9),
                         input_topic=args.input_topic, output_topic=args.output_topic,
                         input_frame=args.input_frame, output_frame=args.output_frame,
-                        overwrite=args.force)
+                        input_names=names, overwrite=args.force)
+    kind = (f"{u.shape[1]} inputs as sensor_msgs/msg/JointState effort[0..{u.shape[1] - 1}]"
+            f" ({', '.join(names or [])})" if np.ndim(u) == 2 else "")
     print(f"wrote {len(u)} samples per topic at {args.rate:g} Hz to {path} "
-          f"({args.input_topic}, {args.output_topic})")
+          f"({args.input_topic}, {args.output_topic}){'; ' + kind if kind else ''}")
     return 0
 
 
@@ -572,6 +584,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rate", type=float, default=100.0,
                    help="nominal sample rate in Hz (default 100: the data gives none)")
     p.add_argument("--start", type=float, default=0.0, help="first stamp, seconds")
+    p.add_argument("--inputs", metavar="NAMES", type=lambda t: [c for c in t.split(",") if c],
+                   help="input columns of --data (several: written as JointState efforts)")
+    p.add_argument("--output-column", dest="output_column", metavar="NAME",
+                   help="output column of --data (with --inputs; default 'y', else the last)")
     p.add_argument("--input-topic", default="/robot_arm/torque")
     p.add_argument("--output-topic", default="/robot_arm/acceleration")
     p.add_argument("--input-frame", default="robot_arm_base")

@@ -36,7 +36,7 @@ import numpy as np
 
 from .criteria import Criterion, get_criterion
 from .kernels import HAVE_NUMBA, fit_structures
-from .lstsq import DEFAULT_RANK_TOL
+from .lstsq import DEFAULT_RANK_TOL, sse_floor
 
 __all__ = ["StructureEvaluator", "size_groups", "structure_keys"]
 
@@ -102,6 +102,7 @@ class StructureEvaluator:
         self._zero_cols = norms == 0
         self._scale = np.where(norms > 0, norms, 1.0)
         self._y_norm = float(np.linalg.norm(target)) or 1.0
+        self._sse_floor = sse_floor(float(np.linalg.norm(target)))
         aug = np.column_stack([P / self._scale, target])
         m = self.n_terms
         # Gram matrix of [P y] plus one all-zero "dummy" index (m + 1) used to pad
@@ -151,6 +152,7 @@ class StructureEvaluator:
         masks = np.asarray(masks, dtype=bool)
         k = masks.sum(axis=1)
         sse, beta, bad = self.fit_batch(masks)
+        sse = np.maximum(sse, self._sse_floor)  # exact fits: see lstsq.sse_floor
         with np.errstate(invalid="ignore", divide="ignore"):
             values = self.criterion(sse * self.sse_scale, self.n, k, beta)
         return np.where(bad | (k == 0) | ~np.isfinite(values), np.inf, values)
@@ -227,6 +229,18 @@ class StructureEvaluator:
         bad = (masks & self._zero_cols).any(axis=1)
         sub[bad] = np.eye(kmax + 1)  # factorable placeholder; the row stays flagged
         L, failed = _batched_cholesky(sub)
+        exact = np.zeros(B, dtype=bool)
+        if failed.any():
+            # The last pivot is the SSE: when the terms reproduce the target to rounding it
+            # is lost (<= 0). Raising the target's diagonal moves only that pivot, so a
+            # second factorisation tells an exact fit (its SSE then comes from the
+            # refinement below) from terms that are not independent.
+            again = sub[failed]
+            again[:, kmax, kmax] += self._gram[m, m]
+            L2, failed2 = _batched_cholesky(again)
+            L[failed], exact[failed] = L2, ~failed2
+            L[exact, kmax, kmax] = 0.0
+            failed = failed & ~exact
         diag = np.diagonal(L, axis1=1, axis2=2)
         pivots = np.where(valid, diag[:, :kmax] ** 2, 1.0)
         bad |= failed | (pivots < self.rank_tol).any(axis=1)
@@ -240,7 +254,7 @@ class StructureEvaluator:
             # First-order error of the Gram path: eps * (||y|| + ||theta_n||)^2 in SSE.
             # Where that could move a log-SSE criterion by more than 1e-7, refine.
             err = np.finfo(float).eps * (self._y_norm + np.linalg.norm(theta_n, axis=1)) ** 2
-            redo = ~bad & (self.n * err > 1e-7 * sse)
+            redo = ~bad & ((self.n * err > 1e-7 * sse) | exact)
         if redo.any():
             sse[redo], theta_n[redo] = self._refine(idx[redo], kmax, L[redo], theta_n[redo])
         beta = None

@@ -118,9 +118,11 @@ def fit_structures(gram, r_ext, idx, offsets, rank_tol, y_norm, n, refine_all,
                 bad[b] = True
                 valid = j
                 break
-            if not d > 0.0:  # target reproduced exactly: not a least-squares problem
-                bad[b] = True
-                break
+            if j == k and not d > 0.0:
+                if not d == d:  # NaN
+                    bad[b] = True
+                    break
+                d = 0.0  # an exact fit: the SSE is lost in rounding; refined below
             L[j, j] = np.sqrt(d)
         if bad[b]:
             continue
@@ -134,7 +136,7 @@ def fit_structures(gram, r_ext, idx, offsets, rank_tol, y_norm, n, refine_all,
             theta[s + j] = acc / L[j, j]
             tnorm += theta[s + j] * theta[s + j]
         err = eps * (y_norm + np.sqrt(tnorm)) ** 2
-        if refine_all or n * err > 1e-7 * ssq:
+        if refine_all or n * err > 1e-7 * ssq or ssq == 0.0:
             # corrected semi-normal equations on R_ext: theta += (Ls Ls^T)^-1 A^T r
             for rnd in range(2):
                 for q in range(rows):

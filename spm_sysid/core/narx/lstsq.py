@@ -16,9 +16,24 @@ from scipy import linalg
 
 from .criteria import Criterion, get_criterion
 
-__all__ = ["DEFAULT_RANK_TOL", "FitResult", "reference_fit", "reference_score", "score_one"]
+__all__ = ["DEFAULT_RANK_TOL", "FitResult", "reference_fit", "reference_score", "score_one",
+           "sse_floor"]
 
 DEFAULT_RANK_TOL = 1e-9
+
+#: Residuals below this fraction of the target's norm are rounding, not fit.
+SSE_FLOOR_RELATIVE = 1e3 * np.finfo(float).eps
+
+
+def sse_floor(target_norm: float) -> float:
+    """The SSE below which a fit is exact to rounding (criteria see this floor instead).
+
+    Noise-free data fit exactly by the true structure and by every larger one;
+    their SSEs then differ only by rounding (1e-30 and below), which would reward
+    extra terms at random. With the floor, all exact fits score alike on fit and
+    the fewest terms win.
+    """
+    return float((SSE_FLOOR_RELATIVE * target_norm) ** 2)
 
 
 @dataclass(frozen=True)
@@ -95,4 +110,5 @@ def reference_score(
         return np.inf
     cols = np.flatnonzero(mask)
     beta = fit.coefficients * np.linalg.norm(P[:, cols], axis=0) / (np.linalg.norm(target) or 1.0)
-    return score_one(crit, fit.sse, P.shape[0], P.shape[1], cols, beta)
+    sse = max(fit.sse, sse_floor(np.linalg.norm(target)))
+    return score_one(crit, sse, P.shape[0], P.shape[1], cols, beta)

@@ -12,6 +12,7 @@ import json
 import math
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +20,7 @@ import numpy as np
 from ..errors import ModelFormatError
 from ..files import atomic_write_text
 from .lstsq import reference_fit
+from .simulation import CompiledModel, divergence_bounds, run_model
 from .terms import TermSpace, power_of_two_scale
 
 __all__ = ["MODEL_SCHEMA", "MODEL_SCHEMA_VERSION", "NarxModel"]
@@ -131,14 +133,49 @@ class NarxModel:
         return f"{self.term_space.output}(t) = " + ("".join(parts) if parts else "0")
 
     # -- prediction -------------------------------------------------------------------
-    def predict(self, u: np.ndarray, y: np.ndarray,
-                segments: list[tuple[int, int]] | None = None) -> np.ndarray:
-        """One-step-ahead prediction for t = max_lag..len-1 from measured u and y.
+    @cached_property
+    def compiled(self) -> CompiledModel:
+        """The structure in the simulation kernels' form (built once)."""
+        return CompiledModel.from_space(self.term_space, self.term_indices)
 
-        With ``segments``, the predictions of each segment's rows, concatenated.
+    def predict(self, u: np.ndarray, y: np.ndarray,
+                segments: list[tuple[int, int]] | None = None,
+                horizon: int | None = 1) -> np.ndarray:
+        """k-step-ahead prediction for t = max_lag..len-1 (``horizon`` k).
+
+        ``horizon=1`` (default) is one-step prediction from measured u and y;
+        k > 1 feeds the model's own outputs back for k steps from the measured
+        ones at t - k; None is free-run simulation. With ``segments``, each
+        segment's rows, concatenated. A diverging run gives NaN from the
+        divergence on (see :meth:`run`).
         """
-        P, _ = self.term_space.regression(u, y, segments)
-        return P[:, self.term_indices] @ self.coefficients
+        if horizon == 1:
+            P, _ = self.term_space.regression(u, y, segments)
+            return P[:, self.term_indices] @ self.coefficients
+        return self.run(u, y, horizon, segments)[0]
+
+    def run(self, u: np.ndarray, y: np.ndarray, horizon: int | None = None,
+            segments: list[tuple[int, int]] | None = None) -> tuple[np.ndarray, int | None]:
+        """Prediction ``horizon`` steps ahead (None: free-run) and where it diverged.
+
+        Returns the predictions of every segment's rows, concatenated, and the
+        first sample index (in ``y``) at which a run left the measured output's
+        range (see :mod:`spm_sysid.core.narx.simulation`), or None.
+        """
+        u = self.term_space.inputs_2d(u)
+        y = np.asarray(y, dtype=float)
+        lag0 = self.term_space.max_lag
+        bounds = divergence_bounds(y)
+        parts, first = [], None
+        for a, b in ([(0, len(y))] if segments is None else segments):
+            if b - a <= lag0:
+                continue
+            yhat, at = run_model(self.compiled, self.coefficients, u[a:b], y[a:b], horizon,
+                                 bounds)
+            parts.append(yhat)
+            if at is not None and first is None:
+                first = a + at
+        return (np.concatenate(parts) if parts else np.empty(0)), first
 
     def residuals(self, u: np.ndarray, y: np.ndarray,
                   segments: list[tuple[int, int]] | None = None) -> np.ndarray:
@@ -151,24 +188,22 @@ class NarxModel:
         """Free-run simulation of each segment from its own initial conditions.
 
         Returns the simulated outputs of every segment's regression rows,
-        concatenated (the rows of :meth:`predict`).
+        concatenated (the rows of :meth:`predict`); NaN from a divergence on.
         """
-        if segments is None:
-            return self.simulate(u, y)
-        lag0 = self.term_space.max_lag
-        parts = [self.simulate(u[a:b], y[a:b]) for a, b in segments if b - a > lag0]
-        return np.concatenate(parts) if parts else np.empty(0)
+        return self.run(u, y, None, segments)[0]
 
     def simulate(self, u: np.ndarray, y_initial: np.ndarray) -> np.ndarray:
         """Free-run simulation: each prediction is fed back as a lagged output.
 
         Parameters
         ----------
-        u : ndarray, shape (n,)
+        u : ndarray, shape (n,) or (n, n_inputs)
             Input over the whole horizon.
         y_initial : ndarray, shape (>= max_lag,)
-            Measured outputs; only the first ``max_lag`` are used, as initial
-            conditions.
+            Measured outputs; the first ``max_lag`` are the initial conditions.
+            When it covers the whole horizon, a run that leaves its range by
+            far is stopped there (NaN from then on; see :meth:`run`); otherwise
+            only a non-finite output stops it.
 
         Returns
         -------
@@ -181,31 +216,12 @@ class NarxModel:
         y_initial = np.asarray(y_initial, dtype=float)
         if len(y_initial) < lag0:
             raise ValueError(f"simulation needs {lag0} initial outputs, got {len(y_initial)}")
-        n = len(u)
-        ysim = np.zeros(n)
-        ysim[:lag0] = y_initial[:lag0]
-        lin = ts.linear
-        all_terms = ts.terms
-        n_lin = len(lin)
-        # Each selected term as a row of linear-term indices padded with n_lin, which
-        # points at a constant 1 appended to the linear values.
-        width = max((len(all_terms[i]) for i in self.term_indices), default=1) or 1
-        gather = np.full((len(self.term_indices), width), n_lin)
-        for row, i in enumerate(self.term_indices):
-            gather[row, : len(all_terms[i])] = all_terms[i]
-        # the output's lags come first in term order, then each input's
-        y_lags = np.array([lag for src, lag in lin if src < 0], dtype=int)
-        u_lags = np.array([lag for src, lag in lin if src >= 0], dtype=int)
-        u_cols = np.array([src for src, lag in lin if src >= 0], dtype=int)
-        vals = np.ones(n_lin + 1)
-        n_y = len(y_lags)
-        theta = self.coefficients
-        with np.errstate(over="ignore", invalid="ignore"):
-            for t in range(lag0, n):
-                vals[:n_y] = ysim[t - y_lags]
-                vals[n_y:n_lin] = u[t - u_lags, u_cols]
-                ysim[t] = np.prod(vals[gather], axis=1) @ theta
-        return ysim[lag0:]
+        if len(y_initial) >= len(u):
+            return self.run(u, y_initial[:len(u)])[0]
+        y = np.zeros(len(u))
+        y[:lag0] = y_initial[:lag0]
+        big = np.finfo(float).max
+        return run_model(self.compiled, self.coefficients, u, y, None, (-big, big))[0]
 
     # -- persistence --------------------------------------------------------------------
     def to_dict(self) -> dict:

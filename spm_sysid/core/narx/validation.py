@@ -16,24 +16,29 @@ from ..errors import DataError, SettingsError
 from .correlation import CorrelationTest, correlation_tests
 from .model import NarxModel
 
-__all__ = ["ValidationReport", "metrics", "split_data", "split_segments", "validate_model",
-           "check_correlation_lags"]
+__all__ = ["ValidationReport", "describe_metrics", "metrics", "split_data", "split_segments",
+           "validate_model", "check_correlation_lags"]
 
 
-def metrics(y: np.ndarray, yhat: np.ndarray) -> dict[str, float]:
+def metrics(y: np.ndarray, yhat: np.ndarray, diverged_at: int | None = None
+            ) -> dict[str, float | int | None]:
     """Error metrics of a prediction.
 
     ``fit_percent`` is the normalised-RMSE fit MATLAB's ``compare`` reports:
     ``100 * (1 - ||y - yhat|| / ||y - mean(y)||)``; 100 is perfect, and it can be
-    negative (worse than the mean). Non-finite predictions (a diverging
-    simulation) give infinite errors and a fit of -inf.
+    negative (worse than the mean). A run that diverged (``diverged_at``, a
+    sample index, or any non-finite prediction) has no error metrics: they are
+    NaN and ``diverged_at`` says where it left the range (never ``inf``).
     """
     y = np.asarray(y, dtype=float)
     yhat = np.asarray(yhat, dtype=float)
     e = y - yhat
-    if not np.all(np.isfinite(e)):
-        inf = float("inf")
-        return {"mse": inf, "rmse": inf, "max_abs": inf, "mean_abs": inf, "fit_percent": -inf}
+    if diverged_at is not None or not np.all(np.isfinite(e)):
+        nan = float("nan")
+        if diverged_at is None:
+            diverged_at = int(np.flatnonzero(~np.isfinite(e))[0])
+        return {"mse": nan, "rmse": nan, "max_abs": nan, "mean_abs": nan,
+                "fit_percent": nan, "diverged_at": int(diverged_at)}
     spread = np.linalg.norm(y - y.mean())
     fit = 100.0 * (1.0 - np.linalg.norm(e) / spread) if spread > 0 else float("nan")
     mse = float(np.mean(e**2))
@@ -43,7 +48,17 @@ def metrics(y: np.ndarray, yhat: np.ndarray) -> dict[str, float]:
         "max_abs": float(np.max(np.abs(e))),
         "mean_abs": float(np.mean(np.abs(e))),
         "fit_percent": float(fit),
+        "diverged_at": None,
     }
+
+
+def describe_metrics(label: str, m: dict) -> str:
+    """One line of a metrics dictionary for people."""
+    if m.get("diverged_at") is not None:
+        return (f"  {label}: DIVERGED at sample {m['diverged_at']} (left the measured "
+                f"output's range; no error metrics)")
+    return (f"  {label}: MSE {m['mse']:.4e}, max |e| {m['max_abs']:.4g}, "
+            f"mean |e| {m['mean_abs']:.4g}, fit {m['fit_percent']:.2f} %")
 
 
 def split_data(
@@ -65,47 +80,72 @@ def split_data(
 
 @dataclass
 class ValidationReport:
-    """Everything validation computed on one segment (rows t = max_lag..n-1)."""
+    """Everything validation computed on one segment (rows t = max_lag..n-1).
+
+    ``tests`` is empty when the correlation tests were not computed
+    (``tests_skipped`` says why: a diverged simulation or non-finite residuals).
+    """
 
     measured: np.ndarray
     one_step: np.ndarray
     free_run: np.ndarray
-    one_step_metrics: dict[str, float]
-    free_run_metrics: dict[str, float]
+    one_step_metrics: dict
+    free_run_metrics: dict
     tests: list[CorrelationTest]
     segment: str = "estimation"
     n_samples: int = 0
+    horizon: int | None = None
+    k_step: np.ndarray | None = None
+    k_step_metrics: dict | None = None
+    tests_skipped: str | None = None
 
     @property
     def residuals(self) -> np.ndarray:
         """One-step residuals."""
         return self.measured - self.one_step
 
+    @property
+    def diverged_at(self) -> int | None:
+        """Sample where the free-run simulation diverged, or None."""
+        return self.free_run_metrics.get("diverged_at")
+
+    @property
+    def passed(self) -> bool:
+        """No divergence, correlation tests computed and all inside the band."""
+        return (self.diverged_at is None and self.tests_skipped is None
+                and all(t.passed for t in self.tests))
+
     def test(self, name: str) -> CorrelationTest:
         """One correlation test by name (``ee``, ``ue``, ``e_eu``, ``u2_e``, ``u2_e2``)."""
         return next(t for t in self.tests if t.name == name)
 
     def to_dict(self) -> dict:
-        """JSON-ready summary (no arrays)."""
-        return {
+        """JSON-ready summary (no arrays; NaN as null)."""
+        out = {
             "segment": self.segment,
             "n_samples": self.n_samples,
             "one_step": _finite(self.one_step_metrics),
             "free_run": _finite(self.free_run_metrics),
+            "diverged_at": self.diverged_at,
             "correlation_tests": [t.to_dict() for t in self.tests],
         }
+        if self.k_step_metrics is not None:
+            out["k_step"] = {"horizon": self.horizon, **_finite(self.k_step_metrics)}
+        if self.tests_skipped:
+            out["correlation_tests_skipped"] = self.tests_skipped
+        return out
 
     def summary(self) -> str:
         """A few lines for people."""
-        o, f = self.one_step_metrics, self.free_run_metrics
-        lines = [
-            f"validation on {self.segment} data ({self.n_samples} samples):",
-            f"  one-step: MSE {o['mse']:.4e}, max |e| {o['max_abs']:.4g}, "
-            f"mean |e| {o['mean_abs']:.4g}, fit {o['fit_percent']:.2f} %",
-            f"  free-run: MSE {f['mse']:.4e}, max |e| {f['max_abs']:.4g}, "
-            f"mean |e| {f['mean_abs']:.4g}, fit {f['fit_percent']:.2f} %",
-            f"  correlation tests (95 % band ±{self.tests[0].band:.4f}):",
-        ]
+        lines = [f"validation on {self.segment} data ({self.n_samples} samples):",
+                 describe_metrics("one-step", self.one_step_metrics)]
+        if self.k_step_metrics is not None:
+            lines.append(describe_metrics(f"{self.horizon}-step", self.k_step_metrics))
+        lines.append(describe_metrics("free-run", self.free_run_metrics))
+        if self.tests_skipped:
+            lines.append(f"  correlation tests: not computed ({self.tests_skipped})")
+            return "\n".join(lines)
+        lines.append(f"  correlation tests (95 % band ±{self.tests[0].band:.4f}):")
         for t in self.tests:
             state = "OK  " if t.passed else "WARN"
             lines.append(f"    {state} {t.name:<6} {t.fraction_inside:6.1%} of lags inside, "
@@ -113,8 +153,9 @@ class ValidationReport:
         return "\n".join(lines)
 
 
-def _finite(d: dict[str, float]) -> dict[str, float | None]:
-    return {k: (v if np.isfinite(v) else None) for k, v in d.items()}
+def _finite(d: dict) -> dict:
+    return {k: (v if v is None or isinstance(v, int) or np.isfinite(v) else None)
+            for k, v in d.items()}
 
 
 def split_segments(bounds: list[tuple[int, int]], n: int, fraction: float, max_lag: int
@@ -148,6 +189,7 @@ def check_correlation_lags(lags: int, rows: int) -> None:
 def validate_model(
     model: NarxModel, u: np.ndarray, y: np.ndarray, *, max_lag: int = 20,
     segment: str = "estimation", segments: list[tuple[int, int]] | None = None,
+    horizon: int | None = None,
 ) -> ValidationReport:
     """Validate ``model`` on u, y (one-step, free-run, correlation tests).
 
@@ -167,6 +209,8 @@ def validate_model(
         predictions never cross from one to the next, and each is simulated from
         its own initial conditions. The correlation tests run on the residuals of
         all segments, concatenated.
+    horizon : int, optional
+        Also report k-step-ahead prediction for this k (> 1).
     """
     try:
         u = model.term_space.inputs_2d(u)
@@ -184,18 +228,35 @@ def validate_model(
                         f"least {max(3, max_lag + 1)})")
     _, measured = model.term_space.regression(u, y, segments)
     one_step = model.predict(u, y, segments)
-    free_run = model.simulate_segments(u, y, segments)
+    free_run, diverged = model.run(u, y, None, segments)
+    k_step = k_metrics = None
+    if horizon is not None and horizon > 1:
+        k_step, k_div = model.run(u, y, horizon, segments)
+        k_metrics = metrics(measured, k_step, k_div)
     residuals = measured - one_step
-    # the correlation tests use the first input (several inputs: docs/method.md)
-    u_rows = u[lag0:, 0] if segments is None else np.concatenate(
-        [u[a + lag0:b, 0] for a, b in segments])
+    free_metrics = metrics(measured, free_run, diverged)
+    skipped, tests = None, []
+    if free_metrics["diverged_at"] is not None:
+        skipped = (f"the free-run simulation diverged at sample {free_metrics['diverged_at']}:"
+                   " the model does not describe the system")
+    elif not np.all(np.isfinite(residuals)):
+        skipped = "the one-step residuals are not finite"
+    else:
+        # the correlation tests use the first input (several inputs: docs/method.md)
+        u_rows = u[lag0:, 0] if segments is None else np.concatenate(
+            [u[a + lag0:b, 0] for a, b in segments])
+        tests = correlation_tests(residuals, u_rows, max_lag)
     return ValidationReport(
         measured=measured,
         one_step=one_step,
         free_run=free_run,
         one_step_metrics=metrics(measured, one_step),
-        free_run_metrics=metrics(measured, free_run),
-        tests=correlation_tests(residuals, u_rows, max_lag),
+        free_run_metrics=free_metrics,
+        tests=tests,
         segment=segment,
         n_samples=len(y) if segments is None else sum(b - a for a, b in segments),
+        horizon=horizon if k_step is not None else None,
+        k_step=k_step,
+        k_step_metrics=k_metrics,
+        tests_skipped=skipped,
     )

@@ -95,10 +95,22 @@ def diagnostic_statuses(name: str, stats: dict, *, field_errors: int = 0,
             message += f", fitted around {data['gaps']} gap(s) in the data"
         if restored_from:
             message += f", restored from {restored_from}"
-        statuses.append(Status(WARN if incomplete else OK, ident, message, _values(
+        validation = meta.get("validation") or {}
+        diverged = validation.get("diverged_at")
+        level = WARN if incomplete else OK
+        if diverged is not None:
+            message += f"; its free-run simulation DIVERGED at sample {diverged}"
+            level = ERROR
+        free = validation.get("free_run") or {}
+        statuses.append(Status(level, ident, message, _values(
             {"criterion": crit.get("name"), "value": crit.get("value"),
-             "mse": model.get("mse"), **{f"data_{k}": v for k, v in data.items()}})))
-        for t in (meta.get("validation") or {}).get("correlation_tests", []):
+             "mse": model.get("mse"), "focus": meta.get("focus", "prediction"),
+             "free_run_fit_percent": free.get("fit_percent"), "diverged_at": diverged,
+             **{f"data_{k}": v for k, v in data.items()}})))
+        if validation.get("correlation_tests_skipped"):
+            statuses.append(Status(WARN, f"{name}: correlation tests",
+                                   "not computed: " + validation["correlation_tests_skipped"]))
+        for t in validation.get("correlation_tests", []):
             statuses.append(Status(
                 OK if t["passed"] else WARN, f"{name}: correlation {t['name']}",
                 ("inside the 95 % band" if t["passed"] else "outside the 95 % band")
