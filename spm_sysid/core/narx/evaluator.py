@@ -143,6 +143,19 @@ class StructureEvaluator:
             self.evaluations += len(rows)
         return np.fromiter((cache[k] for k in keys.tolist()), dtype=float, count=len(keys))
 
+    def ranked(self, count: int) -> np.ndarray:
+        """The ``count`` best distinct structures scored so far, best first (masks).
+
+        Only structures with a finite score are listed.
+        """
+        items = sorted(((v, k) for k, v in self._cache.items() if np.isfinite(v)),
+                       key=lambda item: item[0])[:max(0, int(count))]
+        if not items:
+            return np.zeros((0, self.n_terms), dtype=bool)
+        packed = np.frombuffer(b"".join(k for _, k in items), dtype=np.uint8)
+        bits = np.unpackbits(packed.reshape(len(items), -1), axis=1, bitorder="little")
+        return bits[:, :self.n_terms].astype(bool)
+
     def cached_score(self, mask: np.ndarray) -> float:
         """Score of one structure (cached)."""
         return float(self.score(np.asarray(mask, dtype=bool)[None, :])[0])

@@ -18,10 +18,15 @@ from .criteria import Criterion, get_criterion
 from .evaluator import StructureEvaluator
 from .ga import GAConfig, GAResult, GenerationStats, run_ga
 from .model import NarxModel
+from .refine import refine_simulation
 from .segments import normalise_segments, usable_segments
 from .terms import TermSpace, power_of_two_scale
 
-__all__ = ["IdentificationResult", "check_samples", "identify", "validate_signals"]
+__all__ = ["FOCUS", "IdentificationResult", "check_samples", "identify",
+           "select_for_simulation", "validate_signals"]
+
+#: What a model is selected and fitted for.
+FOCUS = ("prediction", "simulation")
 
 
 @dataclass
@@ -105,6 +110,8 @@ def identify(
     seed: int | None = None,
     callback: Callable[[GenerationStats], bool | None] | None = None,
     segments: list[tuple[int, int]] | None = None,
+    focus: str = "prediction",
+    shortlist: int = 20,
 ) -> IdentificationResult:
     """Select a NARX structure with the SPM-GA and fit it.
 
@@ -129,6 +136,14 @@ def identify(
         :func:`spm_sysid.core.narx.segments.find_segments`): regression rows are built
         inside each and fitted together, never across a gap. Segments no longer
         than the largest lag are skipped. Default: the whole record.
+    focus : {"prediction", "simulation"}
+        ``prediction`` (the paper's): the GA's best structure, least squares.
+        ``simulation``: see :func:`select_for_simulation` -- the structure and
+        coefficients that simulate best, by the same criterion computed on the
+        free-run error.
+    shortlist : int
+        With ``focus="simulation"``: how many of the GA's best structures are
+        refined and compared.
 
     Notes
     -----
@@ -140,6 +155,8 @@ def identify(
     """
     term_space = term_space or TermSpace()
     crit = get_criterion(criterion)
+    if focus not in FOCUS:
+        raise ValueError(f"focus must be one of {', '.join(FOCUS)}, got {focus!r}")
     if segments is not None:
         segments = normalise_segments(segments, len(np.asarray(y)))
         segments, _, _ = usable_segments(segments, term_space.max_lag)
@@ -174,17 +191,126 @@ def identify(
     full_mask = np.zeros(term_space.n_terms, dtype=bool)
     full_mask[np.flatnonzero(nonzero)] = result.best_mask
     result.best_mask = full_mask
-    model = NarxModel.fit(
-        u, y, full_mask, term_space, segments=segments,
-        criterion=crit.name, criterion_value=result.best_score,
-        metadata={
-            "ga": ga.to_dict(),
-            "seed": seed,
-            "generations_run": len(result.history) - 1,
-            "first_best_generation": result.first_best_generation,
-            "evaluations": result.evaluations,
-            "search_seconds": round(result.elapsed, 4),
-            **({"excluded_zero_terms": excluded} if excluded else {}),
-        },
-    )
+    info = {
+        "ga": ga.to_dict(),
+        "seed": seed,
+        "generations_run": len(result.history) - 1,
+        "first_best_generation": result.first_best_generation,
+        "evaluations": result.evaluations,
+        "search_seconds": round(result.elapsed, 4),
+        "focus": focus,
+        **({"excluded_zero_terms": excluded} if excluded else {}),
+    }
+    if focus == "simulation":
+        ranked = evaluator.ranked(shortlist)
+        masks = np.zeros((len(ranked), term_space.n_terms), dtype=bool)
+        masks[:, np.flatnonzero(nonzero)] = ranked
+        model = select_for_simulation(u, y, term_space, masks, crit, segments=segments,
+                                      metadata=info)
+    else:
+        model = NarxModel.fit(u, y, full_mask, term_space, segments=segments,
+                              criterion=crit.name, criterion_value=result.best_score,
+                              metadata=info)
     return IdentificationResult(model=model, ga=result, criterion=crit.name, seed=seed)
+
+
+def select_for_simulation(
+    u: np.ndarray, y: np.ndarray, term_space: TermSpace, candidates: np.ndarray,
+    criterion: Criterion, *, segments: list[tuple[int, int]] | None = None,
+    metadata: dict | None = None, max_passes: int = 10,
+) -> NarxModel:
+    """The structure and coefficients that simulate best, by an information criterion.
+
+    Each candidate structure (rows of ``candidates``, e.g. the GA's best by the
+    one-step criterion) is fitted by least squares, refined on its free-run error
+    (:func:`~spm_sysid.core.narx.refine.refine_simulation`) and scored by
+    ``criterion`` with the free-run SSE in place of the one-step SSE (so AIC
+    becomes ``N ln(SSE_sim / N) + 2k``). From the best, a local search removes
+    or adds one term at a time (terms of the candidates; every term in spaces of
+    at most 100) while that lowers the simulation criterion. Structures whose
+    simulation diverges on the estimation data are never returned.
+
+    Raises
+    ------
+    DataError
+        When every candidate's simulation diverges on the estimation data.
+    """
+    lag0 = term_space.max_lag
+    P, target = term_space.regression(u, y, segments)
+    norms = np.linalg.norm(P, axis=0)
+    y_norm = float(np.linalg.norm(target)) or 1.0
+    rows = len(target)
+    scored: dict[bytes, tuple[float, NarxModel | None]] = {}
+    refinements = 0
+
+    def score(mask: np.ndarray, start: NarxModel | None = None) -> float:
+        nonlocal refinements
+        key = np.packbits(mask).tobytes()
+        if key in scored:
+            return scored[key][0]
+        value, model = np.inf, None
+        if mask.any():
+            try:
+                model = NarxModel.fit(u, y, mask, term_space, segments=segments)
+            except ValueError:  # linearly dependent on this data
+                model = None
+        if model is not None:
+            if start is not None:  # warm start: a neighbour's refined coefficients
+                theta = dict(zip(start.term_indices, start.coefficients))
+                warm = np.array([theta.get(i, 0.0) for i in model.term_indices])
+                ls = model.coefficients
+                model.coefficients = warm
+                ref = refine_simulation(model, u, y, segments)
+                if not ref.success:
+                    model.coefficients = ls
+                    ref = refine_simulation(model, u, y, segments)
+            else:
+                ref = refine_simulation(model, u, y, segments)
+            refinements += 1
+            if ref.success and np.isfinite(ref.sse):
+                model.coefficients = ref.coefficients
+                beta = np.zeros((1, term_space.n_terms))
+                beta[0, mask] = ref.coefficients * norms[mask] / y_norm
+                v = float(criterion(np.array([max(ref.sse, 1e-300)]), rows,
+                                    np.array([mask.sum()]), beta)[0])
+                value = v if np.isfinite(v) else np.inf
+                model.metadata = {"refinement": ref.message, "free_run_sse": ref.sse,
+                                  "least_squares_free_run_sse": ref.sse_start}
+        scored[key] = (value, model)
+        return value
+
+    for mask in candidates:
+        score(mask)
+    if not scored or min(v for v, _ in scored.values()) == np.inf:
+        raise DataError("every candidate structure's free-run simulation diverges on the "
+                        "estimation data (or cannot be fitted): no model simulates")
+    best_key = min(scored, key=lambda k: scored[k][0])
+    best = np.unpackbits(np.frombuffer(best_key, dtype=np.uint8))[:term_space.n_terms]
+    best = best.astype(bool)
+    pool = (np.ones(term_space.n_terms, dtype=bool) if term_space.n_terms <= 100
+            else candidates.any(axis=0))
+    passes = 0
+    while passes < max_passes:
+        passes += 1
+        value, current = scored[np.packbits(best).tobytes()]
+        moves = []
+        for j in np.flatnonzero(pool):
+            trial = best.copy()
+            trial[j] = not trial[j]
+            moves.append((score(trial, current), j))
+        v, j = min(moves, default=(np.inf, -1))
+        if not v < value:
+            break
+        best[j] = not best[j]
+    value, model = scored[np.packbits(best).tobytes()]
+    one_step = model.residuals(u, y, segments)
+    model.mse = float(one_step @ one_step) / len(one_step)
+    model.criterion, model.criterion_value = criterion.name, value
+    model.n_samples = len(y) if segments is None else sum(
+        b - a for a, b in segments if b - a > lag0)
+    model.metadata = {**(metadata or {}), "simulation": {
+        **model.metadata, "candidates": len(candidates), "refinements": refinements,
+        "local_search_passes": passes,
+        "criterion_meaning": f"{criterion.name.upper()} of the free-run simulation error "
+                             "(SSE of the simulated output) on the estimation data"}}
+    return model

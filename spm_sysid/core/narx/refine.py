@@ -1,0 +1,184 @@
+"""Refining a model's coefficients on its free-run simulation error.
+
+Least squares minimises the one-step prediction error; a model used as a
+simulator should minimise the error of its own fed-back outputs,
+
+    min_theta  sum_t ( y(t) - ysim(t; theta) )^2 ,
+
+over every estimation segment (each simulated from its own initial
+conditions). This is a nonlinear least-squares problem; it is solved by
+Levenberg-Marquardt (``scipy.optimize.least_squares(method="lm")``) started
+from the least-squares coefficients, with the exact Jacobian from the
+sensitivity equations (:func:`~spm_sysid.core.narx.simulation.free_run_sensitivities`).
+
+Stability: a step that would make the model's linear part unstable (a pole
+of its output-lag polynomial on or outside the unit circle, see
+:func:`linear_radius`) is rejected when the least-squares model's is stable --
+a model can fit the estimation record well while growing slowly, and then fail
+on any other record. A refinement that ends unstable (possible only from an
+unstable least-squares start) fails, so simulation-focused selection never
+returns a model whose linear part is unstable. On the estimation data, a
+simulation that leaves the measured range
+(see :mod:`~spm_sysid.core.narx.simulation`) costs as if every later output sat
+on the range's edge, with no gradient, so a step into divergence is always
+rejected; a result that still diverges is never returned (the start is kept,
+and when that diverges too, the refinement fails and says so).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from .model import NarxModel
+from .simulation import divergence_bounds, free_run_sensitivities
+
+__all__ = ["Refinement", "linear_radius", "refine_simulation", "simulation_sse"]
+
+
+def linear_radius(term_space, term_indices, theta) -> float:
+    """Spectral radius of the model's linear output part (its poles about zero).
+
+    The terms ``y(t-l)`` alone (products left out) give the characteristic
+    polynomial ``z^n - sum_l a_l z^(n-l)``; the largest root modulus below 1
+    means the linearised model forgets its initial conditions. 0 without
+    output lags.
+    """
+    lin = term_space.linear
+    all_terms = term_space.terms
+    a = np.zeros(term_space.ny + 1)
+    a[0] = 1.0
+    for i, c in zip(term_indices, theta):
+        t = all_terms[i]
+        if len(t) == 1 and lin[t[0]][0] < 0:
+            a[lin[t[0]][1]] -= c
+    if not np.any(a[1:]):
+        return 0.0
+    return float(np.max(np.abs(np.roots(np.trim_zeros(a, "b")))))
+
+
+@dataclass(frozen=True)
+class Refinement:
+    """Outcome of :func:`refine_simulation` (SSE in the user's units, estimation rows)."""
+
+    coefficients: np.ndarray
+    sse: float
+    sse_start: float
+    diverged_start: int | None
+    evaluations: int
+    success: bool
+    message: str
+
+
+def _segments(y: np.ndarray, segments, lag0: int) -> list[tuple[int, int]]:
+    segs = [(0, len(y))] if segments is None else list(segments)
+    return [(a, b) for a, b in segs if b - a > lag0]
+
+
+def simulation_sse(model: NarxModel, u: np.ndarray, y: np.ndarray,
+                   segments: list[tuple[int, int]] | None = None,
+                   theta: np.ndarray | None = None) -> tuple[float, int | None]:
+    """Free-run SSE over the segments' rows and the first divergence (or None).
+
+    A diverged run has SSE ``inf``.
+    """
+    ts = model.term_space
+    u = ts.inputs_2d(u)
+    y = np.asarray(y, dtype=float)
+    theta = model.coefficients if theta is None else theta
+    bounds = divergence_bounds(y)
+    total = 0.0
+    for a, b in _segments(y, segments, ts.max_lag):
+        yhat, _, at = free_run_sensitivities(model.compiled, theta, u[a:b], y[a:b], bounds)
+        if at is not None:
+            return float("inf"), a + at
+        e = y[a + ts.max_lag:b] - yhat
+        total += float(e @ e)
+    return total, None
+
+
+def refine_simulation(model: NarxModel, u: np.ndarray, y: np.ndarray,
+                      segments: list[tuple[int, int]] | None = None,
+                      max_evaluations: int = 200) -> Refinement:
+    """Coefficients of ``model``'s structure that minimise the free-run error on u, y.
+
+    Parameters
+    ----------
+    model : NarxModel
+        The structure and the starting coefficients (least squares).
+    u, y : ndarray
+        The estimation record(s).
+    segments : list of (start, stop), optional
+        Contiguous parts, each simulated from its own initial conditions (as for
+        :meth:`NarxModel.fit`); None is the whole record.
+    max_evaluations : int
+        Most simulations (with Jacobian) Levenberg-Marquardt may run.
+    """
+    ts = model.term_space
+    u = ts.inputs_2d(u)
+    y = np.asarray(y, dtype=float)
+    lag0 = ts.max_lag
+    segs = _segments(y, segments, lag0)
+    bounds = divergence_bounds(y)
+    measured = np.concatenate([y[a + lag0:b] for a, b in segs])
+    theta0 = np.asarray(model.coefficients, dtype=float)
+    cache: dict[bytes, tuple[np.ndarray, np.ndarray, int | None]] = {}
+
+    radius0 = linear_radius(ts, model.term_indices, theta0)
+    limit = radius0 if radius0 < 1.0 else np.inf  # never less stable than least squares
+
+    def simulate(theta):
+        key = theta.tobytes()
+        if key not in cache:
+            cache.clear()  # least_squares asks for fun, then jac, of the same theta
+            if linear_radius(ts, model.term_indices, theta) > limit:
+                # unstable linear part: as costly as a divergence at the first sample
+                r = measured - np.where(measured >= 0.5 * (bounds[0] + bounds[1]),
+                                        bounds[0], bounds[1])
+                cache[key] = (r, np.zeros((len(measured), len(theta))), segs[0][0] + lag0)
+                return cache[key]
+            outs, jacs, first = [], [], None
+            for a, b in segs:
+                yhat, jac, at = free_run_sensitivities(model.compiled, theta, u[a:b], y[a:b],
+                                                       bounds)
+                if at is not None:
+                    if first is None:
+                        first = a + at
+                    bad = ~np.isfinite(yhat)
+                    last = yhat[~bad][-1] if (~bad).any() else y[a + lag0 - 1]
+                    # beyond the divergence: the range's nearest edge, no gradient
+                    yhat[bad] = bounds[1] if last >= 0.5 * (bounds[0] + bounds[1]) else bounds[0]
+                    jac[bad] = 0.0
+                outs.append(yhat)
+                jacs.append(jac)
+            cache[key] = (measured - np.concatenate(outs), -np.vstack(jacs), first)
+        return cache[key]
+
+    r0, _, div0 = simulate(theta0)
+    sse0 = float(r0 @ r0) if div0 is None else float("inf")
+    if len(measured) <= len(theta0):
+        return Refinement(theta0, sse0, sse0, div0, 1, div0 is None,
+                          "too few rows to refine; least squares kept")
+    try:
+        sol = least_squares(lambda t: simulate(t)[0], theta0, jac=lambda t: simulate(t)[1],
+                            method="lm", x_scale="jac", max_nfev=max_evaluations)
+        theta, nfev, msg = sol.x, int(sol.nfev), str(sol.message)
+    except (ValueError, FloatingPointError) as exc:  # pragma: no cover - numerical failure
+        theta, nfev, msg = theta0, 1, f"refinement failed ({exc}); least squares kept"
+    r, _, div = simulate(theta)
+    sse = float(r @ r) if div is None else float("inf")
+    radius = linear_radius(ts, model.term_indices, theta)
+    if radius >= 1.0 and div is None:
+        return Refinement(theta, float("inf"), sse0, div0, nfev, False,
+                          f"the refined model's linear part is unstable (pole radius "
+                          f"{radius:.4f}): it may fit this record and fail on any other")
+    if div is not None or not sse < sse0:
+        if div0 is None:
+            return Refinement(theta0, sse0, sse0, div0, nfev, True,
+                              "the least-squares coefficients simulate best; kept")
+        return Refinement(theta0, float("inf"), sse0, div0, nfev, False,
+                          f"the simulation diverges at sample {div0} and refinement did not "
+                          "find stable coefficients")
+    return Refinement(theta, sse, sse0, div0, nfev, True, msg)
