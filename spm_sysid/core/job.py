@@ -66,6 +66,9 @@ class JobSettings:
     correlation_lags: int = 20
     sample_period: float = 0.0
     gap_factor: float = 1.5
+    focus: str = "prediction"
+    shortlist: int = 20
+    horizon: int = 0
 
     @classmethod
     def from_values(cls, values: Mapping[str, Any], inputs: tuple[str, ...] = (),
@@ -80,7 +83,8 @@ class JobSettings:
         v = defaults(JOB_GROUPS)
         v.update({k: values[k] for k in v if k in values and values[k] is not None})
         for name in ("criterion", "seed", "validation", "validation_split",
-                     "correlation_lags", "sample_period", "gap_factor"):
+                     "correlation_lags", "sample_period", "gap_factor", "focus", "shortlist",
+                     "horizon"):
             v[name] = check(name, v[name])
         criterion = v["criterion"].lower()
         try:
@@ -98,6 +102,9 @@ class JobSettings:
             correlation_lags=v["correlation_lags"],
             sample_period=v["sample_period"],
             gap_factor=v["gap_factor"],
+            focus=v["focus"],
+            shortlist=v["shortlist"],
+            horizon=v["horizon"],
         )
 
     def values(self) -> dict[str, Any]:
@@ -106,7 +113,8 @@ class JobSettings:
         out.update(criterion=self.criterion, seed=-1 if self.seed is None else self.seed,
                    validation=self.validation, validation_split=self.validation_split,
                    correlation_lags=self.correlation_lags, sample_period=self.sample_period,
-                   gap_factor=self.gap_factor)
+                   gap_factor=self.gap_factor, focus=self.focus, shortlist=self.shortlist,
+                   horizon=self.horizon)
         return out
 
 
@@ -150,7 +158,9 @@ class JobResult:
         command line's block (equation, criterion, data, validation).
         """
         m, crit = self.model, self.model.criterion.upper()
-        value = self.search.best_score
+        value = m.criterion_value
+        if m.metadata.get("focus") == "simulation":
+            crit += " (simulation)"
         if style == "line":
             text = (f"{m.equation()} | {crit} {value:.2f}, {len(m.term_indices)} terms, "
                     f"one-step MSE {m.mse:.4e}, {describe_data(self.data)}")
@@ -169,7 +179,8 @@ class JobResult:
             return text + f", {self.seconds.get('total', 0.0):.2f} s"
         lines = [m.equation(),
                  f"criterion {crit} = {value:.2f}, {len(m.term_indices)} terms, one-step MSE "
-                 f"{m.mse:.4e}, {m.n_samples} samples, {self.search.elapsed:.2f} s "
+                 f"{m.mse:.4e}, {m.n_samples} samples, "
+                 f"{self.seconds.get('search', self.search.elapsed):.2f} s "
                  f"({self.search.evaluations} structures fitted, cache hit rate "
                  f"{self.search.cache_hit_rate:.0%})"]
         if self.report is not None:
@@ -249,13 +260,15 @@ def run_job(
             progress(stats.generation, stats.best, stats.evaluations)
 
     ident = identify(u=u, y=y, term_space=space, criterion=settings.criterion,
-                     ga=settings.ga, seed=settings.seed, callback=callback, segments=est)
+                     ga=settings.ga, seed=settings.seed, callback=callback, segments=est,
+                     focus=settings.focus, shortlist=settings.shortlist)
     t1 = time.perf_counter()
     model = ident.model
     report = None
     if settings.validation != "none":
         report = validate_model(model, u, y, max_lag=settings.correlation_lags,
-                                segment=settings.validation, segments=val)
+                                segment=settings.validation, segments=val,
+                                horizon=settings.horizon or None)
         model.metadata["validation"] = report.to_dict()
     t2 = time.perf_counter()
     seconds = {"search": t1 - t0, "validation": t2 - t1, "total": t2 - t0}

@@ -132,7 +132,16 @@ _LIST = [
        "name)", "criterion"),
     _s("seed", int, -1, "random seed; -1: a new random seed each run", "criterion", low=-1,
        high=2**31 - 1),
+    # -- what the model is for -------------------------------------------------------------
+    _s("focus", str, "prediction", "prediction (the paper's: one-step least squares) or "
+       "simulation (free-run error: refined coefficients, structure by the criterion on "
+       "the simulation error; docs/method.md)", "criterion",
+       choices=("prediction", "simulation")),
+    _s("shortlist", int, 20, "with focus simulation: the GA's best structures refined and "
+       "compared", "criterion", low=1, high=10_000),
     # -- validation ----------------------------------------------------------------------
+    _s("horizon", int, 0, "also report k-step-ahead prediction for this k (0: only "
+       "one-step and free-run)", "validation", low=0, high=1_000_000),
     _s("validation", str, "estimation", "validate on the estimation data, a held-out tail, "
        "or not at all", "validation", choices=("estimation", "holdout", "none")),
     _s("validation_split", float, 0.5, "estimation fraction for holdout validation",

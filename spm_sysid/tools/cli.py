@@ -321,11 +321,13 @@ def cmd_identify(args) -> int:
     return 0
 
 
-def _validate_and_report(model, u, y, segment, plots, corr_lags, segments=None) -> None:
+def _validate_and_report(model, u, y, segment, plots, corr_lags, segments=None,
+                         horizon: int = 0) -> None:
     """Validate, print the summary, store it in the model, write figures."""
     from ..core.narx.validation import validate_model
 
-    report = validate_model(model, u, y, max_lag=corr_lags, segment=segment, segments=segments)
+    report = validate_model(model, u, y, max_lag=corr_lags, segment=segment, segments=segments,
+                            horizon=horizon or None)
     model.metadata["validation"] = report.to_dict()
     print(report.summary())
     if plots:
@@ -355,7 +357,7 @@ def cmd_validate(args) -> int:
     print(model.equation())
     print(f"data: {data.source}" + (f", last {args.tail:.0%}" if args.tail is not None else ""))
     _validate_and_report(model, u, y, "holdout" if args.tail is not None else "supplied",
-                         args.plots, args.correlation_lags, segments)
+                         args.plots, args.correlation_lags, segments, args.horizon)
     return 0
 
 
@@ -382,7 +384,7 @@ def cmd_experiment(args) -> int:
     overrides = dict(criteria=_list(args.criteria, str), populations=_list(args.populations, int),
                      spm_fractions=_list(args.spm_fractions, float), runs=args.runs,
                      generations=args.generations, seed=args.seed, fitness=args.fitness,
-                     workers=args.workers)
+                     workers=args.workers, focus=args.focus)
     try:
         if args.config:
             config = ExperimentConfig.from_yaml(args.config, **overrides)
@@ -550,6 +552,8 @@ def build_parser() -> argparse.ArgumentParser:
                    type=_schema_type("correlation_lags"),
                    default=SETTINGS["correlation_lags"].default,
                    help=SETTINGS["correlation_lags"].help)
+    p.add_argument("--horizon", type=_schema_type("horizon"), default=0, metavar="K",
+                   help="also report K-step-ahead prediction (0: only one-step and free-run)")
     p.set_defaults(func=cmd_validate)
 
     p = sub.add_parser("experiment", help="the paper's study: SPM vs plain GA, repeated runs")
@@ -565,6 +569,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fitness", choices=SETTINGS["fitness"].choices,
                    help="roulette fitness transform (default akaike)")
     p.add_argument("--workers", type=int, help="processes (default: one per core)")
+    p.add_argument("--focus", choices=SETTINGS["focus"].choices,
+                   help="prediction (default) or simulation: see spm-sysid settings")
     p.add_argument("--out", metavar="DIR", default="out/experiment")
     p.add_argument("--report", metavar="DIR", help="write a Markdown report here")
     p.add_argument("--quiet", action="store_true")

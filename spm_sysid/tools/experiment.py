@@ -30,7 +30,10 @@ import numpy as np
 from ..core.errors import SettingsError
 from ..core.narx.evaluator import StructureEvaluator
 from ..core.narx.ga import GAConfig, run_ga
+from ..core.narx.identify import select_for_simulation
+from ..core.narx.model import NarxModel
 from ..core.narx.terms import TermSpace
+from ..core.narx.validation import metrics
 from ..core.settings import check
 
 __all__ = ["ExperimentConfig", "RunRecord", "SettingSummary", "run_experiment", "summarise"]
@@ -58,6 +61,8 @@ class ExperimentConfig:
     mutation_prob: float = 0.01
     workers: int = 0  # 0: one per core
     term_space: dict = field(default_factory=lambda: TermSpace().to_dict())
+    focus: str = "prediction"
+    shortlist: int = 20
 
     def __post_init__(self) -> None:
         if not isinstance(self.runs, int) or self.runs < 1:
@@ -67,6 +72,8 @@ class ExperimentConfig:
         for name in ("criteria", "populations", "spm_fractions"):
             if not isinstance(getattr(self, name), list) or not getattr(self, name):
                 raise SettingsError(f"{name} must be a non-empty list")
+        check("focus", self.focus)
+        check("shortlist", self.shortlist)
         if check("seed", self.seed) < 0:
             raise SettingsError(f"seed (the study's first seed) must be >= 0, got {self.seed}")
         if not isinstance(self.term_space, dict):
@@ -124,6 +131,8 @@ class RunRecord:
     evaluations: int
     best_curve: list[float] = field(repr=False, default_factory=list)
     reached_best: bool = False
+    focus: str = "prediction"
+    free_run_fit: float | None = None  # percent on the data; None when it diverged
 
 
 # -- workers --------------------------------------------------------------------------
@@ -133,22 +142,32 @@ _DATA: dict = {}
 
 def _init_worker(u: np.ndarray, y: np.ndarray, space: dict) -> None:
     ts = TermSpace.from_dict(space)
-    _DATA.update(P=ts.regression_matrix(u, y), target=ts.target(y), names=ts.term_names())
+    _DATA.update(P=ts.regression_matrix(u, y), target=ts.target(y), names=ts.term_names(),
+                 u=u, y=y, space=ts)
 
 
 def _one_run(task: tuple) -> RunRecord:
-    criterion, population, spm, run, seed, ga = task
+    criterion, population, spm, run, seed, ga, focus, shortlist = task
     ev = StructureEvaluator(_DATA["P"], _DATA["target"], criterion)
     t0 = time.perf_counter()
     res = run_ga(ev, ga, seed=seed)
+    u, y, ts = _DATA["u"], _DATA["y"], _DATA["space"]
+    if focus == "simulation":
+        model = select_for_simulation(u, y, ts, ev.ranked(shortlist), ev.criterion)
+        value, mask = model.criterion_value, model.mask
+    else:
+        model = NarxModel.fit(u, y, res.best_mask, ts)
+        value, mask = res.best_score, res.best_mask
     seconds = time.perf_counter() - t0
+    free = metrics(ts.target(y), model.simulate(u, y))["fit_percent"]
     names = _DATA["names"]
     return RunRecord(
         criterion=criterion, population_size=population, spm_fraction=spm, run=run, seed=seed,
-        final_value=res.best_score, terms=[names[i] for i in np.flatnonzero(res.best_mask)],
-        n_terms=int(res.best_mask.sum()), first_best_generation=res.first_best_generation,
+        final_value=value, terms=[names[i] for i in np.flatnonzero(mask)],
+        n_terms=int(mask.sum()), first_best_generation=res.first_best_generation,
         seconds=seconds, evaluations=res.evaluations,
-        best_curve=res.history_array("best").tolist(),
+        best_curve=res.history_array("best").tolist(), focus=focus,
+        free_run_fit=None if not np.isfinite(free) else float(free),
     )
 
 
@@ -162,7 +181,8 @@ def run_experiment(
     whatever order the workers finish in, so the same seeds give the same list.
     """
     tasks = [
-        (c, int(pop), float(s), r, config.seed + r, config.ga(pop, s))
+        (c, int(pop), float(s), r, config.seed + r, config.ga(pop, s), config.focus,
+         config.shortlist)
         for c in config.criteria for pop in config.populations
         for s in config.spm_fractions for r in range(config.runs)
     ]
@@ -213,6 +233,8 @@ class SettingSummary:
     mean_generation_to_best: float
     mean_seconds: float
     fisher_p: float | None  # against s = 0 at the same criterion and population
+    mean_free_run_fit: float | None = None  # percent, over runs that did not diverge
+    diverged: int = 0
 
 
 def summarise(records: Sequence[RunRecord]) -> list[SettingSummary]:
@@ -237,23 +259,35 @@ def summarise(records: Sequence[RunRecord]) -> list[SettingSummary]:
             mean_generation_to_best=float(np.mean([r.first_best_generation for r in runs])),
             mean_seconds=float(np.mean([r.seconds for r in runs])),
             fisher_p=p,
+            mean_free_run_fit=_mean([r.free_run_fit for r in runs if r.free_run_fit is not None]),
+            diverged=sum(r.free_run_fit is None for r in runs),
         ))
     return rows
 
 
+def _mean(values: list) -> float | None:
+    return float(np.mean(values)) if values else None
+
+
 def summary_table(rows: Sequence[SettingSummary]) -> str:
-    """The summary as a Markdown table."""
+    """The summary as a Markdown table (free-run fit: mean over runs that did not diverge)."""
     head = ("| criterion | population | SPM s | reached best | mean final | best final | "
-            "mean gen. to best | mean s/run | Fisher p vs s=0 |\n"
-            "|---|---|---|---|---|---|---|---|---|\n")
+            "mean free-run fit | mean gen. to best | mean s/run | Fisher p vs s=0 |\n"
+            "|---|---|---|---|---|---|---|---|---|---|\n")
     body = "".join(
         f"| {r.criterion.upper()} | {r.population_size} | {r.spm_fraction:g} | "
         f"{r.reached}/{r.runs} | "
-        f"{r.mean_final:.2f} | {r.best_final:.2f} | {r.mean_generation_to_best:.1f} | "
+        f"{r.mean_final:.2f} | {r.best_final:.2f} | {_fit(r)} | "
+        f"{r.mean_generation_to_best:.1f} | "
         f"{r.mean_seconds:.2f} | {'—' if r.fisher_p is None else f'{r.fisher_p:.3g}'} |\n"
         for r in rows
     )
     return head + body
+
+
+def _fit(r: SettingSummary) -> str:
+    text = "—" if r.mean_free_run_fit is None else f"{r.mean_free_run_fit:.1f} %"
+    return text + (f" ({r.diverged} diverged)" if r.diverged else "")
 
 
 def write_results(records: Sequence[RunRecord], rows: Sequence[SettingSummary],

@@ -59,23 +59,42 @@ def plot_correlation_tests(report: ValidationReport, stem: Path, title: str = ""
 
 def plot_prediction(report: ValidationReport, stem: Path, kind: str = "one_step",
                     title: str = "") -> list[Path]:
-    """Measured and predicted output superimposed, with the error beneath."""
-    if kind not in ("one_step", "free_run"):
-        raise ValueError(f"kind must be 'one_step' or 'free_run', got {kind!r}")
-    pred = report.one_step if kind == "one_step" else report.free_run
-    m = report.one_step_metrics if kind == "one_step" else report.free_run_metrics
+    """Measured and predicted output superimposed, with the error beneath.
+
+    ``kind``: ``one_step``, ``k_step`` (the report's horizon) or ``free_run``. A
+    run that diverged is drawn up to the divergence, marked by a vertical line.
+    """
+    if kind not in ("one_step", "k_step", "free_run"):
+        raise ValueError(f"kind must be 'one_step', 'k_step' or 'free_run', got {kind!r}")
+    if kind == "k_step" and report.k_step is None:
+        raise ValueError("this report has no k-step prediction (validate with a horizon)")
+    pred = {"one_step": report.one_step, "k_step": report.k_step,
+            "free_run": report.free_run}[kind]
+    m = {"one_step": report.one_step_metrics, "k_step": report.k_step_metrics,
+         "free_run": report.free_run_metrics}[kind]
+    label = {"one_step": "one-step prediction", "k_step": f"{report.horizon}-step prediction",
+             "free_run": "free-run simulation"}[kind]
     t = np.arange(len(report.measured))
     err = report.measured - pred
     fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(8, 5), sharex=True,
                                    gridspec_kw={"height_ratios": [2, 1]})
     ax1.plot(t, report.measured, color="k", lw=1.0, label="measured")
-    ax1.plot(t, pred, color="tab:red", lw=0.9, ls="--",
-             label="one-step prediction" if kind == "one_step" else "free-run simulation")
+    ax1.plot(t, pred, color="tab:red", lw=0.9, ls="--", label=label)
     ax1.set_ylabel("output y")
+    if m.get("diverged_at") is not None:
+        bad = np.flatnonzero(~np.isfinite(pred))
+        row = int(bad[0]) if bad.size else len(pred) - 1
+        for ax in (ax1, ax2):
+            ax.axvline(row, color="tab:red", lw=1.5)
+        ax1.annotate(f"diverged at sample {m['diverged_at']}", (row, ax1.get_ylim()[1]),
+                     xytext=(-5, -12), textcoords="offset points", ha="right",
+                     color="tab:red", fontsize=9)
+        summary = f"{label[0].upper() + label[1:]}: DIVERGED at sample {m['diverged_at']}"
+    else:
+        summary = (f"{label[0].upper() + label[1:]}: max |e| {m['max_abs']:.4g}, "
+                   f"mean |e| {m['mean_abs']:.4g}, fit {m['fit_percent']:.1f} %")
     ax1.legend(loc="upper right", fontsize=8)
-    ax1.set_title(title or (f"{'One-step' if kind == 'one_step' else 'Free-run'}: "
-                            f"max |e| {m['max_abs']:.4g}, mean |e| {m['mean_abs']:.4g}, "
-                            f"fit {m['fit_percent']:.1f} %"), fontsize=9)
+    ax1.set_title(title or summary, fontsize=9)
     ax2.plot(t, err, color="tab:blue", lw=0.8)
     ax2.set_ylabel("error")
     ax2.set_xlabel("sample")
@@ -112,10 +131,14 @@ def plot_convergence(
 def write_model_figures(
     report: ValidationReport, directory: Path, name: str = "model"
 ) -> list[Path]:
-    """The correlation, one-step and free-run figures of one validated model."""
+    """The correlation, one-step, k-step (with a horizon) and free-run figures."""
     directory = Path(directory)
-    paths = plot_correlation_tests(report, directory / f"{name}_correlation",
-                                   title=f"Correlation tests ({report.segment} data)")
+    paths = []
+    if report.tests:  # not computed after a divergence (report.tests_skipped says why)
+        paths += plot_correlation_tests(report, directory / f"{name}_correlation",
+                                        title=f"Correlation tests ({report.segment} data)")
     paths += plot_prediction(report, directory / f"{name}_one_step", "one_step")
+    if report.k_step is not None:
+        paths += plot_prediction(report, directory / f"{name}_k_step", "k_step")
     paths += plot_prediction(report, directory / f"{name}_free_run", "free_run")
     return paths
