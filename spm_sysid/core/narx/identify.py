@@ -28,6 +28,10 @@ __all__ = ["FOCUS", "IdentificationResult", "check_samples", "identify",
 #: What a model is selected and fitted for.
 FOCUS = ("prediction", "simulation")
 
+#: Levenberg-Marquardt evaluations per move of the simulation-focused local search
+#: (warm-started from the neighbour; the winner is then refined to convergence).
+SEARCH_STEPS = 30
+
 
 @dataclass
 class IdentificationResult:
@@ -260,7 +264,7 @@ def select_for_simulation(
                 warm = np.array([theta.get(i, 0.0) for i in model.term_indices])
                 ls = model.coefficients
                 model.coefficients = warm
-                ref = refine_simulation(model, u, y, segments)
+                ref = refine_simulation(model, u, y, segments, max_evaluations=SEARCH_STEPS)
                 if not ref.success:
                     model.coefficients = ls
                     ref = refine_simulation(model, u, y, segments)
@@ -303,6 +307,16 @@ def select_for_simulation(
             break
         best[j] = not best[j]
     value, model = scored[np.packbits(best).tobytes()]
+    # the search's moves ran a few Levenberg-Marquardt steps each: finish the winner's
+    final = refine_simulation(model, u, y, segments)
+    refinements += 1
+    if final.success and final.sse < model.metadata["free_run_sse"]:
+        model.coefficients = final.coefficients
+        beta = np.zeros((1, term_space.n_terms))
+        beta[0, best] = final.coefficients * norms[best] / y_norm
+        value = float(criterion(np.array([max(final.sse, 1e-300)]), rows,
+                                np.array([best.sum()]), beta)[0])
+        model.metadata["free_run_sse"] = final.sse
     one_step = model.residuals(u, y, segments)
     model.mse = float(one_step @ one_step) / len(one_step)
     model.criterion, model.criterion_value = criterion.name, value

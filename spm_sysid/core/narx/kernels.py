@@ -22,7 +22,7 @@ import os
 
 import numpy as np
 
-__all__ = ["HAVE_NUMBA", "fit_structures", "jit"]
+__all__ = ["HAVE_NUMBA", "fit_structures", "jit", "jit_exact"]
 
 try:
     if os.environ.get("SPM_SYSID_NO_NUMBA"):
@@ -32,8 +32,12 @@ try:
     HAVE_NUMBA = True
 
     def jit(fn):
-        """Compile ``fn`` in nopython mode, cached on disk."""
+        """Compile ``fn`` in nopython mode, cached on disk; sums may be reordered."""
         return numba.njit(cache=True, nogil=True, fastmath={"reassoc", "contract"})(fn)
+
+    def jit_exact(fn):
+        """Compile ``fn`` keeping Python's order of operations (the same results)."""
+        return numba.njit(cache=True, nogil=True)(fn)
 
 except ImportError:  # pragma: no cover - numba is a dependency; kept for odd installs
     HAVE_NUMBA = False
@@ -41,6 +45,8 @@ except ImportError:  # pragma: no cover - numba is a dependency; kept for odd in
     def jit(fn):
         """No compiler: the plain Python function."""
         return fn
+
+    jit_exact = jit
 
 
 @jit

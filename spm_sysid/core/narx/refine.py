@@ -127,13 +127,13 @@ def refine_simulation(model: NarxModel, u: np.ndarray, y: np.ndarray,
     cache: dict[bytes, tuple[np.ndarray, np.ndarray, int | None]] = {}
 
     radius0 = linear_radius(ts, model.term_indices, theta0)
-    limit = radius0 if radius0 < 1.0 else np.inf  # never less stable than least squares
+    limit = 1.0 if radius0 < 1.0 else np.inf  # a stable start stays stable
 
     def simulate(theta):
         key = theta.tobytes()
         if key not in cache:
             cache.clear()  # least_squares asks for fun, then jac, of the same theta
-            if linear_radius(ts, model.term_indices, theta) > limit:
+            if linear_radius(ts, model.term_indices, theta) >= limit:
                 # unstable linear part: as costly as a divergence at the first sample
                 r = measured - np.where(measured >= 0.5 * (bounds[0] + bounds[1]),
                                         bounds[0], bounds[1])

@@ -18,8 +18,9 @@ Divergence: a run stops at the first output that is not finite or lies outside
 widened by ``DIVERGENCE_FACTOR`` times its span on each side); that sample and
 all later ones are NaN and the sample index is reported, never an infinite error.
 
-The kernels are plain Python compiled by numba (:func:`~spm_sysid.core.narx.kernels.jit`);
-without numba the same Python runs, with the same arithmetic (tests compare both).
+The kernels are plain Python compiled by numba in Python's order of operations
+(:func:`~spm_sysid.core.narx.kernels.jit_exact`); without numba the same Python
+runs and gives the same numbers (tests compare both bit for bit).
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .kernels import jit
+from .kernels import jit_exact as jit
 
 __all__ = ["DIVERGENCE_FACTOR", "CompiledModel", "divergence_bounds",
            "free_run_sensitivities", "run_model"]
