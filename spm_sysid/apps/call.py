@@ -18,7 +18,35 @@ from std_srvs.srv import Trigger
 
 from ..ros.common import LATCHED
 
-__all__ = ["call_trigger", "main", "wait_for_model"]
+__all__ = ["call_trigger", "main", "set_parameters", "wait_for_model"]
+
+
+def set_parameters(node: Node, target: str, timeout: float = 10.0, **values) -> None:
+    """Set parameters of node ``target`` (e.g. ``/spm_sysid``) through its service.
+
+    Raises
+    ------
+    RuntimeError
+        A value was refused (the node's reason is in the message), or no answer.
+    """
+    from rcl_interfaces.srv import SetParameters
+    from rclpy.parameter import Parameter
+
+    client = node.create_client(SetParameters, f"{target}/set_parameters")
+    try:
+        if not client.wait_for_service(timeout_sec=timeout):
+            raise RuntimeError(f"{target} offers no parameter service")
+        req = SetParameters.Request(parameters=[Parameter(k, value=v).to_parameter_msg()
+                                                for k, v in values.items()])
+        future = client.call_async(req)
+        rclpy.spin_until_future_complete(node, future, timeout_sec=timeout)
+        if not future.done():
+            raise RuntimeError(f"{target} did not answer set_parameters within {timeout:g} s")
+        for name, result in zip(values, future.result().results):
+            if not result.successful:
+                raise RuntimeError(f"{target} refused {name}: {result.reason}")
+    finally:
+        node.destroy_client(client)
 
 
 def call_trigger(node: Node, service: str, timeout: float = 300.0) -> tuple[bool, str]:

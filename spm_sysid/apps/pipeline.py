@@ -98,7 +98,7 @@ def run(args) -> int:
     from rclpy.node import Node
     from std_srvs.srv import Trigger
 
-    from .call import call_trigger, wait_for_model
+    from .call import call_trigger, set_parameters, wait_for_model
 
     rclpy.init()
     client = Node("spm_sysid_pipeline")
@@ -137,10 +137,20 @@ def run(args) -> int:
         ok, message = call_trigger(client, "/spm_sysid/identify", timeout=600.0)
         if not ok:
             raise PipelineError(f"~/identify refused: {message}")
-        print(f"[5/6] ~/identify: {message}")
+        print(f"[5/6] ~/identify (focus prediction, the paper's): {message}")
         doc = wait_for_model(client, "/spm_sysid/model")
         if doc is None:
             raise PipelineError("no model on /spm_sysid/model")
+        # the same data, the model chosen and fitted for free-run simulation
+        set_parameters(client, "/spm_sysid", focus="simulation",
+                       model_path=str((out / "model_simulation.json").resolve()))
+        ok, message = call_trigger(client, "/spm_sysid/identify", timeout=600.0)
+        if not ok:
+            raise PipelineError(f"~/identify (focus simulation) refused: {message}")
+        print(f"[5/6] ~/identify (focus simulation): {message}")
+        doc_sim = wait_for_model(client, "/spm_sysid/model")
+        if doc_sim is None or doc_sim.get("metadata", {}).get("focus") != "simulation":
+            raise PipelineError("no simulation-focused model on /spm_sysid/model")
     finally:
         stop_process(node_proc)
         node_log.close()
@@ -151,18 +161,26 @@ def run(args) -> int:
     from ..core.narx.validation import validate_model
     from ..tools.plots import write_model_figures
 
-    model = NarxModel.from_dict(doc)  # the node saved it to out/model.json (model_path)
-    if NarxModel.load(out / "model.json").coefficients.tolist() != model.coefficients.tolist():
-        raise PipelineError(f"{out / 'model.json'} differs from the published model")
-    report = validate_model(model, signals.u, signals.y)
-    figures = write_model_figures(report, out / "figures")
-    print("[6/6] model (published on /spm_sysid/model):")
-    print(f"  {model.equation()}")
-    print(f"  {model.criterion.upper()} = {model.criterion_value:.2f}, "
-          f"{len(model.terms)} terms, MSE {model.mse:.4e}")
-    print("\n".join("  " + line for line in report.summary().splitlines()))
-    print(f"  model document: {out / 'model.json'}; figures: "
-          f"{', '.join(str(p) for p in figures if p.suffix == '.png')}")
+    print("[6/6] models (published on /spm_sysid/model), validated on the replayed data:")
+    for name, document, path in (("prediction", doc, out / "model.json"),
+                                 ("simulation", doc_sim, out / "model_simulation.json")):
+        model = NarxModel.from_dict(document)  # the node saved it (model_path)
+        if NarxModel.load(path).coefficients.tolist() != model.coefficients.tolist():
+            raise PipelineError(f"{path} differs from the published model")
+        report = validate_model(model, signals.u, signals.y)
+        stem = "model" if name == "prediction" else "model_simulation"
+        figures = write_model_figures(report, out / "figures", stem)
+        free = report.free_run_metrics
+        print(f"  focus {name}: {model.equation()}")
+        what = " (of the free-run error)" if name == "simulation" else ""
+        print(f"  {model.criterion.upper()}{what} = {model.criterion_value:.2f}, "
+              f"{len(model.terms)} terms, one-step MSE "
+              f"{model.mse:.4e}, free-run fit "
+              + (f"{free['fit_percent']:.1f} %" if free["diverged_at"] is None
+                 else f"DIVERGED at sample {free['diverged_at']}"))
+        print("\n".join("    " + line for line in report.summary().splitlines()))
+        print(f"    model document: {path}; figures: "
+              f"{', '.join(str(p) for p in figures if p.suffix == '.png')}")
     return 0
 
 
