@@ -61,6 +61,8 @@ def test_bench_prints_figures():
     r = spm("bench", "--repeats", "1", "--naive-repeats", "1", "--generations", "15")
     assert r.returncode == 0, r.stderr
     assert "naive/engine time ratio" in r.stdout and "cache hits" in r.stdout
+    assert "simulation kernel: free-run of 1024 samples, 30 terms: compiled" in r.stdout
+    assert "focus simulation (BIC, population 200, 15 generations)" in r.stdout
 
 
 def test_identify_plots_and_validate_saved_model_on_other_data(tmp_path, robot_arm_path):

@@ -426,12 +426,13 @@ def cmd_experiment(args) -> int:
 
 
 def cmd_bench(args) -> int:
-    from .bench import run_benchmark
+    from .bench import run_benchmark, run_simulation_benchmark
 
     settings = _job_settings(args)
     u, y = load_io(args.data) if args.data else load_io(find_robot_arm())
     run_benchmark(u, y, criterion=settings.criterion, repeats=args.repeats,
                   naive_repeats=args.naive_repeats, config=settings.ga)
+    run_simulation_benchmark(u, y, repeats=args.repeats, config=settings.ga)
     return 0
 
 
