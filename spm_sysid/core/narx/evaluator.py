@@ -33,10 +33,15 @@ benchmark's naive baseline lives with the benchmark (:mod:`spm_sysid.tools.bench
 from __future__ import annotations
 
 import numpy as np
+from scipy import linalg
 
 from .criteria import Criterion, get_criterion
 from .kernels import HAVE_NUMBA, fit_structures
 from .lstsq import DEFAULT_RANK_TOL, sse_floor
+
+#: Structures whose smallest squared Gram pivot is below NEAR_RANK * rank_tol have
+#: their rank (and fit) decided by QR, as the reference fit decides it.
+NEAR_RANK = 1e3
 
 __all__ = ["StructureEvaluator", "size_groups", "structure_keys"]
 
@@ -211,15 +216,36 @@ class StructureEvaluator:
         sse = np.empty(len(masks))
         theta = np.zeros(len(cols))
         bad = np.empty(len(masks), dtype=np.bool_)
+        minpiv = np.empty(len(masks))
         fit_structures(self._gram, self._r_ext, cols.astype(np.int64), offsets,
                        float(self.rank_tol), self._y_norm, self.n,
-                       self.criterion.needs_coefficients, sse, theta, bad)
+                       self.criterion.needs_coefficients, sse, theta, bad, minpiv)
+        for b in np.flatnonzero(minpiv < NEAR_RANK * self.rank_tol):
+            sl = slice(offsets[b], offsets[b + 1])
+            sse[b], theta[sl], bad[b] = self._qr_fit(cols[sl])
         beta = None
         if self.criterion.needs_coefficients:
             beta = np.zeros(masks.shape)
             keep = ~bad[rows]
             beta[rows[keep], cols[keep]] = theta[keep] / self._y_norm
         return sse, beta, bad
+
+    def _qr_fit(self, cols: np.ndarray) -> tuple[float, np.ndarray, bool]:
+        """SSE, coefficients and rank flag of one structure by Householder QR.
+
+        For structures whose Gram pivots come near ``rank_tol``: squaring the
+        condition number in the Gram matrix makes those pivots unreliable, so
+        the rank is decided as the reference fit decides it, on the triangular
+        factor of ``[P y]`` (the same least-squares problem in fewer rows).
+        """
+        A = self._r_ext[:, cols]
+        t = self._r_ext[:, self.n_terms]
+        Q, R = np.linalg.qr(A)
+        if np.min(np.diag(R) ** 2) < self.rank_tol:
+            return np.nan, np.zeros(len(cols)), True
+        th = linalg.solve_triangular(R, Q.T @ t, check_finite=False)
+        r = t - A @ th
+        return float(r @ r), th, False
 
     def _fit_numpy(self, masks: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
         """The batched numpy path of :meth:`fit_batch` for structures of similar size."""
@@ -270,6 +296,10 @@ class StructureEvaluator:
             redo = ~bad & ((self.n * err > 1e-7 * sse) | exact)
         if redo.any():
             sse[redo], theta_n[redo] = self._refine(idx[redo], kmax, L[redo], theta_n[redo])
+        zero = (masks & self._zero_cols).any(axis=1)
+        near = ~zero & (k > 0) & (failed | (pivots < NEAR_RANK * self.rank_tol).any(axis=1))
+        for b in np.flatnonzero(near):  # as in the compiled path: QR decides
+            sse[b], theta_n[b, :k[b]], bad[b] = self._qr_fit(idx[b, :k[b]])
         beta = None
         if self.criterion.needs_coefficients:
             beta = np.zeros((B, m))

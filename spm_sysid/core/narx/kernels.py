@@ -51,7 +51,7 @@ except ImportError:  # pragma: no cover - numba is a dependency; kept for odd in
 
 @jit
 def fit_structures(gram, r_ext, idx, offsets, rank_tol, y_norm, n, refine_all,
-                   sse, theta, bad):  # pragma: no cover - compiled
+                   sse, theta, bad, minpiv):  # pragma: no cover - compiled
     """Fit the structures ``idx[offsets[b]:offsets[b + 1]]`` for every b.
 
     Parameters
@@ -80,6 +80,9 @@ def fit_structures(gram, r_ext, idx, offsets, rank_tol, y_norm, n, refine_all,
         Output: coefficients of the unit-norm columns.
     bad : ndarray of bool, shape (B,)
         Output: rank-deficient (or empty) structures.
+    minpiv : ndarray, shape (B,)
+        Output: the smallest squared term pivot computed (the failing one when
+        the factorisation stopped early).
     """
     m = gram.shape[0] - 2
     eps = 2.220446049250313e-16
@@ -97,6 +100,7 @@ def fit_structures(gram, r_ext, idx, offsets, rank_tol, y_norm, n, refine_all,
         k = offsets[b + 1] - s
         bad[b] = k == 0
         sse[b] = np.nan
+        minpiv[b] = np.inf
         if k == 0:
             valid = 0
             continue
@@ -109,6 +113,9 @@ def fit_structures(gram, r_ext, idx, offsets, rank_tol, y_norm, n, refine_all,
             cols[j] = idx[s + j]
         cols[k] = m
         valid = k
+        for j in range(same):  # the reused rows' pivots count too
+            if L[j, j] * L[j, j] < minpiv[b]:
+                minpiv[b] = L[j, j] * L[j, j]
         # up-looking Cholesky: row j of L from rows 0..j-1, pivot j known at once
         for j in range(same, k + 1):
             cj = cols[j]
@@ -120,9 +127,12 @@ def fit_structures(gram, r_ext, idx, offsets, rank_tol, y_norm, n, refine_all,
             d = gram[cj, cj]
             for p in range(j):
                 d -= L[j, p] * L[j, p]
+            if j < k and d < minpiv[b]:
+                minpiv[b] = d
             if not d > rank_tol and j < k:  # also catches NaN
                 bad[b] = True
                 valid = j
+                minpiv[b] = d if d == d else -np.inf
                 break
             if j == k and not d > 0.0:
                 if not d == d:  # NaN
