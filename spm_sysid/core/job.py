@@ -32,7 +32,22 @@ from .narx.validation import (
 )
 from .settings import JOB_GROUPS, check, defaults
 
-__all__ = ["JobResult", "JobSettings", "run_job"]
+__all__ = ["JobResult", "JobSettings", "run_job", "warm_up"]
+
+
+def warm_up() -> None:
+    """Load (or, the first time, compile) the compiled kernels once.
+
+    The node's worker process calls it before it reports ready, so the time of a
+    job (and its ``job_timeout``) is the job's own.
+    """
+    from .narx.evaluator import StructureEvaluator
+    from .narx.simulation import free_run_sensitivities
+
+    StructureEvaluator(np.eye(3), np.ones(3)).evaluate(np.eye(3, dtype=bool))
+    model = NarxModel(TermSpace(ny=1, nu=1, degree=1), [0, 1], np.array([0.5, 0.1]))
+    model.run(np.zeros(6), np.ones(6), horizon=2)
+    free_run_sensitivities(model.compiled, model.coefficients, np.zeros((6, 1)), np.ones(6))
 
 _TERM_FIELDS = ("ny", "nu", "degree", "delay", "constant")
 _GA_FIELDS = ("population_size", "generations", "crossover_prob", "mutation_prob",

@@ -229,7 +229,10 @@ def _worker_main(function: str) -> int:
     os.dup2(2, 1)  # stray prints must not corrupt the channel
     inp = os.fdopen(0, "rb")
     module, name = function.split(":")
-    func = getattr(importlib.import_module(module), name)
+    mod = importlib.import_module(module)
+    func = getattr(mod, name)
+    if callable(getattr(mod, "warm_up", None)):
+        mod.warm_up()  # e.g. load compiled kernels now, not inside the first job's time
     jobs: queue.Queue = queue.Queue()
 
     def read_jobs() -> None:

@@ -1,0 +1,308 @@
+"""Certifying the optimum: branch and bound over all 2^M structures.
+
+For AIC and BIC the criterion is ``N ln(SSE(S)/N) + pen(|S|)`` with ``pen``
+increasing in the number of terms only, and the SSE never grows when terms are
+added. A depth-first branch and bound over the terms can therefore prove that a
+structure is the best of all (``optimal``) or, when time runs out, bound how
+far the best found may be from the optimum (``limit``).
+
+A node fixes some terms *in* (I) and some *out*; the rest (F) are free. Every
+structure S of the node has ``I <= S <= T = I + F``. Two lower bounds on the
+criterion of all of them are used, and the larger counts:
+
+* **plain**: ``SSE(S) >= SSE(T)`` and ``|S| >= |I|``;
+* **drop bound**: leaving out any r free terms R raises the SSE of T by
+  ``theta_R' (H_RR)^-1 theta_R >= ||theta_R||^2 / lambda_max(H_FF)`` (theta:
+  T's coefficients, H: the inverse of T's Gram matrix, unit-norm columns), so
+  a structure with ``|I| + |F| - r`` terms has ``SSE >= SSE(T) + s_r /
+  lambda_max(H_FF)`` with ``s_r`` the sum of the r smallest ``theta_j^2`` in F;
+  the bound is the minimum over r of the criterion at that size.
+
+Search order: at each node the free term whose removal from T costs the most
+SSE (``theta_j^2 / H_jj``) is branched on, *in* first (the branch most likely
+to hold the optimum, whose bound is the parent's plus one penalty step); the
+incumbent starts from a warm start (the GA's result, else forward selection)
+and is improved by the structures I and T met at every node. Node values are
+the evaluator's (:class:`StructureEvaluator`, the GA's own numbers), so
+"optimal" means: no structure scores lower than the result by more than
+``tolerance`` (1e-6) on the criterion's scale. Rank-deficient structures
+score +inf, as in the GA.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import linalg
+
+from .criteria import Criterion, get_criterion
+from .evaluator import StructureEvaluator
+from .lstsq import DEFAULT_RANK_TOL, sse_floor
+
+__all__ = ["CERTIFIABLE", "Certificate", "certify", "penalty_per_size"]
+
+#: Criteria whose penalty depends on the number of terms only (certifiable).
+CERTIFIABLE = ("aic", "bic")
+
+
+@dataclass
+class Certificate:
+    """Outcome of :func:`certify`.
+
+    Attributes
+    ----------
+    status : str
+        ``optimal`` (proved) or ``limit`` (the time or node limit ran out).
+    value : float
+        Criterion value of the best structure found.
+    lower_bound : float
+        No structure scores below this (``value`` itself when optimal).
+    mask : ndarray of bool
+        The best structure found.
+    nodes : int
+        Branch-and-bound nodes explored.
+    seconds : float
+    bound : str
+        The bounds used.
+    reason : str or None
+        What ran out (``limit``).
+    warm_start : float or None
+        The warm start's value (e.g. the GA's best).
+    """
+
+    status: str
+    value: float
+    lower_bound: float
+    mask: np.ndarray
+    nodes: int
+    seconds: float
+    bound: str = "plain + drop bound"
+    reason: str | None = None
+    warm_start: float | None = None
+    terms: list[str] = field(default_factory=list)
+
+    @property
+    def gap(self) -> float:
+        """``value - lower_bound`` (0 when optimal)."""
+        return 0.0 if self.status == "optimal" else float(self.value - self.lower_bound)
+
+    @property
+    def improved(self) -> bool:
+        """The search found a better structure than the warm start."""
+        return self.warm_start is not None and self.value < self.warm_start - 1e-9
+
+    def summary(self) -> str:
+        """One line for people."""
+        if self.status == "optimal":
+            text = (f"certified optimal: {self.value:.2f} ({len(self.terms)} terms), "
+                    f"{self.nodes} nodes, {self.seconds:.2f} s")
+        else:
+            text = (f"not certified ({self.reason}): best {self.value:.2f}, lower bound "
+                    f"{self.lower_bound:.2f}, gap {self.gap:.2f}, {self.nodes} nodes, "
+                    f"{self.seconds:.2f} s")
+        if self.improved:
+            text += f"; improved on the warm start ({self.warm_start:.2f})"
+        return text
+
+    def to_dict(self) -> dict:
+        """JSON-ready (the ``certify --json`` document and ``metadata.certificate``)."""
+        return {"status": self.status, "value": float(self.value),
+                "lower_bound": float(self.lower_bound), "gap": float(self.gap),
+                "terms": list(self.terms), "nodes": int(self.nodes),
+                "seconds": round(float(self.seconds), 4), "bound": self.bound,
+                "reason": self.reason, "warm_start": self.warm_start}
+
+
+def penalty_per_size(criterion: Criterion, n: int, m: int) -> np.ndarray:
+    """``pen(k)`` for k = 0..m, or a ValueError when the criterion is not certifiable.
+
+    The criterion must be ``n ln(SSE/n) + pen(k)`` (checked numerically) with
+    ``pen`` increasing.
+    """
+    if criterion.name not in CERTIFIABLE or criterion.needs_coefficients:
+        raise ValueError(
+            f"criterion {criterion.name} cannot be certified: its value depends on more "
+            f"than the SSE and the number of terms (certifiable: {', '.join(CERTIFIABLE)})")
+    k = np.arange(m + 1)
+    pen = criterion(np.full(m + 1, float(n)), n, k, None)
+    check = criterion(np.full(m + 1, float(n) * np.e), n, k, None)
+    if not np.allclose(check - pen, n) or np.any(np.diff(pen) <= 0):
+        raise ValueError(f"criterion {criterion.name} is not of the form N ln(SSE/N) + pen(k)")
+    return pen
+
+
+class _Node:
+    __slots__ = ("inside", "free", "bound")
+
+    def __init__(self, inside: list[int], free: list[int], bound: float) -> None:
+        self.inside, self.free, self.bound = inside, free, bound
+
+
+def certify(
+    P: np.ndarray,
+    target: np.ndarray,
+    criterion: str | Criterion = "bic",
+    *,
+    warm_start: np.ndarray | None = None,
+    time_limit: float = 60.0,
+    node_limit: int | None = None,
+    sse_scale: float = 1.0,
+    tolerance: float = 1e-6,
+    rank_tol: float = DEFAULT_RANK_TOL,
+    progress: Callable[[int, float, float], None] | None = None,
+    evaluator: StructureEvaluator | None = None,
+) -> Certificate:
+    """Search all structures of the columns of ``P`` exactly (see the module doc).
+
+    Parameters
+    ----------
+    P, target : ndarray
+        Regression matrix and target, as for :class:`StructureEvaluator`.
+    criterion : str or Criterion
+        ``aic`` or ``bic``.
+    warm_start : ndarray of bool, optional
+        A good structure (the GA's); default: forward selection's best.
+    time_limit : float
+        Seconds before stopping with ``limit``.
+    node_limit : int, optional
+        Nodes before stopping with ``limit``.
+    sse_scale : float
+        As for the evaluator (SSE of the data as given / SSE of ``target``).
+    tolerance : float
+        Subtrees whose bound is within this of the incumbent are not searched.
+    rank_tol : float
+        As for the evaluator: structures with a smaller squared pivot score +inf.
+    progress : callable, optional
+        ``progress(nodes, best, lower_bound)`` about every 0.5 s.
+    evaluator : StructureEvaluator, optional
+        Reuse the GA's (same data and criterion): its cache and numbers.
+
+    Raises
+    ------
+    ValueError
+        A criterion that cannot be certified (e.g. PMIC2).
+    """
+    t0 = time.perf_counter()
+    crit = get_criterion(criterion)
+    P = np.asarray(P, dtype=float)
+    target = np.asarray(target, dtype=float)
+    n, m = P.shape
+    pen = penalty_per_size(crit, n, m)
+    ev = evaluator or StructureEvaluator(P, target, crit, rank_tol=rank_tol,
+                                         sse_scale=sse_scale)
+    norms = np.linalg.norm(P, axis=0)
+    usable = np.flatnonzero(norms > 0)
+    A = np.column_stack([P[:, usable] / norms[usable], target])
+    gram = A.T @ A
+    r_aug = np.linalg.qr(A, mode="r")  # the same problem in min(n, m + 1) rows
+    yi = len(usable)
+    floor = sse_floor(float(np.linalg.norm(target)))
+
+    def value_of(sse: float, k: int) -> float:
+        return float(n * np.log(max(sse, floor) * sse_scale / n) + pen[k])
+
+    def score(cols: list[int]) -> float:
+        mask = np.zeros(m, dtype=bool)
+        mask[usable[cols]] = True
+        return ev.cached_score(mask) if cols else np.inf
+
+    # incumbent
+    if warm_start is None:
+        from .orders import forward_selection
+
+        _, chosen = forward_selection(P, target, crit, max_terms=min(60, m),
+                                      sse_scale=sse_scale)
+        warm_start = np.zeros(m, dtype=bool)
+        warm_start[chosen] = True
+    warm = np.asarray(warm_start, dtype=bool)
+    best_mask = warm.copy()
+    best = ev.cached_score(warm) if warm.any() else np.inf
+    warm_value = best if np.isfinite(best) else None
+
+    def consider(cols: list[int]) -> None:
+        nonlocal best, best_mask
+        v = score(cols)
+        if v < best:
+            best = v
+            best_mask = np.zeros(m, dtype=bool)
+            best_mask[usable[cols]] = True
+
+    def analyse(node: _Node) -> tuple[float, float, np.ndarray | None]:
+        """Lower bound of the node, its plain bound, and the drop cost of each free term."""
+        T = node.inside + node.free
+        idx = T + [yi]
+        G = gram[np.ix_(idx, idx)]
+        try:
+            L = linalg.cholesky(G, lower=True, check_finite=False)
+            piv = np.diag(L)[:-1] ** 2
+            ok = bool(np.all(piv > rank_tol))
+        except linalg.LinAlgError:
+            ok = False
+        if ok:
+            sse_t = float(L[-1, -1] ** 2)
+        else:  # dependent columns: the projection's SSE, still a valid bound
+            B = r_aug[:, T]
+            coef, *_ = np.linalg.lstsq(B, r_aug[:, yi], rcond=None)
+            res = r_aug[:, yi] - B @ coef
+            sse_t = float(res @ res)
+        k_in, k_free = len(node.inside), len(node.free)
+        plain = value_of(sse_t, k_in)
+        if not ok or k_free == 0:
+            return plain, plain, None
+        Ls = L[:-1, :-1]
+        H = linalg.cho_solve((Ls, True), np.eye(len(T)), check_finite=False)
+        theta = linalg.cho_solve((Ls, True), G[:-1, -1], check_finite=False)
+        f = np.arange(k_in, len(T))
+        drop = theta[f] ** 2 / np.diag(H)[f]
+        lam = float(linalg.eigvalsh(H[np.ix_(f, f)], subset_by_index=[k_free - 1, k_free - 1],
+                                    check_finite=False)[0])
+        s = np.concatenate([[0.0], np.cumsum(np.sort(theta[f] ** 2))]) / max(lam, 1e-300)
+        sizes = k_in + k_free - np.arange(k_free + 1)
+        drop_bound = min(value_of(sse_t + s[r], int(sizes[r])) for r in range(k_free + 1))
+        return max(plain, drop_bound), plain, drop
+
+    root = _Node([], list(range(len(usable))), -np.inf)
+    stack = [root]
+    nodes = 0
+    status, reason = "optimal", None
+    last_report = t0
+    while stack:
+        node = stack.pop()
+        if node.bound >= best - tolerance:
+            continue
+        nodes += 1
+        bound, plain, drop = analyse(node)
+        consider(node.inside)
+        consider(node.inside + node.free)
+        now = time.perf_counter()
+        if progress is not None and now - last_report > 0.5:
+            last_report = now
+            progress(nodes, best, _open_bound(stack, bound, best))
+        if bound >= best - tolerance or not node.free:
+            continue
+        if (node_limit is not None and nodes >= node_limit) or now - t0 > time_limit:
+            stack.append(_Node(node.inside, node.free, bound))
+            status = "limit"
+            reason = (f"node limit {node_limit}" if node_limit is not None
+                      and nodes >= node_limit else f"time limit {time_limit:g} s")
+            break
+        # branch on the free term whose removal costs the most (first free when unknown)
+        j = node.free[int(np.argmax(drop))] if drop is not None else node.free[0]
+        rest = [i for i in node.free if i != j]
+        step = pen[len(node.inside) + 1] - pen[len(node.inside)]
+        stack.append(_Node(node.inside, rest, bound))  # out: explored second
+        # in: explored first; at least one term more than the parent's plain bound
+        stack.append(_Node(node.inside + [j], rest, max(bound, plain + step)))
+    lower = best if status == "optimal" else _open_bound(stack, np.inf, best)
+    return Certificate(status=status, value=float(best), lower_bound=float(min(lower, best)),
+                       mask=best_mask, nodes=nodes, seconds=time.perf_counter() - t0,
+                       reason=reason, warm_start=warm_value)
+
+
+def _open_bound(stack: list[_Node], current: float, best: float) -> float:
+    """The smallest bound of the nodes still open (the best found when none)."""
+    bounds = [nd.bound for nd in stack] + [current]
+    return float(min(min(bounds), best))
