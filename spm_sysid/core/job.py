@@ -32,7 +32,24 @@ from .narx.validation import (
 )
 from .settings import JOB_GROUPS, check, defaults
 
-__all__ = ["JobResult", "JobSettings", "run_job", "warm_up"]
+__all__ = ["JobResult", "JobSettings", "describe_certificate", "run_job", "warm_up"]
+
+
+def describe_certificate(doc: dict | None) -> str:
+    """The certificate of a model document in a few words ('' when none)."""
+    if not doc:
+        return ""
+    if doc["status"] == "optimal":
+        text = (f"certified optimal over all structures ({doc['nodes']} nodes, "
+                f"{doc['seconds']:.2f} s)")
+    elif doc["status"] == "limit":
+        text = (f"NOT certified ({doc['reason']}): lower bound {doc['lower_bound']:.2f}, "
+                f"gap {doc['gap']:.2f}")
+    else:
+        return f"not certifiable: {doc['reason']}"
+    if doc.get("ga_value") is not None and doc["value"] < doc["ga_value"]:
+        text += f"; the search improved on the GA's {doc['ga_value']:.2f}"
+    return text
 
 
 def warm_up() -> None:
@@ -84,6 +101,8 @@ class JobSettings:
     focus: str = "prediction"
     shortlist: int = 20
     horizon: int = 0
+    certify: bool = False
+    certify_time_limit: float = 60.0
 
     @classmethod
     def from_values(cls, values: Mapping[str, Any], inputs: tuple[str, ...] = (),
@@ -99,7 +118,7 @@ class JobSettings:
         v.update({k: values[k] for k in v if k in values and values[k] is not None})
         for name in ("criterion", "seed", "validation", "validation_split",
                      "correlation_lags", "sample_period", "gap_factor", "focus", "shortlist",
-                     "horizon"):
+                     "horizon", "certify", "certify_time_limit"):
             v[name] = check(name, v[name])
         criterion = v["criterion"].lower()
         try:
@@ -120,6 +139,8 @@ class JobSettings:
             focus=v["focus"],
             shortlist=v["shortlist"],
             horizon=v["horizon"],
+            certify=v["certify"],
+            certify_time_limit=v["certify_time_limit"],
         )
 
     def values(self) -> dict[str, Any]:
@@ -129,7 +150,8 @@ class JobSettings:
                    validation=self.validation, validation_split=self.validation_split,
                    correlation_lags=self.correlation_lags, sample_period=self.sample_period,
                    gap_factor=self.gap_factor, focus=self.focus, shortlist=self.shortlist,
-                   horizon=self.horizon)
+                   horizon=self.horizon, certify=self.certify,
+                   certify_time_limit=self.certify_time_limit)
         return out
 
 
@@ -176,9 +198,12 @@ class JobResult:
         value = m.criterion_value
         if m.metadata.get("focus") == "simulation":
             crit += " (simulation)"
+        cert = describe_certificate(m.metadata.get("certificate"))
         if style == "line":
             text = (f"{m.equation()} | {crit} {value:.2f}, {len(m.term_indices)} terms, "
                     f"one-step MSE {m.mse:.4e}, {describe_data(self.data)}")
+            if cert:
+                text += f", {cert}"
             if self.report is not None:
                 r = self.report
                 o, f = r.one_step_metrics, r.free_run_metrics
@@ -198,6 +223,8 @@ class JobResult:
                  f"{self.seconds.get('search', self.search.elapsed):.2f} s "
                  f"({self.search.evaluations} structures fitted, cache hit rate "
                  f"{self.search.cache_hit_rate:.0%})"]
+        if cert:
+            lines.append(cert)
         if self.report is not None:
             lines.append(self.report.summary())
         return "\n".join(lines)
@@ -276,7 +303,9 @@ def run_job(
 
     ident = identify(u=u, y=y, term_space=space, criterion=settings.criterion,
                      ga=settings.ga, seed=settings.seed, callback=callback, segments=est,
-                     focus=settings.focus, shortlist=settings.shortlist)
+                     focus=settings.focus, shortlist=settings.shortlist,
+                     certify_time_limit=(settings.certify_time_limit if settings.certify
+                                         else None))
     t1 = time.perf_counter()
     model = ident.model
     report = None

@@ -139,6 +139,11 @@ _LIST = [
        choices=("prediction", "simulation")),
     _s("shortlist", int, 20, "with focus simulation: the GA's best structures refined and "
        "compared", "criterion", low=1, high=10_000),
+    _s("certify", bool, False, "after the GA, prove its result the best of all structures "
+       "by branch and bound (aic, bic), or report the gap (docs/method.md)", "criterion"),
+    _s("certify_time_limit", float, 60.0, "seconds the certification may take before it "
+       "reports the best structure, a lower bound and the gap", "criterion", low=0.0,
+       high=86_400.0),
     # -- validation ----------------------------------------------------------------------
     _s("horizon", int, 0, "also report k-step-ahead prediction for this k (0: only "
        "one-step and free-run)", "validation", low=0, high=1_000_000),

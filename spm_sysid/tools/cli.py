@@ -321,6 +321,70 @@ def cmd_identify(args) -> int:
     return 0
 
 
+def cmd_certify(args) -> int:
+    import json
+
+    from ..core.files import atomic_write_text
+    from ..core.narx.certify import CERTIFIABLE, certify_data
+    from ..core.narx.identify import identify
+
+    if args.criterion not in CERTIFIABLE:
+        raise UserError(f"--criterion {args.criterion} cannot be certified (its value depends "
+                        f"on the coefficients); certifiable: {', '.join(CERTIFIABLE)}")
+    if not args.time_limit > 0:
+        raise UserError(f"--time-limit must be > 0 seconds, got {args.time_limit}")
+    _check_outputs(args)
+    data = _load(args)
+    settings = _job_settings(args, data)
+    segments, _ = data.segments(settings.term_space.max_lag)
+    print(f"data: {data.source}, {len(data.y)} samples; "
+          f"{settings.term_space.n_terms} candidate terms, {args.criterion.upper()}")
+    warm = None
+    if not args.no_ga:
+        progress = _Progress(settings.ga.generations, not args.quiet)
+        try:
+            res = identify(u=data.u, y=data.y, term_space=settings.term_space,
+                           criterion=args.criterion, ga=settings.ga, seed=settings.seed,
+                           segments=segments,
+                           callback=lambda st: progress(st.generation, st.best, st.evaluations))
+        finally:
+            progress.close()
+        warm = res.model.mask
+        print(f"warm start: the GA's best, {args.criterion.upper()} {res.ga.best_score:.2f} "
+              f"({int(warm.sum())} terms, {res.ga.elapsed:.2f} s)")
+    bar = None
+    if not args.quiet:
+        from tqdm import tqdm
+
+        bar = tqdm(desc="branch and bound", unit=" nodes", file=sys.stderr, leave=False,
+                   disable=None)
+
+    def progress_bb(nodes, best, lower):
+        if bar is not None:
+            bar.n = nodes
+            bar.set_postfix(best=f"{best:.2f}", bound=f"{lower:.2f}", refresh=True)
+
+    try:
+        cert = certify_data(data.u, data.y, term_space=settings.term_space,
+                            criterion=args.criterion, segments=segments, warm_start=warm,
+                            time_limit=args.time_limit, node_limit=args.node_limit,
+                            progress=progress_bb)
+    finally:
+        if bar is not None:
+            bar.close()
+    print(f"status: {cert.status}" + (f" ({cert.reason})" if cert.reason else ""))
+    print(f"value: {cert.value:.4f}   lower bound: {cert.lower_bound:.4f}   gap: {cert.gap:.4f}")
+    print(f"terms ({len(cert.terms)}): {' + '.join(cert.terms)}")
+    print(f"proof: {cert.nodes} nodes, {cert.seconds:.2f} s, bounds: {cert.bound}"
+          + (f"; improved on the warm start ({cert.warm_start:.4f})" if cert.improved else ""))
+    if args.json:
+        doc = {**cert.to_dict(), "criterion": args.criterion, "source": data.source,
+               "term_space": settings.term_space.to_dict()}
+        path = atomic_write_text(args.json, json.dumps(doc, indent=2, allow_nan=False) + "\n")
+        print(f"certificate written to {path}")
+    return 0
+
+
 def _validate_and_report(model, u, y, segment, plots, corr_lags, segments=None,
                          horizon: int = 0) -> None:
     """Validate, print the summary, store it in the model, write figures."""
@@ -542,6 +606,23 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--plots", metavar="DIR", help="write validation figures here")
     g.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_identify)
+
+    p = sub.add_parser("certify", help="prove the best structure of the whole term space "
+                       "(branch and bound; AIC, BIC), or bound the gap")
+    _add_data_options(p)
+    add_schema_options(p, ("term_space", "ga"), JOB_TITLES)
+    g = p.add_argument_group("certification")
+    g.add_argument("--criterion", default="bic", choices=("aic", "bic"),
+                   help="criterion to certify (default bic)")
+    g.add_argument("--seed", type=_seed, default=1, help="seed of the warm-start GA run")
+    g.add_argument("--no-ga", action="store_true",
+                   help="warm-start from forward selection instead of a GA run")
+    g.add_argument("--time-limit", type=float, default=60.0,
+                   help="seconds before stopping with the best, a lower bound and the gap")
+    g.add_argument("--node-limit", type=int, default=None, help="nodes before stopping")
+    g.add_argument("--json", metavar="PATH", help="write the certificate here")
+    g.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=cmd_certify)
 
     p = sub.add_parser("validate", help="validate a saved model on data")
     p.add_argument("model", metavar="MODEL.json")

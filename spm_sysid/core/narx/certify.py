@@ -18,11 +18,12 @@ criterion of all of them are used, and the larger counts:
   lambda_max(H_FF)`` with ``s_r`` the sum of the r smallest ``theta_j^2`` in F;
   the bound is the minimum over r of the criterion at that size.
 
-Search order: at each node the free term whose removal from T costs the most
-SSE (``theta_j^2 / H_jj``) is branched on, *in* first (the branch most likely
-to hold the optimum, whose bound is the parent's plus one penalty step); the
-incumbent starts from a warm start (the GA's result, else forward selection)
-and is improved by the structures I and T met at every node. Node values are
+Search order: best first -- the open node of the lowest bound is expanded
+next, so the lower bound over all structures rises steadily and a stopped
+search reports an honest gap. At each node the free term whose removal from T
+costs the most SSE (``theta_j^2 / H_jj``) is branched on. The incumbent starts
+from a warm start (the GA's result, else forward selection) and is improved by
+the structures I and T met at every node. Node values are
 the evaluator's (:class:`StructureEvaluator`, the GA's own numbers), so
 "optimal" means: no structure scores lower than the result by more than
 ``tolerance`` (1e-6) on the criterion's scale. Rank-deficient structures
@@ -31,6 +32,7 @@ score +inf, as in the GA.
 
 from __future__ import annotations
 
+import heapq
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -40,9 +42,9 @@ from scipy import linalg
 
 from .criteria import Criterion, get_criterion
 from .evaluator import StructureEvaluator
-from .lstsq import DEFAULT_RANK_TOL, sse_floor
+from .lstsq import DEFAULT_RANK_TOL
 
-__all__ = ["CERTIFIABLE", "Certificate", "certify", "penalty_per_size"]
+__all__ = ["CERTIFIABLE", "Certificate", "certify", "certify_data", "penalty_per_size"]
 
 #: Criteria whose penalty depends on the number of terms only (certifiable).
 CERTIFIABLE = ("aic", "bic")
@@ -160,7 +162,8 @@ def certify(
     Parameters
     ----------
     P, target : ndarray
-        Regression matrix and target, as for :class:`StructureEvaluator`.
+        Regression matrix and target, as for :class:`StructureEvaluator` (None
+        when ``evaluator`` is given).
     criterion : str or Criterion
         ``aic`` or ``bic``.
     warm_start : ndarray of bool, optional
@@ -187,19 +190,24 @@ def certify(
     """
     t0 = time.perf_counter()
     crit = get_criterion(criterion)
-    P = np.asarray(P, dtype=float)
-    target = np.asarray(target, dtype=float)
-    n, m = P.shape
+    if evaluator is None:
+        evaluator = StructureEvaluator(np.asarray(P, dtype=float),
+                                       np.asarray(target, dtype=float), crit,
+                                       rank_tol=rank_tol, sse_scale=sse_scale)
+    ev = evaluator
+    n, m = ev.n, ev.n_terms
+    if ev.criterion.name != crit.name:
+        raise ValueError(f"the evaluator scores {ev.criterion.name}, not {crit.name}")
     pen = penalty_per_size(crit, n, m)
-    ev = evaluator or StructureEvaluator(P, target, crit, rank_tol=rank_tol,
-                                         sse_scale=sse_scale)
-    norms = np.linalg.norm(P, axis=0)
-    usable = np.flatnonzero(norms > 0)
-    A = np.column_stack([P[:, usable] / norms[usable], target])
-    gram = A.T @ A
-    r_aug = np.linalg.qr(A, mode="r")  # the same problem in min(n, m + 1) rows
+    sse_scale, rank_tol = ev.sse_scale, ev.rank_tol
+    # the evaluator's unit-norm Gram matrix of [P y] and triangular factor (the same
+    # least-squares problem in min(n, m + 1) rows), on the non-zero columns
+    usable = np.flatnonzero(~ev._zero_cols)
+    keep = np.concatenate([usable, [m]])
+    gram = ev._gram[np.ix_(keep, keep)]
+    r_aug = ev._r_ext[:, keep]
     yi = len(usable)
-    floor = sse_floor(float(np.linalg.norm(target)))
+    floor = ev._sse_floor
 
     def value_of(sse: float, k: int) -> float:
         return float(n * np.log(max(sse, floor) * sse_scale / n) + pen[k])
@@ -213,8 +221,9 @@ def certify(
     if warm_start is None:
         from .orders import forward_selection
 
-        _, chosen = forward_selection(P, target, crit, max_terms=min(60, m),
-                                      sse_scale=sse_scale)
+        _, chosen = forward_selection(r_aug[:, :yi], r_aug[:, yi], ev.criterion,
+                                      max_terms=min(60, yi), sse_scale=sse_scale)
+        chosen = list(usable[chosen])
         warm_start = np.zeros(m, dtype=bool)
         warm_start[chosen] = True
     warm = np.asarray(warm_start, dtype=bool)
@@ -264,45 +273,79 @@ def certify(
         drop_bound = min(value_of(sse_t + s[r], int(sizes[r])) for r in range(k_free + 1))
         return max(plain, drop_bound), plain, drop
 
-    root = _Node([], list(range(len(usable))), -np.inf)
-    stack = [root]
+    # Best-first: always expand the open node of the lowest bound, so the lower bound
+    # over all structures (the smallest open bound) rises as the search goes; the
+    # incumbent comes from the warm start and from the structures met on the way.
+    heap: list[tuple[float, int, _Node]] = [(-np.inf, 0, _Node([], list(range(len(usable))),
+                                                            -np.inf))]
+    counter = 1
     nodes = 0
     status, reason = "optimal", None
     last_report = t0
-    while stack:
-        node = stack.pop()
-        if node.bound >= best - tolerance:
-            continue
-        nodes += 1
-        bound, plain, drop = analyse(node)
-        consider(node.inside)
-        consider(node.inside + node.free)
+    while heap:
+        if heap[0][0] >= best - tolerance:
+            break  # every open node is bounded by the incumbent: proved
         now = time.perf_counter()
-        if progress is not None and now - last_report > 0.5:
-            last_report = now
-            progress(nodes, best, _open_bound(stack, bound, best))
-        if bound >= best - tolerance or not node.free:
-            continue
         if (node_limit is not None and nodes >= node_limit) or now - t0 > time_limit:
-            stack.append(_Node(node.inside, node.free, bound))
             status = "limit"
             reason = (f"node limit {node_limit}" if node_limit is not None
                       and nodes >= node_limit else f"time limit {time_limit:g} s")
             break
+        _, _, node = heapq.heappop(heap)
+        nodes += 1
+        bound, plain, drop = analyse(node)
+        consider(node.inside)
+        consider(node.inside + node.free)
+        if progress is not None and now - last_report > 0.5:
+            last_report = now
+            progress(nodes, best, min(bound, heap[0][0]) if heap else bound)
+        if bound >= best - tolerance or not node.free:
+            continue
         # branch on the free term whose removal costs the most (first free when unknown)
         j = node.free[int(np.argmax(drop))] if drop is not None else node.free[0]
         rest = [i for i in node.free if i != j]
         step = pen[len(node.inside) + 1] - pen[len(node.inside)]
-        stack.append(_Node(node.inside, rest, bound))  # out: explored second
-        # in: explored first; at least one term more than the parent's plain bound
-        stack.append(_Node(node.inside + [j], rest, max(bound, plain + step)))
-    lower = best if status == "optimal" else _open_bound(stack, np.inf, best)
-    return Certificate(status=status, value=float(best), lower_bound=float(min(lower, best)),
+        heapq.heappush(heap, (bound, counter, _Node(node.inside, rest, bound)))
+        # in: at least one term more than the parent's plain bound
+        b_in = max(bound, plain + step)
+        heapq.heappush(heap, (b_in, counter + 1, _Node(node.inside + [j], rest, b_in)))
+        counter += 2
+    if status == "optimal":
+        lower = best
+    else:
+        lower = min(heap[0][0], best) if heap else best
+    return Certificate(status=status, value=float(best), lower_bound=float(lower),
                        mask=best_mask, nodes=nodes, seconds=time.perf_counter() - t0,
                        reason=reason, warm_start=warm_value)
 
 
-def _open_bound(stack: list[_Node], current: float, best: float) -> float:
-    """The smallest bound of the nodes still open (the best found when none)."""
-    bounds = [nd.bound for nd in stack] + [current]
-    return float(min(min(bounds), best))
+def certify_data(
+    u: np.ndarray, y: np.ndarray, *, term_space, criterion: str = "bic",
+    segments: list[tuple[int, int]] | None = None, warm_start: np.ndarray | None = None,
+    time_limit: float = 60.0, node_limit: int | None = None,
+    progress: Callable[[int, float, float], None] | None = None,
+) -> Certificate:
+    """:func:`certify` on measured signals (the term space's candidates of u, y).
+
+    The data are scaled by powers of two as :func:`identify` scales them, so the
+    values are the GA's; ``warm_start`` is a mask over all candidate terms.
+    Terms whose regressor is zero on all rows are left out (they cannot be in an
+    identifiable structure). The certificate's ``terms`` are the term names.
+    """
+    from .terms import power_of_two_scale
+
+    u2 = term_space.inputs_2d(u)
+    y = np.asarray(y, dtype=float)
+    su = np.array([power_of_two_scale(c) for c in u2.T])
+    sy = power_of_two_scale(y)
+    P, target = term_space.regression(u2 / su, y / sy, segments)
+    nonzero = np.any(P != 0, axis=0)
+    warm = None if warm_start is None else np.asarray(warm_start, dtype=bool)[nonzero]
+    cert = certify(P[:, nonzero], target, criterion, warm_start=warm, time_limit=time_limit,
+                   node_limit=node_limit, sse_scale=sy * sy, progress=progress)
+    full = np.zeros(term_space.n_terms, dtype=bool)
+    full[np.flatnonzero(nonzero)] = cert.mask
+    cert.mask = full
+    names = term_space.term_names()
+    cert.terms = [names[i] for i in np.flatnonzero(full)]
+    return cert

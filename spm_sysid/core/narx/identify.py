@@ -116,6 +116,7 @@ def identify(
     segments: list[tuple[int, int]] | None = None,
     focus: str = "prediction",
     shortlist: int = 20,
+    certify_time_limit: float | None = None,
 ) -> IdentificationResult:
     """Select a NARX structure with the SPM-GA and fit it.
 
@@ -148,6 +149,13 @@ def identify(
     shortlist : int
         With ``focus="simulation"``: how many of the GA's best structures are
         refined and compared.
+    certify_time_limit : float, optional
+        After the GA, prove its best structure the optimum of the whole term
+        space by branch and bound (:mod:`spm_sysid.core.narx.certify`; AIC and
+        BIC), within this many seconds; the result is in
+        ``model.metadata["certificate"]`` (``optimal``, or ``limit`` with the
+        lower bound and gap, or ``refused`` with the reason). A better structure
+        found on the way replaces the GA's.
 
     Notes
     -----
@@ -192,6 +200,10 @@ def identify(
             "no structure could be fitted: every structure the search tried has linearly "
             "dependent regressors on this data (repeated or constant signals?)"
         )
+    certificate = None
+    if certify_time_limit is not None:
+        certificate = _certify_search(evaluator, result, crit, certify_time_limit,
+                                      [names[i] for i in np.flatnonzero(nonzero)])
     full_mask = np.zeros(term_space.n_terms, dtype=bool)
     full_mask[np.flatnonzero(nonzero)] = result.best_mask
     result.best_mask = full_mask
@@ -204,6 +216,7 @@ def identify(
         "search_seconds": round(result.elapsed, 4),
         "focus": focus,
         **({"excluded_zero_terms": excluded} if excluded else {}),
+        **({"certificate": certificate} if certificate is not None else {}),
     }
     if focus == "simulation":
         ranked = evaluator.ranked(shortlist)
@@ -328,3 +341,21 @@ def select_for_simulation(
         "criterion_meaning": f"{criterion.name.upper()} of the free-run simulation error "
                              "(SSE of the simulated output) on the estimation data"}}
     return model
+
+
+def _certify_search(evaluator: StructureEvaluator, result: GAResult, crit: Criterion,
+                    time_limit: float, names: list[str]) -> dict:
+    """Certify the GA's result in place (a better structure found replaces it)."""
+    from .certify import certify
+
+    try:
+        cert = certify(None, None, crit, warm_start=result.best_mask, time_limit=time_limit,
+                       evaluator=evaluator)
+    except ValueError as exc:  # a criterion that cannot be certified
+        return {"status": "refused", "reason": str(exc)}
+    cert.terms = [names[i] for i in np.flatnonzero(cert.mask)]
+    doc = cert.to_dict()
+    doc["ga_value"] = float(result.best_score)
+    if cert.value < result.best_score:
+        result.best_mask, result.best_score = cert.mask.copy(), cert.value
+    return doc

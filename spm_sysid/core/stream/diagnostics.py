@@ -101,11 +101,17 @@ def diagnostic_statuses(name: str, stats: dict, *, field_errors: int = 0,
         if diverged is not None:
             message += f"; its free-run simulation DIVERGED at sample {diverged}"
             level = ERROR
+        cert = meta.get("certificate") or {}
+        if cert.get("status") == "optimal":
+            message += ", certified optimal"
+        elif cert.get("status") == "limit":
+            message += f", not certified (gap {cert.get('gap', float('nan')):.2f})"
         free = validation.get("free_run") or {}
         statuses.append(Status(level, ident, message, _values(
             {"criterion": crit.get("name"), "value": crit.get("value"),
              "mse": model.get("mse"), "focus": meta.get("focus", "prediction"),
              "free_run_fit_percent": free.get("fit_percent"), "diverged_at": diverged,
+             "certificate": cert.get("status", "none"), "certificate_gap": cert.get("gap"),
              **{f"data_{k}": v for k, v in data.items()}})))
         if validation.get("correlation_tests_skipped"):
             statuses.append(Status(WARN, f"{name}: correlation tests",
