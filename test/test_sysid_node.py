@@ -39,7 +39,7 @@ def play(env, bag, rate=10.0):
 def test_replay_identify_and_latched_results(ros_env, harness, arm_bag, robot_arm, tmp_path):
     u, y = robot_arm
     model_path = tmp_path / "saved" / "model.json"
-    node = start_node(ros_env, "seed:=1", f"model_path:={model_path}")
+    node = start_node(ros_env, "seed:=1", f"model_path:={model_path}", "certify:=true")
     try:
         harness.wait_ready()
         play(ros_env, arm_bag)
@@ -52,6 +52,9 @@ def test_replay_identify_and_latched_results(ros_env, harness, arm_bag, robot_ar
         assert "y(t) = 3.158y(t-1) - 4.439y(t-2)" in res.message
         assert "AIC -10744.78" in res.message and "8 terms" in res.message
         assert "1024 samples" in res.message
+        assert "certified optimal over all structures" in res.message  # certify:=true
+        assert harness.spin_until(lambda: "certified optimal" in harness.statuses().get(
+            "identification", (0, ""))[1], 10)
 
         # subscribers that start after the result still get it (latched)
         doc = json.loads(harness.latched(String, "/spm_sysid/model").data)
