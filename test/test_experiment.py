@@ -79,3 +79,33 @@ def test_reach_counts_and_fisher_test_against_hand_values():
     assert rows[0.15].reached == 5 and rows[0.0].reached == 1
     assert rows[0.15].fisher_p == pytest.approx(fisher_exact([[5, 0], [1, 4]])[1])
     assert rows[0.0].fisher_p is None
+
+
+def test_reached_counts_against_a_certified_optimum():
+    # the runs' best (-10) is not the certified optimum (-11): no run reached it
+    recs = [_rec("aic", 0.15, -10.0, ["a", "b"], i) for i in range(3)]
+    recs += [_rec("bic", 0.15, -5.0, ["a"], i) for i in range(3)]
+    optima = {"aic": {"status": "optimal", "value": -11.0, "terms": ["c"]},
+              "bic": {"status": "limit", "value": -5.0, "terms": ["a"]}}
+    best = mark_reached(recs, optima)
+    assert best["aic"] == (-11.0, ["c"], "certified optimum")
+    assert best["bic"] == (-5.0, ["a"], "best found across runs")  # not proved: runs' best
+    rows = {r.criterion: r for r in summarise(recs)}
+    assert rows["aic"].reached == 0 and rows["aic"].reference == "certified optimum"
+    assert rows["bic"].reached == 3 and rows["bic"].reference == "best found across runs"
+
+
+def test_small_study_reports_the_certified_optimum(tmp_path, robot_arm):
+    from spm_sysid.tools.experiment import run_experiment, summary_table
+
+    u, y = robot_arm
+    cfg = ExperimentConfig(criteria=["aic", "pmic2"], populations=[50], spm_fractions=[0.15],
+                           runs=2, generations=40, workers=1)
+    recs = run_experiment(u, y, cfg)
+    aic = [r for r in recs if r.criterion == "aic"]
+    assert all(r.reference == "certified optimum" for r in aic)
+    eq1 = ["y(t-1)", "y(t-2)", "y(t-3)", "y(t-4)", "u(t-1)", "u(t-2)", "u(t-3)", "u(t-4)"]
+    assert all(r.reached_best == (sorted(r.terms) == sorted(eq1)) for r in aic)
+    assert all(r.reference == "best found across runs" for r in recs if r.criterion == "pmic2")
+    table = summary_table(summarise(recs))
+    assert "| AIC | 50 | 0.15 |" in table and "certified optimum" in table

@@ -448,7 +448,9 @@ def cmd_experiment(args) -> int:
     overrides = dict(criteria=_list(args.criteria, str), populations=_list(args.populations, int),
                      spm_fractions=_list(args.spm_fractions, float), runs=args.runs,
                      generations=args.generations, seed=args.seed, fitness=args.fitness,
-                     workers=args.workers, focus=args.focus)
+                     workers=args.workers, focus=args.focus,
+                     certify=False if args.no_certify else None,
+                     certify_time_limit=args.certify_time_limit)
     try:
         if args.config:
             config = ExperimentConfig.from_yaml(args.config, **overrides)
@@ -653,6 +655,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=int, help="processes (default: one per core)")
     p.add_argument("--focus", choices=SETTINGS["focus"].choices,
                    help="prediction (default) or simulation: see spm-sysid settings")
+    p.add_argument("--no-certify", action="store_true",
+                   help="count runs reaching the best found, without proving it optimal")
+    p.add_argument("--certify-time-limit", type=_schema_type("certify_time_limit"),
+                   help="seconds per criterion to prove its optimum (default 60)")
     p.add_argument("--out", metavar="DIR", default="out/experiment")
     p.add_argument("--report", metavar="DIR", help="write a Markdown report here")
     p.add_argument("--quiet", action="store_true")
