@@ -44,10 +44,10 @@ bag: $(STAMP)
 	$(BIN)/spm-sysid make-bag --output bags/robot_arm --force
 
 experiment: $(STAMP)
-	$(BIN)/spm-sysid experiment --out out/experiment
+	$(BIN)/spm-sysid experiment --out out/experiment --force
 
 report: $(STAMP)
-	$(BIN)/spm-sysid experiment --out out/experiment --report out/report
+	$(BIN)/spm-sysid experiment --out out/experiment --report out/report --force
 
 clean:
 	rm -rf build install log out .pytest_cache

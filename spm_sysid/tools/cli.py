@@ -385,6 +385,59 @@ def cmd_certify(args) -> int:
     return 0
 
 
+def cmd_batch(args) -> int:
+    from pathlib import Path
+
+    from .batch import run_batch, summary_table
+
+    per_input = None
+    if args.settings:
+        import yaml
+
+        try:
+            per_input = yaml.safe_load(Path(args.settings).read_text()) or {}
+        except (OSError, yaml.YAMLError) as exc:
+            raise UserError(f"cannot read --settings {args.settings}: {exc}") from None
+        if not isinstance(per_input, dict):
+            raise UserError(f"--settings {args.settings}: expected a mapping of input "
+                            "patterns to settings")
+    values = {k: v for k, v in vars(args).items() if v is not None and k in SETTINGS}
+    for k in ("input_topic", "input_field", "input_names", "output_topic", "output_field"):
+        if getattr(args, k, None):
+            values[k] = getattr(args, k)
+    if args.inputs:
+        values["inputs"] = ",".join(args.inputs)
+    if args.output_column:
+        values["output"] = args.output_column
+    _job_settings(argparse.Namespace(**values))  # settings errors before any work
+    bar = None
+    if not args.quiet:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(args.input), desc="inputs", unit="input", file=sys.stderr,
+                   disable=None)
+    where = f"the Dask cluster at {args.scheduler}" if args.scheduler else "this machine"
+    print(f"batch: {len(args.input)} input(s) on {where}; models and summary in {args.out}")
+    try:
+        rows = run_batch(args.input, args.out, values, per_input=per_input,
+                         scheduler=args.scheduler, workers=args.workers or 0,
+                         progress=(lambda i, n: bar.update(1)) if bar else None)
+    except (OSError, RuntimeError) as exc:
+        raise UserError(str(exc)) from None
+    finally:
+        if bar:
+            bar.close()
+    print(summary_table(rows), end="")
+    failed = [r for r in rows if r["status"].startswith("error")]
+    print(f"{len(rows) - len(failed)} of {len(rows)} input(s) identified; summary in "
+          f"{Path(args.out) / 'summary.csv'}")
+    if failed:
+        print(f"error: {len(failed)} input(s) failed (status in the summary): "
+              + ", ".join(r["input"] for r in failed), file=sys.stderr)
+        return 1
+    return 0
+
+
 def _validate_and_report(model, u, y, segment, plots, corr_lags, segments=None,
                          horizon: int = 0) -> None:
     """Validate, print the summary, store it in the model, write figures."""
@@ -435,7 +488,9 @@ def _list(text: str | None, kind):
 
 
 def cmd_experiment(args) -> int:
+    import json
     import time
+    from pathlib import Path
 
     from .experiment import (
         ExperimentConfig,
@@ -472,17 +527,48 @@ def cmd_experiment(args) -> int:
 
         bar = tqdm(total=n_runs, desc="runs", unit="run", file=sys.stderr, disable=None)
     t0 = time.perf_counter()
+
+    def tick(i, n):
+        if bar:
+            bar.n = i
+            bar.refresh()
+
+    partial = Path(args.out) / "runs.partial.jsonl"
+    if args.force and not args.resume and partial.exists():
+        old = sum(1 for _ in open(partial))
+        partial.unlink()
+        print(f"note: --force: the {old} run(s) of the earlier study in {args.out} are "
+              "discarded")
+    where = f"the Dask cluster at {args.scheduler}" if args.scheduler else "this machine"
+    print(f"running on {where}" + ("; resuming" if args.resume else ""))
     try:
-        records = run_experiment(u, y, config,
-                                 progress=(lambda i, n: bar.update(1)) if bar else None)
+        records = run_experiment(u, y, config, progress=tick, scheduler=args.scheduler,
+                                 out=args.out, resume=args.resume)
+    except (FileExistsError, OSError, ValueError, RuntimeError) as exc:
+        raise UserError(str(exc)) from None
     finally:
         if bar:
             bar.close()
     elapsed = time.perf_counter() - t0
+    if records.resumed:
+        print(f"resumed: {records.resumed} run(s) were already done and were not run again")
     rows = summarise(records)
-    write_results(records, rows, config, args.out)
-    print(summary_table(rows))
-    print(f"{n_runs} runs in {elapsed:.1f} s; per-run records and figure in {args.out}")
+    if records:
+        write_results(records, rows, config, args.out)
+        print(summary_table(rows))
+    print(f"{len(records)} of {n_runs} runs in {elapsed:.1f} s; per-run records and figure "
+          f"in {args.out}")
+    if records.failures:
+        for f in records.failures:
+            print(f"run {f.key} FAILED after {f.attempts} attempt(s): {f.error}",
+                  file=sys.stderr)
+        (Path(args.out) / "failures.json").write_text(json.dumps(
+            [{"run": f.key, "error": f.error, "attempts": f.attempts}
+             for f in records.failures], indent=1))
+        print(f"error: {len(records.failures)} run(s) failed (listed above and in "
+              f"{Path(args.out) / 'failures.json'}); the summary covers the others; "
+              "--resume runs only what is missing", file=sys.stderr)
+        return 1
     if args.report:
         from .report import write_report
 
@@ -609,6 +695,28 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_identify)
 
+    p = sub.add_parser("batch", help="identify many data files and bags (here or on a Dask "
+                       "cluster): one model each and a summary table")
+    p.add_argument("input", nargs="+", metavar="INPUT",
+                   help="data files, rosbag2 bag directories or .mcap files")
+    p.add_argument("--out", metavar="DIR", required=True, help="models and summary go here")
+    p.add_argument("--settings", metavar="YAML",
+                   help="per-input settings: input patterns -> settings (see docs)")
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="run on this Dask cluster (tcp://HOST:PORT); default: this machine")
+    p.add_argument("--workers", type=int, help="local processes (default: one per core)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    g = p.add_argument_group("data options (each input)")
+    g.add_argument("--inputs", metavar="NAMES", type=lambda t: [c for c in t.split(",") if c],
+                   help="input columns of data files (comma-separated)")
+    g.add_argument("--output", dest="output_column", metavar="NAME",
+                   help="output column of data files")
+    for name in ("input_topic", "input_field", "input_names", "output_topic", "output_field"):
+        g.add_argument(SETTINGS[name].option, dest=name, default=None,
+                       help=f"bags: {SETTINGS[name].help}")
+    add_schema_options(p, ("term_space", "ga", "criterion", "validation"), JOB_TITLES)
+    p.set_defaults(func=cmd_batch)
+
     p = sub.add_parser("certify", help="prove the best structure of the whole term space "
                        "(branch and bound; AIC, BIC), or bound the gap")
     _add_data_options(p)
@@ -660,6 +768,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--certify-time-limit", type=_schema_type("certify_time_limit"),
                    help="seconds per criterion to prove its optimum (default 60)")
     p.add_argument("--out", metavar="DIR", default="out/experiment")
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="run on this Dask cluster (tcp://HOST:PORT; needs the dask extra); "
+                        "default: this machine")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the interrupted study in --out: only missing runs are run")
+    p.add_argument("--force", action="store_true",
+                   help="start over in an --out that holds an earlier study's runs")
     p.add_argument("--report", metavar="DIR", help="write a Markdown report here")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_experiment)

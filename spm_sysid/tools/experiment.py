@@ -17,11 +17,9 @@ from __future__ import annotations
 
 import csv
 import json
-import os
 import time
 from collections import defaultdict
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -176,39 +174,126 @@ def _one_run(task: tuple) -> RunRecord:
     )
 
 
+class StudyRecords(list):
+    """The study's records (a list, in task order) and the runs that failed."""
+
+    failures: list
+    resumed: int = 0
+
+
+def _task(task: tuple, shared: tuple) -> RunRecord:
+    """One run where the data come with the task (local pool or Dask worker)."""
+    token, u, y, space = shared
+    if _DATA.get("token") != token:  # build the regression matrix once per process
+        _init_worker(u, y, space)
+        _DATA["token"] = token
+    return _one_run(task)
+
+
+def run_key(task: tuple) -> str:
+    """The stable name of a run: criterion, population, fraction, run index."""
+    return f"{task[0]}-{task[1]}-{task[2]:g}-{task[3]}"
+
+
+def data_token(u: np.ndarray, y: np.ndarray, config: ExperimentConfig) -> str:
+    """A fingerprint of the data and the study settings (resume checks it)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for a in (np.ascontiguousarray(u, dtype=float), np.ascontiguousarray(y, dtype=float)):
+        h.update(a.tobytes())
+    cfg = {k: v for k, v in asdict(config).items() if k not in ("workers",)}
+    h.update(json.dumps(cfg, sort_keys=True).encode())
+    return h.hexdigest()[:16]
+
+
 def run_experiment(
     u: np.ndarray, y: np.ndarray, config: ExperimentConfig,
-    progress: Callable[[int, int], None] | None = None,
-) -> list[RunRecord]:
-    """Run every (criterion, population, fraction, run) of the study in parallel.
+    progress: Callable[[int, int], None] | None = None, *,
+    scheduler: str | None = None, out: str | Path | None = None, resume: bool = False,
+) -> StudyRecords:
+    """Run every (criterion, population, fraction, run) of the study.
 
-    Records come back in a fixed order (criterion, population, fraction, run),
-    whatever order the workers finish in, so the same seeds give the same list.
+    On this machine (``config.workers`` processes) or, with ``scheduler``, on a
+    Dask cluster (:func:`spm_sysid.tools.runner.run_tasks`). Records come back in
+    a fixed order (criterion, population, fraction, run), whatever runs them and in
+    whatever order they finish, so the same seeds give the same list. With
+    ``out``, each finished run is appended to ``out/runs.partial.jsonl`` at once;
+    ``resume`` reads that file (it must belong to the same data and settings) and
+    runs only what is missing. Runs that fail (after retries) are in
+    ``records.failures`` with their errors, never silently left out.
     """
-    tasks = [
-        (c, int(pop), float(s), r, config.seed + r, config.ga(pop, s), config.focus,
-         config.shortlist)
-        for c in config.criteria for pop in config.populations
-        for s in config.spm_fractions for r in range(config.runs)
-    ]
-    workers = config.workers or os.cpu_count() or 1
-    records: list[RunRecord] = []
-    if workers == 1:
-        _init_worker(u, y, config.term_space)
-        for i, task in enumerate(tasks):
-            records.append(_one_run(task))
-            if progress:
-                progress(i + 1, len(tasks))
-    else:
-        with ProcessPoolExecutor(max_workers=workers, initializer=_init_worker,
-                                 initargs=(u, y, config.term_space)) as pool:
-            for i, rec in enumerate(pool.map(_one_run, tasks, chunksize=1)):
-                records.append(rec)
-                if progress:
-                    progress(i + 1, len(tasks))
-    optima = certify_optima(u, y, config, records) if config.certify else {}
+    from .runner import run_tasks
+
+    tasks = {}
+    for c in config.criteria:
+        for pop in config.populations:
+            for s in config.spm_fractions:
+                for r in range(config.runs):
+                    t = (c, int(pop), float(s), r, config.seed + r, config.ga(pop, s),
+                         config.focus, config.shortlist)
+                    tasks[run_key(t)] = t
+    token = data_token(u, y, config)
+    finished: dict[str, RunRecord] = {}
+    partial = None
+    if out is not None:
+        out = Path(out)
+        out.mkdir(parents=True, exist_ok=True)
+        partial, stamp = out / "runs.partial.jsonl", out / "study.json"
+        if resume:
+            finished = _read_partial(partial, stamp, token, tasks)
+        elif partial.exists():
+            raise FileExistsError(
+                f"{out} holds runs of an earlier study ({partial.name}); resume it with "
+                "--resume, start over with --force, or choose another --out (nothing was "
+                "overwritten)")
+        stamp.write_text(json.dumps({"token": token, "config": asdict(config)}, indent=1))
+    todo = {k: t for k, t in tasks.items() if k not in finished}
+    count = [len(finished)]
+    if progress and finished:
+        progress(len(finished), len(tasks))
+
+    def on_done(outcome) -> None:
+        if outcome.ok and partial is not None:
+            with open(partial, "a") as f:
+                f.write(json.dumps({"key": outcome.key, "record": asdict(outcome.result)})
+                        + "\n")
+                f.flush()
+        count[0] += 1
+        if progress:
+            progress(count[0], len(tasks))
+
+    outcomes = run_tasks(_task, todo, shared=(token, u, y, config.term_space),
+                         scheduler=scheduler, workers=config.workers, on_done=on_done)
+    records = StudyRecords()
+    records.failures = [o for o in outcomes.values() if not o.ok]
+    records.resumed = len(finished)
+    for key in tasks:
+        if key in finished:
+            records.append(finished[key])
+        elif key in outcomes and outcomes[key].ok:
+            records.append(outcomes[key].result)
+    optima = certify_optima(u, y, config, records) if config.certify and records else {}
     mark_reached(records, optima)
     return records
+
+
+def _read_partial(partial: Path, stamp: Path, token: str, tasks: dict) -> dict:
+    """Finished runs of an interrupted study (checked to be the same study)."""
+    if not partial.exists():
+        return {}
+    if not stamp.exists() or json.loads(stamp.read_text()).get("token") != token:
+        raise ValueError(f"{partial} belongs to another study (other data or settings); "
+                         "it cannot be resumed with these")
+    finished = {}
+    for line in partial.read_text().splitlines():
+        try:
+            item = json.loads(line)
+        except json.JSONDecodeError:  # a line cut short when the study was stopped
+            continue
+        if item.get("key") in tasks:
+            finished[item["key"]] = RunRecord(**item["record"])
+    return finished
 
 
 def certify_optima(u: np.ndarray, y: np.ndarray, config: ExperimentConfig,

@@ -1,0 +1,158 @@
+"""Studies and batches on a real Dask cluster: a scheduler and two worker processes."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from .conftest import ROOT
+
+BIN = os.path.dirname(sys.executable)
+
+
+@pytest.fixture(scope="module")
+def cluster(tmp_path_factory):
+    """`dask scheduler` and two `dask worker` processes on 127.0.0.1."""
+    pytest.importorskip("distributed")
+    d = tmp_path_factory.mktemp("dask")
+    sched_file = d / "scheduler.json"
+    env = {**os.environ, "DASK_DISTRIBUTED__WORKER__DAEMON": "False"}
+    procs = [subprocess.Popen([f"{BIN}/dask", "scheduler", "--host", "127.0.0.1", "--port", "0",
+                               "--no-dashboard", "--scheduler-file", str(sched_file)],
+                              stdout=subprocess.DEVNULL, stderr=open(d / "sched.log", "w"),
+                              env=env)]
+    deadline = time.monotonic() + 60
+    while not sched_file.exists() and time.monotonic() < deadline:
+        time.sleep(0.2)
+    address = json.loads(sched_file.read_text())["address"]
+    workers = []
+
+    def start_worker(i):
+        p = subprocess.Popen([f"{BIN}/dask", "worker", address, "--nworkers", "1",
+                              "--nthreads", "1", "--no-dashboard", "--host", "127.0.0.1"],
+                             stdout=subprocess.DEVNULL,
+                             stderr=open(d / f"worker{i}.log", "w"), env=env, cwd=ROOT)
+        workers.append(p)
+        return p
+
+    start_worker(0)
+    start_worker(1)
+    from distributed import Client
+
+    with Client(address, timeout=60) as c:
+        c.wait_for_workers(2, timeout=120)
+    yield {"address": address, "workers": workers, "start_worker": start_worker}
+    for p in workers + procs:
+        p.terminate()
+    for p in workers + procs:
+        try:
+            p.wait(10)
+        except subprocess.TimeoutExpired:
+            p.kill()
+
+
+def spm(*args, timeout=600):
+    return subprocess.run([sys.executable, "-m", "spm_sysid.apps.main", *args],
+                          capture_output=True, text=True, cwd=ROOT, timeout=timeout)
+
+
+STUDY = ("experiment", "--criteria", "aic,bic", "--populations", "40", "--spm", "0,0.15",
+         "--runs", "3", "--generations", "40", "--seed", "3", "--quiet")
+
+
+def _runs(out):
+    runs = json.loads((out / "runs.json").read_text())["runs"]
+    return [(r["criterion"], r["population_size"], r["spm_fraction"], r["run"], r["terms"],
+             round(r["final_value"], 6), r["best_curve"]) for r in runs]
+
+
+def test_study_on_the_cluster_equals_the_local_study(cluster, tmp_path):
+    local = spm(*STUDY, "--out", str(tmp_path / "local"))
+    assert local.returncode == 0, local.stderr
+    remote = spm(*STUDY, "--out", str(tmp_path / "dask"), "--scheduler", cluster["address"])
+    assert remote.returncode == 0, remote.stderr
+    assert f"running on the Dask cluster at {cluster['address']}" in remote.stdout
+    assert _runs(tmp_path / "dask") == _runs(tmp_path / "local")  # same seeds, same runs
+    assert len(_runs(tmp_path / "local")) == 12
+
+
+def test_a_worker_killed_mid_study_loses_no_run(cluster, tmp_path):
+    out = tmp_path / "killed"
+    args = [sys.executable, "-m", "spm_sysid.apps.main", *STUDY[:-1], "--runs", "6",
+            "--generations", "150", "--out", str(out), "--scheduler", cluster["address"]]
+    study = subprocess.Popen(args, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                             text=True)
+    partial = out / "runs.partial.jsonl"
+    deadline = time.monotonic() + 120
+    while (not partial.exists() or len(partial.read_text().splitlines()) < 2) \
+            and time.monotonic() < deadline:
+        time.sleep(0.1)
+    victim = cluster["workers"][0]
+    os.kill(victim.pid, signal.SIGKILL)  # a worker dies with runs on it
+    cluster["start_worker"](2)  # (the cluster of the next tests has two again)
+    stdout, stderr = study.communicate(timeout=600)
+    assert study.returncode == 0, stderr
+    runs = json.loads((out / "runs.json").read_text())["runs"]
+    assert len(runs) == 24 and len({(r["criterion"], r["spm_fraction"], r["run"])
+                                    for r in runs}) == 24
+
+
+def test_an_interrupted_study_resumes_without_redoing_runs(cluster, tmp_path):
+    out = tmp_path / "resume"
+    args = [sys.executable, "-m", "spm_sysid.apps.main", *STUDY, "--out", str(out),
+            "--workers", "1"]
+    study = subprocess.Popen(args, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    partial = out / "runs.partial.jsonl"
+    deadline = time.monotonic() + 120
+    while (not partial.exists() or len(partial.read_text().splitlines()) < 3) \
+            and time.monotonic() < deadline:
+        time.sleep(0.05)
+    study.send_signal(signal.SIGINT)
+    study.wait(60)
+    done = len([line for line in partial.read_text().splitlines() if line.strip()])
+    assert 3 <= done < 12
+    again = spm(*STUDY, "--out", str(out))
+    assert again.returncode == 2 and "--resume" in again.stderr  # nothing overwritten
+    resumed = spm(*STUDY, "--out", str(out), "--resume", "--scheduler", cluster["address"])
+    assert resumed.returncode == 0, resumed.stderr
+    assert f"resumed: {done} run(s) were already done" in resumed.stdout
+    ref = spm(*STUDY, "--out", str(tmp_path / "ref"))
+    assert ref.returncode == 0, ref.stderr
+    assert _runs(out) == _runs(tmp_path / "ref")
+
+
+def test_batch_on_the_cluster_reports_a_broken_file_and_finishes_the_rest(cluster, tmp_path,
+                                                                          robot_arm_path):
+    import numpy as np
+
+    rng = np.random.default_rng(1)
+    u = rng.uniform(-1, 1, 400)
+    y = np.zeros(400)
+    for t in range(2, 400):
+        y[t] = 0.6 * y[t - 1] - 0.2 * y[t - 2] + 0.8 * u[t - 1] + 0.1 * y[t - 1] * u[t - 1]
+    np.savetxt(tmp_path / "take2.dat", np.column_stack([u, y + 1e-3 * rng.standard_normal(400)]))
+    (tmp_path / "broken.dat").write_text("1 2\n3 x\n")
+    inputs = [str(robot_arm_path), str(tmp_path / "take2.dat"), str(tmp_path / "broken.dat")]
+    common = ("--criterion", "bic", "--seed", "1", "--quiet")
+    local = spm("batch", *inputs, "--out", str(tmp_path / "local"), *common)
+    remote = spm("batch", *inputs, "--out", str(tmp_path / "dask"), *common,
+                 "--scheduler", cluster["address"])
+    for r in (local, remote):
+        assert r.returncode == 1 and "1 input(s) failed" in r.stderr
+        assert "2 of 3 input(s) identified" in r.stdout
+    import csv
+
+    rows = {k: list(csv.DictReader(open(tmp_path / k / "summary.csv"))) for k in ("local",
+                                                                                   "dask")}
+    for k in rows:
+        assert [r["status"] for r in rows[k]][:2] == ["ok", "ok"]
+        assert rows[k][2]["status"].startswith("error: DataError") and "'x'" in \
+            rows[k][2]["status"]
+    assert [r["value"] for r in rows["local"]] == [r["value"] for r in rows["dask"]]
+    assert rows["local"][0]["value"].startswith("-10707.48")  # the paper's eq. (2)
+    m = json.loads((tmp_path / "dask" / "robot_arm.json").read_text())
+    assert len(m["terms"]) == 7 and (tmp_path / "dask" / "take2.json").exists()
