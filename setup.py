@@ -36,10 +36,14 @@ setup(
         ],
         # benchmark-only: the forward-selection baseline of `spm-sysid bench-sizes --fastcan`
         "bench": ["fastcan>=0.4"],
+        # studies and batches on a Dask cluster (`--scheduler`); not needed on the robot
+        "dask": ["dask>=2024.1", "distributed>=2024.1"],
         "test": [
             "pytest>=7",
             "pytest-timeout>=2.1",
             "pytest-xdist>=3.5",
+            "dask>=2024.1",
+            "distributed>=2024.1",
             "ruff>=0.5",
             "colcon-core",
             "colcon-ros",
