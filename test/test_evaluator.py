@@ -205,9 +205,15 @@ def test_nearly_dependent_structures_are_decided_as_the_reference_decides(compil
     t = P[:, :5] @ rng.standard_normal(5) + 0.01 * rng.standard_normal(400)
     masks = rng.random((300, 70)) < 0.15
     masks[:, :30] = True
-    fast = StructureEvaluator(P, t, "aic", compiled=compiled).evaluate(masks)
+    ev = StructureEvaluator(P, t, "aic", compiled=compiled)
+    _, _, bad = ev.fit_batch(masks)  # every near-threshold structure decided by QR
     ref = np.array([reference_score(P, t, m, "aic") for m in masks])
-    assert np.array_equal(np.isfinite(fast), np.isfinite(ref))
+    assert np.array_equal(~bad, np.isfinite(ref))
     finite = np.isfinite(ref)
     assert 0 < finite.sum() < len(ref)  # both kinds are in the sample
-    assert np.max(np.abs(fast[finite] - ref[finite])) < 1e-6
+    # scoring decides those that could be selected (within the window of the best)
+    fast = ev.evaluate(masks)
+    close = np.isfinite(fast) & (fast < np.nanmin(np.where(finite, ref, np.nan)) + 50)
+    assert np.all(np.isfinite(ref[close]))
+    assert np.max(np.abs(fast[close] - ref[close])) < 1e-6
+    assert np.argmin(fast) == np.argmin(ref)

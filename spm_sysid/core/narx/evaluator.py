@@ -39,9 +39,14 @@ from .criteria import Criterion, get_criterion
 from .kernels import HAVE_NUMBA, fit_structures
 from .lstsq import DEFAULT_RANK_TOL, sse_floor
 
-#: Structures whose smallest squared Gram pivot is below NEAR_RANK * rank_tol have
-#: their rank (and fit) decided by QR, as the reference fit decides it.
-NEAR_RANK = 1e3
+#: Structures the Gram path accepts with a smallest squared pivot below
+#: NEAR_RANK * rank_tol have their rank (and fit) decided by QR, as the reference fit
+#: decides it: there the Gram matrix's squared condition number makes pivots unreliable.
+NEAR_RANK = 10.0
+
+#: Near-threshold structures scoring within this of the best value seen are decided by
+#: QR in :meth:`StructureEvaluator.evaluate` (an Akaike roulette weight of exp(-25)).
+ARBITRATION_WINDOW = 50.0
 
 __all__ = ["StructureEvaluator", "size_groups", "structure_keys"]
 
@@ -120,6 +125,7 @@ class StructureEvaluator:
         self._r_ext = np.zeros((r_aug.shape[0], m + 2))
         self._r_ext[:, : m + 1] = r_aug
         self._cache: dict[int, float] = {}
+        self._best = np.inf  # best settled value (see evaluate)
         self.evaluations = 0
         self.lookups = 0
 
@@ -166,10 +172,33 @@ class StructureEvaluator:
         return float(self.score(np.asarray(mask, dtype=bool)[None, :])[0])
 
     def evaluate(self, masks: np.ndarray) -> np.ndarray:
-        """Criterion values for distinct structures without touching the cache."""
+        """Criterion values for distinct structures without touching the cache.
+
+        Structures the Gram path accepts with a pivot near ``rank_tol`` are refitted
+        by QR (:meth:`_qr_fit`) when they score within ``ARBITRATION_WINDOW`` of
+        the best value seen so far -- those that could be selected; further off,
+        the Gram path's value stands (in a GA their roulette weight is nil anyway).
+        """
         masks = np.asarray(masks, dtype=bool)
         k = masks.sum(axis=1)
-        sse, beta, bad = self.fit_batch(masks)
+        sse, beta, bad, near = self._fit(masks, arbitrate=False)
+        values = self._values(sse, k, beta, bad)
+        finite = np.isfinite(values)
+        best = min(self._best, float(values[finite & ~near].min())
+                   if (finite & ~near).any() else np.inf)
+        redo = near & finite & (values < (best if np.isfinite(best) else np.inf)
+                                + ARBITRATION_WINDOW)
+        if not np.isfinite(best):  # nothing settled yet: arbitrate every near one
+            redo = near & finite
+        if redo.any():
+            sse2, beta2, bad2, _ = self._fit(masks[redo], arbitrate=True)
+            values[redo] = self._values(sse2, k[redo], beta2, bad2)
+        settled = np.isfinite(values) & (~near | redo)
+        if settled.any():
+            self._best = min(best, float(values[settled].min()))
+        return values
+
+    def _values(self, sse, k, beta, bad) -> np.ndarray:
         sse = np.maximum(sse, self._sse_floor)  # exact fits: see lstsq.sse_floor
         with np.errstate(invalid="ignore", divide="ignore"):
             values = self.criterion(sse * self.sse_scale, self.n, k, beta)
@@ -181,7 +210,8 @@ class StructureEvaluator:
         One compiled call (:func:`~spm_sysid.core.narx.kernels.fit_structures`)
         fits every structure at its own size; without numba, structures are fitted
         in numpy batches of similar size (see :func:`size_groups`), so one large
-        structure does not pad a whole generation to its size.
+        structure does not pad a whole generation to its size. Every structure
+        accepted with a pivot near ``rank_tol`` is decided by QR (as the reference).
 
         Returns
         -------
@@ -189,27 +219,34 @@ class StructureEvaluator:
         beta : ndarray, shape (B, n_terms), or None when the criterion needs none
         bad : ndarray of bool, shape (B,)  rank-deficient structures
         """
-        masks = np.asarray(masks, dtype=bool)
+        return self._fit(np.asarray(masks, dtype=bool), arbitrate=True)[:3]
+
+    def _fit(self, masks: np.ndarray, arbitrate: bool):
+        """Return ``(sse, beta, bad, near)`` for a batch.
+
+        ``near`` marks accepted structures near the rank threshold that were not
+        decided by QR (all False with ``arbitrate``).
+        """
         if self.compiled:
-            return self._fit_compiled(masks)
+            return self._fit_compiled(masks, arbitrate)
         B = len(masks)
-        sse, bad = np.empty(B), np.empty(B, dtype=bool)
+        sse, bad, near = np.empty(B), np.empty(B, dtype=bool), np.empty(B, dtype=bool)
         beta = np.zeros((B, self.n_terms)) if self.criterion.needs_coefficients else None
         for rows in size_groups(masks.sum(axis=1)):
-            sse[rows], b, bad[rows] = self._fit_numpy(masks[rows])
+            sse[rows], b, bad[rows], near[rows] = self._fit_numpy(masks[rows], arbitrate)
             if beta is not None:
                 beta[rows] = b
-        return sse, beta, bad
+        return sse, beta, bad, near
 
-    def _fit_compiled(self, masks: np.ndarray):
+    def _fit_compiled(self, masks: np.ndarray, arbitrate: bool):
         # lexicographic order of the term lists: neighbours share factorised prefixes
         order = np.lexsort(~masks.T[::-1]) if len(masks) > 1 else np.arange(len(masks))
-        sse, beta, bad = self._fit_sorted(masks[order])
+        sse, beta, bad, near = self._fit_sorted(masks[order], arbitrate)
         back = np.empty_like(order)
         back[order] = np.arange(len(order))
-        return sse[back], None if beta is None else beta[back], bad[back]
+        return (sse[back], None if beta is None else beta[back], bad[back], near[back])
 
-    def _fit_sorted(self, masks: np.ndarray):
+    def _fit_sorted(self, masks: np.ndarray, arbitrate: bool):
         rows, cols = np.nonzero(masks)
         offsets = np.zeros(len(masks) + 1, dtype=np.int64)
         np.cumsum(masks.sum(axis=1), out=offsets[1:])
@@ -220,15 +257,20 @@ class StructureEvaluator:
         fit_structures(self._gram, self._r_ext, cols.astype(np.int64), offsets,
                        float(self.rank_tol), self._y_norm, self.n,
                        self.criterion.needs_coefficients, sse, theta, bad, minpiv)
-        for b in np.flatnonzero(minpiv < NEAR_RANK * self.rank_tol):
-            sl = slice(offsets[b], offsets[b + 1])
-            sse[b], theta[sl], bad[b] = self._qr_fit(cols[sl])
+        # Gram-accepted structures near the threshold: QR has the last word (a structure
+        # the Gram matrix rejects stays rejected -- it is never the one selected)
+        near = ~bad & (minpiv < NEAR_RANK * self.rank_tol)
+        if arbitrate:
+            for b in np.flatnonzero(near):
+                sl = slice(offsets[b], offsets[b + 1])
+                sse[b], theta[sl], bad[b] = self._qr_fit(cols[sl])
+            near[:] = False
         beta = None
         if self.criterion.needs_coefficients:
             beta = np.zeros(masks.shape)
             keep = ~bad[rows]
             beta[rows[keep], cols[keep]] = theta[keep] / self._y_norm
-        return sse, beta, bad
+        return sse, beta, bad, near
 
     def _qr_fit(self, cols: np.ndarray) -> tuple[float, np.ndarray, bool]:
         """SSE, coefficients and rank flag of one structure by Householder QR.
@@ -247,7 +289,7 @@ class StructureEvaluator:
         r = t - A @ th
         return float(r @ r), th, False
 
-    def _fit_numpy(self, masks: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    def _fit_numpy(self, masks: np.ndarray, arbitrate: bool = True):
         """The batched numpy path of :meth:`fit_batch` for structures of similar size."""
         masks = np.asarray(masks, dtype=bool)
         B, m = masks.shape
@@ -296,10 +338,11 @@ class StructureEvaluator:
             redo = ~bad & ((self.n * err > 1e-7 * sse) | exact)
         if redo.any():
             sse[redo], theta_n[redo] = self._refine(idx[redo], kmax, L[redo], theta_n[redo])
-        zero = (masks & self._zero_cols).any(axis=1)
-        near = ~zero & (k > 0) & (failed | (pivots < NEAR_RANK * self.rank_tol).any(axis=1))
-        for b in np.flatnonzero(near):  # as in the compiled path: QR decides
-            sse[b], theta_n[b, :k[b]], bad[b] = self._qr_fit(idx[b, :k[b]])
+        near = ~bad & (k > 0) & (pivots < NEAR_RANK * self.rank_tol).any(axis=1)
+        if arbitrate:
+            for b in np.flatnonzero(near):  # as in the compiled path: QR decides
+                sse[b], theta_n[b, :k[b]], bad[b] = self._qr_fit(idx[b, :k[b]])
+            near[:] = False
         beta = None
         if self.criterion.needs_coefficients:
             beta = np.zeros((B, m))
@@ -309,7 +352,7 @@ class StructureEvaluator:
             # theta_n is for unit-norm columns (theta_n = theta * ||phi||): beta = theta_n/||y||
             beta[rows[keep], cols[keep]] = theta_n.ravel()[keep] / self._y_norm
         sse = np.where(bad, np.nan, sse)
-        return sse, beta, bad
+        return sse, beta, bad, near
 
     def _refine(self, idx, kmax, L, theta_n, chunk: int = 64):
         """Accurate SSE and coefficients where the Gram path's SSE is not accurate enough.

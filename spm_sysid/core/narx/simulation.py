@@ -89,6 +89,35 @@ def _term_values(gather, vals, phi):  # pragma: no cover - compiled
 
 
 @jit
+def _predict_at(gather, theta, y_lags, u_lags, u_cols, ys, u, t, vals,
+                phi):  # pragma: no cover - compiled
+    """The model's output at t from the outputs ``ys`` and inputs ``u`` before it."""
+    n_y = y_lags.shape[0]
+    for j in range(n_y):
+        vals[j] = ys[t - y_lags[j]]
+    for j in range(u_lags.shape[0]):
+        vals[n_y + j] = u[t - u_lags[j], u_cols[j]]
+    _term_values(gather, vals, phi)
+    acc = 0.0
+    for i in range(phi.shape[0]):
+        acc += theta[i] * phi[i]
+    return acc
+
+
+@jit
+def _buffers(gather, y_lags, u_lags):  # pragma: no cover - compiled
+    """Work arrays: the lagged values (and a trailing 1) and the term values."""
+    return np.ones(y_lags.shape[0] + u_lags.shape[0] + 1), np.empty(gather.shape[0])
+
+
+@jit
+def _mark_diverged(out, t, lag0):  # pragma: no cover - compiled
+    for s in range(t, lag0 + out.shape[0]):
+        out[s - lag0] = np.nan
+    return t
+
+
+@jit
 def _run(gather, y_lags, u_lags, u_cols, theta, u, y, horizon, lag0, lo, hi,
          out):  # pragma: no cover - compiled
     """Write k-step-ahead predictions into ``out`` (rows t = lag0..n-1).
@@ -96,11 +125,7 @@ def _run(gather, y_lags, u_lags, u_cols, theta, u, y, horizon, lag0, lo, hi,
     Returns the first diverged t, or -1.
     """
     n = y.shape[0]
-    n_y = y_lags.shape[0]
-    n_lin = n_y + u_lags.shape[0]
-    k = gather.shape[0]
-    vals = np.ones(n_lin + 1)
-    phi = np.empty(k)
+    vals, phi = _buffers(gather, y_lags, u_lags)
     work = np.empty(n)  # outputs seen by the chain: measured up to its origin
     free = horizon >= n - lag0
     for t in range(lag0, n):
@@ -116,20 +141,10 @@ def _run(gather, y_lags, u_lags, u_cols, theta, u, y, horizon, lag0, lo, hi,
                 work[s] = y[s]
             first = o + 1
         for s in range(first, t + 1):
-            for j in range(n_y):
-                vals[j] = work[s - y_lags[j]]
-            for j in range(u_lags.shape[0]):
-                vals[n_y + j] = u[s - u_lags[j], u_cols[j]]
-            _term_values(gather, vals, phi)
-            acc = 0.0
-            for i in range(k):
-                acc += theta[i] * phi[i]
-            work[s] = acc
+            work[s] = _predict_at(gather, theta, y_lags, u_lags, u_cols, work, u, s, vals, phi)
         v = work[t]
         if not (v >= lo and v <= hi):  # also NaN
-            for s in range(t, n):
-                out[s - lag0] = np.nan
-            return t
+            return _mark_diverged(out, t, lag0)
         out[t - lag0] = v
     return -1
 
@@ -185,30 +200,19 @@ def _sens(gather, y_lags, u_lags, u_cols, theta, u, y, lag0, lo, hi, out,
     """
     n = y.shape[0]
     n_y = y_lags.shape[0]
-    n_lin = n_y + u_lags.shape[0]
     k = gather.shape[0]
     width = gather.shape[1]
-    vals = np.ones(n_lin + 1)
-    phi = np.empty(k)
+    vals, phi = _buffers(gather, y_lags, u_lags)
     ys = np.empty(n)
     S = np.zeros((n, k))  # sensitivities of the simulated output; zero for the initial
     dy = np.zeros(n_y)    # d yhat(t) / d yhat(t - y_lags[j]) at the current t
     for s in range(lag0):
         ys[s] = y[s]
     for t in range(lag0, n):
-        for j in range(n_y):
-            vals[j] = ys[t - y_lags[j]]
-        for j in range(u_lags.shape[0]):
-            vals[n_y + j] = u[t - u_lags[j], u_cols[j]]
-        _term_values(gather, vals, phi)
-        acc = 0.0
-        for i in range(k):
-            acc += theta[i] * phi[i]
+        acc = _predict_at(gather, theta, y_lags, u_lags, u_cols, ys, u, t, vals, phi)
         ys[t] = acc
         if not (acc >= lo and acc <= hi):
-            for s in range(t, n):
-                out[s - lag0] = np.nan
-            return t
+            return _mark_diverged(out, t, lag0)
         out[t - lag0] = acc
         # d yhat(t) / d y(t - lag_j): each factor that is an output lag, times the others
         for j in range(n_y):
