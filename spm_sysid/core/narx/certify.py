@@ -32,14 +32,13 @@ score +inf, as in the GA.
 
 from __future__ import annotations
 
-import heapq
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import linalg
 
+from .branch_bound import DONE, FULL, expand, words_for
 from .criteria import Criterion, get_criterion
 from .evaluator import StructureEvaluator
 from .lstsq import DEFAULT_RANK_TOL
@@ -136,11 +135,42 @@ def penalty_per_size(criterion: Criterion, n: int, m: int) -> np.ndarray:
     return pen
 
 
-class _Node:
-    __slots__ = ("inside", "free", "bound")
+#: Open nodes may use at most this much memory before the search stops with ``limit``.
+MAX_OPEN_BYTES = 1 << 30
 
-    def __init__(self, inside: list[int], free: list[int], bound: float) -> None:
-        self.inside, self.free, self.bound = inside, free, bound
+
+def polish(ev: StructureEvaluator, mask: np.ndarray, usable: np.ndarray,
+           seconds: float = 5.0) -> tuple[np.ndarray, float]:
+    """Local search from ``mask``: add, remove or swap one term while that helps.
+
+    A good incumbent lets the branch and bound cut more; this costs a few
+    hundred evaluator calls per step.
+    """
+    t0 = time.perf_counter()
+    mask = np.asarray(mask, dtype=bool).copy()
+    value = ev.cached_score(mask) if mask.any() else np.inf
+    m = len(mask)
+    allowed = np.zeros(m, dtype=bool)
+    allowed[usable] = True
+    while time.perf_counter() - t0 < seconds:
+        inn, out = np.flatnonzero(mask), np.flatnonzero(~mask & allowed)
+        flips = np.repeat(mask[None, :], len(inn) + len(out), axis=0)
+        flips[np.arange(len(inn)), inn] = False
+        flips[len(inn) + np.arange(len(out)), out] = True
+        swaps = np.repeat(mask[None, :], len(inn) * len(out), axis=0)
+        rows = np.arange(len(swaps))
+        swaps[rows, np.repeat(inn, len(out))] = False
+        swaps[rows, np.tile(out, len(inn))] = True
+        cands = np.concatenate([flips, swaps])
+        cands = cands[cands.any(axis=1)]
+        if not len(cands):
+            break
+        scores = ev.score(cands)
+        i = int(np.argmin(scores))
+        if not scores[i] < value - 1e-9:
+            break
+        mask, value = cands[i].copy(), float(scores[i])
+    return mask, value
 
 
 def certify(
@@ -167,7 +197,8 @@ def certify(
     criterion : str or Criterion
         ``aic`` or ``bic``.
     warm_start : ndarray of bool, optional
-        A good structure (the GA's); default: forward selection's best.
+        A good structure (the GA's); default: forward selection's best. It is
+        improved by a local search (one term added, removed or swapped) first.
     time_limit : float
         Seconds before stopping with ``limit``.
     node_limit : int, optional
@@ -199,123 +230,81 @@ def certify(
     if ev.criterion.name != crit.name:
         raise ValueError(f"the evaluator scores {ev.criterion.name}, not {crit.name}")
     pen = penalty_per_size(crit, n, m)
-    sse_scale, rank_tol = ev.sse_scale, ev.rank_tol
     # the evaluator's unit-norm Gram matrix of [P y] and triangular factor (the same
     # least-squares problem in min(n, m + 1) rows), on the non-zero columns
     usable = np.flatnonzero(~ev._zero_cols)
     keep = np.concatenate([usable, [m]])
-    gram = ev._gram[np.ix_(keep, keep)]
-    r_aug = ev._r_ext[:, keep]
-    yi = len(usable)
-    floor = ev._sse_floor
+    gram = np.ascontiguousarray(ev._gram[np.ix_(keep, keep)])
+    r_aug = np.ascontiguousarray(ev._r_ext[:, keep])
+    mu = len(usable)
 
-    def value_of(sse: float, k: int) -> float:
-        return float(n * np.log(max(sse, floor) * sse_scale / n) + pen[k])
-
-    def score(cols: list[int]) -> float:
-        mask = np.zeros(m, dtype=bool)
-        mask[usable[cols]] = True
-        return ev.cached_score(mask) if cols else np.inf
-
-    # incumbent
+    # incumbent: the warm start (else forward selection), then a local search
     if warm_start is None:
         from .orders import forward_selection
 
-        _, chosen = forward_selection(r_aug[:, :yi], r_aug[:, yi], ev.criterion,
-                                      max_terms=min(60, yi), sse_scale=sse_scale)
-        chosen = list(usable[chosen])
+        _, chosen = forward_selection(r_aug[:, :mu], r_aug[:, mu], ev.criterion,
+                                      max_terms=min(60, mu), sse_scale=ev.sse_scale)
         warm_start = np.zeros(m, dtype=bool)
-        warm_start[chosen] = True
+        warm_start[usable[chosen]] = True
     warm = np.asarray(warm_start, dtype=bool)
-    best_mask = warm.copy()
-    best = ev.cached_score(warm) if warm.any() else np.inf
-    warm_value = best if np.isfinite(best) else None
+    warm_value = ev.cached_score(warm) if warm.any() else np.inf
+    best_full, best_value = polish(ev, warm, usable, seconds=min(5.0, 0.1 * time_limit))
+    warm_value = float(warm_value) if np.isfinite(warm_value) else None
 
-    def consider(cols: list[int]) -> None:
-        nonlocal best, best_mask
-        v = score(cols)
-        if v < best:
-            best = v
-            best_mask = np.zeros(m, dtype=bool)
-            best_mask[usable[cols]] = True
-
-    def analyse(node: _Node) -> tuple[float, float, np.ndarray | None]:
-        """Lower bound of the node, its plain bound, and the drop cost of each free term."""
-        T = node.inside + node.free
-        idx = T + [yi]
-        G = gram[np.ix_(idx, idx)]
-        try:
-            L = linalg.cholesky(G, lower=True, check_finite=False)
-            piv = np.diag(L)[:-1] ** 2
-            ok = bool(np.all(piv > rank_tol))
-        except linalg.LinAlgError:
-            ok = False
-        if ok:
-            sse_t = float(L[-1, -1] ** 2)
-        else:  # dependent columns: the projection's SSE, still a valid bound
-            B = r_aug[:, T]
-            coef, *_ = np.linalg.lstsq(B, r_aug[:, yi], rcond=None)
-            res = r_aug[:, yi] - B @ coef
-            sse_t = float(res @ res)
-        k_in, k_free = len(node.inside), len(node.free)
-        plain = value_of(sse_t, k_in)
-        if not ok or k_free == 0:
-            return plain, plain, None
-        Ls = L[:-1, :-1]
-        H = linalg.cho_solve((Ls, True), np.eye(len(T)), check_finite=False)
-        theta = linalg.cho_solve((Ls, True), G[:-1, -1], check_finite=False)
-        f = np.arange(k_in, len(T))
-        drop = theta[f] ** 2 / np.diag(H)[f]
-        lam = float(linalg.eigvalsh(H[np.ix_(f, f)], subset_by_index=[k_free - 1, k_free - 1],
-                                    check_finite=False)[0])
-        s = np.concatenate([[0.0], np.cumsum(np.sort(theta[f] ** 2))]) / max(lam, 1e-300)
-        sizes = k_in + k_free - np.arange(k_free + 1)
-        drop_bound = min(value_of(sse_t + s[r], int(sizes[r])) for r in range(k_free + 1))
-        return max(plain, drop_bound), plain, drop
-
-    # Best-first: always expand the open node of the lowest bound, so the lower bound
-    # over all structures (the smallest open bound) rises as the search goes; the
-    # incumbent comes from the warm start and from the structures met on the way.
-    heap: list[tuple[float, int, _Node]] = [(-np.inf, 0, _Node([], list(range(len(usable))),
-                                                            -np.inf))]
-    counter = 1
-    nodes = 0
+    # the heap of open nodes, owned here so the compiled search can pause and grow
+    nw = words_for(mu)
+    cap = 1 << 12
+    max_open = MAX_OPEN_BYTES // (8 + 16 * nw)
+    heap_bound = np.empty(cap)
+    heap_in = np.zeros((cap, nw), dtype=np.uint64)
+    heap_free = np.zeros((cap, nw), dtype=np.uint64)
+    heap_bound[0] = -np.inf
+    for j in range(mu):
+        heap_free[0, j // 64] |= np.uint64(1) << np.uint64(j % 64)
+    counts = np.array([1, 0, 0], dtype=np.int64)
+    best = np.array([best_value if np.isfinite(best_value) else np.inf])
+    best_mask = best_full[usable].copy()
     status, reason = "optimal", None
-    last_report = t0
-    while heap:
-        if heap[0][0] >= best - tolerance:
-            break  # every open node is bounded by the incumbent: proved
+    chunk, last_report = 64, t0
+    while True:
+        pops = chunk if node_limit is None else min(chunk, node_limit - int(counts[1]))
+        started = time.perf_counter()
+        result = expand(gram, r_aug, pen, float(n), ev.sse_scale, ev._sse_floor,
+                        ev.rank_tol, tolerance, heap_bound, heap_in, heap_free, counts,
+                        best, best_mask, pops)
         now = time.perf_counter()
-        if (node_limit is not None and nodes >= node_limit) or now - t0 > time_limit:
-            status = "limit"
-            reason = (f"node limit {node_limit}" if node_limit is not None
-                      and nodes >= node_limit else f"time limit {time_limit:g} s")
+        if result == DONE:
             break
-        _, _, node = heapq.heappop(heap)
-        nodes += 1
-        bound, plain, drop = analyse(node)
-        consider(node.inside)
-        consider(node.inside + node.free)
+        if result == FULL:
+            if 2 * cap > max_open:
+                status, reason = "limit", f"memory limit ({cap:,} open nodes)"
+                break
+            heap_bound = np.concatenate([heap_bound, np.empty(cap)])
+            heap_in = np.concatenate([heap_in, np.zeros((cap, nw), dtype=np.uint64)])
+            heap_free = np.concatenate([heap_free, np.zeros((cap, nw), dtype=np.uint64)])
+            cap *= 2
+            continue
+        if now - started < 0.1:
+            chunk = min(chunk * 2, 1 << 20)
+        if node_limit is not None and counts[1] >= node_limit:
+            status, reason = "limit", f"node limit {node_limit}"
+            break
+        if now - t0 > time_limit:
+            status, reason = "limit", f"time limit {time_limit:g} s"
+            break
         if progress is not None and now - last_report > 0.5:
             last_report = now
-            progress(nodes, best, min(bound, heap[0][0]) if heap else bound)
-        if bound >= best - tolerance or not node.free:
-            continue
-        # branch on the free term whose removal costs the most (first free when unknown)
-        j = node.free[int(np.argmax(drop))] if drop is not None else node.free[0]
-        rest = [i for i in node.free if i != j]
-        step = pen[len(node.inside) + 1] - pen[len(node.inside)]
-        heapq.heappush(heap, (bound, counter, _Node(node.inside, rest, bound)))
-        # in: at least one term more than the parent's plain bound
-        b_in = max(bound, plain + step)
-        heapq.heappush(heap, (b_in, counter + 1, _Node(node.inside + [j], rest, b_in)))
-        counter += 2
-    if status == "optimal":
-        lower = best
-    else:
-        lower = min(heap[0][0], best) if heap else best
-    return Certificate(status=status, value=float(best), lower_bound=float(lower),
-                       mask=best_mask, nodes=nodes, seconds=time.perf_counter() - t0,
+            progress(int(counts[1]), float(best[0]), float(min(heap_bound[0], best[0])))
+    lower = float(best[0]) if status == "optimal" else float(min(heap_bound[0], best[0]))
+    mask = np.zeros(m, dtype=bool)
+    mask[usable[best_mask]] = True
+    value = ev.cached_score(mask) if mask.any() else np.inf
+    if value > best[0] + tolerance and status == "optimal":
+        # the evaluator (the GA's numbers) disagrees with the search's accurate refit
+        status = "limit"
+        reason = "the best structure found is near rank-deficient; the evaluator scores it higher"
+    return Certificate(status=status, value=float(value), lower_bound=min(lower, float(value)),
+                       mask=mask, nodes=int(counts[1]), seconds=time.perf_counter() - t0,
                        reason=reason, warm_start=warm_value)
 
 
