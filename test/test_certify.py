@@ -28,13 +28,22 @@ def _brute_force(P, t, criterion):
     return float(scores.min()), masks[int(np.argmin(scores))]
 
 
-def _problem(kind: str, seed: int):
+def _problem(kind: str, seed: int, ny: int = 2, nu: int = 2):
     rng = np.random.default_rng(seed)
     n = 300
     if kind == "random":  # unstructured regressors, a sparse truth
         P = rng.standard_normal((n, 14))
         beta = np.where(rng.random(14) < 0.3, rng.normal(0, 1, 14), 0.0)
         return P, P @ beta + 0.5 * rng.standard_normal(n)
+    if kind == "offset":  # a level input and an output far from zero (a heater)
+        level = np.repeat(rng.uniform(0.2, 0.8, n // 20 + 1), 20)[:n]
+        u = level + 0.02 * rng.standard_normal(n)
+        x = np.zeros(n)
+        for k in range(2, n):
+            x[k] = 1.5 * x[k - 1] - 0.6 * x[k - 2] + 0.1 * (u[k - 1] - 1.2 * u[k - 1] ** 2)
+        y = 50.0 + 10.0 * x + 0.05 * rng.standard_normal(n)
+        ts = TermSpace(ny=ny, nu=nu, degree=2)
+        return ts.regression_matrix(u, y), ts.target(y)
     # structured and hard on purpose: a NARX space of a smooth (strongly correlated)
     # input with much noise, so many structures are nearly equal
     e = rng.standard_normal(n + 50)
@@ -46,27 +55,47 @@ def _problem(kind: str, seed: int):
     for k in range(2, n):
         y[k] = 1.2 * y[k - 1] - 0.5 * y[k - 2] + 0.4 * u[k - 1] + 0.1 * u[k - 2] * y[k - 1]
     y += 0.3 * y.std() * rng.standard_normal(n)
-    ts = TermSpace(ny=2, nu=2, degree=2)  # 14 candidate terms
+    ts = TermSpace(ny=ny, nu=nu, degree=2)  # 14 candidate terms
     return ts.regression_matrix(u, y), ts.target(y)
 
 
-@pytest.mark.parametrize("kind", ["random", "structured"])
+@pytest.mark.parametrize("kind", ["random", "structured", "offset"])
 @pytest.mark.parametrize("criterion", ["aic", "bic"])
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_certify_equals_brute_force(kind, criterion, seed):
     P, t = _problem(kind, seed)
     truth, truth_mask = _brute_force(P, t, criterion)
-    cert = certify(P, t, criterion, time_limit=60)
-    assert cert.status == "optimal"
-    assert cert.value == pytest.approx(truth, abs=1e-6)
-    assert cert.lower_bound <= truth + 1e-6
-    assert StructureEvaluator(P, t, criterion).cached_score(cert.mask) == pytest.approx(truth,
-                                                                                         abs=1e-6)
+    # budget 0: the tree does the work (nodes enumerate at most pairs exactly);
+    # the default budget enumerates a 14-term problem at the root
+    for budget in (0, None):
+        cert = certify(P, t, criterion, time_limit=60, enumeration_budget=budget)
+        assert cert.status == "optimal"
+        assert cert.value == pytest.approx(truth, abs=1e-6)
+        assert cert.lower_bound <= truth + 1e-6
+        assert StructureEvaluator(P, t, criterion).cached_score(cert.mask) == pytest.approx(
+            truth, abs=1e-6)
     # from a poor warm start (one term) too
     worst = np.zeros(P.shape[1], dtype=bool)
     worst[0] = True
-    again = certify(P, t, criterion, warm_start=worst, time_limit=60)
+    again = certify(P, t, criterion, warm_start=worst, time_limit=60, enumeration_budget=0)
     assert again.status == "optimal" and again.value == pytest.approx(truth, abs=1e-6)
+
+
+def test_bounds_never_cut_the_optimum_on_collinear_offset_data():
+    """18 candidate terms of an output with a large offset (columns nearly equal,
+    the case the drop and pair bounds exist for), against all 2^18 structures."""
+    P, t = _problem("offset", 7, ny=3, nu=3)
+    assert P.shape[1] == 27
+    P, t = P[:, :18], t
+    for criterion in ("aic", "bic"):
+        truth, _ = _brute_force(P, t, criterion)
+        for budget in (0, 300):
+            worst = np.zeros(P.shape[1], dtype=bool)
+            worst[0] = True
+            cert = certify(P, t, criterion, warm_start=worst, time_limit=120,
+                           enumeration_budget=budget)
+            assert cert.status == "optimal" and cert.nodes > 1
+            assert cert.value == pytest.approx(truth, abs=1e-6)
 
 
 def test_a_limited_run_returns_a_valid_bound_and_gap():
@@ -74,7 +103,7 @@ def test_a_limited_run_returns_a_valid_bound_and_gap():
     truth, _ = _brute_force(P, t, "aic")
     worst = np.zeros(P.shape[1], dtype=bool)
     worst[0] = True
-    cert = certify(P, t, "aic", warm_start=worst, node_limit=3)
+    cert = certify(P, t, "aic", warm_start=worst, node_limit=3, enumeration_budget=0)
     assert cert.status == "limit" and cert.reason == "node limit 3" and cert.nodes == 3
     assert cert.lower_bound <= truth + 1e-9 <= cert.value + 1e-9
     assert cert.gap == pytest.approx(cert.value - cert.lower_bound) and cert.gap > 0

@@ -180,6 +180,177 @@ def _refined_sse(L, r_ext, cols, k, yi, theta, r, g):  # pragma: no cover - comp
 
 
 @jit
+def _has_core(pcost, f, q, c, deg, gone):  # pragma: no cover - compiled
+    """Whether q terms whose pairs all cost at most c may exist.
+
+    A necessary test: the (q-1)-core of the graph of pairs costing <= c has q
+    vertices.
+    """
+    for a in range(f):
+        gone[a] = False
+        d = 0
+        for b in range(f):
+            if b != a and pcost[a, b] <= c:
+                d += 1
+        deg[a] = d
+    left = f
+    changed = True
+    while changed and left >= q:
+        changed = False
+        for a in range(f):
+            if not gone[a] and deg[a] < q - 1:
+                gone[a] = True
+                left -= 1
+                changed = True
+                for b in range(f):
+                    if not gone[b] and b != a and pcost[a, b] <= c:
+                        deg[b] -= 1
+    return left >= q
+
+
+@jit
+def _core_bound(pcost, f, q, edges, n_edges, deg, gone):  # pragma: no cover - compiled
+    """Least c such that q terms with all pair costs <= c may exist (_has_core).
+
+    Leaving out any q free terms costs at least this.
+    """
+    lo, hi = 0, n_edges - 1
+    if not _has_core(pcost, f, q, edges[hi], deg, gone):
+        return edges[hi]
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if _has_core(pcost, f, q, edges[mid], deg, gone):
+            hi = mid
+        else:
+            lo = mid + 1
+    return edges[lo]
+
+
+@jit
+def _small_sizes(r_ext, cols, k, f, yi, amax, Q, At, S, c, exact, chosen, lrow, w, gsum,
+                 pick):  # pragma: no cover - compiled
+    """Exact least SSE of I + A for |A| = 0 .. amax, A among the free terms.
+
+    I = cols[:k], F = cols[k:k + f]. The free columns and the target are
+    projected off span(I) explicitly (Gram-Schmidt twice, on the triangular
+    factor of [P y]), so the SSEs are accurate where the Gram matrix is not;
+    every A up to amax terms is visited depth first, its factor grown one row at
+    a time. A nearly dependent set counts as a perfect fit (a safe bound).
+    ``chosen[a, :a]`` receives the best A of each size (positions in F).
+    """
+    rows = r_ext.shape[0]
+    for i in range(k):
+        for q in range(rows):
+            Q[q, i] = r_ext[q, cols[i]]
+        for _ in range(2):
+            for j in range(i):
+                acc = 0.0
+                for q in range(rows):
+                    acc += Q[q, j] * Q[q, i]
+                for q in range(rows):
+                    Q[q, i] -= acc * Q[q, j]
+        norm = 0.0
+        for q in range(rows):
+            norm += Q[q, i] * Q[q, i]
+        norm = np.sqrt(norm)
+        for q in range(rows):
+            Q[q, i] /= norm
+    for a in range(f + 1):  # column f: the target
+        src = cols[k + a] if a < f else yi
+        for q in range(rows):
+            At[q, a] = r_ext[q, src]
+        for _ in range(2):
+            for j in range(k):
+                acc = 0.0
+                for q in range(rows):
+                    acc += Q[q, j] * At[q, a]
+                for q in range(rows):
+                    At[q, a] -= acc * Q[q, j]
+    zz = 0.0
+    for q in range(rows):
+        zz += At[q, f] * At[q, f]
+    for a in range(f):
+        acc = 0.0
+        for q in range(rows):
+            acc += At[q, a] * At[q, f]
+        c[a] = acc
+        for b in range(a, f):
+            acc = 0.0
+            for q in range(rows):
+                acc += At[q, a] * At[q, b]
+            S[a, b] = acc
+            S[b, a] = acc
+    tiny = 1e-12
+    for a in range(amax + 1):
+        gsum[a] = 0.0  # here: the best gain of each size
+        chosen[a, 0] = -1  # no set of that size found (yet)
+    exact[0] = zz
+    if amax == 0:
+        return zz
+    depth = 0
+    pick[0] = -1
+    while depth >= 0:
+        pick[depth] += 1
+        e = pick[depth]
+        if e >= f:
+            depth -= 1
+            continue
+        dd = S[e, e]
+        for i in range(depth):
+            acc = S[e, pick[i]]
+            for p in range(i):
+                acc -= lrow[depth, p] * lrow[i, p]
+            lrow[depth, i] = acc / lrow[i, i]
+            dd -= lrow[depth, i] * lrow[depth, i]
+        size = depth + 1
+        if not dd > tiny * S[e, e]:  # dependent: as if it fitted everything
+            if zz > gsum[size]:
+                gsum[size] = zz
+            continue
+        lrow[depth, depth] = np.sqrt(dd)
+        acc = c[e]
+        for i in range(depth):
+            acc -= lrow[depth, i] * w[i]
+        w[depth] = acc / lrow[depth, depth]
+        gain = w[depth] * w[depth]
+        for i in range(depth):
+            gain += w[i] * w[i]
+        if gain > gsum[size]:
+            gsum[size] = gain
+            for i in range(size):
+                chosen[size, i] = pick[i]
+        if size < amax:
+            depth += 1
+            pick[depth] = e
+    for a in range(1, amax + 1):
+        exact[a] = max(0.0, zz - min(gsum[a], zz) - 1e-10 * zz)
+    return zz
+
+
+@jit
+def _visits_for(f, budget):  # pragma: no cover - compiled
+    """Largest a such that all subsets of up to a of f terms number at most budget."""
+    total, comb = 1, 1
+    for a in range(1, f + 1):
+        comb = comb * (f - a + 1) // a
+        total += comb
+        if total > budget:
+            return a - 1
+    return f
+
+
+def visits_for(f: int, budget: int) -> int:
+    """Largest a such that all subsets of up to a of f terms number at most budget."""
+    total, comb = 1, 1
+    for a in range(1, f + 1):
+        comb = comb * (f - a + 1) // a
+        total += comb
+        if total > budget:
+            return a - 1
+    return f
+
+
+@jit
 def _set_bit(words, j):  # pragma: no cover - compiled
     words[j // 64] |= np.uint64(1) << np.uint64(j % 64)
 
@@ -200,8 +371,114 @@ def _members(words, m, out):  # pragma: no cover - compiled
 
 
 @jit
+def _drop_costs(L, theta, k, f, Winv, Hff, hdiag, pcost, pairs, delta, column,
+                drop):  # pragma: no cover - compiled
+    """Costs of leaving out free terms of T (factor L, coefficients theta).
+
+    Fills ``delta`` (each term alone), ``pcost``/``pairs`` (each pair; rows of
+    ``pairs`` sorted) and ``drop[q]``, a lower bound on the SSE increase of
+    leaving out any q free terms: the largest of the q-th smallest delta, the q
+    smallest theta^2 over ||H_FF||_F, and the q-th smallest over the terms a of
+    a's (q-1)-th cheapest pair (each of q terms left out has q - 1 partners).
+    """
+    for a in range(f):  # Winv = inverse of L's free block (lower triangular)
+        for b in range(f):
+            Winv[a, b] = 0.0
+    for b in range(f):
+        Winv[b, b] = 1.0 / L[k + b, k + b]
+        for a in range(b + 1, f):
+            acc = 0.0
+            for p in range(b, a):
+                acc -= L[k + a, k + p] * Winv[p, b]
+            Winv[a, b] = acc / L[k + a, k + a]
+    frob = 0.0  # ||H_FF||_F with H_FF = Winv^T Winv, the free block of (G_TT)^-1
+    for a in range(f):
+        for b in range(a, f):
+            acc = 0.0
+            for p in range(b, f):
+                acc += Winv[p, a] * Winv[p, b]
+            Hff[a, b] = acc
+            Hff[b, a] = acc
+            if a == b:
+                hdiag[a] = acc
+                frob += acc * acc
+            else:
+                frob += 2.0 * acc * acc
+    frob = np.sqrt(frob)
+    for a in range(f):
+        ta = theta[k + a]
+        delta[a] = ta * ta / hdiag[a]
+        q = 0
+        for b in range(f):
+            if b == a:
+                continue
+            tb = theta[k + b]
+            det = hdiag[a] * hdiag[b] - Hff[a, b] * Hff[a, b]
+            if det > 0.0:
+                pcost[a, b] = (ta * ta * hdiag[b] - 2.0 * ta * tb * Hff[a, b]
+                               + tb * tb * hdiag[a]) / det
+            else:
+                pcost[a, b] = 0.0
+            pairs[a, q] = pcost[a, b]
+            q += 1
+        pairs[a, :f - 1].sort()
+    dsort = np.sort(delta[:f])
+    tsort = np.empty(f)
+    for a in range(f):
+        tsort[a] = theta[k + a] * theta[k + a]
+    tsort.sort()
+    drop[0] = 0.0
+    cum = 0.0
+    for q in range(1, f + 1):
+        cum += tsort[q - 1]
+        d = max(dsort[q - 1], cum / frob)
+        if q >= 2:
+            for a in range(f):
+                column[a] = pairs[a, q - 2]
+            column[:f].sort()
+            d = max(d, column[q - 1])
+        drop[q] = max(DROP_SAFETY * d, drop[q - 1])  # leaving out more never costs less
+
+
+@jit
+def _consider(gram, r_ext, cand, kk, yi, rank_tol, near, n, scale, floor, pen, best,
+              best_mask, pending, counts, Lc, theta, r, g):  # pragma: no cover - compiled
+    """Offer the structure cand[:kk] as the incumbent.
+
+    Its pivots are tested in index order, as the evaluator tests them: a
+    squared pivot at or below ``rank_tol`` rules it out; one below ``near``
+    leaves the verdict to the evaluator (the structure goes to ``pending``, for
+    the caller); otherwise it is fitted accurately and kept if better.
+    """
+    cand[:kk].sort()
+    cand[kk] = yi
+    _cholesky_rows(gram, cand, 0, kk + 1, Lc)
+    smallest = np.inf
+    for j in range(kk):
+        smallest = min(smallest, Lc[j, j] * Lc[j, j])
+    if not smallest > rank_tol:
+        return
+    if smallest < near:
+        row = counts[4]
+        if row < pending.shape[0]:
+            pending[row, :] = 0
+            for a in range(kk):
+                _set_bit(pending[row], cand[a])
+            counts[4] = row + 1
+        return
+    value = _value(_refined_sse(Lc, r_ext, cand, kk, yi, theta, r, g), kk, n, scale,
+                   floor, pen)
+    if value < best[0]:
+        best[0] = value
+        best_mask[:] = False
+        for a in range(kk):
+            best_mask[cand[a]] = True
+
+
+@jit
 def expand(gram, r_ext, pen, n, scale, floor, rank_tol, tol, heap_bound, heap_in,
-           heap_free, counts, best, best_mask, max_pops):  # pragma: no cover - compiled
+           heap_free, counts, best, best_mask, pending, near, max_pops,
+           budget):  # pragma: no cover - compiled
     """Expand up to ``max_pops`` nodes, best first (see the module doc).
 
     Parameters
@@ -218,14 +495,22 @@ def expand(gram, r_ext, pen, n, scale, floor, rank_tol, tol, heap_bound, heap_in
         Smallest squared pivot of an identifiable structure; pruning tolerance.
     heap_bound, heap_in, heap_free : ndarray
         The open nodes (a binary heap on the bound); in/free are term masks.
-    counts : ndarray of int64, shape (3,)
-        In/out: open nodes, nodes expanded so far, candidate structures scored.
+    counts : ndarray of int64, shape (5,)
+        In/out: open nodes, nodes expanded so far, candidate structures offered,
+        nodes branched on a nearly dependent free term, rows used in ``pending``.
     best : ndarray, shape (1,)
         In/out: the incumbent's value.
     best_mask : ndarray of bool, shape (m,)
         In/out: the incumbent.
+    pending : ndarray of uint64, shape (rows, words)
+        Out: candidates whose rank the evaluator must decide (squared pivot below
+        ``near``); the caller scores them and empties it (``counts[4] = 0``).
+    near : float
+        See ``pending`` (the evaluator's ``NEAR_RANK * rank_tol``).
     max_pops : int
         Nodes to expand in this call.
+    budget : int
+        Subsets of free terms a node may enumerate exactly (its small sizes).
 
     Returns
     -------
@@ -244,20 +529,37 @@ def expand(gram, r_ext, pen, n, scale, floor, rank_tol, tol, heap_bound, heap_in
     child_free = np.zeros(nw, dtype=np.uint64)
     members = np.empty(m, dtype=np.int64)
     cols = np.empty(m + 1, dtype=np.int64)
+    cand = np.empty(m + 1, dtype=np.int64)
     chain = np.empty(m + 1, dtype=np.int64)
     L = np.zeros((m + 1, m + 1))
     L2 = np.zeros((m + 1, m + 1))
+    Lc = np.zeros((m + 1, m + 1))
     Winv = np.zeros((m, m))
+    Hff = np.zeros((m, m))
+    pcost = np.zeros((m, m))
+    pairs = np.zeros((m, m))
+    Q = np.zeros((rows, m + 1))
+    At = np.zeros((rows, m + 1))
+    S = np.zeros((m, m))
+    cvec = np.zeros(m)
+    exact = np.zeros(m + 1)
+    small = np.zeros(m + 1)
+    chosen = np.zeros((m + 1, m + 1), dtype=np.int64)
+    lrow = np.zeros((m + 1, m + 1))
+    wbuf = np.zeros(m + 1)
+    gbuf = np.zeros(m + 1)
+    pick = np.zeros(m + 1, dtype=np.int64)
+    edges = np.empty(m * m)
+    deg = np.empty(m, dtype=np.int64)
+    gone = np.zeros(m, dtype=np.bool_)
     theta = np.empty(m + 1)
     theta2 = np.empty(m + 1)
     r = np.empty(rows)
     g = np.empty(m + 1)
     delta = np.empty(m)
     hdiag = np.empty(m)
-    dsort = np.empty(m)
-    tsort = np.empty(m)
+    column = np.empty(m)
     drop = np.empty(m + 1)
-    wvals = np.empty(m + 1)
     prefmin = np.empty(m + 1)
     pops = 0
     size = counts[0]
@@ -265,7 +567,7 @@ def expand(gram, r_ext, pen, n, scale, floor, rank_tol, tol, heap_bound, heap_in
         if size == 0 or heap_bound[0] >= best[0] - tol:
             counts[0] = size
             return DONE
-        if pops >= max_pops:
+        if pops >= max_pops or counts[4] + 2 * m + 2 > pending.shape[0]:
             counts[0] = size
             return PAUSED
         if size + m + 2 > cap:
@@ -294,6 +596,7 @@ def expand(gram, r_ext, pen, n, scale, floor, rank_tol, tol, heap_bound, heap_in
         if 0 <= weak < k:
             continue
         if weak >= k:  # a free term nearly dependent on the others: branch on it
+            counts[3] += 1
             c = cols[weak]
             child_in[:] = inside
             child_free[:] = free
@@ -304,51 +607,61 @@ def expand(gram, r_ext, pen, n, scale, floor, rank_tol, tol, heap_bound, heap_in
             continue
         _cholesky_rows(gram, cols, t, t + 1, L)
         sse_t = _refined_sse(L, r_ext, cols, t, yi, theta, r, g)
-        # --- the cost of leaving out each free term: delta_j = theta_j^2 / H_jj
-        if f > 0:
-            for a in range(f):  # Winv = inverse of L's free block (lower triangular)
-                for b in range(f):
-                    Winv[a, b] = 0.0
-            for b in range(f):
-                Winv[b, b] = 1.0 / L[k + b, k + b]
-                for a in range(b + 1, f):
-                    acc = 0.0
-                    for p in range(b, a):
-                        acc -= L[k + a, k + p] * Winv[p, b]
-                    Winv[a, b] = acc / L[k + a, k + a]
-            frob = 0.0  # ||H_FF||_F, H_FF = Winv^T Winv
-            for a in range(f):
-                for b in range(a, f):
-                    acc = 0.0
-                    for p in range(b, f):
-                        acc += Winv[p, a] * Winv[p, b]
-                    if a == b:
-                        hdiag[a] = acc
-                        frob += acc * acc
-                    else:
-                        frob += 2.0 * acc * acc
-            frob = np.sqrt(frob)
-            for a in range(f):
-                delta[a] = theta[k + a] * theta[k + a] / hdiag[a]
-                dsort[a] = delta[a]
-                tsort[a] = theta[k + a] * theta[k + a]
-            dsort[:f].sort()
-            tsort[:f].sort()
-            # D(r): least SSE increase from leaving out r free terms
-            drop[0] = 0.0
-            cum = 0.0
-            for q in range(1, f + 1):
-                cum += tsort[q - 1]
-                drop[q] = DROP_SAFETY * max(dsort[q - 1], cum / frob)
-        else:
-            drop[0] = 0.0
-        # wvals[q]: the best any structure of t - q terms here could score
-        best_q = np.inf
+        # --- sizes |I| .. |I| + 3 exactly (leaving out many terms is what the drop
+        # bounds see least); their best structures are incumbent candidates
+        amax = max(min(2, f), _visits_for(f, budget))
+        _small_sizes(r_ext, cols, k, f, yi, amax, Q, At, S, cvec, exact, chosen, lrow, wbuf,
+                     gbuf, pick)
+        quick = np.inf
+        for a in range(amax + 1):
+            small[a] = _value(exact[a], k + a, n, scale, floor, pen)
+            quick = min(quick, small[a])
+            if (a > 0 or k > 0) and small[a] < best[0] - tol and (a == 0 or chosen[a, 0] >= 0):
+                for j in range(k):
+                    cand[j] = cols[j]
+                for j in range(a):
+                    cand[k + j] = cols[k + chosen[a, j]]
+                counts[2] += 1
+                _consider(gram, r_ext, cand, k + a, yi, rank_tol, near, n, scale, floor,
+                          pen, best, best_mask, pending, counts, Lc, theta2, r, g)
+        if k + amax < t:  # larger sizes: at least SSE(T) and their penalty
+            quick = min(quick, _value(sse_t, k + amax + 1, n, scale, floor, pen))
+        if max(quick, bound0) >= best[0] - tol:
+            continue
+        if amax == f:  # all sizes known exactly: closed if their best were offered
+            closed = True
+            for a in range(amax + 1):
+                if small[a] < best[0] - tol:
+                    closed = False  # that size's best was ruled out or is pending
+            if closed:
+                continue
+        # --- the cost of leaving out free terms, and the bound of each size t - q
+        _drop_costs(L, theta, k, f, Winv, Hff, hdiag, pcost, pairs, delta, column, drop)
+        n_edges = 0
+        lowest = np.inf
         for q in range(f + 1):
-            wvals[q] = _value(sse_t + drop[q], t - q, n, scale, floor, pen)
-            best_q = min(best_q, wvals[q])
-            prefmin[q] = best_q
-        # --- the chain, F by delta, largest first; its structures as incumbents
+            wq = _value(sse_t + drop[q], t - q, n, scale, floor, pen)
+            if f - q <= amax:
+                wq = max(wq, small[f - q])
+            elif q >= 3 and wq < best[0] - tol:
+                # could beat the incumbent: try the sharper pair bound (a core of
+                # the graph of cheap pairs)
+                if n_edges == 0:
+                    for a in range(f):
+                        for b in range(a + 1, f):
+                            edges[n_edges] = pcost[a, b]
+                            n_edges += 1
+                    edges[:n_edges].sort()
+                core = DROP_SAFETY * _core_bound(pcost, f, q, edges, n_edges, deg, gone)
+                if core > drop[q]:
+                    drop[q] = core
+                    wq = _value(sse_t + core, t - q, n, scale, floor, pen)
+            lowest = min(lowest, wq)
+            prefmin[q] = lowest
+        if max(bound0, prefmin[f]) >= best[0] - tol:
+            continue
+        # --- the chain, F by delta, largest first; its structures I + chain[:p] as
+        # incumbent candidates (prefix SSEs from one factor in chain order)
         order = np.argsort(-delta[:f])
         for a in range(f):
             chain[a] = cols[k + order[a]]
@@ -357,46 +670,37 @@ def expand(gram, r_ext, pen, n, scale, floor, rank_tol, tol, heap_bound, heap_in
         for a in range(f):
             cols[k + a] = chain[a]
         _cholesky_rows(gram, cols, k, t + 1, L2)
-        good = t
-        for j in range(k, t):
-            if not L2[j, j] * L2[j, j] > 10.0 * rank_tol:
-                good = j
-                break
         ssq = gram[yi, yi]
         for j in range(k):
             ssq -= L2[t, j] * L2[t, j]
-        for p in range(f + 1):  # structure I + chain[:p]
+        for p in range(1, f + 1):
             kk = k + p
-            if p > 0:
-                ssq -= L2[t, kk - 1] * L2[t, kk - 1]
-            if kk == 0 or kk > good:
-                continue
-            if _value(ssq, kk, n, scale, floor, pen) < best[0] - tol:
-                # accurate fit of the prefix: its own factor, target row included
-                for a in range(kk):
-                    L[a, :a + 1] = L2[a, :a + 1]
-                cols[kk] = yi
-                _cholesky_rows(gram, cols, kk, kk + 1, L)
-                value = _value(_refined_sse(L, r_ext, cols, kk, yi, theta2, r, g), kk,
-                               n, scale, floor, pen)
+            ssq -= L2[t, kk - 1] * L2[t, kk - 1]
+            if not L2[kk - 1, kk - 1] * L2[kk - 1, kk - 1] > rank_tol:
+                break
+            if p > amax and _value(ssq, kk, n, scale, floor, pen) < best[0] - tol:
+                for j in range(kk):
+                    cand[j] = cols[j]
                 counts[2] += 1
-                if value < best[0]:
-                    best[0] = value
-                    best_mask[:] = False
-                    for a in range(kk):
-                        best_mask[cols[a]] = True
-                cols[kk] = chain[p] if p < f else yi
-        # --- walk the chain: node p fixes I + chain[:p]
+                _consider(gram, r_ext, cand, kk, yi, rank_tol, near, n, scale, floor, pen,
+                          best, best_mask, pending, counts, Lc, theta2, r, g)
+        # --- walk the chain: node p fixes I + chain[:p]; push its "out" child
         child_in[:] = inside
         for p in range(f):
             bound_p = max(bound0, prefmin[f - p])
             if bound_p >= best[0] - tol:
                 break
-            # out child: chain[p] left out, chain[p+1:] free
             dp = DROP_SAFETY * delta[order[p]]
             ob = np.inf
             for q in range(1, f - p + 1):
-                ob = min(ob, _value(sse_t + max(dp, drop[q]), t - q, n, scale, floor, pen))
+                # chain[p] and q - 1 others: at least its (q-1)-th cheapest pair
+                dq = max(dp, drop[q])
+                if q >= 2:
+                    dq = max(dq, DROP_SAFETY * pairs[order[p], q - 2])
+                vq = _value(sse_t + dq, t - q, n, scale, floor, pen)
+                if f - q <= amax:
+                    vq = max(vq, small[f - q])
+                ob = min(ob, vq)
             ob = max(ob, bound_p)
             if ob < best[0] - tol:
                 child_free[:] = 0

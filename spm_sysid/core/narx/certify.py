@@ -40,7 +40,7 @@ import numpy as np
 
 from .branch_bound import DONE, FULL, expand, words_for
 from .criteria import Criterion, get_criterion
-from .evaluator import StructureEvaluator
+from .evaluator import NEAR_RANK, StructureEvaluator
 from .lstsq import DEFAULT_RANK_TOL
 
 __all__ = ["CERTIFIABLE", "Certificate", "certify", "certify_data", "penalty_per_size"]
@@ -138,6 +138,9 @@ def penalty_per_size(criterion: Criterion, n: int, m: int) -> np.ndarray:
 #: Open nodes may use at most this much memory before the search stops with ``limit``.
 MAX_OPEN_BYTES = 1 << 30
 
+#: Subsets of its free terms a node enumerates exactly (its smallest sizes).
+ENUMERATION_BUDGET = 6000
+
 
 def polish(ev: StructureEvaluator, mask: np.ndarray, usable: np.ndarray,
            seconds: float = 5.0) -> tuple[np.ndarray, float]:
@@ -173,6 +176,20 @@ def polish(ev: StructureEvaluator, mask: np.ndarray, usable: np.ndarray,
     return mask, value
 
 
+def _settle(ev: StructureEvaluator, usable: np.ndarray, rows: np.ndarray, best: np.ndarray,
+            best_mask: np.ndarray) -> None:
+    """Score the search's near rank-deficient candidates with the evaluator."""
+    bits = np.unpackbits(rows.view(np.uint8).reshape(len(rows), -1), axis=1,
+                         bitorder="little")[:, :len(usable)].astype(bool)
+    masks = np.zeros((len(rows), ev.n_terms), dtype=bool)
+    masks[:, usable] = bits
+    scores = ev.score(masks)
+    i = int(np.argmin(scores))
+    if scores[i] < best[0]:
+        best[0] = scores[i]
+        best_mask[:] = bits[i]
+
+
 def certify(
     P: np.ndarray,
     target: np.ndarray,
@@ -186,6 +203,7 @@ def certify(
     rank_tol: float = DEFAULT_RANK_TOL,
     progress: Callable[[int, float, float], None] | None = None,
     evaluator: StructureEvaluator | None = None,
+    enumeration_budget: int | None = None,
 ) -> Certificate:
     """Search all structures of the columns of ``P`` exactly (see the module doc).
 
@@ -213,6 +231,9 @@ def certify(
         ``progress(nodes, best, lower_bound)`` about every 0.5 s.
     evaluator : StructureEvaluator, optional
         Reuse the GA's (same data and criterion): its cache and numbers.
+    enumeration_budget : int, optional
+        Subsets of its free terms a node enumerates exactly (default
+        :data:`ENUMERATION_BUDGET`; 0: only up to two terms).
 
     Raises
     ------
@@ -261,17 +282,23 @@ def certify(
     heap_bound[0] = -np.inf
     for j in range(mu):
         heap_free[0, j // 64] |= np.uint64(1) << np.uint64(j % 64)
-    counts = np.array([1, 0, 0], dtype=np.int64)
+    counts = np.array([1, 0, 0, 0, 0], dtype=np.int64)
+    pending = np.zeros((4096, nw), dtype=np.uint64)
+    near = NEAR_RANK * ev.rank_tol
     best = np.array([best_value if np.isfinite(best_value) else np.inf])
     best_mask = best_full[usable].copy()
     status, reason = "optimal", None
+    budget = ENUMERATION_BUDGET if enumeration_budget is None else int(enumeration_budget)
     chunk, last_report = 64, t0
     while True:
         pops = chunk if node_limit is None else min(chunk, node_limit - int(counts[1]))
         started = time.perf_counter()
         result = expand(gram, r_aug, pen, float(n), ev.sse_scale, ev._sse_floor,
                         ev.rank_tol, tolerance, heap_bound, heap_in, heap_free, counts,
-                        best, best_mask, pops)
+                        best, best_mask, pending, near, pops, budget)
+        if counts[4]:  # near rank-deficient candidates: the evaluator decides
+            _settle(ev, usable, pending[:counts[4]], best, best_mask)
+            counts[4] = 0
         now = time.perf_counter()
         if result == DONE:
             break
