@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 # ROS traffic stays on this machine; each target picks its own domain.
 export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
 
-.PHONY: setup run identify test lint bench bench-sizes bench-node bench-dask bag experiment report clean
+.PHONY: setup run identify test lint bench bench-sizes bench-node bench-dask bench-certify bag experiment report clean
 
 $(STAMP): setup.py package.xml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -51,6 +51,10 @@ report: $(STAMP)
 
 clean:
 	rm -rf build install log out .pytest_cache
+
+## Certification: robot-arm data and records made hard on purpose, 60 s each.
+bench-certify: $(STAMP)
+	$(BIN)/python -m spm_sysid.tools.bench_certify
 
 ## Study on the local pool vs a 2-worker Dask cluster (the paper's 180 runs).
 bench-dask: $(STAMP)

@@ -89,11 +89,11 @@ def test_bounds_never_cut_the_optimum_on_collinear_offset_data():
     P, t = P[:, :18], t
     for criterion in ("aic", "bic"):
         truth, _ = _brute_force(P, t, criterion)
-        for budget in (0, 300):
+        for budget, threads in ((0, 1), (0, 2), (300, 2)):
             worst = np.zeros(P.shape[1], dtype=bool)
             worst[0] = True
             cert = certify(P, t, criterion, warm_start=worst, time_limit=120,
-                           enumeration_budget=budget)
+                           enumeration_budget=budget, threads=threads)
             assert cert.status == "optimal" and cert.nodes > 1
             assert cert.value == pytest.approx(truth, abs=1e-6)
 

@@ -227,16 +227,13 @@ def _core_bound(pcost, f, q, edges, n_edges, deg, gone):  # pragma: no cover - c
 
 
 @jit
-def _small_sizes(r_ext, cols, k, f, yi, amax, Q, At, S, c, exact, chosen, lrow, w, gsum,
-                 pick):  # pragma: no cover - compiled
-    """Exact least SSE of I + A for |A| = 0 .. amax, A among the free terms.
+def _project_free(r_ext, cols, k, f, yi, Q, At, S, c):  # pragma: no cover - compiled
+    """The free columns and the target projected off span(I); returns SSE(I).
 
-    I = cols[:k], F = cols[k:k + f]. The free columns and the target are
-    projected off span(I) explicitly (Gram-Schmidt twice, on the triangular
-    factor of [P y]), so the SSEs are accurate where the Gram matrix is not;
-    every A up to amax terms is visited depth first, its factor grown one row at
-    a time. A nearly dependent set counts as a perfect fit (a safe bound).
-    ``chosen[a, :a]`` receives the best A of each size (positions in F).
+    I = cols[:k], F = cols[k:k + f]. Gram-Schmidt twice, on the triangular
+    factor of [P y], so what :func:`_small_sizes` computes from ``S`` (Gram of
+    the projected free columns) and ``c`` (their products with the projected
+    target) is accurate where the Gram matrix of the data is not.
     """
     rows = r_ext.shape[0]
     for i in range(k):
@@ -280,6 +277,19 @@ def _small_sizes(r_ext, cols, k, f, yi, amax, Q, At, S, c, exact, chosen, lrow, 
                 acc += At[q, a] * At[q, b]
             S[a, b] = acc
             S[b, a] = acc
+    return zz
+
+
+@jit
+def _small_sizes(S, c, zz, f, amax, exact, chosen, lrow, w, gsum,
+                 pick):  # pragma: no cover - compiled
+    """Exact least SSE of I + A for |A| = 0 .. amax, A among the free terms.
+
+    Every A of up to amax terms is visited depth first, its factor grown one
+    row at a time (``S``, ``c``, ``zz`` from :func:`_project_free`). A nearly
+    dependent set counts as a perfect fit (a safe bound). ``chosen[a, :a]``
+    receives the best A of each size (positions in F; -1 first when none).
+    """
     tiny = 1e-12
     for a in range(amax + 1):
         gsum[a] = 0.0  # here: the best gain of each size
@@ -477,8 +487,8 @@ def _consider(gram, r_ext, cand, kk, yi, rank_tol, near, n, scale, floor, pen, b
 
 @jit
 def expand(gram, r_ext, pen, n, scale, floor, rank_tol, tol, heap_bound, heap_in,
-           heap_free, counts, best, best_mask, pending, near, max_pops,
-           budget):  # pragma: no cover - compiled
+           heap_free, counts, best, best_mask, pending, near, max_pops, budget,
+           deep_budget):  # pragma: no cover - compiled
     """Expand up to ``max_pops`` nodes, best first (see the module doc).
 
     Parameters
@@ -510,7 +520,9 @@ def expand(gram, r_ext, pen, n, scale, floor, rank_tol, tol, heap_bound, heap_in
     max_pops : int
         Nodes to expand in this call.
     budget : int
-        Subsets of free terms a node may enumerate exactly (its small sizes).
+        Subsets of free terms a node enumerates exactly (its small sizes).
+    deep_budget : int
+        Up to this many when the next size up is the one the bounds leave open.
 
     Returns
     -------
@@ -561,6 +573,9 @@ def expand(gram, r_ext, pen, n, scale, floor, rank_tol, tol, heap_bound, heap_in
     column = np.empty(m)
     drop = np.empty(m + 1)
     prefmin = np.empty(m + 1)
+    wvals = np.empty(m + 1)
+    cored = np.zeros(m + 1, dtype=np.bool_)
+    n_edges = 0
     pops = 0
     size = counts[0]
     while True:
@@ -610,55 +625,77 @@ def expand(gram, r_ext, pen, n, scale, floor, rank_tol, tol, heap_bound, heap_in
         # --- sizes |I| .. |I| + 3 exactly (leaving out many terms is what the drop
         # bounds see least); their best structures are incumbent candidates
         amax = max(min(2, f), _visits_for(f, budget))
-        _small_sizes(r_ext, cols, k, f, yi, amax, Q, At, S, cvec, exact, chosen, lrow, wbuf,
-                     gbuf, pick)
-        quick = np.inf
-        for a in range(amax + 1):
-            small[a] = _value(exact[a], k + a, n, scale, floor, pen)
-            quick = min(quick, small[a])
-            if (a > 0 or k > 0) and small[a] < best[0] - tol and (a == 0 or chosen[a, 0] >= 0):
-                for j in range(k):
-                    cand[j] = cols[j]
-                for j in range(a):
-                    cand[k + j] = cols[k + chosen[a, j]]
-                counts[2] += 1
-                _consider(gram, r_ext, cand, k + a, yi, rank_tol, near, n, scale, floor,
-                          pen, best, best_mask, pending, counts, Lc, theta2, r, g)
-        if k + amax < t:  # larger sizes: at least SSE(T) and their penalty
-            quick = min(quick, _value(sse_t, k + amax + 1, n, scale, floor, pen))
-        if max(quick, bound0) >= best[0] - tol:
-            continue
-        if amax == f:  # all sizes known exactly: closed if their best were offered
-            closed = True
+        zz = _project_free(r_ext, cols, k, f, yi, Q, At, S, cvec)
+        have_drops = False
+        cut = False
+        while True:
+            _small_sizes(S, cvec, zz, f, amax, exact, chosen, lrow, wbuf, gbuf, pick)
+            quick = np.inf
             for a in range(amax + 1):
-                if small[a] < best[0] - tol:
-                    closed = False  # that size's best was ruled out or is pending
-            if closed:
+                small[a] = _value(exact[a], k + a, n, scale, floor, pen)
+                quick = min(quick, small[a])
+                if ((a > 0 or k > 0) and small[a] < best[0] - tol
+                        and (a == 0 or chosen[a, 0] >= 0)):
+                    for j in range(k):
+                        cand[j] = cols[j]
+                    for j in range(a):
+                        cand[k + j] = cols[k + chosen[a, j]]
+                    counts[2] += 1
+                    _consider(gram, r_ext, cand, k + a, yi, rank_tol, near, n, scale, floor,
+                              pen, best, best_mask, pending, counts, Lc, theta2, r, g)
+            if k + amax < t:  # larger sizes: at least SSE(T) and their penalty
+                quick = min(quick, _value(sse_t, k + amax + 1, n, scale, floor, pen))
+            if max(quick, bound0) >= best[0] - tol:
+                cut = True
+                break
+            if amax == f:  # all sizes known exactly: closed if their best were offered
+                cut = True
+                for a in range(amax + 1):
+                    if small[a] < best[0] - tol:
+                        cut = False  # that size's best was ruled out or is pending
+                if cut:
+                    break
+            # --- the cost of leaving out free terms, and the bound of each size t - q
+            if not have_drops:
+                _drop_costs(L, theta, k, f, Winv, Hff, hdiag, pcost, pairs, delta, column,
+                            drop)
+                for q in range(f + 1):
+                    cored[q] = False
+                have_drops = True
+                n_edges = 0
+            lowest = np.inf
+            for q in range(f + 1):
+                wq = _value(sse_t + drop[q], t - q, n, scale, floor, pen)
+                if f - q <= amax:
+                    wq = max(wq, small[f - q])
+                elif q >= 3 and wq < best[0] - tol and not cored[q]:
+                    # could beat the incumbent: try the sharper pair bound (a core
+                    # of the graph of cheap pairs)
+                    cored[q] = True
+                    if n_edges == 0:
+                        for a in range(f):
+                            for b in range(a + 1, f):
+                                edges[n_edges] = pcost[a, b]
+                                n_edges += 1
+                        edges[:n_edges].sort()
+                    core = DROP_SAFETY * _core_bound(pcost, f, q, edges, n_edges, deg, gone)
+                    if core > drop[q]:
+                        drop[q] = core
+                        wq = _value(sse_t + core, t - q, n, scale, floor, pen)
+                wvals[q] = wq
+                lowest = min(lowest, wq)
+                prefmin[q] = lowest
+            if max(bound0, prefmin[f]) >= best[0] - tol:
+                cut = True
+                break
+            # the next size up still alive: enumerate it too, if affordable
+            q = f - amax - 1
+            if (amax < f and wvals[q] < best[0] - tol
+                    and _visits_for(f, deep_budget) > amax):
+                amax += 1
                 continue
-        # --- the cost of leaving out free terms, and the bound of each size t - q
-        _drop_costs(L, theta, k, f, Winv, Hff, hdiag, pcost, pairs, delta, column, drop)
-        n_edges = 0
-        lowest = np.inf
-        for q in range(f + 1):
-            wq = _value(sse_t + drop[q], t - q, n, scale, floor, pen)
-            if f - q <= amax:
-                wq = max(wq, small[f - q])
-            elif q >= 3 and wq < best[0] - tol:
-                # could beat the incumbent: try the sharper pair bound (a core of
-                # the graph of cheap pairs)
-                if n_edges == 0:
-                    for a in range(f):
-                        for b in range(a + 1, f):
-                            edges[n_edges] = pcost[a, b]
-                            n_edges += 1
-                    edges[:n_edges].sort()
-                core = DROP_SAFETY * _core_bound(pcost, f, q, edges, n_edges, deg, gone)
-                if core > drop[q]:
-                    drop[q] = core
-                    wq = _value(sse_t + core, t - q, n, scale, floor, pen)
-            lowest = min(lowest, wq)
-            prefmin[q] = lowest
-        if max(bound0, prefmin[f]) >= best[0] - tol:
+            break
+        if cut:
             continue
         # --- the chain, F by delta, largest first; its structures I + chain[:p] as
         # incumbent candidates (prefix SSEs from one factor in chain order)

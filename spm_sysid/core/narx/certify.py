@@ -2,38 +2,43 @@
 
 For AIC and BIC the criterion is ``N ln(SSE(S)/N) + pen(|S|)`` with ``pen``
 increasing in the number of terms only, and the SSE never grows when terms are
-added. A depth-first branch and bound over the terms can therefore prove that a
-structure is the best of all (``optimal``) or, when time runs out, bound how
-far the best found may be from the optimum (``limit``).
+added. A branch and bound over the terms can therefore prove that a structure
+is the best of all (``optimal``) or, when time runs out, bound how far the best
+found may be from the optimum (``limit``).
 
 A node fixes some terms *in* (I) and some *out*; the rest (F) are free. Every
-structure S of the node has ``I <= S <= T = I + F``. Two lower bounds on the
-criterion of all of them are used, and the larger counts:
+structure S of the node has ``I <= S <= T = I + F``. The search
+(:mod:`.branch_bound`, compiled) is best first: the open node of the lowest
+bound is expanded next, so the lower bound over all structures (the smallest
+open bound) rises steadily and a stopped search reports an honest gap. At a
+node it bounds every size ``|I| .. |T|`` separately and takes the least:
 
-* **plain**: ``SSE(S) >= SSE(T)`` and ``|S| >= |I|``;
-* **drop bound**: leaving out any r free terms R raises the SSE of T by
-  ``theta_R' (H_RR)^-1 theta_R >= ||theta_R||^2 / lambda_max(H_FF)`` (theta:
-  T's coefficients, H: the inverse of T's Gram matrix, unit-norm columns), so
-  a structure with ``|I| + |F| - r`` terms has ``SSE >= SSE(T) + s_r /
-  lambda_max(H_FF)`` with ``s_r`` the sum of the r smallest ``theta_j^2`` in F;
-  the bound is the minimum over r of the criterion at that size.
+* the **small sizes** ``|I| + a`` exactly, for every a whose subsets of F fit
+  a budget (:data:`ENUMERATION_BUDGET`; one size more where that is the size
+  left open): F and the target projected off span(I), every subset visited;
+* the **larger sizes** from T downwards: leaving out r free terms raises
+  ``SSE(T)`` by at least the r-th smallest single-term cost, the r smallest
+  ``theta^2`` over ``||H_FF||_F`` (H: the inverse Gram matrix of T), and a pair
+  bound (every pair of the terms left out costs at most what they all cost;
+  a core of the graph of cheap pairs must hold them).
 
-Search order: best first -- the open node of the lowest bound is expanded
-next, so the lower bound over all structures rises steadily and a stopped
-search reports an honest gap. At each node the free term whose removal from T
-costs the most SSE (``theta_j^2 / H_jj``) is branched on. The incumbent starts
-from a warm start (the GA's result, else forward selection) and is improved by
-the structures I and T met at every node. Node values are
-the evaluator's (:class:`StructureEvaluator`, the GA's own numbers), so
-"optimal" means: no structure scores lower than the result by more than
-``tolerance`` (1e-6) on the criterion's scale. Rank-deficient structures
-score +inf, as in the GA.
+Incumbents: the warm start (the GA's result, else forward selection), improved
+by a local search (one term added, removed or swapped), then every best small
+subset and the greedy chain of each node, refitted accurately before they
+count. Values match the evaluator's (:class:`StructureEvaluator`, the GA's own
+numbers): candidates with a squared pivot within ``NEAR_RANK`` of the rank
+tolerance are scored by the evaluator itself, and the result is re-scored by
+it, so "optimal" means: no structure scores lower than the result by more than
+``tolerance`` (1e-6) on the criterion's scale. Rank-deficient structures score
++inf, as in the GA.
 """
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -80,7 +85,7 @@ class Certificate:
     mask: np.ndarray
     nodes: int
     seconds: float
-    bound: str = "plain + drop bound"
+    bound: str = "exact small sizes + drop and pair bounds"
     reason: str | None = None
     warm_start: float | None = None
     terms: list[str] = field(default_factory=list)
@@ -98,7 +103,7 @@ class Certificate:
     def summary(self) -> str:
         """One line for people."""
         if self.status == "optimal":
-            text = (f"certified optimal: {self.value:.2f} ({len(self.terms)} terms), "
+            text = (f"certified optimal: {self.value:.2f} ({int(np.sum(self.mask))} terms), "
                     f"{self.nodes} nodes, {self.seconds:.2f} s")
         else:
             text = (f"not certified ({self.reason}): best {self.value:.2f}, lower bound "
@@ -140,6 +145,9 @@ MAX_OPEN_BYTES = 1 << 30
 
 #: Subsets of its free terms a node enumerates exactly (its smallest sizes).
 ENUMERATION_BUDGET = 6000
+
+#: ... and up to this many times as many where the next size up is left open.
+DEEP_FACTOR = 10
 
 
 def polish(ev: StructureEvaluator, mask: np.ndarray, usable: np.ndarray,
@@ -190,6 +198,102 @@ def _settle(ev: StructureEvaluator, usable: np.ndarray, rows: np.ndarray, best: 
         best_mask[:] = bits[i]
 
 
+class _OpenNodes:
+    """One worker's open nodes (a heap in arrays the compiled search fills) and incumbent."""
+
+    def __init__(self, mu: int, best: float, best_mask: np.ndarray) -> None:
+        self.nw = words_for(mu)
+        cap = 1 << 12
+        self.bound = np.empty(cap)
+        self.inside = np.zeros((cap, self.nw), dtype=np.uint64)
+        self.free = np.zeros((cap, self.nw), dtype=np.uint64)
+        # open nodes, nodes expanded, candidates, dependent-term branches, pending rows
+        self.counts = np.zeros(5, dtype=np.int64)
+        self.pending = np.zeros((4096, self.nw), dtype=np.uint64)
+        self.best = np.array([best])
+        self.best_mask = np.asarray(best_mask, dtype=bool).copy()
+        self.max_open = MAX_OPEN_BYTES // (8 + 16 * self.nw)
+
+    @property
+    def size(self) -> int:
+        return int(self.counts[0])
+
+    @property
+    def nodes(self) -> int:
+        return int(self.counts[1])
+
+    def push_root(self, mu: int) -> None:
+        self.bound[0] = -np.inf
+        self.free[0] = 0
+        for j in range(mu):
+            self.free[0, j // 64] |= np.uint64(1) << np.uint64(j % 64)
+        self.counts[0] = 1
+
+    def open_bound(self) -> float:
+        return float(self.bound[0]) if self.size else np.inf
+
+    def expand(self, args: tuple, near: float, pops: int, budget: int) -> int:
+        return expand(*args, self.bound, self.inside, self.free, self.counts, self.best,
+                      self.best_mask, self.pending, near, pops, budget, DEEP_FACTOR * budget)
+
+    def settle(self, ev: StructureEvaluator, usable: np.ndarray) -> None:
+        """Near rank-deficient candidates: the evaluator decides."""
+        if self.counts[4]:
+            _settle(ev, usable, self.pending[:self.counts[4]], self.best, self.best_mask)
+            self.counts[4] = 0
+
+    def resize(self, cap: int) -> None:
+        keep = self.size
+        for name in ("bound", "inside", "free"):
+            old = getattr(self, name)
+            new = np.zeros((cap,) + old.shape[1:], dtype=old.dtype)
+            new[:keep] = old[:keep]
+            setattr(self, name, new)
+
+    def grow(self) -> bool:
+        """Double the room for open nodes; False past :data:`MAX_OPEN_BYTES`."""
+        cap = len(self.bound)
+        if 2 * cap > self.max_open:
+            return False
+        self.resize(2 * cap)
+        return True
+
+
+def _share_best(heaps: list[_OpenNodes]) -> None:
+    """Every worker prunes with the best incumbent any has found."""
+    top = min(heaps, key=lambda h: h.best[0])
+    for h in heaps:
+        if h is not top and top.best[0] < h.best[0]:
+            h.best[0] = top.best[0]
+            h.best_mask[:] = top.best_mask
+
+
+def _lower(heaps: list[_OpenNodes]) -> float:
+    """No structure scores below this: the least open bound, or the incumbent."""
+    return float(min([h.open_bound() for h in heaps] + [heaps[0].best[0]]))
+
+
+def _balance(heaps: list[_OpenNodes]) -> None:
+    """Deal the open nodes out again, best first, when a worker runs short."""
+    sizes = [h.size for h in heaps]
+    total = sum(sizes)
+    if total < 2 * len(heaps) or min(sizes) * 4 >= max(sizes):
+        return
+    bound = np.concatenate([h.bound[:h.size] for h in heaps])
+    inside = np.concatenate([h.inside[:h.size] for h in heaps])
+    free = np.concatenate([h.free[:h.size] for h in heaps])
+    order = np.argsort(bound, kind="stable")
+    for i, h in enumerate(heaps):
+        pick = order[i::len(heaps)]  # sorted: a valid heap
+        need = len(pick) + 4096
+        if len(h.bound) < need:
+            h.resize(1 << int(np.ceil(np.log2(need))))
+        h.bound[:len(pick)] = bound[pick]
+        h.inside[:len(pick)] = inside[pick]
+        h.free[:len(pick)] = free[pick]
+        h.counts[0] = len(pick)
+
+
 def certify(
     P: np.ndarray,
     target: np.ndarray,
@@ -204,6 +308,7 @@ def certify(
     progress: Callable[[int, float, float], None] | None = None,
     evaluator: StructureEvaluator | None = None,
     enumeration_budget: int | None = None,
+    threads: int | None = None,
 ) -> Certificate:
     """Search all structures of the columns of ``P`` exactly (see the module doc).
 
@@ -234,6 +339,10 @@ def certify(
     enumeration_budget : int, optional
         Subsets of its free terms a node enumerates exactly (default
         :data:`ENUMERATION_BUDGET`; 0: only up to two terms).
+    threads : int, optional
+        Workers searching at once, each with its own open nodes, sharing the
+        incumbent and dealt nodes best first when one runs short (default: the
+        usable cores, at most 8; one when ``node_limit`` is given).
 
     Raises
     ------
@@ -272,57 +381,64 @@ def certify(
     best_full, best_value = polish(ev, warm, usable, seconds=min(5.0, 0.1 * time_limit))
     warm_value = float(warm_value) if np.isfinite(warm_value) else None
 
-    # the heap of open nodes, owned here so the compiled search can pause and grow
-    nw = words_for(mu)
-    cap = 1 << 12
-    max_open = MAX_OPEN_BYTES // (8 + 16 * nw)
-    heap_bound = np.empty(cap)
-    heap_in = np.zeros((cap, nw), dtype=np.uint64)
-    heap_free = np.zeros((cap, nw), dtype=np.uint64)
-    heap_bound[0] = -np.inf
-    for j in range(mu):
-        heap_free[0, j // 64] |= np.uint64(1) << np.uint64(j % 64)
-    counts = np.array([1, 0, 0, 0, 0], dtype=np.int64)
-    pending = np.zeros((4096, nw), dtype=np.uint64)
-    near = NEAR_RANK * ev.rank_tol
-    best = np.array([best_value if np.isfinite(best_value) else np.inf])
-    best_mask = best_full[usable].copy()
-    status, reason = "optimal", None
     budget = ENUMERATION_BUDGET if enumeration_budget is None else int(enumeration_budget)
+    best0 = best_value if np.isfinite(best_value) else np.inf
+    # node_limit asks for an exact count: one worker then
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    workers = 1 if node_limit is not None else max(1, min(int(threads or cores or 1), 8))
+    heaps = [_OpenNodes(mu, best0, best_full[usable]) for _ in range(workers)]
+    heaps[0].push_root(mu)
+    args = (gram, r_aug, pen, float(n), ev.sse_scale, ev._sse_floor, ev.rank_tol, tolerance)
+    near = NEAR_RANK * ev.rank_tol
+    status, reason = "optimal", None
     chunk, last_report = 64, t0
-    while True:
-        pops = chunk if node_limit is None else min(chunk, node_limit - int(counts[1]))
-        started = time.perf_counter()
-        result = expand(gram, r_aug, pen, float(n), ev.sse_scale, ev._sse_floor,
-                        ev.rank_tol, tolerance, heap_bound, heap_in, heap_free, counts,
-                        best, best_mask, pending, near, pops, budget)
-        if counts[4]:  # near rank-deficient candidates: the evaluator decides
-            _settle(ev, usable, pending[:counts[4]], best, best_mask)
-            counts[4] = 0
-        now = time.perf_counter()
-        if result == DONE:
-            break
-        if result == FULL:
-            if 2 * cap > max_open:
-                status, reason = "limit", f"memory limit ({cap:,} open nodes)"
+    pool = ThreadPoolExecutor(workers) if workers > 1 else None
+    try:
+        while True:
+            done_nodes = sum(h.nodes for h in heaps)
+            pops = chunk if node_limit is None else min(chunk, node_limit - done_nodes)
+            started = time.perf_counter()
+            busy = [h for h in heaps if h.size]
+            if pool is None or len(busy) == 1:
+                results = [h.expand(args, near, pops, budget) for h in busy]
+            else:
+                results = list(pool.map(_OpenNodes.expand, busy, [args] * len(busy),
+                                        [near] * len(busy), [pops] * len(busy),
+                                        [budget] * len(busy)))
+            for h in busy:
+                h.settle(ev, usable)
+            _share_best(heaps)
+            now = time.perf_counter()
+            if all(r == DONE for r in results) and not any(h.size and h.open_bound()
+                                                          < h.best[0] - tolerance
+                                                          for h in heaps):
                 break
-            heap_bound = np.concatenate([heap_bound, np.empty(cap)])
-            heap_in = np.concatenate([heap_in, np.zeros((cap, nw), dtype=np.uint64)])
-            heap_free = np.concatenate([heap_free, np.zeros((cap, nw), dtype=np.uint64)])
-            cap *= 2
-            continue
-        if now - started < 0.1:
-            chunk = min(chunk * 2, 1 << 20)
-        if node_limit is not None and counts[1] >= node_limit:
-            status, reason = "limit", f"node limit {node_limit}"
-            break
-        if now - t0 > time_limit:
-            status, reason = "limit", f"time limit {time_limit:g} s"
-            break
-        if progress is not None and now - last_report > 0.5:
-            last_report = now
-            progress(int(counts[1]), float(best[0]), float(min(heap_bound[0], best[0])))
-    lower = float(best[0]) if status == "optimal" else float(min(heap_bound[0], best[0]))
+            full = [h for h, r in zip(busy, results) if r == FULL]
+            if any(not h.grow() for h in full):
+                status = "limit"
+                reason = f"memory limit ({sum(h.size for h in heaps):,} open nodes)"
+                break
+            if workers > 1:
+                _balance(heaps)
+            if now - started < 0.1:
+                chunk = min(chunk * 2, 1 << 20)
+            if node_limit is not None and sum(h.nodes for h in heaps) >= node_limit:
+                status, reason = "limit", f"node limit {node_limit}"
+                break
+            if now - t0 > time_limit:
+                status, reason = "limit", f"time limit {time_limit:g} s"
+                break
+            if progress is not None and now - last_report > 0.5:
+                last_report = now
+                progress(sum(h.nodes for h in heaps), float(heaps[0].best[0]),
+                         _lower(heaps))
+    finally:
+        if pool is not None:
+            pool.shutdown()
+    best = heaps[0].best
+    best_mask = heaps[0].best_mask
+    nodes = sum(h.nodes for h in heaps)
+    lower = float(best[0]) if status == "optimal" else _lower(heaps)
     mask = np.zeros(m, dtype=bool)
     mask[usable[best_mask]] = True
     value = ev.cached_score(mask) if mask.any() else np.inf
@@ -331,7 +447,7 @@ def certify(
         status = "limit"
         reason = "the best structure found is near rank-deficient; the evaluator scores it higher"
     return Certificate(status=status, value=float(value), lower_bound=min(lower, float(value)),
-                       mask=mask, nodes=int(counts[1]), seconds=time.perf_counter() - t0,
+                       mask=mask, nodes=int(nodes), seconds=time.perf_counter() - t0,
                        reason=reason, warm_start=warm_value)
 
 
