@@ -112,6 +112,14 @@ def test_a_limited_run_returns_a_valid_bound_and_gap():
     assert doc["status"] == "limit" and doc["lower_bound"] <= doc["value"]
 
 
+def test_invalid_limits_are_refused_with_their_name():
+    P, t = _problem("random", 0)
+    for kwargs, name in (({"time_limit": 0}, "time_limit"), ({"node_limit": 0}, "node_limit"),
+                         ({"threads": 0}, "threads")):
+        with pytest.raises(ValueError, match=name):
+            certify(P, t, "aic", **kwargs)
+
+
 def test_criteria_that_depend_on_coefficients_are_refused():
     with pytest.raises(ValueError, match="pmic2 cannot be certified"):
         penalty_per_size(get_criterion("pmic2"), 100, 10)
@@ -151,6 +159,44 @@ def test_certify_command_and_identify_certify(tmp_path):
     assert sorted(doc["terms"]) == sorted(EQ1) and doc["nodes"] > 0 and doc["seconds"] >= 0
     r = spm("certify", "--criterion", "pmic2")
     assert r.returncode == 2 and "invalid choice: 'pmic2'" in r.stderr
+    r = spm("certify", "--threads", "0")
+    assert r.returncode != 0 and "--threads must be at least 1, got 0" in r.stderr
     r = spm("identify", "--certify", "--criterion", "bic", "--seed", "1", "--quiet")
     assert r.returncode == 0, r.stderr
     assert "certified optimal over all structures" in r.stdout
+
+
+def test_bench_certify_prints_the_table():
+    """The benchmark command as `make bench-certify` runs it, on one case and criterion."""
+    r = subprocess.run([sys.executable, "-m", "spm_sysid.tools.bench_certify", "--cases",
+                        "robot-arm", "--criteria", "bic", "--time-limit", "30"],
+                       capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert r.returncode == 0, r.stderr
+    row = next(line for line in r.stdout.splitlines() if line.startswith("robot-arm"))
+    fields = row.split()
+    assert fields[1:4] == ["1024", "bic", "optimal"]
+    assert float(fields[5]) == pytest.approx(-10707.48, abs=0.01)
+    assert "certified 1 of 1" in r.stdout
+    r = subprocess.run([sys.executable, "-m", "spm_sysid.tools.bench_certify", "--cases",
+                        "nonsense"], capture_output=True, text=True, cwd=ROOT, timeout=60)
+    assert r.returncode == 2 and "unknown case(s) nonsense" in r.stderr
+
+
+def test_hard_cases_are_made_the_same_way_each_time():
+    from spm_sysid.tools.bench_certify import CASES
+
+    for name in ("dryer-0", "exchanger-1", "ar-0.97"):
+        u1, y1 = CASES[name]()
+        u2, y2 = CASES[name]()
+        assert np.array_equal(u1, u2) and np.array_equal(y1, y2) and np.all(np.isfinite(y1))
+
+
+def test_running_out_of_room_for_open_nodes_stops_with_a_valid_bound(monkeypatch):
+    import spm_sysid.core.narx.certify as certify_module
+    from spm_sysid.tools.bench_certify import CASES
+
+    monkeypatch.setattr(certify_module, "MAX_OPEN_BYTES", 1)  # no room beyond the first block
+    u, y = CASES["exchanger-0"]()
+    cert = certify_data(u, y, term_space=TermSpace(), criterion="bic", time_limit=60)
+    assert cert.status == "limit" and cert.reason.startswith("memory limit (")
+    assert cert.lower_bound < cert.value and cert.gap > 0 and len(cert.terms) > 0

@@ -333,6 +333,10 @@ def cmd_certify(args) -> int:
                         f"on the coefficients); certifiable: {', '.join(CERTIFIABLE)}")
     if not args.time_limit > 0:
         raise UserError(f"--time-limit must be > 0 seconds, got {args.time_limit}")
+    if args.threads is not None and args.threads < 1:
+        raise UserError(f"--threads must be at least 1, got {args.threads}")
+    if args.node_limit is not None and args.node_limit < 1:
+        raise UserError(f"--node-limit must be at least 1, got {args.node_limit}")
     _check_outputs(args)
     data = _load(args)
     settings = _job_settings(args, data)
@@ -368,7 +372,7 @@ def cmd_certify(args) -> int:
         cert = certify_data(data.u, data.y, term_space=settings.term_space,
                             criterion=args.criterion, segments=segments, warm_start=warm,
                             time_limit=args.time_limit, node_limit=args.node_limit,
-                            progress=progress_bb)
+                            progress=progress_bb, threads=args.threads)
     finally:
         if bar is not None:
             bar.close()
@@ -730,6 +734,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--time-limit", type=float, default=60.0,
                    help="seconds before stopping with the best, a lower bound and the gap")
     g.add_argument("--node-limit", type=int, default=None, help="nodes before stopping")
+    g.add_argument("--threads", type=int, default=None,
+                   help="workers searching at once (default: the usable cores, at most 8)")
     g.add_argument("--json", metavar="PATH", help="write the certificate here")
     g.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_certify)

@@ -1,9 +1,10 @@
 """Compiled branch and bound over term subsets (the engine of :mod:`.certify`).
 
 A node fixes the terms I *in* and leaves the terms F *free*; its structures
-are the S with ``I <= S <= T = I + F``. One call of :func:`expand` pops the
-open node of the lowest bound (best first), factorises T once and then walks
-its whole "in" chain without factorising again:
+are the S with ``I <= S <= T = I + F``. One call of :func:`expand` pops open
+nodes of the lowest bound (best first); for each it factorises T once, bounds
+every size ``|I| .. |T|`` and walks its whole "in" chain without factorising
+again:
 
 * T's Gram sub-matrix (I in index order first, then F) is factorised by an
   up-looking Cholesky. A failing pivot (squared pivot below ``rank_tol``) in I
@@ -11,21 +12,23 @@ its whole "in" chain without factorising again:
   (the pivot of a column can only shrink when columns are added before it), so
   the node is dropped; a failing pivot in F is branched on (in / out).
 * ``SSE(T)`` from the residual on the triangular factor of ``[P y]`` after one
-  corrected semi-normal step (accurate where the Gram matrix is ill-conditioned),
-  the coefficients theta of T, ``H = (G_TT)^-1`` on F and the exact cost of
-  leaving out one free term, ``delta_j = theta_j^2 / H_jj``.
-* Leaving out any r free terms R costs at least ``D(r) = max(r-th smallest
-  delta, (sum of the r smallest theta^2) / ||H_FF||_F)`` (the SSE of a subset is
-  at least the SSE after leaving out any one of R; and ``theta_R' H_RR^-1
-  theta_R >= ||theta_R||^2 / lambda_max(H_FF)``). A structure of ``|T| - r``
-  terms therefore scores at least ``V(SSE(T) + D(r), |T| - r)``; the node's bound
-  is the least of these over the sizes it allows.
-* F is sorted by delta, largest first, and the chain "F[0] in, F[1] in, ..."
-  is walked: chain node p fixes ``I + F[:p]``; its "out" child (``F[p]`` left
-  out, ``SSE >= SSE(T) + delta_F[p]`` exactly) is pushed with its own bound; the
-  chain stops where its bound reaches the incumbent. The chain's structures
-  ``I + F[:p]`` (a greedy path by importance) are scored as incumbents; one that
-  looks better is re-fitted accurately before it is accepted.
+  corrected semi-normal step (accurate where the Gram matrix is ill-conditioned).
+* **Small sizes exactly** (:func:`_project_free`, :func:`_small_sizes`): the
+  least SSE of ``I + A`` for every ``|A| <= a``, a as large as ``budget``
+  subsets allow (one size more, up to ``deep_budget``, when that size is the
+  one left open); their best structures are incumbent candidates.
+* **Larger sizes from T down** (:func:`_drop_costs`): leaving out r free terms
+  costs at least the r-th smallest single cost ``delta_j = theta_j^2 / H_jj``
+  (H: the inverse Gram matrix of T), the r smallest ``theta^2`` over
+  ``||H_FF||_F``, and a pair bound (the r terms' dearest pair; each has r - 1
+  partners no dearer, and where that size is still open a core of the graph of
+  cheap pairs, :func:`_core_bound`, must hold them).
+* F sorted by delta, largest first, gives the chain "F[0] in, F[1] in, ...":
+  chain node p fixes ``I + F[:p]``; its "out" child (``F[p]`` left out, ``SSE >=
+  SSE(T) + delta_F[p]`` exactly) is pushed with its own bound; the chain stops
+  where its bound reaches the incumbent. The chain's structures ``I + F[:p]``
+  are incumbent candidates too; candidates are refitted accurately
+  (:func:`_consider`) before they count.
 
 Values are ``n ln(max(SSE, floor) * scale / n) + pen[k]``, the evaluator's
 formula. The heap lives in caller-owned arrays so a search can pause (after

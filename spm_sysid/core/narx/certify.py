@@ -140,14 +140,15 @@ def penalty_per_size(criterion: Criterion, n: int, m: int) -> np.ndarray:
     return pen
 
 
-#: Open nodes may use at most this much memory before the search stops with ``limit``.
+#: Open nodes (all workers') may use at most this much memory before the search stops
+#: with ``limit``.
 MAX_OPEN_BYTES = 1 << 30
 
 #: Subsets of its free terms a node enumerates exactly (its smallest sizes).
-ENUMERATION_BUDGET = 6000
+ENUMERATION_BUDGET = 3000
 
 #: ... and up to this many times as many where the next size up is left open.
-DEEP_FACTOR = 10
+DEEP_FACTOR = 4
 
 
 def polish(ev: StructureEvaluator, mask: np.ndarray, usable: np.ndarray,
@@ -201,7 +202,7 @@ def _settle(ev: StructureEvaluator, usable: np.ndarray, rows: np.ndarray, best: 
 class _OpenNodes:
     """One worker's open nodes (a heap in arrays the compiled search fills) and incumbent."""
 
-    def __init__(self, mu: int, best: float, best_mask: np.ndarray) -> None:
+    def __init__(self, mu: int, best: float, best_mask: np.ndarray, share: int = 1) -> None:
         self.nw = words_for(mu)
         cap = 1 << 12
         self.bound = np.empty(cap)
@@ -209,10 +210,10 @@ class _OpenNodes:
         self.free = np.zeros((cap, self.nw), dtype=np.uint64)
         # open nodes, nodes expanded, candidates, dependent-term branches, pending rows
         self.counts = np.zeros(5, dtype=np.int64)
-        self.pending = np.zeros((4096, self.nw), dtype=np.uint64)
+        self.pending = np.zeros((max(4096, 4 * mu + 8), self.nw), dtype=np.uint64)
         self.best = np.array([best])
         self.best_mask = np.asarray(best_mask, dtype=bool).copy()
-        self.max_open = MAX_OPEN_BYTES // (8 + 16 * self.nw)
+        self.max_open = MAX_OPEN_BYTES // share // (8 + 16 * self.nw)
 
     @property
     def size(self) -> int:
@@ -350,6 +351,12 @@ def certify(
         A criterion that cannot be certified (e.g. PMIC2).
     """
     t0 = time.perf_counter()
+    if not time_limit > 0:
+        raise ValueError(f"time_limit must be > 0 seconds, got {time_limit}")
+    if node_limit is not None and node_limit < 1:
+        raise ValueError(f"node_limit must be at least 1, got {node_limit}")
+    if threads is not None and threads < 1:
+        raise ValueError(f"threads must be at least 1, got {threads}")
     crit = get_criterion(criterion)
     if evaluator is None:
         evaluator = StructureEvaluator(np.asarray(P, dtype=float),
@@ -386,7 +393,7 @@ def certify(
     # node_limit asks for an exact count: one worker then
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     workers = 1 if node_limit is not None else max(1, min(int(threads or cores or 1), 8))
-    heaps = [_OpenNodes(mu, best0, best_full[usable]) for _ in range(workers)]
+    heaps = [_OpenNodes(mu, best0, best_full[usable], workers) for _ in range(workers)]
     heaps[0].push_root(mu)
     args = (gram, r_aug, pen, float(n), ev.sse_scale, ev._sse_floor, ev.rank_tol, tolerance)
     near = NEAR_RANK * ev.rank_tol
@@ -456,6 +463,7 @@ def certify_data(
     segments: list[tuple[int, int]] | None = None, warm_start: np.ndarray | None = None,
     time_limit: float = 60.0, node_limit: int | None = None,
     progress: Callable[[int, float, float], None] | None = None,
+    threads: int | None = None,
 ) -> Certificate:
     """:func:`certify` on measured signals (the term space's candidates of u, y).
 
@@ -474,7 +482,8 @@ def certify_data(
     nonzero = np.any(P != 0, axis=0)
     warm = None if warm_start is None else np.asarray(warm_start, dtype=bool)[nonzero]
     cert = certify(P[:, nonzero], target, criterion, warm_start=warm, time_limit=time_limit,
-                   node_limit=node_limit, sse_scale=sy * sy, progress=progress)
+                   node_limit=node_limit, sse_scale=sy * sy, progress=progress,
+                   threads=threads)
     full = np.zeros(term_space.n_terms, dtype=bool)
     full[np.flatnonzero(nonzero)] = cert.mask
     cert.mask = full
