@@ -56,6 +56,46 @@ def words_for(m: int) -> int:
 
 
 @jit
+def _shell_sort(a, n):  # pragma: no cover - compiled
+    """Sort a[:n] in place, ascending.
+
+    One small routine instead of numba's sorts, which cost seconds of
+    compilation each.
+    """
+    gap = 1
+    while gap < n // 3:
+        gap = 3 * gap + 1
+    while gap >= 1:
+        for i in range(gap, n):
+            v = a[i]
+            j = i
+            while j >= gap and a[j - gap] > v:
+                a[j] = a[j - gap]
+                j -= gap
+            a[j] = v
+        gap //= 3
+
+
+@jit
+def _order_descending(key, n, out):  # pragma: no cover - compiled
+    """out[:n] = the indices of key[:n], largest key first (a shell sort)."""
+    for i in range(n):
+        out[i] = i
+    gap = 1
+    while gap < n // 3:
+        gap = 3 * gap + 1
+    while gap >= 1:
+        for i in range(gap, n):
+            v = out[i]
+            j = i
+            while j >= gap and key[out[j - gap]] < key[v]:
+                out[j] = out[j - gap]
+                j -= gap
+            out[j] = v
+        gap //= 3
+
+
+@jit
 def _value(sse, k, n, scale, floor, pen):  # pragma: no cover - compiled
     if k == 0:
         return np.inf
@@ -434,12 +474,14 @@ def _drop_costs(L, theta, k, f, Winv, Hff, hdiag, pcost, pairs, delta, column,
                 pcost[a, b] = 0.0
             pairs[a, q] = pcost[a, b]
             q += 1
-        pairs[a, :f - 1].sort()
-    dsort = np.sort(delta[:f])
+        _shell_sort(pairs[a], f - 1)
+    dsort = np.empty(f)
     tsort = np.empty(f)
     for a in range(f):
+        dsort[a] = delta[a]
         tsort[a] = theta[k + a] * theta[k + a]
-    tsort.sort()
+    _shell_sort(dsort, f)
+    _shell_sort(tsort, f)
     drop[0] = 0.0
     cum = 0.0
     for q in range(1, f + 1):
@@ -448,7 +490,7 @@ def _drop_costs(L, theta, k, f, Winv, Hff, hdiag, pcost, pairs, delta, column,
         if q >= 2:
             for a in range(f):
                 column[a] = pairs[a, q - 2]
-            column[:f].sort()
+            _shell_sort(column, f)
             d = max(d, column[q - 1])
         drop[q] = max(DROP_SAFETY * d, drop[q - 1])  # leaving out more never costs less
 
@@ -463,7 +505,7 @@ def _consider(gram, r_ext, cand, kk, yi, rank_tol, near, n, scale, floor, pen, b
     leaves the verdict to the evaluator (the structure goes to ``pending``, for
     the caller); otherwise it is fitted accurately and kept if better.
     """
-    cand[:kk].sort()
+    _shell_sort(cand, kk)
     cand[kk] = yi
     _cholesky_rows(gram, cand, 0, kk + 1, Lc)
     smallest = np.inf
@@ -546,6 +588,7 @@ def expand(gram, r_ext, pen, n, scale, floor, rank_tol, tol, heap_bound, heap_in
     cols = np.empty(m + 1, dtype=np.int64)
     cand = np.empty(m + 1, dtype=np.int64)
     chain = np.empty(m + 1, dtype=np.int64)
+    order = np.empty(m + 1, dtype=np.int64)
     L = np.zeros((m + 1, m + 1))
     L2 = np.zeros((m + 1, m + 1))
     Lc = np.zeros((m + 1, m + 1))
@@ -680,7 +723,7 @@ def expand(gram, r_ext, pen, n, scale, floor, rank_tol, tol, heap_bound, heap_in
                             for b in range(a + 1, f):
                                 edges[n_edges] = pcost[a, b]
                                 n_edges += 1
-                        edges[:n_edges].sort()
+                        _shell_sort(edges, n_edges)
                     core = DROP_SAFETY * _core_bound(pcost, f, q, edges, n_edges, deg, gone)
                     if core > drop[q]:
                         drop[q] = core
@@ -702,7 +745,7 @@ def expand(gram, r_ext, pen, n, scale, floor, rank_tol, tol, heap_bound, heap_in
             continue
         # --- the chain, F by delta, largest first; its structures I + chain[:p] as
         # incumbent candidates (prefix SSEs from one factor in chain order)
-        order = np.argsort(-delta[:f])
+        _order_descending(delta, f, order)
         for a in range(f):
             chain[a] = cols[k + order[a]]
         for a in range(k):
