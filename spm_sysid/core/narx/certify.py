@@ -447,8 +447,11 @@ def certify(
                 break
             if workers > 1:
                 _balance(heaps)
+            # rounds of about 0.1-0.4 s: limits and progress are checked between them
             if now - started < 0.1:
-                chunk = min(chunk * 2, 1 << 20)
+                chunk = min(chunk * 2, 1 << 16)
+            elif now - started > 0.4:
+                chunk = max(1, chunk // 2)
             if node_limit is not None and sum(h.nodes for h in heaps) >= node_limit:
                 status, reason = "limit", f"node limit {node_limit}"
                 break
