@@ -35,6 +35,14 @@ def _problem(kind: str, seed: int, ny: int = 2, nu: int = 2):
         P = rng.standard_normal((n, 14))
         beta = np.where(rng.random(14) < 0.3, rng.normal(0, 1, 14), 0.0)
         return P, P @ beta + 0.5 * rng.standard_normal(n)
+    if kind == "near-dependent":  # columns within rounding distance of the rank test
+        P = rng.standard_normal((n, 14))
+        P[:, 13] = P[:, 12] + 3e-4 * rng.standard_normal(n)  # squared pivot ~1e-7
+        P[:, 11] = P[:, 10] - P[:, 9] + 1e-4 * rng.standard_normal(n)
+        P[:, 8] = 2.0 * P[:, 7] + 5e-5 * rng.standard_normal(n)  # just above the test
+        beta = np.zeros(14)
+        beta[[0, 7, 12, 13, 10]] = [1.0, 0.5, 2.0, -1.9, 0.3]
+        return P, P @ beta + 0.3 * rng.standard_normal(n)
     if kind == "offset":  # a level input and an output far from zero (a heater)
         level = np.repeat(rng.uniform(0.2, 0.8, n // 20 + 1), 20)[:n]
         u = level + 0.02 * rng.standard_normal(n)
@@ -59,7 +67,7 @@ def _problem(kind: str, seed: int, ny: int = 2, nu: int = 2):
     return ts.regression_matrix(u, y), ts.target(y)
 
 
-@pytest.mark.parametrize("kind", ["random", "structured", "offset"])
+@pytest.mark.parametrize("kind", ["random", "structured", "offset", "near-dependent"])
 @pytest.mark.parametrize("criterion", ["aic", "bic"])
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_certify_equals_brute_force(kind, criterion, seed):

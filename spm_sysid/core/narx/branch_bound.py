@@ -39,15 +39,21 @@ from __future__ import annotations
 
 import numpy as np
 
-from .kernels import jit
+from .kernels import csne_step, jit
 
 __all__ = ["DONE", "FULL", "PAUSED", "expand", "words_for"]
 
 #: :func:`expand` results.
 DONE, PAUSED, FULL = 0, 1, 2
 
-#: Drop costs count this fraction of themselves (their rounding can be eps * cond).
-DROP_SAFETY = 1.0 - 1e-6
+#: Drop costs (from the Gram matrix of T, relative rounding about eps * cond) count
+#: ``1 - DROP_MARGIN * eps * |T| * cond`` of themselves, cond estimated per node
+#: from the smallest squared pivot and ||H_FF||_F; at least 1e-6 is taken off.
+DROP_MARGIN = 1e3
+
+#: Exact small sizes (projected explicitly, rounding about eps * SSE(I) / pivot)
+#: count their SSE less this fraction of SSE(I).
+SMALL_MARGIN = 1e-8
 
 
 def words_for(m: int) -> int:
@@ -191,31 +197,7 @@ def _refined_sse(L, r_ext, cols, k, yi, theta, r, g):  # pragma: no cover - comp
         for p in range(j + 1, k):
             acc -= L[p, j] * theta[p]
         theta[j] = acc / L[j, j]
-    for rnd in range(2):
-        for q in range(rows):
-            acc = r_ext[q, yi]
-            for j in range(k):
-                acc -= r_ext[q, cols[j]] * theta[j]
-            r[q] = acc
-        if rnd == 1:
-            break
-        for j in range(k):
-            acc = 0.0
-            for q in range(rows):
-                acc += r_ext[q, cols[j]] * r[q]
-            g[j] = acc
-        for j in range(k):
-            acc = g[j]
-            for p in range(j):
-                acc -= L[j, p] * g[p]
-            g[j] = acc / L[j, j]
-        for j in range(k - 1, -1, -1):
-            acc = g[j]
-            for p in range(j + 1, k):
-                acc -= L[p, j] * g[p]
-            g[j] = acc / L[j, j]
-        for j in range(k):
-            theta[j] += g[j]
+    csne_step(L, r_ext, cols, k, yi, theta, r, g)
     sse = 0.0
     for q in range(rows):
         sse += r[q] * r[q]
@@ -270,6 +252,19 @@ def _core_bound(pcost, f, q, edges, n_edges, deg, gone):  # pragma: no cover - c
 
 
 @jit
+def _project_off(Q, count, X, col):  # pragma: no cover - compiled
+    """Remove from X[:, col] its components along Q[:, :count] (orthonormal), twice."""
+    rows = Q.shape[0]
+    for _ in range(2):
+        for j in range(count):
+            acc = 0.0
+            for q in range(rows):
+                acc += Q[q, j] * X[q, col]
+            for q in range(rows):
+                X[q, col] -= acc * Q[q, j]
+
+
+@jit
 def _project_free(r_ext, cols, k, f, yi, Q, At, S, c):  # pragma: no cover - compiled
     """The free columns and the target projected off span(I); returns SSE(I).
 
@@ -282,13 +277,7 @@ def _project_free(r_ext, cols, k, f, yi, Q, At, S, c):  # pragma: no cover - com
     for i in range(k):
         for q in range(rows):
             Q[q, i] = r_ext[q, cols[i]]
-        for _ in range(2):
-            for j in range(i):
-                acc = 0.0
-                for q in range(rows):
-                    acc += Q[q, j] * Q[q, i]
-                for q in range(rows):
-                    Q[q, i] -= acc * Q[q, j]
+        _project_off(Q, i, Q, i)
         norm = 0.0
         for q in range(rows):
             norm += Q[q, i] * Q[q, i]
@@ -299,13 +288,7 @@ def _project_free(r_ext, cols, k, f, yi, Q, At, S, c):  # pragma: no cover - com
         src = cols[k + a] if a < f else yi
         for q in range(rows):
             At[q, a] = r_ext[q, src]
-        for _ in range(2):
-            for j in range(k):
-                acc = 0.0
-                for q in range(rows):
-                    acc += Q[q, j] * At[q, a]
-                for q in range(rows):
-                    At[q, a] -= acc * Q[q, j]
+        _project_off(Q, k, At, a)
     zz = 0.0
     for q in range(rows):
         zz += At[q, f] * At[q, f]
@@ -376,7 +359,7 @@ def _small_sizes(S, c, zz, f, amax, exact, chosen, lrow, w, gsum,
             depth += 1
             pick[depth] = e
     for a in range(1, amax + 1):
-        exact[a] = max(0.0, zz - min(gsum[a], zz) - 1e-10 * zz)
+        exact[a] = max(0.0, zz - min(gsum[a], zz) - SMALL_MARGIN * zz)
     return zz
 
 
@@ -424,8 +407,8 @@ def _members(words, m, out):  # pragma: no cover - compiled
 
 
 @jit
-def _drop_costs(L, theta, k, f, Winv, Hff, hdiag, pcost, pairs, delta, column,
-                drop):  # pragma: no cover - compiled
+def _drop_costs(L, theta, k, f, Winv, Hff, hdiag, pcost, pairs, delta, column, drop,
+                minpiv):  # pragma: no cover - compiled
     """Costs of leaving out free terms of T (factor L, coefficients theta).
 
     Fills ``delta`` (each term alone), ``pcost``/``pairs`` (each pair; rows of
@@ -433,6 +416,8 @@ def _drop_costs(L, theta, k, f, Winv, Hff, hdiag, pcost, pairs, delta, column,
     leaving out any q free terms: the largest of the q-th smallest delta, the q
     smallest theta^2 over ||H_FF||_F, and the q-th smallest over the terms a of
     a's (q-1)-th cheapest pair (each of q terms left out has q - 1 partners).
+    Returns the fraction of these costs that counts (see :data:`DROP_MARGIN`;
+    ``minpiv``: T's smallest squared pivot); ``drop`` has it applied already.
     """
     for a in range(f):  # Winv = inverse of L's free block (lower triangular)
         for b in range(f):
@@ -458,6 +443,9 @@ def _drop_costs(L, theta, k, f, Winv, Hff, hdiag, pcost, pairs, delta, column,
             else:
                 frob += 2.0 * acc * acc
     frob = np.sqrt(frob)
+    cond = max(1.0 / minpiv, frob)
+    safety = min(1.0 - 1e-6, 1.0 - DROP_MARGIN * 2.220446049250313e-16 * (k + f) * cond)
+    safety = max(safety, 0.0)
     for a in range(f):
         ta = theta[k + a]
         delta[a] = ta * ta / hdiag[a]
@@ -492,7 +480,8 @@ def _drop_costs(L, theta, k, f, Winv, Hff, hdiag, pcost, pairs, delta, column,
                 column[a] = pairs[a, q - 2]
             _shell_sort(column, f)
             d = max(d, column[q - 1])
-        drop[q] = max(DROP_SAFETY * d, drop[q - 1])  # leaving out more never costs less
+        drop[q] = max(safety * d, drop[q - 1])  # leaving out more never costs less
+    return safety
 
 
 @jit
@@ -618,6 +607,7 @@ def expand(gram, r_ext, pen, n, scale, floor, rank_tol, tol, heap_bound, heap_in
     hdiag = np.empty(m)
     column = np.empty(m)
     drop = np.empty(m + 1)
+    safety = 0.0
     prefmin = np.empty(m + 1)
     wvals = np.empty(m + 1)
     cored = np.zeros(m + 1, dtype=np.bool_)
@@ -703,8 +693,11 @@ def expand(gram, r_ext, pen, n, scale, floor, rank_tol, tol, heap_bound, heap_in
                     break
             # --- the cost of leaving out free terms, and the bound of each size t - q
             if not have_drops:
-                _drop_costs(L, theta, k, f, Winv, Hff, hdiag, pcost, pairs, delta, column,
-                            drop)
+                minpiv = 1.0
+                for j in range(t):
+                    minpiv = min(minpiv, L[j, j] * L[j, j])
+                safety = _drop_costs(L, theta, k, f, Winv, Hff, hdiag, pcost, pairs, delta,
+                                     column, drop, minpiv)
                 for q in range(f + 1):
                     cored[q] = False
                 have_drops = True
@@ -724,7 +717,7 @@ def expand(gram, r_ext, pen, n, scale, floor, rank_tol, tol, heap_bound, heap_in
                                 edges[n_edges] = pcost[a, b]
                                 n_edges += 1
                         _shell_sort(edges, n_edges)
-                    core = DROP_SAFETY * _core_bound(pcost, f, q, edges, n_edges, deg, gone)
+                    core = safety * _core_bound(pcost, f, q, edges, n_edges, deg, gone)
                     if core > drop[q]:
                         drop[q] = core
                         wq = _value(sse_t + core, t - q, n, scale, floor, pen)
@@ -773,13 +766,13 @@ def expand(gram, r_ext, pen, n, scale, floor, rank_tol, tol, heap_bound, heap_in
             bound_p = max(bound0, prefmin[f - p])
             if bound_p >= best[0] - tol:
                 break
-            dp = DROP_SAFETY * delta[order[p]]
+            dp = safety * delta[order[p]]
             ob = np.inf
             for q in range(1, f - p + 1):
                 # chain[p] and q - 1 others: at least its (q-1)-th cheapest pair
                 dq = max(dp, drop[q])
                 if q >= 2:
-                    dq = max(dq, DROP_SAFETY * pairs[order[p], q - 2])
+                    dq = max(dq, safety * pairs[order[p], q - 2])
                 vq = _value(sse_t + dq, t - q, n, scale, floor, pen)
                 if f - q <= amax:
                     vq = max(vq, small[f - q])

@@ -22,7 +22,7 @@ import os
 
 import numpy as np
 
-__all__ = ["HAVE_NUMBA", "fit_structures", "jit", "jit_exact"]
+__all__ = ["HAVE_NUMBA", "csne_step", "fit_structures", "jit", "jit_exact"]
 
 try:
     if os.environ.get("SPM_SYSID_NO_NUMBA"):
@@ -47,6 +47,42 @@ except ImportError:  # pragma: no cover - numba is a dependency; kept for odd in
         return fn
 
     jit_exact = jit
+
+
+@jit
+def csne_step(L, r_ext, cols, k, yi, theta, r, g):  # pragma: no cover - compiled
+    """One corrected semi-normal step for the columns cols[:k] of r_ext.
+
+    ``theta`` (k coefficients from the Cholesky factor L of their Gram matrix)
+    is improved in place by ``(L L^T)^-1 A^T r``; ``r`` ends as the residual of
+    the target (column yi) for the improved theta.
+    """
+    rows = r_ext.shape[0]
+    for rnd in range(2):
+        for q in range(rows):
+            acc = r_ext[q, yi]
+            for j in range(k):
+                acc -= r_ext[q, cols[j]] * theta[j]
+            r[q] = acc
+        if rnd == 1:
+            break
+        for j in range(k):
+            acc = 0.0
+            for q in range(rows):
+                acc += r_ext[q, cols[j]] * r[q]
+            g[j] = acc
+        for j in range(k):  # L w = g
+            acc = g[j]
+            for p in range(j):
+                acc -= L[j, p] * g[p]
+            g[j] = acc / L[j, j]
+        for j in range(k - 1, -1, -1):  # L^T d = w
+            acc = g[j]
+            for p in range(j + 1, k):
+                acc -= L[p, j] * g[p]
+            g[j] = acc / L[j, j]
+        for j in range(k):
+            theta[j] += g[j]
 
 
 @jit
@@ -154,31 +190,7 @@ def fit_structures(gram, r_ext, idx, offsets, rank_tol, y_norm, n, refine_all,
         err = eps * (y_norm + np.sqrt(tnorm)) ** 2
         if refine_all or n * err > 1e-7 * ssq or ssq == 0.0:
             # corrected semi-normal equations on R_ext: theta += (Ls Ls^T)^-1 A^T r
-            for rnd in range(2):
-                for q in range(rows):
-                    acc = r_ext[q, m]
-                    for j in range(k):
-                        acc -= r_ext[q, cols[j]] * theta[s + j]
-                    r[q] = acc
-                if rnd == 1:
-                    break
-                for j in range(k):
-                    acc = 0.0
-                    for q in range(rows):
-                        acc += r_ext[q, cols[j]] * r[q]
-                    g[j] = acc
-                for j in range(k):  # Ls w = g
-                    acc = g[j]
-                    for p in range(j):
-                        acc -= L[j, p] * g[p]
-                    g[j] = acc / L[j, j]
-                for j in range(k - 1, -1, -1):  # Ls^T d = w
-                    acc = g[j]
-                    for p in range(j + 1, k):
-                        acc -= L[p, j] * g[p]
-                    g[j] = acc / L[j, j]
-                for j in range(k):
-                    theta[s + j] += g[j]
+            csne_step(L, r_ext, cols, k, m, theta[s:s + k], r, g)
             ssq = 0.0
             for q in range(rows):
                 ssq += r[q] * r[q]
