@@ -26,8 +26,7 @@ again:
 * F sorted by delta, largest first, gives the chain "F[0] in, F[1] in, ...":
   chain node p fixes ``I + F[:p]``; its "out" child (``F[p]`` left out, ``SSE >=
   SSE(T) + delta_F[p]`` exactly) is pushed with its own bound; the chain stops
-  where its bound reaches the incumbent. The chain's structures ``I + F[:p]``
-  are incumbent candidates too; candidates are refitted accurately
+  where its bound reaches the incumbent. Candidates are refitted accurately
   (:func:`_consider`) before they count.
 
 Values are ``n ln(max(SSE, floor) * scale / n) + pen[k]``, the evaluator's
@@ -579,7 +578,6 @@ def expand(gram, r_ext, pen, n, scale, floor, rank_tol, tol, heap_bound, heap_in
     chain = np.empty(m + 1, dtype=np.int64)
     order = np.empty(m + 1, dtype=np.int64)
     L = np.zeros((m + 1, m + 1))
-    L2 = np.zeros((m + 1, m + 1))
     Lc = np.zeros((m + 1, m + 1))
     Winv = np.zeros((m, m))
     Hff = np.zeros((m, m))
@@ -736,30 +734,10 @@ def expand(gram, r_ext, pen, n, scale, floor, rank_tol, tol, heap_bound, heap_in
             break
         if cut:
             continue
-        # --- the chain, F by delta, largest first; its structures I + chain[:p] as
-        # incumbent candidates (prefix SSEs from one factor in chain order)
+        # --- the chain, F by delta, largest first
         _order_descending(delta, f, order)
         for a in range(f):
             chain[a] = cols[k + order[a]]
-        for a in range(k):
-            L2[a, :a + 1] = L[a, :a + 1]
-        for a in range(f):
-            cols[k + a] = chain[a]
-        _cholesky_rows(gram, cols, k, t + 1, L2)
-        ssq = gram[yi, yi]
-        for j in range(k):
-            ssq -= L2[t, j] * L2[t, j]
-        for p in range(1, f + 1):
-            kk = k + p
-            ssq -= L2[t, kk - 1] * L2[t, kk - 1]
-            if not L2[kk - 1, kk - 1] * L2[kk - 1, kk - 1] > rank_tol:
-                break
-            if p > amax and _value(ssq, kk, n, scale, floor, pen) < best[0] - tol:
-                for j in range(kk):
-                    cand[j] = cols[j]
-                counts[2] += 1
-                _consider(gram, r_ext, cand, kk, yi, rank_tol, near, n, scale, floor, pen,
-                          best, best_mask, pending, counts, Lc, theta2, r, g)
         # --- walk the chain: node p fixes I + chain[:p]; push its "out" child
         child_in[:] = inside
         for p in range(f):

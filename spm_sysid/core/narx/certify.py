@@ -23,9 +23,9 @@ node it bounds every size ``|I| .. |T|`` separately and takes the least:
   a core of the graph of cheap pairs must hold them).
 
 Incumbents: the warm start (the GA's result, else forward selection), improved
-by a local search (one term added, removed or swapped), then every best small
-subset and the greedy chain of each node, refitted accurately before they
-count. Values match the evaluator's (:class:`StructureEvaluator`, the GA's own
+by a local search (one term added, removed or swapped), then each node's best
+subset of each size it enumerates, refitted accurately before it counts.
+Values match the evaluator's (:class:`StructureEvaluator`, the GA's own
 numbers): candidates with a squared pivot within ``NEAR_RANK`` of the rank
 tolerance are scored by the evaluator itself, and the result is re-scored by
 it, so "optimal" means: no structure scores lower than the result by more than
