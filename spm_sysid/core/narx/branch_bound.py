@@ -108,6 +108,16 @@ def _value(sse, k, n, scale, floor, pen):  # pragma: no cover - compiled
 
 
 @jit
+def _swap(heap_bound, heap_in, heap_free, i, j):  # pragma: no cover - compiled
+    """Exchange open nodes i and j."""
+    heap_bound[i], heap_bound[j] = heap_bound[j], heap_bound[i]
+    for w in range(heap_in.shape[1]):
+        a, b = heap_in[i, w], heap_free[i, w]
+        heap_in[i, w], heap_free[i, w] = heap_in[j, w], heap_free[j, w]
+        heap_in[j, w], heap_free[j, w] = a, b
+
+
+@jit
 def _push(heap_bound, heap_in, heap_free, size, bound, inside, free):  # pragma: no cover
     i = size
     heap_bound[i] = bound
@@ -117,11 +127,7 @@ def _push(heap_bound, heap_in, heap_free, size, bound, inside, free):  # pragma:
         parent = (i - 1) // 2
         if heap_bound[parent] <= heap_bound[i]:
             break
-        heap_bound[parent], heap_bound[i] = heap_bound[i], heap_bound[parent]
-        for w in range(heap_in.shape[1]):
-            a, b = heap_in[parent, w], heap_free[parent, w]
-            heap_in[parent, w], heap_free[parent, w] = heap_in[i, w], heap_free[i, w]
-            heap_in[i, w], heap_free[i, w] = a, b
+        _swap(heap_bound, heap_in, heap_free, parent, i)
         i = parent
     return size + 1
 
@@ -147,11 +153,7 @@ def _pop(heap_bound, heap_in, heap_free, size, inside, free):  # pragma: no cove
             child = left + 1
         if heap_bound[i] <= heap_bound[child]:
             break
-        heap_bound[child], heap_bound[i] = heap_bound[i], heap_bound[child]
-        for w in range(heap_in.shape[1]):
-            a, b = heap_in[child, w], heap_free[child, w]
-            heap_in[child, w], heap_free[child, w] = heap_in[i, w], heap_free[i, w]
-            heap_in[i, w], heap_free[i, w] = a, b
+        _swap(heap_bound, heap_in, heap_free, child, i)
         i = child
     return bound, size
 
