@@ -323,7 +323,7 @@ def _small_sizes(S, c, zz, f, amax, exact, chosen, lrow, w, gsum,
         chosen[a, 0] = -1  # no set of that size found (yet)
     exact[0] = zz
     if amax == 0:
-        return zz
+        return
     depth = 0
     pick[0] = -1
     while depth >= 0:
@@ -361,22 +361,10 @@ def _small_sizes(S, c, zz, f, amax, exact, chosen, lrow, w, gsum,
             pick[depth] = e
     for a in range(1, amax + 1):
         exact[a] = max(0.0, zz - min(gsum[a], zz) - SMALL_MARGIN * zz)
-    return zz
 
 
 @jit
 def _visits_for(f, budget):  # pragma: no cover - compiled
-    """Largest a such that all subsets of up to a of f terms number at most budget."""
-    total, comb = 1, 1
-    for a in range(1, f + 1):
-        comb = comb * (f - a + 1) // a
-        total += comb
-        if total > budget:
-            return a - 1
-    return f
-
-
-def visits_for(f: int, budget: int) -> int:
     """Largest a such that all subsets of up to a of f terms number at most budget."""
     total, comb = 1, 1
     for a in range(1, f + 1):

@@ -409,11 +409,10 @@ def certify(
     warm_value = float(warm_value) if np.isfinite(warm_value) else None
 
     budget = ENUMERATION_BUDGET if enumeration_budget is None else int(enumeration_budget)
-    best0 = best_value if np.isfinite(best_value) else np.inf
     # node_limit asks for an exact count: one worker then
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     workers = 1 if node_limit is not None else max(1, min(int(threads or cores or 1), 8))
-    heaps = [_OpenNodes(mu, best0, best_full[usable], workers) for _ in range(workers)]
+    heaps = [_OpenNodes(mu, best_value, best_full[usable], workers) for _ in range(workers)]
     heaps[0].push_root(mu)
     args = (gram, r_aug, pen, float(n), ev.sse_scale, ev._sse_floor, ev.rank_tol, tolerance)
     near = NEAR_RANK * ev.rank_tol
@@ -436,9 +435,7 @@ def certify(
                 h.settle(ev, usable)
             _share_best(heaps)
             now = time.perf_counter()
-            if all(r == DONE for r in results) and not any(h.size and h.open_bound()
-                                                          < h.best[0] - tolerance
-                                                          for h in heaps):
+            if all(r == DONE for r in results):  # the incumbent only improves: stays proved
                 break
             full = [h for h, r in zip(busy, results) if r == FULL]
             if any(not h.grow() for h in full):
