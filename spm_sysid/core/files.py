@@ -1,22 +1,105 @@
-"""Writing result files safely: check destinations first, replace files atomically.
+"""Reading inputs and writing results safely: files that are only ever files.
 
-A long search must not end in "cannot write": destinations are checked
-before it starts (:func:`check_writable_file`, :func:`check_writable_dir`).
-Files are written to a temporary file in the same directory and moved into
-place with :func:`os.replace`, so a reader never sees half a file and a failed
-write leaves the old file as it was.
+Writing. A long search must not end in "cannot write": destinations are
+checked before it starts (:func:`check_writable_file`, :func:`check_writable_dir`).
+A destination is a regular file or a path where none exists yet; a symbolic
+link is followed to the file it names (that file is replaced, the link stays);
+anything else -- a character device such as ``/dev/null``, a pipe, a socket,
+a directory -- is refused, so saving never replaces a device or a link with a
+regular file. Files are written to a temporary file in the same directory and
+moved into place with :func:`os.replace`, so a reader never sees half a file
+and a failed write leaves the old file as it was. Where the file cannot be
+replaced because it is a mount point of its own (a file bind-mounted into a
+container: ``docker -v model.json:/out/model.json``), it is written in place.
+
+Reading (:func:`read_bytes`). A path is opened once and read from that one
+handle, so a pipe (``<(cat f)``, ``/dev/stdin``) loses nothing; only regular
+files and pipes are read (``/dev/zero`` would never end), and what is read is
+checked against the memory bound as it grows.
 """
 
 from __future__ import annotations
 
+import errno
 import os
+import stat
 import tempfile
 from pathlib import Path
 
-from .errors import FileCheckError
+from .errors import DataError, FileCheckError
 
 __all__ = ["FileCheckError", "atomic_write_bytes", "atomic_write_text",
-           "check_writable_dir", "check_writable_file"]
+           "check_writable_dir", "check_writable_file", "file_kind", "read_bytes",
+           "resolve_destination", "same_file"]
+
+#: Bytes read at a time from a pipe.
+_CHUNK = 1 << 22
+
+
+def file_kind(mode: int) -> str:
+    """What a file is, in words (``a character device``, ``a pipe`` ...)."""
+    for test, text in ((stat.S_ISREG, "a regular file"), (stat.S_ISDIR, "a directory"),
+                       (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
+                       (stat.S_ISFIFO, "a pipe"), (stat.S_ISSOCK, "a socket")):
+        if test(mode):
+            return text
+    return "not a regular file"
+
+
+def read_bytes(path: str | os.PathLike, what: str = "file", factor: float = 1.0,
+               error: type[ValueError] = DataError) -> bytes:
+    """All bytes of a regular file or a pipe, read once from one handle.
+
+    ``factor`` is the memory a byte read will need in the end (parsing makes
+    copies); the total is checked against the memory bound before a regular
+    file is read and as a pipe's bytes arrive.
+
+    Raises
+    ------
+    error (DataError by default)
+        Not found, a directory, not readable, or neither a regular file nor a pipe.
+    MemoryLimitError
+        More bytes than the memory bound allows.
+    """
+    from .memory import check_memory
+
+    path = Path(path)
+    try:
+        f = open(path, "rb")  # noqa: SIM115 - closed below; fstat needs the handle
+    except FileNotFoundError:
+        raise error(f"{what} not found: {path}") from None
+    except IsADirectoryError:
+        raise error(f"{path} is a directory, not a {what}") from None
+    except OSError as exc:
+        raise error(f"cannot read {what} {path}: {exc.strerror or exc}") from None
+    with f:
+        mode = os.fstat(f.fileno()).st_mode
+        if stat.S_ISDIR(mode):
+            raise error(f"{path} is a directory, not a {what}")
+        if not (stat.S_ISREG(mode) or stat.S_ISFIFO(mode)):
+            raise error(f"{path} is {file_kind(mode)}, not a {what}: only regular files and "
+                        "pipes are read")
+        label = f"reading {path}"
+        if stat.S_ISREG(mode):
+            size = os.fstat(f.fileno()).st_size
+            check_memory(size * factor, f"{label} ({size / 1e6:.0f} MB)")
+        parts, total = [], 0
+        try:
+            while chunk := f.read(_CHUNK):
+                parts.append(chunk)
+                total += len(chunk)
+                check_memory(total * factor, f"{label} (more than {total / 1e6:.0f} MB so far)")
+        except OSError as exc:
+            raise error(f"cannot read {what} {path}: {exc.strerror or exc}") from None
+    return b"".join(parts)
+
+
+def same_file(a: str | os.PathLike, b: str | os.PathLike) -> bool:
+    """True when both paths name one existing file (links and symlinks followed)."""
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return False
 
 
 def _nearest_existing(path: Path) -> Path:
@@ -45,41 +128,90 @@ def check_writable_dir(path: str | os.PathLike, what: str = "directory") -> Path
     return path
 
 
-def check_writable_file(path: str | os.PathLike, what: str = "file") -> Path:
-    """Check that a file can be written (created or replaced) at ``path``.
+def resolve_destination(path: str | os.PathLike, what: str = "file") -> Path:
+    """The regular file a result goes to: symlinks followed; anything else refused.
 
     Raises
     ------
     FileCheckError
-        Empty path, a directory, or a location that is not writable.
+        Empty path; an existing directory, device, pipe or socket; a read-only
+        file; a symlink loop.
     """
     if not str(path).strip():
         raise FileCheckError(f"{what} path is empty")
-    path = Path(path)
-    if path.is_dir():
-        raise FileCheckError(f"{what} {path} is a directory")
-    if path.exists() and not os.access(path, os.W_OK):
-        raise FileCheckError(f"cannot write {what} {path}: the file is read-only")
-    check_writable_dir(path.parent, f"the directory of {what}")
-    return path
+    given = Path(path)
+    try:
+        real = Path(os.path.realpath(given, strict=False))
+    except OSError as exc:  # e.g. a symlink loop
+        raise FileCheckError(f"cannot write {what} {given}: {exc.strerror or exc}") from None
+    try:
+        mode = os.stat(real).st_mode
+    except (FileNotFoundError, NotADirectoryError):  # the directory check names the cause
+        return real
+    except OSError as exc:
+        raise FileCheckError(f"cannot write {what} {given}: {exc.strerror or exc}") from None
+    via = f" (a link to {real})" if real != given.absolute() else ""
+    if stat.S_ISDIR(mode):
+        raise FileCheckError(f"{what} {given}{via} is a directory")
+    if not stat.S_ISREG(mode):
+        raise FileCheckError(f"{what} {given}{via} is {file_kind(mode)}, not a regular file; "
+                             "results are written to regular files only (nothing was changed)")
+    if not os.access(real, os.W_OK):
+        raise FileCheckError(f"cannot write {what} {given}: the file is read-only")
+    return real
+
+
+def check_writable_file(path: str | os.PathLike, what: str = "file") -> Path:
+    """Check that a file can be written (created or replaced) at ``path``.
+
+    Returns the file that will be written (symlinks followed).
+
+    Raises
+    ------
+    FileCheckError
+        See :func:`resolve_destination`; also a directory that cannot be written.
+    """
+    real = resolve_destination(path, what)
+    check_writable_dir(real.parent, f"the directory of {what}")
+    return real
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
-    """Write ``data`` to ``path`` all at once (temporary file + rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    """Write ``data`` to ``path`` all at once (temporary file + rename).
+
+    ``path`` is checked as :func:`resolve_destination` does: a symlink is
+    followed (the file it names is replaced, the link stays), a device, pipe or
+    directory is refused. A file that is a mount point of its own (bind-mounted)
+    cannot be renamed over and is written in place instead. Returns ``path``.
+    """
+    real = resolve_destination(path)
+    real.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{real.name}.", suffix=".tmp", dir=real.parent)
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
         os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
+        try:
+            os.replace(tmp, real)
+        except OSError as exc:
+            if exc.errno not in (errno.EBUSY, errno.EXDEV) or not real.is_file():
+                raise
+            _write_in_place(real, data)  # a bind-mounted file: rename cannot replace it
+            Path(tmp).unlink(missing_ok=True)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
-    return path
+    return Path(path)
+
+
+def _write_in_place(path: Path, data: bytes) -> None:
+    with open(path, "r+b") as f:
+        f.write(data)
+        f.truncate()
+        f.flush()
+        os.fsync(f.fileno())
 
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> Path:

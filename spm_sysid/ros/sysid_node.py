@@ -16,7 +16,6 @@ import os
 import sys
 import threading
 import time
-from pathlib import Path
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -33,7 +32,7 @@ from rclpy.task import Future
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
 from std_srvs.srv import Trigger
 
-from ..core.errors import FieldPathError, ModelFormatError
+from ..core.errors import FieldPathError
 from ..core.files import atomic_write_text, check_writable_file
 from ..core.io.channels import parse_channels, stream_order, topic_streams
 from ..core.io.fields import default_field, extract, message_stamp_ns, parse_path
@@ -298,7 +297,7 @@ class SysidNode(Node):
         if model_path:
             try:
                 atomic_write_text(model_path, json.dumps(doc, indent=2, allow_nan=False) + "\n")
-            except OSError as exc:
+            except (OSError, ValueError) as exc:
                 raise RuntimeError(f"the model could not be saved to {model_path} ({exc}); "
                                    "nothing was published") from None
             self.get_logger().info(f"model saved to {model_path}")
@@ -320,17 +319,20 @@ class SysidNode(Node):
         self._model = doc
 
     def _republish_saved(self, path: str) -> None:
-        """At start-up: publish the model saved by an earlier run again, latched."""
-        if not os.path.isfile(path):
+        """At start-up: publish the model saved by an earlier run again, latched.
+
+        A file that holds no readable model (damaged, hand-edited, not JSON, numbers
+        out of range, NaN anywhere) is reported and left alone; the node starts.
+        """
+        if not os.path.lexists(path):
             return
         try:
-            doc = json.loads(Path(path).read_text())  # as saved, with its 'created' stamp
-            NarxModel.from_dict(doc)  # checks the document
-        except (ModelFormatError, OSError, ValueError) as exc:
+            _, doc = NarxModel.read_document(path)  # as saved, with its 'created' stamp
+            self._publish_model(doc)
+        except Exception as exc:  # noqa: BLE001 - whatever is in the file, the node starts
             self.get_logger().warning(f"model_path {path} holds no readable model ({exc}); "
                                       "nothing re-published")
             return
-        self._publish_model(doc)
         self._restored_from = path
         self.get_logger().info(f"published the model saved in {path} "
                                f"({len(doc['terms'])} terms) again")

@@ -254,9 +254,22 @@ class _Progress:
 
 
 def _check_outputs(args) -> None:
-    """Check --json and --plots destinations before any work (a search must not be lost)."""
+    """Check --json and --plots destinations before any work (a search must not be lost).
+
+    A destination that is one of the inputs (``--json`` naming the ``--data`` file)
+    is refused: the recording would be overwritten by the model.
+    """
+    from ..core.files import same_file
+
+    data = getattr(args, "data", None) or []
+    inputs = [p for p in ([data] if isinstance(data, str) else data)
+              + [getattr(args, "model", None)] if p]
     if getattr(args, "json", None):
         check_writable_file(args.json, "--json")
+        for p in inputs:
+            if same_file(args.json, p):
+                raise UserError(f"--json {args.json} is the input {p}: it would be "
+                                "overwritten; give another path")
     if getattr(args, "plots", None):
         check_writable_dir(args.plots, "--plots directory")
 

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ModelFormatError
-from ..files import atomic_write_text
+from ..files import atomic_write_text, read_bytes
 from .lstsq import reference_fit
 from .simulation import CompiledModel, divergence_bounds, run_model
 from .terms import TermSpace, power_of_two_scale
@@ -294,7 +294,7 @@ class NarxModel:
             raise ModelFormatError("term_indices lists a term more than once")
         bad = [c for c in coefs if not _is_number(c)]
         if bad:
-            raise ModelFormatError(f"coefficients must be numbers, got {bad[0]!r}")
+            raise ModelFormatError(f"coefficients must be numbers, got {_show(bad[0])}")
         if not all(math.isfinite(c) for c in coefs):
             raise ModelFormatError("coefficients must be finite (NaN or inf found)")
         if not all(isinstance(n, str) for n in names):
@@ -317,7 +317,7 @@ class NarxModel:
             value = doc.get(key)
             if value is not None and not (_is_int(value) if key == "n_samples"
                                           else _is_number(value)):
-                raise ModelFormatError(f"{key!r} must be a number or null, got {value!r}")
+                raise ModelFormatError(f"{key!r} must be a number or null, got {_show(value)}")
         metadata = doc.get("metadata") or {}
         if not isinstance(metadata, dict):
             raise ModelFormatError("'metadata' must be an object")
@@ -342,20 +342,35 @@ class NarxModel:
 
     @classmethod
     def load(cls, path: str | Path) -> NarxModel:
-        """Read a model saved with :meth:`save`."""
+        """Read a model saved with :meth:`save` (see :meth:`read_document`)."""
+        return cls.read_document(path)[0]
+
+    @classmethod
+    def read_document(cls, path: str | Path) -> tuple[NarxModel, dict]:
+        """The model in a file and the document as it was saved.
+
+        Only regular files (or pipes) are read, within the memory bound; the
+        JSON must be strict (no NaN or Infinity anywhere) and every number in
+        range.
+
+        Raises
+        ------
+        ModelFormatError
+            Missing, unreadable or not a model document; the message says why.
+        """
         path = Path(path)
+        raw = read_bytes(path, "model file", factor=20, error=ModelFormatError)
         try:
-            doc = json.loads(path.read_text(), parse_constant=_reject_constant)
-        except FileNotFoundError:
-            raise ModelFormatError(f"model file not found: {path}") from None
-        except IsADirectoryError:
-            raise ModelFormatError(f"{path} is a directory, not a model file") from None
+            doc = json.loads(raw.decode("utf-8-sig"), parse_constant=_reject_constant)
         except UnicodeDecodeError:
             raise ModelFormatError(f"{path} is not a text (JSON) file") from None
+        except RecursionError:
+            raise ModelFormatError(f"{path} is not a model document (JSON nested too "
+                                   "deeply)") from None
         except (json.JSONDecodeError, ValueError) as exc:
             raise ModelFormatError(f"{path} is not valid JSON: {exc}") from None
         try:
-            return cls.from_dict(doc)
+            return cls.from_dict(doc), doc
         except ModelFormatError as exc:
             raise ModelFormatError(f"{path}: {exc}") from None
 
@@ -369,7 +384,20 @@ def _is_int(x) -> bool:
 
 
 def _is_number(x) -> bool:
-    return isinstance(x, (int, float)) and not isinstance(x, bool)
+    """A JSON number that fits a float (``10**400`` does not)."""
+    if isinstance(x, bool) or not isinstance(x, (int, float)):
+        return False
+    try:
+        float(x)
+    except OverflowError:
+        return False
+    return True
+
+
+def _show(x) -> str:
+    """A value for a message (a huge integer abbreviated)."""
+    text = repr(x)
+    return text if len(text) <= 40 else f"{text[:12]}... ({len(text)} digits, beyond any float)"
 
 
 def _json_float(x: float | None) -> float | None:
