@@ -208,3 +208,105 @@ def test_running_out_of_room_for_open_nodes_stops_with_a_valid_bound(monkeypatch
     cert = certify_data(u, y, term_space=TermSpace(), criterion="bic", time_limit=60)
     assert cert.status == "limit" and cert.reason.startswith("memory limit (")
     assert cert.lower_bound < cert.value and cert.gap > 0 and len(cert.terms) > 0
+
+
+# -- issue 17: the memory bound and the time limit hold in every phase --------------------
+
+_MAXRSS = ("import resource, sys\n"
+           "from spm_sysid.apps.main import main\n"
+           "code = main(sys.argv[1:])\n"
+           "print('maxrss', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, file=sys.stderr)\n"
+           "sys.exit(code)\n")
+
+
+@pytest.mark.parametrize("extra", [[], ["--no-ga"]])
+def test_a_20000_term_certification_is_refused_within_the_bound(extra):
+    """The review's case grew to 23.5 GB and was killed; with 2G it allocated 23 GiB."""
+    env = dict(__import__("os").environ, SPM_SYSID_MAX_MEMORY="2G")
+    r = subprocess.run([sys.executable, "-c", _MAXRSS, "certify", "--ny", "100", "--nu", "100",
+                        "--time-limit", "20", *extra], capture_output=True, text=True, cwd=ROOT,
+                       timeout=120, env=env)
+    assert r.returncode == 2 and "20300 candidate terms" in r.stderr, r.stderr
+    assert "limit of 2.0 GB (SPM_SYSID_MAX_MEMORY)" in r.stderr
+    maxrss_kb = int(r.stderr.split("maxrss")[1].split()[0])
+    assert maxrss_kb < 2 * 2**20  # nothing near the bound was ever allocated
+
+
+def test_ulimit_v_bounds_the_memory_too():
+    script = (f"ulimit -v 4000000; exec {sys.executable} -m spm_sysid.apps.main certify "
+              "--ny 100 --nu 100 --time-limit 20 --no-ga")
+    env = {k: v for k, v in __import__("os").environ.items() if k != "SPM_SYSID_MAX_MEMORY"}
+    r = subprocess.run(["bash", "-c", script], capture_output=True, text=True, cwd=ROOT,
+                       timeout=120, env=env)
+    assert r.returncode == 2 and "address space left under ulimit -v" in r.stderr, r.stderr
+
+
+def test_certify_refuses_a_problem_beyond_the_bound_before_building_it(monkeypatch):
+    from spm_sysid.core.errors import MemoryLimitError
+
+    monkeypatch.setenv("SPM_SYSID_MAX_MEMORY", "64M")
+    P = np.ones((400, 3000))
+    with pytest.raises(MemoryLimitError, match="certifying 3000 candidate terms on 400 rows"):
+        certify(P, P[:, 0], "bic", time_limit=5)
+
+
+def test_a_search_stopped_in_its_set_up_reports_a_finite_bound(robot_arm):
+    """The time limit counts from the caller's start; the trivial bound is still valid."""
+    import time
+
+    u, y = robot_arm
+    cert = certify_data(u, y, term_space=TermSpace(), criterion="bic", time_limit=1.0,
+                        started=time.perf_counter() - 5.0)
+    assert cert.status == "limit" and "setting the search up" in cert.reason
+    assert cert.nodes == 0 and np.isfinite(cert.lower_bound) and cert.lower_bound < cert.value
+    json.dumps(cert.to_dict(), allow_nan=False)
+    assert cert.lower_bound <= -10707.48  # below the certified BIC optimum
+
+
+def test_the_local_search_in_small_batches_finds_the_same(monkeypatch):
+    import spm_sysid.core.narx.certify as certify_module
+
+    P, t = _problem("structured", 2)
+    start = np.zeros(P.shape[1], dtype=bool)
+    start[:2] = True
+    usable = np.arange(P.shape[1])
+    whole = certify_module.polish(StructureEvaluator(P, t, "aic"), start, usable)
+    monkeypatch.setattr(certify_module, "SWAP_BATCH_BITS", 3 * P.shape[1])
+    batched = certify_module.polish(StructureEvaluator(P, t, "aic"), start, usable)
+    assert np.array_equal(whole[0], batched[0]) and whole[1] == pytest.approx(batched[1])
+    ev = StructureEvaluator(P, t, "aic")
+    assert whole[1] <= ev.cached_score(start)  # never worse than where it started
+
+
+def test_a_control_group_limit_bounds_the_memory(tmp_path):
+    """A container's (or systemd unit's) memory limit, not only the machine's free memory."""
+    import os
+    import uuid
+
+    name = f"spm_sysid_test_{uuid.uuid4().hex[:8]}"
+    for base, limit_file in (("/sys/fs/cgroup/memory", "memory.limit_in_bytes"),
+                             ("/sys/fs/cgroup", "memory.max")):
+        group = os.path.join(base, name)
+        try:
+            os.mkdir(group)
+        except OSError:
+            continue
+        try:
+            with open(os.path.join(group, limit_file), "w") as f:
+                f.write(str(2**30))
+        except OSError:
+            os.rmdir(group)
+            continue
+        break
+    else:
+        pytest.skip("no writable cgroup memory controller here (needs root)")
+    env = {k: v for k, v in os.environ.items() if k != "SPM_SYSID_MAX_MEMORY"}
+    try:
+        r = subprocess.run(
+            ["sh", "-c", f"echo $$ > {group}/cgroup.procs && exec {sys.executable} -m "
+             "spm_sysid.apps.main certify --ny 40 --nu 40 --time-limit 20 --no-ga"],
+            capture_output=True, text=True, cwd=ROOT, timeout=120, env=env)
+    finally:
+        os.rmdir(group)
+    assert r.returncode == 2, r.stderr
+    assert "memory its control group may still take" in r.stderr, r.stderr

@@ -3,19 +3,29 @@
 Large inputs fail early with a message that says how much they would need,
 instead of exhausting the machine. The bound is ``SPM_SYSID_MAX_MEMORY``
 (bytes, or with a suffix: ``8G``, ``512M``) when set, otherwise half of the
-memory the system reports as available (``MemAvailable`` in /proc/meminfo;
-8 GiB where that cannot be read).
+memory this process can still use: the least of
+
+* what the system reports as available (``MemAvailable`` in /proc/meminfo),
+* what the process's control group may still take (cgroup v2 ``memory.max``
+  minus ``memory.current``, or cgroup v1 ``memory.limit_in_bytes`` minus
+  ``memory.usage_in_bytes``: a container's or a systemd unit's limit),
+* the address space left under ``ulimit -v`` (``RLIMIT_AS`` minus the
+  process's current size),
+
+or 8 GiB where none of these can be read.
 """
 
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 from .errors import MemoryLimitError
 
 __all__ = ["MemoryLimitError", "check_memory", "format_bytes", "memory_limit"]
 
 _SUFFIX = {"K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}
+_UNLIMITED = 2**60  # cgroup files say "max" or a huge number for "no limit"
 
 
 def format_bytes(n: float) -> str:
@@ -26,7 +36,20 @@ def format_bytes(n: float) -> str:
     return f"{int(n)} bytes"
 
 
-def _available() -> int | None:
+def _read_int(path: Path) -> int | None:
+    try:
+        text = path.read_text().split()[0]
+    except (OSError, IndexError):
+        return None
+    if text == "max":
+        return _UNLIMITED
+    try:
+        return int(text)
+    except ValueError:
+        return None
+
+
+def _meminfo() -> int | None:
     try:
         with open("/proc/meminfo") as f:
             for line in f:
@@ -35,6 +58,56 @@ def _available() -> int | None:
     except (OSError, ValueError, IndexError):
         return None
     return None
+
+
+def _cgroup_room() -> int | None:
+    """Memory the process's control group may still take (None: no limit found)."""
+    try:
+        lines = Path("/proc/self/cgroup").read_text().splitlines()
+    except OSError:
+        return None
+    rooms = []
+    for line in lines:
+        parts = line.split(":", 2)
+        if len(parts) != 3:
+            continue
+        _, controllers, rel = parts
+        rel = rel.lstrip("/")
+        if controllers == "":  # cgroup v2
+            base = Path("/sys/fs/cgroup") / rel
+            limit, used = base / "memory.max", base / "memory.current"
+        elif "memory" in controllers.split(","):  # cgroup v1
+            base = Path("/sys/fs/cgroup/memory") / rel
+            if not base.is_dir():
+                base = Path("/sys/fs/cgroup/memory")
+            limit, used = base / "memory.limit_in_bytes", base / "memory.usage_in_bytes"
+        else:
+            continue
+        lim, cur = _read_int(limit), _read_int(used)
+        if lim is not None and lim < _UNLIMITED:
+            rooms.append(max(lim - (cur or 0), 0))
+    return min(rooms) if rooms else None
+
+
+def _address_space_room() -> int | None:
+    """Address space left under ``ulimit -v`` (None: unlimited or unknown)."""
+    try:
+        import resource
+    except ImportError:  # pragma: no cover - not POSIX
+        return None
+    soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+    if soft == resource.RLIM_INFINITY or soft <= 0:
+        return None
+    size = 0
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmSize:"):
+                    size = int(line.split()[1]) * 1024
+                    break
+    except (OSError, ValueError, IndexError):
+        pass
+    return max(soft - size, 0)
 
 
 def memory_limit() -> tuple[int, str]:
@@ -47,11 +120,18 @@ def memory_limit() -> tuple[int, str]:
         except ValueError:
             raise MemoryLimitError(f"SPM_SYSID_MAX_MEMORY={text!r} is not a size such as "
                                    "8G or 512M") from None
+        if value <= 0:
+            raise MemoryLimitError(f"SPM_SYSID_MAX_MEMORY={text!r} must be positive")
         return value, "SPM_SYSID_MAX_MEMORY"
-    avail = _available()
-    if avail is None:
+    sources = [(room, label) for room, label in (
+        (_meminfo(), "the available memory"),
+        (_cgroup_room(), "the memory its control group may still take"),
+        (_address_space_room(), "the address space left under ulimit -v"))
+        if room is not None]
+    if not sources:
         return 8 * 2**30, "the default of 8 GB"
-    return avail // 2, "half of the available memory"
+    room, label = min(sources)
+    return room // 2, f"half of {label}"
 
 
 def check_memory(needed: float, what: str) -> None:

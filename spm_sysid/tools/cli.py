@@ -336,9 +336,16 @@ def cmd_identify(args) -> int:
 
 def cmd_certify(args) -> int:
     import json
+    import time
 
     from ..core.files import atomic_write_text
-    from ..core.narx.certify import CERTIFIABLE, certify_data
+    from ..core.narx.certify import (
+        CERTIFIABLE,
+        certify_data,
+        check_certify_memory,
+        ensure_compiled,
+        search_is_compiled,
+    )
     from ..core.narx.identify import identify
 
     if args.criterion not in CERTIFIABLE:
@@ -354,21 +361,36 @@ def cmd_certify(args) -> int:
     data = _load(args)
     settings = _job_settings(args, data)
     segments, _ = data.segments(settings.term_space.max_lag)
+    lag = settings.term_space.max_lag
+    check_certify_memory(sum(b - a - lag for a, b in (segments or [(0, len(data.y))])),
+                         settings.term_space.n_terms)  # before the GA: nothing wasted
     print(f"data: {data.source}, {len(data.y)} samples; "
           f"{settings.term_space.n_terms} candidate terms, {args.criterion.upper()}")
+    if not search_is_compiled():
+        print("compiling the branch and bound (the first use on this machine, about 20 s; "
+              "cached after; not counted in --time-limit) ...", flush=True)
+        ensure_compiled()
+    started = time.perf_counter()  # --time-limit covers the warm start and the proof
     warm = None
     if not args.no_ga:
         progress = _Progress(settings.ga.generations, not args.quiet)
+
+        def on_generation(st):
+            progress(st.generation, st.best, st.evaluations)
+            # the warm start may take half the time limit; the proof gets the rest
+            return time.perf_counter() - started < 0.5 * args.time_limit
+
         try:
             res = identify(u=data.u, y=data.y, term_space=settings.term_space,
                            criterion=args.criterion, ga=settings.ga, seed=settings.seed,
-                           segments=segments,
-                           callback=lambda st: progress(st.generation, st.best, st.evaluations))
+                           segments=segments, callback=on_generation)
         finally:
             progress.close()
         warm = res.model.mask
+        stopped = (f", stopped at generation {len(res.ga.history) - 1} by half the time "
+                   "limit" if res.ga.stopped_early else "")
         print(f"warm start: the GA's best, {args.criterion.upper()} {res.ga.best_score:.2f} "
-              f"({int(warm.sum())} terms, {res.ga.elapsed:.2f} s)")
+              f"({int(warm.sum())} terms, {res.ga.elapsed:.2f} s{stopped})")
     bar = None
     if not args.quiet:
         from tqdm import tqdm
@@ -385,14 +407,15 @@ def cmd_certify(args) -> int:
         cert = certify_data(data.u, data.y, term_space=settings.term_space,
                             criterion=args.criterion, segments=segments, warm_start=warm,
                             time_limit=args.time_limit, node_limit=args.node_limit,
-                            progress=progress_bb, threads=args.threads)
+                            progress=progress_bb, threads=args.threads, started=started)
     finally:
         if bar is not None:
             bar.close()
     print(f"status: {cert.status}" + (f" ({cert.reason})" if cert.reason else ""))
     print(f"value: {cert.value:.4f}   lower bound: {cert.lower_bound:.4f}   gap: {cert.gap:.4f}")
     print(f"terms ({len(cert.terms)}): {' + '.join(cert.terms)}")
-    print(f"proof: {cert.nodes} nodes, {cert.seconds:.2f} s, bounds: {cert.bound}"
+    print(f"proof: {cert.nodes} nodes, {cert.seconds:.2f} s (warm start included), bounds: "
+          f"{cert.bound}"
           + (f"; improved on the warm start ({cert.warm_start:.4f})" if cert.improved else ""))
     if args.json:
         doc = {**cert.to_dict(), "criterion": args.criterion, "source": data.source,

@@ -43,12 +43,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..memory import check_memory, memory_limit
 from .branch_bound import DONE, FULL, expand, words_for
 from .criteria import Criterion, get_criterion
 from .evaluator import NEAR_RANK, StructureEvaluator
 from .lstsq import DEFAULT_RANK_TOL
 
-__all__ = ["CERTIFIABLE", "Certificate", "certify", "certify_data", "penalty_per_size"]
+__all__ = ["CERTIFIABLE", "Certificate", "certify", "certify_data", "check_certify_memory",
+           "ensure_compiled",
+           "penalty_per_size", "search_is_compiled"]
 
 #: Criteria whose penalty depends on the number of terms only (certifiable).
 CERTIFIABLE = ("aic", "bic")
@@ -141,8 +144,37 @@ def penalty_per_size(criterion: Criterion, n: int, m: int) -> np.ndarray:
 
 
 #: Open nodes (all workers') may use at most this much memory before the search stops
-#: with ``limit``.
+#: with ``limit`` (less when the memory bound leaves less; :mod:`spm_sysid.core.memory`).
 MAX_OPEN_BYTES = 1 << 30
+
+
+def setup_bytes(rows: int, m: int) -> float:
+    """Memory to set a certification of ``m`` candidates on ``rows`` rows up.
+
+    The regression matrix and its scaled copy, the evaluator's ``[P y]`` and QR
+    work space, its Gram matrix and triangular factor, and the search's copies of
+    both.
+    """
+    r = min(rows, m + 1)
+    return 8.0 * (4 * rows * (m + 1) + 2 * (m + 2) ** 2 + 2 * r * (m + 2))
+
+
+def worker_bytes(rows: int, m: int) -> float:
+    """Memory of one search worker's scratch space (about 14 (m+1)^2 numbers)."""
+    r = min(rows, m + 1)
+    return 8.0 * (14 * (m + 1) ** 2 + 2 * r * (m + 1))
+
+
+def check_certify_memory(rows: int, m: int) -> None:
+    """Refuse, before anything is built, a certification the memory bound cannot hold.
+
+    Raises
+    ------
+    MemoryLimitError
+        The set-up plus one search worker would exceed the bound.
+    """
+    check_memory(setup_bytes(rows, m) + worker_bytes(rows, m),
+                 f"certifying {m} candidate terms on {rows} rows")
 
 #: Subsets of its free terms a node enumerates exactly (its smallest sizes).
 ENUMERATION_BUDGET = 3000
@@ -151,38 +183,58 @@ ENUMERATION_BUDGET = 3000
 DEEP_FACTOR = 4
 
 
+#: Candidate structures scored at once by the local search (bounds its memory: a batch
+#: of structures over M terms takes SWAP_BATCH_BITS / 8 bytes of masks).
+SWAP_BATCH_BITS = 1 << 25
+
+
 def polish(ev: StructureEvaluator, mask: np.ndarray, usable: np.ndarray,
-           seconds: float = 5.0) -> tuple[np.ndarray, float]:
+           seconds: float = 5.0, deadline: float | None = None) -> tuple[np.ndarray, float]:
     """Local search from ``mask``: add, remove or swap one term while that helps.
 
     A good incumbent lets the branch and bound cut more; this costs a few
-    hundred evaluator calls per step.
+    hundred evaluator calls per step. Moves are scored in batches of bounded
+    size (:data:`SWAP_BATCH_BITS`), and the search stops after ``seconds`` or at
+    ``deadline`` (``time.perf_counter()``), whichever is first, between batches.
     """
     t0 = time.perf_counter()
+    stop = t0 + seconds if deadline is None else min(t0 + seconds, deadline)
     mask = np.asarray(mask, dtype=bool).copy()
     value = ev.cached_score(mask) if mask.any() else np.inf
     m = len(mask)
     allowed = np.zeros(m, dtype=bool)
     allowed[usable] = True
-    while time.perf_counter() - t0 < seconds:
-        inn, out = np.flatnonzero(mask), np.flatnonzero(~mask & allowed)
-        flips = np.repeat(mask[None, :], len(inn) + len(out), axis=0)
-        flips[np.arange(len(inn)), inn] = False
-        flips[len(inn) + np.arange(len(out)), out] = True
-        swaps = np.repeat(mask[None, :], len(inn) * len(out), axis=0)
-        rows = np.arange(len(swaps))
-        swaps[rows, np.repeat(inn, len(out))] = False
-        swaps[rows, np.tile(out, len(inn))] = True
-        cands = np.concatenate([flips, swaps])
-        cands = cands[cands.any(axis=1)]
-        if not len(cands):
+    rows = max(1, SWAP_BATCH_BITS // max(m, 1))
+    while time.perf_counter() < stop:
+        best_move, best_value = None, value - 1e-9
+        for moves in _moves(mask, allowed, rows):
+            scores = ev.score(moves)
+            i = int(np.argmin(scores))
+            if scores[i] < best_value:
+                best_move, best_value = moves[i].copy(), float(scores[i])
+            if time.perf_counter() >= stop:
+                break
+        if best_move is None:
             break
-        scores = ev.score(cands)
-        i = int(np.argmin(scores))
-        if not scores[i] < value - 1e-9:
-            break
-        mask, value = cands[i].copy(), float(scores[i])
+        mask, value = best_move, best_value
     return mask, value
+
+
+def _moves(mask: np.ndarray, allowed: np.ndarray, rows: int):
+    """Batches of at most ``rows`` neighbours: one term removed, added, or swapped."""
+    inn, out = np.flatnonzero(mask), np.flatnonzero(~mask & allowed)
+    none = np.full(len(inn) + len(out), -1)
+    drop = np.concatenate([inn, none[len(inn):], np.repeat(inn, len(out))])
+    add = np.concatenate([none[:len(inn)], out, np.tile(out, len(inn))])
+    for start in range(0, len(drop), rows):
+        d, a = drop[start:start + rows], add[start:start + rows]
+        batch = np.repeat(mask[None, :], len(d), axis=0)
+        r = np.arange(len(d))
+        batch[r[d >= 0], d[d >= 0]] = False
+        batch[r[a >= 0], a[a >= 0]] = True
+        batch = batch[batch.any(axis=1)]
+        if len(batch):
+            yield batch
 
 
 def _settle(ev: StructureEvaluator, usable: np.ndarray, rows: np.ndarray, best: np.ndarray,
@@ -202,7 +254,8 @@ def _settle(ev: StructureEvaluator, usable: np.ndarray, rows: np.ndarray, best: 
 class _OpenNodes:
     """One worker's open nodes (a heap in arrays the compiled search fills) and incumbent."""
 
-    def __init__(self, mu: int, best: float, best_mask: np.ndarray, share: int = 1) -> None:
+    def __init__(self, mu: int, best: float, best_mask: np.ndarray, share: int = 1,
+                 open_bytes: int = MAX_OPEN_BYTES) -> None:
         self.nw = words_for(mu)
         cap = 1 << 12
         self.bound = np.empty(cap)
@@ -213,7 +266,7 @@ class _OpenNodes:
         self.pending = np.zeros((max(4096, 4 * mu + 8), self.nw), dtype=np.uint64)
         self.best = np.array([best])
         self.best_mask = np.asarray(best_mask, dtype=bool).copy()
-        self.max_open = MAX_OPEN_BYTES // share // (8 + 16 * self.nw)
+        self.max_open = open_bytes // share // (8 + 16 * self.nw)
 
     @property
     def size(self) -> int:
@@ -298,7 +351,23 @@ def _balance(heaps: list[_OpenNodes]) -> None:
 _COMPILED = False
 
 
-def _ensure_compiled() -> None:
+def search_is_compiled() -> bool:
+    """True when the search is compiled in this process or cached on disk (fast start)."""
+    import glob
+
+    from . import branch_bound
+
+    if _COMPILED:
+        return True
+    here = os.path.dirname(branch_bound.__file__)
+    places = [os.path.join(here, "__pycache__")]
+    if os.environ.get("NUMBA_CACHE_DIR"):
+        places.append(os.environ["NUMBA_CACHE_DIR"])
+    return any(glob.glob(os.path.join(p, "**", "branch_bound.expand-*.nbi"), recursive=True)
+               for p in places)
+
+
+def ensure_compiled() -> None:
     """Compile (the first time ever) or load the search before any clock starts.
 
     The first use on a machine compiles it (about 20 s here; cached on disk
@@ -329,6 +398,7 @@ def certify(
     evaluator: StructureEvaluator | None = None,
     enumeration_budget: int | None = None,
     threads: int | None = None,
+    started: float | None = None,
 ) -> Certificate:
     """Search all structures of the columns of ``P`` exactly (see the module doc).
 
@@ -362,15 +432,27 @@ def certify(
     threads : int, optional
         Workers searching at once, each with its own open nodes, sharing the
         incumbent and dealt nodes best first when one runs short (default: the
-        usable cores, at most 8; one when ``node_limit`` is given).
+        usable cores, at most 8; one when ``node_limit`` is given; fewer when
+        the memory bound does not hold more).
+    started : float, optional
+        ``time.perf_counter()`` when the caller's set-up began (the time limit
+        counts from there; default: now).
+
+    The time limit and the memory bound hold in every phase: the set-up's
+    memory is checked before anything is built, the local search and forward
+    selection stop at the deadline, and a search stopped before it began
+    reports the trivial lower bound (all terms' SSE, one term's penalty).
 
     Raises
     ------
     ValueError
         A criterion that cannot be certified (e.g. PMIC2).
+    MemoryLimitError
+        The set-up, or one search worker, would exceed the memory bound.
     """
-    _ensure_compiled()
-    t0 = time.perf_counter()
+    ensure_compiled()
+    t0 = time.perf_counter() if started is None else started
+    deadline = t0 + time_limit
     if not time_limit > 0:
         raise ValueError(f"time_limit must be > 0 seconds, got {time_limit}")
     if node_limit is not None and node_limit < 1:
@@ -379,6 +461,8 @@ def certify(
         raise ValueError(f"threads must be at least 1, got {threads}")
     crit = get_criterion(criterion)
     if evaluator is None:
+        P = np.asarray(P)
+        check_certify_memory(*P.shape)
         evaluator = StructureEvaluator(np.asarray(P, dtype=float),
                                        np.asarray(target, dtype=float), crit,
                                        rank_tol=rank_tol, sse_scale=sse_scale)
@@ -391,28 +475,45 @@ def certify(
     # least-squares problem in min(n, m + 1) rows), on the non-zero columns
     usable = np.flatnonzero(~ev._zero_cols)
     keep = np.concatenate([usable, [m]])
+    rows_r = ev._r_ext.shape[0]
+    mu = len(usable)
+    # node_limit asks for an exact count: one worker then; fewer when memory is short
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    workers = 1 if node_limit is not None else max(1, min(int(threads or cores or 1), 8))
+    limit, _ = memory_limit()
+    copies = 8.0 * ((mu + 1) ** 2 + rows_r * (mu + 1))  # the search's gram and factor
+    per_worker = worker_bytes(rows_r, mu)
+    check_memory(copies + per_worker, f"the branch and bound over {mu} candidate terms")
+    workers = max(1, min(workers, int((limit - copies) // per_worker)))
+    open_bytes = int(min(MAX_OPEN_BYTES, max(limit - copies - workers * per_worker, 0) / 2))
     gram = np.ascontiguousarray(ev._gram[np.ix_(keep, keep)])
     r_aug = np.ascontiguousarray(ev._r_ext[:, keep])
-    mu = len(usable)
+    trivial = _trivial_bound(r_aug, float(n), ev.sse_scale, ev._sse_floor, pen)
 
     # incumbent: the warm start (else forward selection), then a local search
     if warm_start is None:
         from .orders import forward_selection
 
         _, chosen = forward_selection(r_aug[:, :mu], r_aug[:, mu], ev.criterion,
-                                      max_terms=min(60, mu), sse_scale=ev.sse_scale)
+                                      max_terms=min(60, mu), sse_scale=ev.sse_scale,
+                                      deadline=deadline)
         warm_start = np.zeros(m, dtype=bool)
         warm_start[usable[chosen]] = True
     warm = np.asarray(warm_start, dtype=bool)
     warm_value = ev.cached_score(warm) if warm.any() else np.inf
-    best_full, best_value = polish(ev, warm, usable, seconds=min(5.0, 0.1 * time_limit))
+    best_full, best_value = polish(ev, warm, usable, seconds=min(5.0, 0.1 * time_limit),
+                                   deadline=deadline)
     warm_value = float(warm_value) if np.isfinite(warm_value) else None
+    if time.perf_counter() >= deadline:  # the set-up used the time: nothing searched
+        value = float(best_value)
+        return Certificate(status="limit", value=value, lower_bound=min(trivial, value),
+                           mask=best_full, nodes=0, seconds=time.perf_counter() - t0,
+                           reason=f"time limit {time_limit:g} s (reached while setting the "
+                                  "search up)", warm_start=warm_value)
 
     budget = ENUMERATION_BUDGET if enumeration_budget is None else int(enumeration_budget)
-    # node_limit asks for an exact count: one worker then
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    workers = 1 if node_limit is not None else max(1, min(int(threads or cores or 1), 8))
-    heaps = [_OpenNodes(mu, best_value, best_full[usable], workers) for _ in range(workers)]
+    heaps = [_OpenNodes(mu, best_value, best_full[usable], workers, open_bytes)
+             for _ in range(workers)]
     heaps[0].push_root(mu)
     args = (gram, r_aug, pen, float(n), ev.sse_scale, ev._sse_floor, ev.rank_tol, tolerance)
     near = NEAR_RANK * ev.rank_tol
@@ -452,7 +553,7 @@ def certify(
             if node_limit is not None and sum(h.nodes for h in heaps) >= node_limit:
                 status, reason = "limit", f"node limit {node_limit}"
                 break
-            if now - t0 > time_limit:
+            if now >= deadline:
                 status, reason = "limit", f"time limit {time_limit:g} s"
                 break
             if progress is not None and now - last_report > 0.5:
@@ -465,7 +566,7 @@ def certify(
     best = heaps[0].best
     best_mask = heaps[0].best_mask
     nodes = sum(h.nodes for h in heaps)
-    lower = float(best[0]) if status == "optimal" else _lower(heaps)
+    lower = float(best[0]) if status == "optimal" else max(_lower(heaps), trivial)
     mask = np.zeros(m, dtype=bool)
     mask[usable[best_mask]] = True
     value = ev.cached_score(mask) if mask.any() else np.inf
@@ -478,12 +579,21 @@ def certify(
                        reason=reason, warm_start=warm_value)
 
 
+def _trivial_bound(r_aug: np.ndarray, n: float, scale: float, floor: float,
+                   pen: np.ndarray) -> float:
+    """No structure scores below the SSE of all terms with the penalty of one term."""
+    mu = r_aug.shape[1] - 1
+    sse = float(r_aug[mu, mu] ** 2) if r_aug.shape[0] > mu else 0.0
+    return float(n * np.log(max(sse, floor) * scale / n) + pen[1]) if mu else np.inf
+
+
 def certify_data(
     u: np.ndarray, y: np.ndarray, *, term_space, criterion: str = "bic",
     segments: list[tuple[int, int]] | None = None, warm_start: np.ndarray | None = None,
     time_limit: float = 60.0, node_limit: int | None = None,
     progress: Callable[[int, float, float], None] | None = None,
     threads: int | None = None,
+    started: float | None = None,
 ) -> Certificate:
     """:func:`certify` on measured signals (the term space's candidates of u, y).
 
@@ -491,11 +601,18 @@ def certify_data(
     values are the GA's; ``warm_start`` is a mask over all candidate terms.
     Terms whose regressor is zero on all rows are left out (they cannot be in an
     identifiable structure). The certificate's ``terms`` are the term names.
+    ``started`` (``time.perf_counter()``) is when the caller's work began, e.g. a
+    warm-start GA: the time limit counts from there (default: now).
     """
     from .terms import power_of_two_scale
 
+    ensure_compiled()  # the first use compiles; the time limit starts after
+    started = time.perf_counter() if started is None else started
     u2 = term_space.inputs_2d(u)
     y = np.asarray(y, dtype=float)
+    rows = len(y) - term_space.max_lag if segments is None else sum(
+        b - a - term_space.max_lag for a, b in segments if b - a > term_space.max_lag)
+    check_certify_memory(max(rows, 0), term_space.n_terms)
     su = np.array([power_of_two_scale(c) for c in u2.T])
     sy = power_of_two_scale(y)
     P, target = term_space.regression(u2 / su, y / sy, segments)
@@ -503,7 +620,7 @@ def certify_data(
     warm = None if warm_start is None else np.asarray(warm_start, dtype=bool)[nonzero]
     cert = certify(P[:, nonzero], target, criterion, warm_start=warm, time_limit=time_limit,
                    node_limit=node_limit, sse_scale=sy * sy, progress=progress,
-                   threads=threads)
+                   threads=threads, started=started)
     full = np.zeros(term_space.n_terms, dtype=bool)
     full[np.flatnonzero(nonzero)] = cert.mask
     cert.mask = full

@@ -30,20 +30,25 @@ __all__ = ["OrderProposal", "forward_selection", "propose_orders"]
 
 
 def forward_selection(P: np.ndarray, target: np.ndarray, criterion: Criterion,
-                      max_terms: int = 60, patience: int = 3, sse_scale: float = 1.0
-                      ) -> tuple[float, list[int]]:
+                      max_terms: int = 60, patience: int = 3, sse_scale: float = 1.0,
+                      deadline: float | None = None) -> tuple[float, list[int]]:
     """Greedy forward selection by SSE reduction; the best criterion value and its terms.
 
     Columns are orthogonalised against the chosen ones as the selection grows
     (modified Gram-Schmidt), so each step costs O(N M). ``sse_scale`` turns the
-    SSE of scaled data back into the user's units.
+    SSE of scaled data back into the user's units. At ``deadline``
+    (``time.perf_counter()``) it stops with the best found so far.
     """
+    import time
+
     W = P / np.where(np.linalg.norm(P, axis=0) > 0, np.linalg.norm(P, axis=0), 1.0)
     r = target.astype(float).copy()
     n = len(target)
     chosen: list[int] = []
     best, best_terms, since = np.inf, [], 0
     for _ in range(min(max_terms, P.shape[1])):
+        if deadline is not None and chosen and time.perf_counter() >= deadline:
+            break
         norms = np.einsum("ij,ij->j", W, W)
         gain = np.where(norms > 1e-9, (W.T @ r) ** 2 / np.where(norms > 0, norms, 1.0), -1.0)
         gain[chosen] = -1.0
