@@ -156,3 +156,119 @@ def test_batch_on_the_cluster_reports_a_broken_file_and_finishes_the_rest(cluste
     assert rows["local"][0]["value"].startswith("-10707.48")  # the paper's eq. (2)
     m = json.loads((tmp_path / "dask" / "robot_arm.json").read_text())
     assert len(m["terms"]) == 7 and (tmp_path / "dask" / "take2.json").exists()
+
+
+# -- issue 17: jobs that keep to themselves; deadlines; files on the client ----------------
+
+
+def _take(path, n, seed, a):
+    """A record of y(t) = a y(t-1) + 0.5 u(t-1) + noise (its own data, its own model)."""
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    u = rng.uniform(-1, 1, n)
+    y = np.zeros(n)
+    for t in range(1, n):
+        y[t] = a * y[t - 1] + 0.5 * u[t - 1]
+    np.savetxt(path, np.column_stack([u, y + 1e-3 * rng.standard_normal(n)]))
+
+
+def test_two_jobs_at_once_on_one_cluster_each_get_their_own_results(cluster, tmp_path):
+    """Keys were the same for every job: the second reported the first one's results."""
+    import csv
+
+    for job, (n, a) in {"one": (600, 0.3), "two": (1024, 0.8)}.items():
+        (tmp_path / job).mkdir()
+        for k in range(3):  # the same file names in both jobs (the same task keys before)
+            _take(tmp_path / job / f"take{k}.dat", n, seed=k, a=a)
+    common = ["--criterion", "bic", "--seed", "1", "--quiet", "--ny", "1", "--nu", "1",
+              "--validation", "none", "--generations", "30", "--population-size", "30",
+              "--scheduler", cluster["address"]]
+    procs = {job: subprocess.Popen(
+        [sys.executable, "-m", "spm_sysid.apps.main", "batch",
+         *[str(tmp_path / job / f"take{k}.dat") for k in range(3)],
+         "--out", str(tmp_path / f"out-{job}"), *common], cwd=ROOT, stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, text=True) for job in ("one", "two")}
+    for p in procs.values():
+        _, err = p.communicate(timeout=300)
+        assert p.returncode == 0, err
+    for job, (n, a) in {"one": (600, 0.3), "two": (1024, 0.8)}.items():
+        rows = list(csv.DictReader(open(tmp_path / f"out-{job}" / "summary.csv")))
+        assert [int(r["samples"]) for r in rows] == [n] * 3
+        for r in rows:
+            m = json.loads(open(r["model"]).read())
+            coef = dict(zip(m["terms"], m["coefficients"]))
+            assert abs(coef["y(t-1)"] - a) < 0.01 and abs(coef["u(t-1)"] - 0.5) < 0.01
+
+
+def test_a_scheduler_address_that_is_not_dask_fails_within_the_deadline(tmp_path):
+    """A web server at the port: the command hung (still running at 580 s)."""
+    import http.server
+    import threading
+
+    import spm_sysid.tools.runner as runner
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), http.server.BaseHTTPRequestHandler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    address = f"tcp://127.0.0.1:{server.server_address[1]}"
+    try:
+        t0 = time.monotonic()
+        with pytest.raises(RuntimeError, match="not a Dask scheduler"):
+            runner.check_scheduler(address, timeout=3)
+        assert time.monotonic() - t0 < 15
+        r = spm("batch", str(tmp_path / "none.dat"), "--out", str(tmp_path / "o"),
+                "--scheduler", address, timeout=120)
+        assert r.returncode == 2 and "no Dask scheduler answered" in r.stderr, r.stderr
+        assert f"within {runner.CONNECT_TIMEOUT:g} s" in r.stderr
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+def test_batch_models_are_written_where_the_client_asked(cluster, tmp_path, robot_arm_path):
+    """Workers run in another directory (another machine): the client writes the files."""
+    client_dir = tmp_path / "client"
+    client_dir.mkdir()
+    out = f"batch-out-{os.getpid()}"  # relative: to the client's directory, not a worker's
+    r = subprocess.run([sys.executable, "-m", "spm_sysid.apps.main", "batch",
+                        str(robot_arm_path), "--out", out, "--criterion", "bic", "--seed", "1",
+                        "--quiet", "--scheduler", cluster["address"]],
+                       capture_output=True, text=True, cwd=client_dir, timeout=300)
+    assert r.returncode == 0, r.stderr
+    model = client_dir / out / "robot_arm.json"
+    assert json.loads(model.read_text())["terms"] and not (ROOT / out).exists()
+    import csv
+
+    row = next(csv.DictReader(open(client_dir / out / "summary.csv")))
+    assert (client_dir / row["model"]).resolve() == model.resolve()
+    again = subprocess.run([sys.executable, "-m", "spm_sysid.apps.main", "batch",
+                            str(robot_arm_path), "--out", out, "--quiet"],
+                           capture_output=True, text=True, cwd=client_dir, timeout=120)
+    assert again.returncode == 2 and "holds an earlier batch" in again.stderr
+
+
+def test_sigterm_ends_a_study_and_its_workers_and_resume_works(tmp_path):
+    """SIGTERM left both pool workers orphaned for over a minute."""
+    import psutil
+
+    out = tmp_path / "term"
+    study = subprocess.Popen([sys.executable, "-m", "spm_sysid.apps.main", *STUDY,
+                              "--out", str(out), "--workers", "2", "--generations", "120"],
+                             cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                             text=True)
+    partial = out / "runs.partial.jsonl"
+    deadline = time.monotonic() + 120
+    while (not partial.exists() or len(partial.read_text().splitlines()) < 2) \
+            and time.monotonic() < deadline:
+        time.sleep(0.05)
+    children = psutil.Process(study.pid).children(recursive=True)
+    assert len(children) >= 2
+    study.send_signal(signal.SIGTERM)
+    _, err = study.communicate(timeout=60)
+    assert study.returncode == 130 and "continue with --resume" in err, err
+    gone, alive = psutil.wait_procs(children, timeout=10)
+    assert not alive, [p.pid for p in alive]
+    done = len(partial.read_text().splitlines())
+    resumed = spm(*STUDY, "--out", str(out), "--resume", "--generations", "120")
+    assert resumed.returncode == 0, resumed.stderr
+    assert f"resumed: {done} run(s) were already done" in resumed.stdout

@@ -162,6 +162,20 @@ def test_make_bag_force_refuses_a_directory_that_is_not_a_bag(tmp_path):
     assert sorted(p.name for p in target.iterdir()) == ["thesis.tex"]
 
 
+def test_make_bag_force_keeps_a_bag_directory_holding_anything_else(tmp_path):
+    """--force deleted the whole directory, notes, sub-folders and batch outputs included."""
+    bag = tmp_path / "arm"
+    assert cli("make-bag", "--output", str(bag)).returncode == 0
+    (bag / "notes.txt").write_text("calibration: payload 2 kg")
+    (bag / "batch").mkdir()
+    (bag / "batch" / "arm.json").write_text("{}")
+    before = {p.name: p.read_bytes() for p in bag.iterdir() if p.is_file()}
+    r = cli("make-bag", "--output", str(bag), "--force", "--rate", "50")
+    assert r.returncode == 2 and "not part of the bag (batch/, notes.txt)" in r.stderr
+    assert {p.name: p.read_bytes() for p in bag.iterdir() if p.is_file()} == before
+    assert (bag / "batch" / "arm.json").read_text() == "{}"
+
+
 def test_failed_or_invalid_make_bag_leaves_the_old_bag(tmp_path, robot_arm):
     bag = tmp_path / "arm"
     assert cli("make-bag", "--output", str(bag)).returncode == 0

@@ -221,3 +221,64 @@ def test_bad_model_files_are_one_error_line(tmp_path, content, message):
     r = cli("validate", str(p), timeout=60)
     assert r.returncode == 2 and message in r.stderr, r.stderr
     assert len(r.stderr.strip().splitlines()) == 1
+
+
+# -- batch and study inputs: names unique, settings checked, nothing overwritten -------------
+
+
+def test_batch_model_names_never_collide():
+    from spm_sysid.tools.batch import model_names
+
+    names = model_names(["a/x.csv", "c/x.csv", "x-2.csv", "X.csv", "d/x.csv"])
+    assert len({n.lower() for n in names}) == 5
+    assert names[2] == "x-2" and names[0] == "x"  # an input's own stem is never taken
+
+
+def test_batch_with_colliding_names_keeps_every_model(robot_arm_path, tmp_path):
+    """a/x.csv, c/x.csv and x-2.csv gave two rows pointing at x-2.json: one model lost."""
+    import csv
+
+    for sub in ("a", "c"):
+        (tmp_path / sub).mkdir()
+        shutil.copy(robot_arm_path, tmp_path / sub / "x.dat")
+    shutil.copy(robot_arm_path, tmp_path / "x-2.dat")
+    inputs = [str(tmp_path / "a" / "x.dat"), str(tmp_path / "c" / "x.dat"),
+              str(tmp_path / "x-2.dat")]
+    r = cli("batch", *inputs, "--out", str(tmp_path / "out"), "--quiet", "--workers", "1",
+            "--generations", "10", "--population-size", "20", "--seed", "1")
+    assert r.returncode == 0, r.stderr
+    rows = list(csv.DictReader(open(tmp_path / "out" / "summary.csv")))
+    assert len({row["model"] for row in rows}) == 3
+    assert all(os.path.exists(row["model"]) for row in rows)
+
+
+@pytest.mark.parametrize("yaml_text, message", [
+    ("default: [1, 2]\n", "'default' must map to settings"),
+    ("1: {criterion: bic}\n", "the pattern 1 must be text"),
+    ("default: {critrion: bic}\n", "unknown setting 'critrion' (did you mean 'criterion'?)"),
+    ("default: {criterion: bic\n", "is not valid YAML (line 2"),
+    ("- a\n- b\n", "expected a mapping of input patterns"),
+])
+def test_batch_settings_files_are_checked_before_any_work(robot_arm_path, tmp_path,
+                                                           yaml_text, message):
+    p = tmp_path / "per_input.yaml"
+    p.write_text(yaml_text)
+    r = cli("batch", str(robot_arm_path), "--out", str(tmp_path / "out"), "--settings", str(p),
+            timeout=60)
+    assert r.returncode == 2 and message in r.stderr, r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("yaml_text, message", [
+    ("runs: [1\n", "is not valid YAML (line 2"),
+    ("populations: [20.9]\nruns: 1\n", "population_size must be an integer, got 20.9"),
+    ("populations: [40, 40]\nruns: 1\n", "populations lists a value more than once"),
+    ("criteria: [aic, aic]\nruns: 1\n", "criteria lists a value more than once"),
+    ("[1, 2]\n", "expected a mapping of settings"),
+])
+def test_study_settings_are_checked_before_any_run(tmp_path, yaml_text, message):
+    p = tmp_path / "study.yaml"
+    p.write_text(yaml_text)
+    r = cli("experiment", "--config", str(p), "--out", str(tmp_path / "out"), timeout=60)
+    assert r.returncode == 2 and message in r.stderr, r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1

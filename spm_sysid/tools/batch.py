@@ -13,6 +13,15 @@ path as given and on its file name) to settings; ``default`` applies to all::
 
     default: {criterion: bic}
     "joint2_*.csv": {ny: 6, nu: 6, inputs: "tau,cmd", output: acc}
+
+Every key is checked before any work (a misspelled setting is an error naming
+it, never silently ignored), and so is every input's resulting settings.
+
+Models are written by this process (the client), whatever runs the jobs: a Dask
+worker on another machine sends the model document back with its summary row,
+so the files land in ``DIR`` here. Each input gets a distinct file name (``x``,
+``x-2``, ... never one taken, compared case-insensitively); a ``DIR`` holding an
+earlier batch's summary is refused unless ``force`` is given.
 """
 
 from __future__ import annotations
@@ -26,7 +35,7 @@ from pathlib import Path
 
 from .runner import run_tasks
 
-__all__ = ["BATCH_COLUMNS", "model_names", "run_batch", "settings_for"]
+__all__ = ["BATCH_COLUMNS", "check_per_input", "model_names", "run_batch", "settings_for"]
 
 #: The summary table's columns.
 BATCH_COLUMNS = ("input", "samples", "terms", "criterion", "value", "one_step_fit",
@@ -49,14 +58,61 @@ def settings_for(path: str, base: dict, per_input: dict | None) -> dict:
     return values
 
 
+def check_per_input(per_input, source: str = "--settings") -> dict:
+    """Check a per-input settings mapping (see the module doc); returns it.
+
+    Raises
+    ------
+    SettingsError
+        Not a mapping of text patterns to mappings, or an unknown setting (named,
+        with the closest known name).
+    """
+    import difflib
+
+    from ..core.errors import SettingsError
+    from ..core.settings import JOB_GROUPS, SETTINGS
+
+    known = sorted([n for n, st in SETTINGS.items() if st.group in JOB_GROUPS]
+                   + list(DATA_KEYS))
+    if per_input is None:
+        return {}
+    if not isinstance(per_input, dict):
+        raise SettingsError(f"{source}: expected a mapping of input patterns to settings, "
+                            f"got {type(per_input).__name__}")
+    for pattern, values in per_input.items():
+        if not isinstance(pattern, str):
+            raise SettingsError(f"{source}: the pattern {pattern!r} must be text (quote it)")
+        if values is None:
+            continue
+        if not isinstance(values, dict):
+            raise SettingsError(f"{source}: {pattern!r} must map to settings (name: value), "
+                                f"got {values!r}")
+        for name in values:
+            if name not in known:
+                close = difflib.get_close_matches(str(name), known, n=1)
+                hint = f" (did you mean {close[0]!r}?)" if close else ""
+                raise SettingsError(f"{source}: {pattern!r}: unknown setting {name!r}{hint}")
+    return per_input
+
+
 def model_names(inputs: Sequence[str]) -> list[str]:
-    """A distinct file stem per input (``take.csv`` -> ``take``; repeats get ``-2``...)."""
-    seen: dict[str, int] = {}
+    """A distinct file stem per input: ``take.csv`` -> ``take``; a taken name gets -2, -3...
+
+    Names are compared case-insensitively (two files may not differ by case
+    alone on every file system), and a suffixed name never takes one that
+    another input has by its own stem (``a/x.csv``, ``c/x.csv``, ``x-2.csv``).
+    """
+    stems = [Path(p.rstrip("/")).stem or "input" for p in inputs]
+    taken = {s.lower() for s in stems}
+    used: set[str] = set()
     out = []
-    for p in inputs:
-        stem = Path(p.rstrip("/")).stem or "input"
-        seen[stem] = seen.get(stem, 0) + 1
-        out.append(stem if seen[stem] == 1 else f"{stem}-{seen[stem]}")
+    for stem in stems:
+        name, k = stem, 1
+        while name.lower() in used or (name != stem and name.lower() in taken):
+            k += 1
+            name = f"{stem}-{k}"
+        used.add(name.lower())
+        out.append(name)
     return out
 
 
@@ -79,12 +135,11 @@ def _load(path: str, values: dict):
     return d.u, d.y, None, d.rejected, 0, tuple(d.input_names or ()), d.output_name or "y"
 
 
-def _identify_one(task: tuple, shared) -> dict:
-    """One input: identify, validate, write the model; the summary row."""
-    from ..core.files import atomic_write_text
+def _identify_one(task: tuple, shared) -> tuple[dict, dict]:
+    """One input: identify and validate; its summary row and model document."""
     from ..core.job import JobSettings, run_job
 
-    path, name, values, out_dir = task
+    path, name, values, model_path = task
     t0 = time.perf_counter()
     u, y, stamps, rejected, unpaired, inputs, output = _load(path, values)
     names = {"inputs": tuple(inputs), "output": output} if inputs else {}
@@ -92,8 +147,6 @@ def _identify_one(task: tuple, shared) -> dict:
     result = run_job(u, y, settings, stamps_ns=stamps, rejected=rejected, unpaired=unpaired,
                      metadata={"source": str(path)})
     model = result.model
-    target = Path(out_dir) / f"{name}.json"
-    atomic_write_text(target, json.dumps(model.to_dict(), indent=2, allow_nan=False) + "\n")
     report = result.report
     one = free = None
     status = "ok"
@@ -103,29 +156,51 @@ def _identify_one(task: tuple, shared) -> dict:
         free = f["fit_percent"] if f.get("diverged_at") is None else None
         if f.get("diverged_at") is not None:
             status = f"ok (free-run diverged at sample {f['diverged_at']})"
-    return {"input": path, "samples": int(result.data.get("used_samples", len(y))),
-            "terms": len(model.terms), "criterion": model.criterion,
-            "value": float(model.criterion_value), "one_step_fit": one, "free_run_fit": free,
-            "status": status, "seconds": round(time.perf_counter() - t0, 3),
-            "model": str(target)}
+    row = {"input": path, "samples": int(result.data.get("used_samples", len(y))),
+           "terms": len(model.terms), "criterion": model.criterion,
+           "value": float(model.criterion_value), "one_step_fit": one, "free_run_fit": free,
+           "status": status, "seconds": round(time.perf_counter() - t0, 3),
+           "model": model_path}
+    return row, model.to_dict()
 
 
 def run_batch(inputs: Sequence[str], out: str | Path, values: dict, *,
               per_input: dict | None = None, scheduler: str | None = None, workers: int = 0,
-              progress: Callable[[int, int], None] | None = None) -> list[dict]:
+              progress: Callable[[int, int], None] | None = None,
+              force: bool = False) -> list[dict]:
     """Identify every input; write the models and the summary; return the rows in input order.
 
     ``values`` are settings by schema name (and data options, see
     :data:`DATA_KEYS`); ``per_input`` the YAML mapping (see the module doc).
+
+    Raises
+    ------
+    FileExistsError
+        ``out`` holds an earlier batch's summary and ``force`` is not given.
+    SettingsError
+        A per-input setting that is unknown or invalid (before any work).
     """
+    from ..core.files import atomic_write_text
+    from ..core.job import JobSettings
+
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    if (out / "summary.csv").exists() and not force:
+        raise FileExistsError(f"{out} holds an earlier batch (summary.csv); choose another "
+                              "--out, or --force to replace its files (nothing was changed)")
+    per_input = check_per_input(per_input)
     names = model_names(inputs)
-    tasks = {str(i): (str(p), n, settings_for(str(p), values, per_input), str(out))
-             for i, (p, n) in enumerate(zip(inputs, names))}
+    tasks = {}
+    for i, (p, n) in enumerate(zip(inputs, names)):
+        v = settings_for(str(p), values, per_input)
+        JobSettings.from_values(v)  # every input's settings checked before any work
+        tasks[str(i)] = (str(p), n, v, str(out / f"{n}.json"))
+    out.mkdir(parents=True, exist_ok=True)
     count = [0]
 
     def on_done(outcome) -> None:
+        if outcome.ok:  # the model lands here, wherever the job ran
+            row, doc = outcome.result
+            atomic_write_text(row["model"], json.dumps(doc, indent=2, allow_nan=False) + "\n")
         count[0] += 1
         if progress:
             progress(count[0], len(tasks))
@@ -136,7 +211,7 @@ def run_batch(inputs: Sequence[str], out: str | Path, values: dict, *,
     for key, (path, _, _, _) in tasks.items():
         o = outcomes[key]
         if o.ok:
-            rows.append(o.result)
+            rows.append(o.result[0])
         else:
             rows.append({"input": path, "samples": None, "terms": None, "criterion": None,
                          "value": None, "one_step_fit": None, "free_run_fit": None,

@@ -253,6 +253,24 @@ class _Progress:
 # -- sub-commands -----------------------------------------------------------------------
 
 
+def read_yaml(path: str, option: str):
+    """A YAML file's content, or one ``error:`` line naming the option, line and problem."""
+    import yaml
+
+    from ..core.files import read_bytes
+
+    raw = read_bytes(path, f"{option} file", error=UserError)
+    try:
+        return yaml.safe_load(raw.decode("utf-8-sig"))
+    except UnicodeDecodeError:
+        raise UserError(f"{option} {path} is not a text file") from None
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""
+        problem = " ".join(str(getattr(exc, "problem", None) or exc).split())
+        raise UserError(f"{option} {path} is not valid YAML{where}: {problem}") from None
+
+
 def _check_outputs(args) -> None:
     """Check --json and --plots destinations before any work (a search must not be lost).
 
@@ -432,15 +450,10 @@ def cmd_batch(args) -> int:
 
     per_input = None
     if args.settings:
-        import yaml
+        from .batch import check_per_input
 
-        try:
-            per_input = yaml.safe_load(Path(args.settings).read_text()) or {}
-        except (OSError, yaml.YAMLError) as exc:
-            raise UserError(f"cannot read --settings {args.settings}: {exc}") from None
-        if not isinstance(per_input, dict):
-            raise UserError(f"--settings {args.settings}: expected a mapping of input "
-                            "patterns to settings")
+        per_input = check_per_input(read_yaml(args.settings, "--settings"),
+                                    f"--settings {args.settings}")
     values = {k: v for k, v in vars(args).items() if v is not None and k in SETTINGS}
     for k in ("input_topic", "input_field", "input_names", "output_topic", "output_field"):
         if getattr(args, k, None):
@@ -461,7 +474,8 @@ def cmd_batch(args) -> int:
     try:
         rows = run_batch(args.input, args.out, values, per_input=per_input,
                          scheduler=args.scheduler, workers=args.workers or 0,
-                         progress=(lambda i, n: bar.update(1)) if bar else None)
+                         progress=(lambda i, n: bar.update(1)) if bar else None,
+                         force=args.force)
     except (OSError, RuntimeError) as exc:
         raise UserError(str(exc)) from None
     finally:
@@ -548,7 +562,8 @@ def cmd_experiment(args) -> int:
                      certify_time_limit=args.certify_time_limit)
     try:
         if args.config:
-            config = ExperimentConfig.from_yaml(args.config, **overrides)
+            config = ExperimentConfig.from_mapping(read_yaml(args.config, "--config"),
+                                                   f"--config {args.config}", **overrides)
         else:
             config = ExperimentConfig(**{k: v for k, v in overrides.items() if v is not None})
     except TypeError as exc:
@@ -586,6 +601,11 @@ def cmd_experiment(args) -> int:
                                  out=args.out, resume=args.resume)
     except (FileExistsError, OSError, ValueError, RuntimeError) as exc:
         raise UserError(str(exc)) from None
+    except KeyboardInterrupt:
+        kept = sum(1 for _ in open(partial)) if partial.exists() else 0
+        print(f"interrupted: {kept} finished run(s) kept in {partial}; continue with "
+              "--resume", file=sys.stderr)
+        raise
     finally:
         if bar:
             bar.close()
@@ -745,6 +765,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scheduler", metavar="ADDRESS",
                    help="run on this Dask cluster (tcp://HOST:PORT); default: this machine")
     p.add_argument("--workers", type=int, help="local processes (default: one per core)")
+    p.add_argument("--force", action="store_true",
+                   help="replace the files of an earlier batch in --out")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     g = p.add_argument_group("data options (each input)")
     g.add_argument("--inputs", metavar="NAMES", type=lambda t: [c for c in t.split(",") if c],
@@ -885,9 +907,27 @@ def main(argv: list[str] | None = None) -> int:
     return run(build_parser(), argv)
 
 
+def threading_is_main() -> bool:
+    import threading
+
+    return threading.current_thread() is threading.main_thread()
+
+
+def _terminate_as_interrupt(signum, frame):
+    raise KeyboardInterrupt
+
+
 def run(parser: argparse.ArgumentParser, argv: list[str] | None = None) -> int:
-    """Parse and run a sub-command; user errors become one ``error:`` line, status 2."""
+    """Parse and run a sub-command; user errors become one ``error:`` line, status 2.
+
+    SIGTERM (``timeout``, systemd, a job scheduler) is handled as Ctrl-C: work in
+    progress stops, partial results stay, worker processes end; exit status 130.
+    """
+    import signal
+
     args = parser.parse_args(argv)
+    if threading_is_main():
+        signal.signal(signal.SIGTERM, _terminate_as_interrupt)
     try:
         status = int(args.func(args) or 0)
         sys.stdout.flush()

@@ -69,9 +69,15 @@ class ExperimentConfig:
             raise SettingsError(f"runs must be an integer >= 1, got {self.runs!r}")
         if not isinstance(self.workers, int) or self.workers < 0:
             raise SettingsError(f"workers must be an integer >= 0, got {self.workers!r}")
-        for name in ("criteria", "populations", "spm_fractions"):
-            if not isinstance(getattr(self, name), list) or not getattr(self, name):
+        for name, setting in (("criteria", "criterion"), ("populations", "population_size"),
+                              ("spm_fractions", "spm_fraction")):
+            values = getattr(self, name)
+            if not isinstance(values, list) or not values:
                 raise SettingsError(f"{name} must be a non-empty list")
+            checked = [check(setting, v) for v in values]  # 20.9 is not a population
+            if len(set(checked)) != len(checked):
+                raise SettingsError(f"{name} lists a value more than once: {values} (each "
+                                    "setting of the grid is run once)")
         check("focus", self.focus)
         check("shortlist", self.shortlist)
         check("certify", self.certify)
@@ -106,13 +112,23 @@ class ExperimentConfig:
         """Read settings from a YAML mapping; ``overrides`` (not None) win."""
         import yaml
 
-        data = yaml.safe_load(Path(path).read_text()) or {}
-        if not isinstance(data, dict):
-            raise ValueError(f"{path}: expected a mapping of settings")
+        try:
+            data = yaml.safe_load(Path(path).read_text())
+        except yaml.YAMLError as exc:
+            raise SettingsError(f"{path} is not valid YAML: "
+                                f"{' '.join(str(exc).split())}") from None
+        return cls.from_mapping(data, str(path), **overrides)
+
+    @classmethod
+    def from_mapping(cls, data, source: str = "the settings", **overrides) -> ExperimentConfig:
+        """Settings from a mapping (e.g. read from YAML); ``overrides`` (not None) win."""
+        data = {} if data is None else data
+        if not isinstance(data, dict) or not all(isinstance(k, str) for k in data):
+            raise SettingsError(f"{source}: expected a mapping of settings (name: value)")
         unknown = set(data) - set(cls.__dataclass_fields__)
         if unknown:
-            raise ValueError(f"{path}: unknown setting(s) {sorted(unknown)}")
-        data.update({k: v for k, v in overrides.items() if v is not None})
+            raise SettingsError(f"{source}: unknown setting(s) {sorted(unknown)}")
+        data = {**data, **{k: v for k, v in overrides.items() if v is not None}}
         return cls(**data)
 
 

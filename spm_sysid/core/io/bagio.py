@@ -20,7 +20,9 @@ be checked; :class:`BagSignals` says so.
 
 A bag is never half-written or destroyed: it is written into a temporary
 directory beside the destination and moved into place when complete;
-``overwrite`` replaces only a directory that is a rosbag2 bag.
+``overwrite`` replaces only a directory that is a rosbag2 bag and holds nothing
+but the bag's own files (``metadata.yaml`` and its storage files): a directory
+that also keeps notes, sub-folders or other results is refused, untouched.
 
 Reading turns two topics of any supported type and field path into aligned u/y
 arrays by pairing header stamps with the node's own rule
@@ -158,6 +160,26 @@ def is_rosbag2_dir(path: Path) -> bool:
     return "rosbag2_bagfile_information" in head
 
 
+def _foreign_files(path: Path) -> list[str]:
+    """Entries of a bag directory that are not the bag's own files."""
+    import yaml
+
+    own = {"metadata.yaml"}
+    try:
+        meta = yaml.safe_load((path / "metadata.yaml").read_text())
+        own |= {str(p) for p in meta["rosbag2_bagfile_information"]["relative_file_paths"]}
+    except (OSError, yaml.YAMLError, KeyError, TypeError):
+        pass
+    out = []
+    for entry in sorted(path.iterdir()):
+        if entry.name in own and entry.is_file() and not entry.is_symlink():
+            continue
+        if entry.is_file() and not entry.is_symlink() and entry.suffix in (".mcap", ".db3"):
+            continue
+        out.append(entry.name + ("/" if entry.is_dir() else ""))
+    return out
+
+
 def write_io_bag(
     path: str | Path,
     u: np.ndarray,
@@ -219,6 +241,13 @@ def write_io_bag(
         if not is_rosbag2_dir(path):
             raise BagError(f"{path} exists and is not a rosbag2 bag (no rosbag2 metadata.yaml);"
                            " refusing to replace it, nothing was changed")
+        foreign = _foreign_files(path)
+        if foreign:
+            shown = ", ".join(foreign[:5]) + (f" and {len(foreign) - 5} more"
+                                              if len(foreign) > 5 else "")
+            raise BagError(f"{path} holds files that are not part of the bag ({shown}); "
+                           "refusing to replace it, nothing was changed (move them out or "
+                           "choose another output)")
     path.parent.mkdir(parents=True, exist_ok=True)
     # written as STAGE/NAME, so every file name inside (metadata.yaml and the rosbag2
     # record in the MCAP file) is already the final one; then moved into place
