@@ -6,6 +6,7 @@ Each test reproduces a case that lost or destroyed something before the fix.
 import gzip
 import json
 import os
+import re
 import shutil
 import stat
 import subprocess
@@ -282,3 +283,73 @@ def test_study_settings_are_checked_before_any_run(tmp_path, yaml_text, message)
     r = cli("experiment", "--config", str(p), "--out", str(tmp_path / "out"), timeout=60)
     assert r.returncode == 2 and message in r.stderr, r.stderr
     assert len(r.stderr.strip().splitlines()) == 1
+
+
+# -- data that cannot identify, said so ---------------------------------------------------
+
+
+@pytest.mark.parametrize("scale, word", [(1e-160, "RMS 2.8e-161"), (1e160, "RMS 2.8e+159")])
+def test_magnitudes_beyond_double_precision_are_refused(robot_arm, scale, word):
+    """1e-160 gave a one-term nonsense model with exit 0; 1e160 'linearly dependent'."""
+    from spm_sysid import identify
+
+    u, y = robot_arm
+    with pytest.raises(DataError, match=re.escape(f"output y has {word}") + ".*rescale it"):
+        identify(u=u * scale, y=y * scale)
+    with pytest.raises(DataError, match="too far apart"):
+        identify(u=u * 1e-200, y=y, term_space=TermSpace(degree=2))
+
+
+@pytest.mark.parametrize("make_input, repeated", [
+    (lambda u, y: np.full_like(u, 0.7), "u(t-2) is proportional to u(t-1)"),
+    (lambda u, y: y.copy(), "u(t-1) is proportional to y(t-1)"),
+])
+def test_a_constant_or_repeated_input_leaves_an_output_only_model(robot_arm, tmp_path,
+                                                                  make_input, repeated):
+    """Both failed ('no structure could be fitted') though an output-only model exists."""
+    from spm_sysid import GAConfig, identify
+
+    u, y = robot_arm
+    uu = make_input(u, y)
+    res = identify(u=uu, y=y, seed=1, ga=GAConfig(generations=100))
+    assert res.model.terms == ["y(t-1)", "y(t-2)", "y(t-3)", "y(t-4)"]
+    assert res.ga.best_score == pytest.approx(-10472.75, abs=0.01)
+    p = tmp_path / "d.dat"
+    np.savetxt(p, np.column_stack([uu, y]))
+    r = cli("identify", "--data", str(p), *QUICK)
+    assert r.returncode == 0, r.stderr
+    assert "repeat an earlier term on this data" in r.stdout and repeated in r.stdout
+
+
+def test_zero_header_stamps_in_a_bag_use_the_log_time_and_say_so(robot_arm, tmp_path):
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from spm_sysid.core.io import bagio
+
+    u, y = robot_arm
+    store = bagio.typestore()
+    T = store.types
+    zero = T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
+    bag = tmp_path / "unstamped"
+    with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        ci = w.add_connection(bagio.DEFAULT_INPUT_TOPIC, bagio.INPUT_TYPE, typestore=store)
+        co = w.add_connection(bagio.DEFAULT_OUTPUT_TOPIC, bagio.OUTPUT_TYPE, typestore=store)
+        for k in range(300):
+            h = T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=0,
+                                                                               nanosec=0),
+                                         frame_id="f")
+            wr = T[bagio.INPUT_TYPE](header=h, wrench=T["geometry_msgs/msg/Wrench"](
+                force=zero, torque=T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=float(u[k]))))
+            ac = T[bagio.OUTPUT_TYPE](header=h, accel=T["geometry_msgs/msg/Accel"](
+                linear=T["geometry_msgs/msg/Vector3"](x=float(y[k]), y=0.0, z=0.0),
+                angular=zero))
+            t = 1_000_000_000 + k * 10_000_000
+            w.write(ci, t, store.serialize_cdr(wr, bagio.INPUT_TYPE))
+            w.write(co, t, store.serialize_cdr(ac, bagio.OUTPUT_TYPE))
+    sig = bagio.read_bag_signals(bag)
+    assert len(sig.y) == 300 and sig.unset_stamps == 600
+    np.testing.assert_array_equal(sig.y, y[:300])
+    r = cli("identify", "--bag", str(bag), *QUICK)
+    assert r.returncode == 0, r.stderr
+    assert "note: 600 message(s)" in r.stdout and "header.stamp 0" in r.stdout
+    assert "300 samples used" in r.stdout

@@ -91,6 +91,18 @@ def wait_for_model(node: Node, topic: str, timeout: float = 10.0) -> dict | None
 def main(action: str, node_name: str = "/spm_sysid", timeout: float = 300.0,
          show_model: bool = False) -> int:
     """Entry of ``spm-sysid call``; prints the answer, returns an exit status."""
+    from rclpy.exceptions import NameValidationException
+    from rclpy.validate_full_topic_name import validate_full_topic_name
+
+    name = "/" + node_name.strip("/")
+    try:
+        validate_full_topic_name(f"{name}/{action}", is_service=True)
+    except NameValidationException as exc:
+        reason = str(exc).splitlines()[0].split(": ", 1)[-1].rstrip(":")
+        print(f"error: --node {node_name!r} is not a valid ROS node name ({reason})",
+              file=sys.stderr)
+        return 2
+    node_name = name
     rclpy.init()
     node = Node("spm_sysid_call")
     try:

@@ -35,7 +35,13 @@ from std_srvs.srv import Trigger
 from ..core.errors import FieldPathError
 from ..core.files import atomic_write_text, check_writable_file
 from ..core.io.channels import parse_channels, stream_order, topic_streams
-from ..core.io.fields import default_field, extract, message_stamp_ns, parse_path
+from ..core.io.fields import (
+    default_field,
+    extract,
+    has_unset_stamp,
+    message_stamp_ns,
+    parse_path,
+)
 from ..core.job import JobSettings
 from ..core.narx.model import NarxModel
 from ..core.settings import Setting, check, node_settings
@@ -115,6 +121,8 @@ class SysidNode(Node):
         self._restored_from: str | None = None
         self._last_error: str | None = None
         self._field_errors = 0
+        self._unset_stamps = 0
+        self._namesakes = 0
         self._type_mismatch: dict[tuple[str, str], str] = {}
         self._unnamed_checks = 0
         self._logged = {"rejected_out_of_order": 0, "time_jumps": 0}
@@ -149,7 +157,25 @@ class SysidNode(Node):
             check_writable_file(values["model_path"], "model_path")
         channels = parse_channels(values["input_topic"], values["input_field"],
                                   values["input_type"], values["input_names"])
+        for name, topic in [("input_topic", c.topic) for c in channels] + [
+                ("output_topic", values["output_topic"])]:
+            self._check_topic(name, topic)
         return self._settings(values, channels)
+
+    def _check_topic(self, parameter: str, topic: str) -> None:
+        """A topic name ROS accepts, or a ValueError naming the parameter."""
+        from rclpy.exceptions import NameValidationException
+        from rclpy.expand_topic_name import expand_topic_name
+        from rclpy.validate_full_topic_name import validate_full_topic_name
+
+        try:
+            validate_full_topic_name(expand_topic_name(topic, self.get_name(),
+                                                       self.get_namespace()))
+        except NameValidationException as exc:
+            reason = str(exc).splitlines()[0].split(": ", 1)[-1].rstrip(":")
+            shown = topic if len(topic) <= 60 else f"{topic[:40]}... ({len(topic)} characters)"
+            raise ValueError(f"{parameter} {shown!r} is not a valid topic name ({reason})") \
+                from None
 
     @staticmethod
     def _settings(values: dict, channels) -> JobSettings:
@@ -184,6 +210,13 @@ class SysidNode(Node):
                 self.get_logger().error(str(exc))
             return
         stamp = message_stamp_ns(msg)
+        if stamp is None and has_unset_stamp(msg):
+            self._unset_stamps += 1
+            if self._unset_stamps == 1:
+                self.get_logger().warning(
+                    f"a {type(msg).__name__} message arrived with header.stamp 0 (the "
+                    "publisher does not fill it in?): its receive time is used instead; such "
+                    "messages are counted in /diagnostics")
         add(self.get_clock().now().nanoseconds if stamp is None else stamp, value)
 
     def _check_graph(self) -> None:
@@ -206,6 +239,7 @@ class SysidNode(Node):
                         f"{role.split()[0]} is read as {expected}: its messages are not "
                         f"received (set {role.split()[0]}_type, or fix the publisher)")
                     self.get_logger().error(self._type_mismatch[key])
+        self._check_namesakes()
         stats = self.buffer.stats_dict()
         new = stats["rejected_out_of_order"] - self._logged["rejected_out_of_order"]
         if new > 0:
@@ -220,6 +254,20 @@ class SysidNode(Node):
                 f"{(old - new_t) / 1e9:.3f} s (a replayed bag or a restarted clock?): the "
                 "samples after the jump are a new segment; identification never fits "
                 "across it")
+
+    def _check_namesakes(self) -> None:
+        """Warn (once, and in /diagnostics) when another node has this node's name.
+
+        Service calls and parameter changes would then reach either of them.
+        """
+        me = (self.get_name(), self.get_namespace())
+        count = sum(1 for n in self.get_node_names_and_namespaces() if n == me)
+        if count > 1 and not self._namesakes:
+            self.get_logger().warning(
+                f"{count} nodes are named {self.get_fully_qualified_name()} on this ROS domain: "
+                "calls to its services and parameters may reach the other one (start this one "
+                "with another name: --ros-args -r __node:=NAME)")
+        self._namesakes = max(count - 1, 0)
 
     # -- services ----------------------------------------------------------------------
     def _on_clear(self, request, response):
@@ -346,9 +394,10 @@ class SysidNode(Node):
     def _publish_diagnostics(self) -> None:
         statuses = diagnostic_statuses(
             self.get_fully_qualified_name(), self.buffer.stats_dict(),
-            field_errors=self._field_errors, worker_ready=self.worker.ready,
+            field_errors=self._field_errors, unset_stamps=self._unset_stamps,
+            worker_ready=self.worker.ready,
             worker_restarts=self.worker.restarts,
-            type_mismatches=list(self._type_mismatch.values()),
+            type_mismatches=list(self._type_mismatch.values()), namesakes=self._namesakes,
             running=None if self._started is None else (
                 *self._progress, time.monotonic() - self._started),
             last_error=self._last_error, model=self._model,

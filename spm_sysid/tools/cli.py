@@ -214,6 +214,9 @@ def _load(args) -> Loaded:
                                output_topic=args.output_topic,
                                input_field=args.input_field, output_field=args.output_field,
                                input_names=args.input_names)
+        if sig.unset_stamps:
+            print(f"note: {sig.unset_stamps} message(s) in {args.bag} have header.stamp 0 (the "
+                  "recording driver did not fill it in?); their log time was used")
         return Loaded(sig.u, sig.y, f"bag {args.bag}", sig.stamps_ns,
                       sig.rejected_nonfinite, sig.unpaired,
                       input_names=sig.input_names if np.ndim(sig.u) == 2 or args.input_names
@@ -340,6 +343,12 @@ def cmd_identify(args) -> int:
     if excluded:
         print(f"note: {len(excluded)} candidate term(s) are zero on this data and were left "
               f"out of the search (e.g. {excluded[0]}); is the input zero?")
+    repeats = model.metadata.get("excluded_duplicate_terms")
+    if repeats:
+        term, first = next(iter(repeats.items()))
+        print(f"note: {len(repeats)} candidate term(s) repeat an earlier term on this data "
+              f"and were left out of the search (e.g. {term} is proportional to {first}); "
+              "is an input constant, or equal to another signal?")
     print(result.summary("lines"))
     if args.plots:
         from .plots import write_model_figures
@@ -725,6 +734,16 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {value}")
+    return value
+
+
 def _seed(text: str) -> int:
     try:
         value = int(text)
@@ -877,8 +896,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("propose-lags", help="propose lags and degree from the data")
     _add_data_options(p, bag=True)
-    p.add_argument("--max-order", type=int, default=10, help="largest lag order (default 10)")
-    p.add_argument("--max-degree", type=int, default=3, help="largest degree (default 3)")
+    p.add_argument("--max-order", type=_positive_int, default=10,
+                   help="largest lag order (default 10)")
+    p.add_argument("--max-degree", type=_positive_int, default=3, help="largest degree (default 3)")
     p.add_argument("--delay", type=_schema_type("delay"), default=1,
                    help="input delay of the candidates (default 1)")
     p.add_argument("--criterion", choices=("aic", "bic"), default="bic",

@@ -12,7 +12,7 @@ import re
 
 from ..errors import FieldPathError
 
-__all__ = ["DEFAULT_FIELDS", "default_field", "extract", "message_stamp_ns"]
+__all__ = ["DEFAULT_FIELDS", "default_field", "extract", "has_unset_stamp", "message_stamp_ns"]
 
 #: Field used when none is given, per message type.
 DEFAULT_FIELDS = {
@@ -80,12 +80,24 @@ def extract(msg: object, path: str | list[str | int]) -> float:
 
 
 def message_stamp_ns(msg: object) -> int | None:
-    """``header.stamp`` in nanoseconds, or None for a message without a header."""
+    """``header.stamp`` in nanoseconds; None without a header or with a zero stamp.
+
+    A zero stamp is a header the publisher never filled in (a common driver
+    default), not a time: callers then use the receive (or bag log) time and
+    count such messages (:func:`has_unset_stamp`).
+    """
     header = getattr(msg, "header", None)
     stamp = getattr(header, "stamp", None)
     if stamp is None:
         return None
-    return int(stamp.sec) * 1_000_000_000 + int(getattr(stamp, "nanosec", 0))
+    ns = int(stamp.sec) * 1_000_000_000 + int(getattr(stamp, "nanosec", 0))
+    return ns or None
+
+
+def has_unset_stamp(msg: object) -> bool:
+    """True for a message whose header stamp is zero (never filled in)."""
+    stamp = getattr(getattr(msg, "header", None), "stamp", None)
+    return stamp is not None and int(stamp.sec) == 0 and int(getattr(stamp, "nanosec", 0)) == 0
 
 
 def _show(steps: list[str | int]) -> str:

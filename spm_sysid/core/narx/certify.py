@@ -599,11 +599,13 @@ def certify_data(
 
     The data are scaled by powers of two as :func:`identify` scales them, so the
     values are the GA's; ``warm_start`` is a mask over all candidate terms.
-    Terms whose regressor is zero on all rows are left out (they cannot be in an
-    identifiable structure). The certificate's ``terms`` are the term names.
+    Terms whose regressor is zero on all rows, or proportional to an earlier
+    term's, are left out as :func:`identify` leaves them out. The certificate's
+    ``terms`` are the term names.
     ``started`` (``time.perf_counter()``) is when the caller's work began, e.g. a
     warm-start GA: the time limit counts from there (default: now).
     """
+    from .problem import excluded_columns
     from .terms import power_of_two_scale
 
     ensure_compiled()  # the first use compiles; the time limit starts after
@@ -616,7 +618,8 @@ def certify_data(
     su = np.array([power_of_two_scale(c) for c in u2.T])
     sy = power_of_two_scale(y)
     P, target = term_space.regression(u2 / su, y / sy, segments)
-    nonzero = np.any(P != 0, axis=0)
+    zero, duplicate_of = excluded_columns(P)
+    nonzero = ~zero & (duplicate_of < 0)
     warm = None if warm_start is None else np.asarray(warm_start, dtype=bool)[nonzero]
     cert = certify(P[:, nonzero], target, criterion, warm_start=warm, time_limit=time_limit,
                    node_limit=node_limit, sse_scale=sy * sy, progress=progress,

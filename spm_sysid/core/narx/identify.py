@@ -18,6 +18,7 @@ from .criteria import Criterion, get_criterion
 from .evaluator import StructureEvaluator
 from .ga import GAConfig, GAResult, GenerationStats, run_ga
 from .model import NarxModel
+from .problem import excluded_columns
 from .refine import refine_simulation
 from .segments import normalise_segments, usable_segments
 from .terms import TermSpace, power_of_two_scale
@@ -101,7 +102,53 @@ def validate_signals(u, y, term_space: TermSpace,
                 f"too few samples: {len(segments)} segment(s) longer than the largest lag "
                 f"({term_space.max_lag}) give {max(rows, 0)} regression rows, but "
                 f"{need + 1} or more are needed for {term_space.n_terms} candidate terms")
+    check_magnitudes(u, y, term_space)
     return u, y
+
+
+#: Largest and smallest RMS of the output that squared sums (SSE, MSE) still hold.
+Y_RMS_RANGE = (1e-150, 1e150)
+
+
+def check_magnitudes(u: np.ndarray, y: np.ndarray, term_space: TermSpace) -> None:
+    """Refuse signals whose magnitudes double precision cannot carry through a fit.
+
+    Fits run on data scaled by powers of two (exact), but the SSE, the MSE and
+    the coefficients are reported in the user's units: the output's RMS must lie
+    in :data:`Y_RMS_RANGE` (else its squared sums under- or overflow), and every
+    coefficient's unit factor (output scale over input and output scales to the
+    term's powers) must be a normal float.
+
+    Raises
+    ------
+    DataError
+        Naming the signal, its RMS and what to do.
+    """
+    def rms(x):
+        x = np.asarray(x, dtype=float)
+        peak = float(np.max(np.abs(x))) if x.size else 0.0
+        return peak * float(np.sqrt(np.mean(np.square(x / peak)))) if peak > 0 else 0.0
+
+    ry = rms(y)
+    low, high = Y_RMS_RANGE
+    if ry > 0 and not low <= ry <= high:
+        raise DataError(
+            f"the output {term_space.output} has RMS {ry:.1e}: beyond {low:.0e}..{high:.0e}, "
+            "its squared errors cannot be represented in double precision; rescale it "
+            f"(e.g. multiply by 1e{-int(np.floor(np.log10(ry)))}) and scale the model's "
+            "output back")
+    u2 = term_space.inputs_2d(u)
+    su = np.array([power_of_two_scale(c) for c in u2.T])
+    factors = term_space.coefficient_factors(su, power_of_two_scale(y))
+    tiny = np.finfo(float).tiny
+    bad = ~(np.isfinite(factors) & (factors >= tiny))
+    if bad.any():
+        term = term_space.term_names()[int(np.flatnonzero(bad)[0])]
+        sizes = ", ".join(f"{n} {rms(c):.1e}" for n, c in zip(term_space.inputs, u2.T))
+        raise DataError(
+            f"the signals' magnitudes (RMS: {sizes}; {term_space.output} {ry:.1e}) are too far "
+            f"apart for the coefficients of terms such as {term} to be represented in double "
+            "precision; rescale the inputs and the output to similar magnitudes")
 
 
 def identify(
@@ -163,7 +210,10 @@ def identify(
     magnitude identify alike; coefficients and criteria are in the user's units.
     Candidate terms whose regressor is zero on all rows (e.g. every term with u
     when the input is zero) are left out of the search, and the result says so
-    (``model.metadata["excluded_zero_terms"]``).
+    (``model.metadata["excluded_zero_terms"]``); so are terms whose regressor is
+    proportional to an earlier term's (every lag of a constant input but the
+    first; the input's terms when the input equals the output):
+    ``model.metadata["excluded_duplicate_terms"]`` maps each to the term it repeats.
     """
     term_space = term_space or TermSpace()
     crit = get_criterion(criterion)
@@ -190,9 +240,11 @@ def identify(
     su = np.array([power_of_two_scale(c) for c in u2.T])
     sy = power_of_two_scale(y)
     P, target = term_space.regression(u2 / su, y / sy, segments)
-    nonzero = np.any(P != 0, axis=0)
+    zero, duplicate_of = excluded_columns(P)
+    nonzero = ~zero & (duplicate_of < 0)
     names = term_space.term_names()
-    excluded = [names[i] for i in np.flatnonzero(~nonzero)]
+    excluded = [names[i] for i in np.flatnonzero(zero)]
+    duplicates = {names[i]: names[duplicate_of[i]] for i in np.flatnonzero(duplicate_of >= 0)}
     evaluator = StructureEvaluator(P[:, nonzero], target, crit, sse_scale=sy * sy)
     result = run_ga(evaluator, ga, seed=seed, callback=callback)
     if not np.isfinite(result.best_score):
@@ -216,6 +268,7 @@ def identify(
         "search_seconds": round(result.elapsed, 4),
         "focus": focus,
         **({"excluded_zero_terms": excluded} if excluded else {}),
+        **({"excluded_duplicate_terms": duplicates} if duplicates else {}),
         **({"certificate": certificate} if certificate is not None else {}),
     }
     if focus == "simulation":

@@ -221,12 +221,11 @@ class TermSpace:
         ey = np.frexp(y_scale)[1] - 1
         eu = [np.frexp(s)[1] - 1 for s in np.atleast_1d(np.asarray(u_scale, dtype=float))]
         lin = self.linear
-        out = np.empty(self.n_terms)
-        for j, term in enumerate(self.terms):
-            a = sum(1 for i in term if lin[i][0] < 0)
-            exp = ey * (1 - a) - sum(eu[lin[i][0]] for i in term if lin[i][0] >= 0)
-            out[j] = np.ldexp(1.0, int(exp))
-        return out
+        exps = np.array([ey * (1 - sum(1 for i in term if lin[i][0] < 0))
+                         - sum(eu[lin[i][0]] for i in term if lin[i][0] >= 0)
+                         for term in self.terms], dtype=np.int64)
+        with np.errstate(over="ignore", under="ignore"):  # inf or 0: refused by identify
+            return np.ldexp(np.ones(self.n_terms), exps)
 
     # -- the regression matrix -------------------------------------------------------
     def inputs_2d(self, u: np.ndarray) -> np.ndarray:

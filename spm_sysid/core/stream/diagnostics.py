@@ -29,8 +29,9 @@ def _values(values: dict) -> dict[str, str]:
 
 
 def diagnostic_statuses(name: str, stats: dict, *, field_errors: int = 0,
+                        unset_stamps: int = 0,
                         worker_ready: bool = True, worker_restarts: int = 0,
-                        type_mismatches: list[str] | None = None,
+                        type_mismatches: list[str] | None = None, namesakes: int = 0,
                         running: tuple | None = None, last_error: str | None = None,
                         model: dict | None = None, restored_from: str | None = None,
                         ) -> list[Status]:
@@ -42,9 +43,12 @@ def diagnostic_statuses(name: str, stats: dict, *, field_errors: int = 0,
         The node's name (prefix of every status name).
     stats : dict
         :meth:`spm_sysid.core.stream.buffer.SampleBuffer.stats_dict`.
-    field_errors, worker_ready, worker_restarts, type_mismatches
-        The node's own health: messages whose field could not be read, the worker
-        process, publishers of another message type on a subscribed topic.
+    field_errors, unset_stamps, worker_ready, worker_restarts, type_mismatches
+        The node's own health: messages whose field could not be read, messages
+        with a zero header stamp (stamped on receipt instead), the worker process,
+        publishers of another message type on a subscribed topic.
+    namesakes : int
+        Other nodes on the domain with this node's name (calls may reach them).
     running : tuple, optional
         ``(generation, best, evaluations, seconds)`` of a running search.
     last_error : str, optional
@@ -63,10 +67,15 @@ def diagnostic_statuses(name: str, stats: dict, *, field_errors: int = 0,
         problems.append(f"{stats['time_jumps']} jump(s) back in time")
     if type_mismatches:
         problems.append("a publisher of the wrong message type")
+    if namesakes:
+        problems.append(f"{namesakes} other node(s) with this node's name")
+    if unset_stamps:
+        problems.append(f"{unset_stamps} message(s) with header.stamp 0 (receive time used)")
     if not worker_ready:
         problems.append("worker not ready")
     level = OK
-    if lost or field_errors or stats.get("time_jumps") or not worker_ready:
+    if (lost or field_errors or unset_stamps or namesakes or stats.get("time_jumps")
+            or not worker_ready):
         level = WARN
     if type_mismatches:
         level = ERROR
@@ -74,6 +83,8 @@ def diagnostic_statuses(name: str, stats: dict, *, field_errors: int = 0,
         level, f"{name}: buffer",
         f"{stats['samples']} paired samples" + "".join(f", {p}" for p in problems),
         {**_values(stats), **_values({"field_errors": field_errors,
+                                      "unset_stamps": unset_stamps,
+                                      "namesakes": namesakes,
                                       "worker_ready": worker_ready,
                                       "worker_restarts": worker_restarts,
                                       "type_mismatch": "; ".join(type_mismatches)})})]

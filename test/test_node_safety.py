@@ -1,0 +1,126 @@
+"""Issue 17 over real DDS: a node that starts whatever is in its files, clear errors,
+stamps that were never filled in, namesakes, back-pressure."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from std_msgs.msg import String
+
+from spm_sysid.core.narx.model import NarxModel
+from spm_sysid.core.narx.terms import TermSpace
+
+from .conftest import ROOT
+from .ros_harness import Harness, start_node, stop
+
+
+@pytest.fixture
+def harness(ros_env):
+    h = Harness(ros_env)
+    yield h
+    h.close()
+
+
+def _model_doc() -> dict:
+    return NarxModel(TermSpace(ny=1, nu=1, degree=1), [0, 1], np.array([0.5, 0.1])).to_dict()
+
+
+@pytest.mark.parametrize("kind", ["nested", "huge", "nan"])
+def test_a_bad_model_path_file_does_not_stop_the_node(ros_env, harness, tmp_path, kind):
+    """Deeply nested JSON (RecursionError), 10**400 (OverflowError), NaN: exit 1 before."""
+    path = tmp_path / "model.json"
+    if kind == "nested":
+        path.write_text("[" * 100_000 + "]" * 100_000)
+    elif kind == "huge":
+        path.write_text(json.dumps(_model_doc()).replace("0.5", "1" + "0" * 400, 1))
+    else:
+        path.write_text(json.dumps({**_model_doc(), "metadata": {"x": float("nan")}}))
+    before = path.read_bytes()
+    log = open(tmp_path / "node.log", "w")
+    node = start_node(ros_env, f"model_path:={path}", log=log)
+    try:
+        harness.wait_ready()
+        assert node.poll() is None
+        assert harness.latched(String, "/spm_sysid/model", 2.0) is None  # nothing re-published
+    finally:
+        stop(node)
+    text = (tmp_path / "node.log").read_text()
+    assert "holds no readable model" in text and "nothing re-published" in text
+    assert "Traceback" not in text and path.read_bytes() == before
+
+
+def test_a_topic_name_ros_refuses_is_one_error_line(ros_env):
+    r = subprocess.run([sys.executable, "-m", "spm_sysid.ros.sysid_node", "--ros-args", "-p",
+                        "input_topic:=/" + "a" * 250], capture_output=True, text=True,
+                       env=ros_env, timeout=60, cwd=ROOT)
+    assert r.returncode == 1 and "Traceback" not in r.stderr, r.stderr
+    assert "input_topic '/aaaa" in r.stderr and "is not a valid topic name" in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+
+
+def test_call_with_a_node_name_ros_refuses(ros_env):
+    r = subprocess.run([sys.executable, "-m", "spm_sysid.apps.main", "call", "identify",
+                        "--node", "bad name!!", "--timeout", "1"], capture_output=True,
+                       text=True, env=ros_env, timeout=60, cwd=ROOT)
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert r.stderr.startswith("error: --node 'bad name!!' is not a valid ROS node name")
+
+
+def test_zero_header_stamps_are_stamped_on_receipt_and_counted(ros_env, harness):
+    """All-zero stamps kept one sample, and nothing named the stamps as the cause."""
+    node = start_node(ros_env, "diagnostics_period:=0.2", "stamp_tolerance:=0.004")
+    pub = subprocess.Popen([sys.executable, "-m", "spm_sysid.ros.signal_publisher", "100",
+                            "300", "--stamps", "zero"], env=ros_env, stdout=subprocess.PIPE,
+                           stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    try:
+        harness.wait_ready()
+        out, err = pub.communicate(timeout=120)
+        assert pub.returncode == 0, err
+        kv = harness.wait_buffer(lambda kv: int(kv["unset_stamps"]) >= 600, 30)
+        level, message, _ = harness.statuses()["buffer"]
+    finally:
+        stop(node)
+    assert kv["unset_stamps"] == "600"
+    assert int(kv["samples"]) > 250  # paired by receive time, not collapsed to one
+    assert level == 1 and "header.stamp 0 (receive time used)" in message
+
+
+def test_a_second_node_with_the_same_name_is_reported(ros_env, harness):
+    first = start_node(ros_env, "diagnostics_period:=0.2")
+    second = start_node(ros_env, "diagnostics_period:=0.2")
+    try:
+        harness.wait_ready()
+        assert harness.spin_until(
+            lambda: harness.buffer().get("namesakes", "0") != "0", 30)
+        assert "other node(s) with this node's name" in harness.statuses()["buffer"][1]
+    finally:
+        stop(second)
+        stop(first)
+
+
+def test_the_publisher_waits_out_back_pressure_and_never_crashes(ros_env, tmp_path):
+    """A subscriber that never takes its messages: an error line and exit 1, no traceback."""
+    sink = subprocess.Popen([sys.executable, "-c", (
+        "import rclpy, time\n"
+        "from rclpy.qos import QoSProfile, HistoryPolicy, ReliabilityPolicy\n"
+        "from geometry_msgs.msg import WrenchStamped, AccelStamped\n"
+        "rclpy.init(); n = rclpy.create_node('sink')\n"
+        "q = QoSProfile(history=HistoryPolicy.KEEP_ALL, "
+        "reliability=ReliabilityPolicy.RELIABLE)\n"
+        "n.create_subscription(WrenchStamped, '/robot_arm/torque', lambda m: None, q)\n"
+        "n.create_subscription(AccelStamped, '/robot_arm/acceleration', lambda m: None, q)\n"
+        "rclpy.spin_once(n, timeout_sec=2.0)\n"
+        "time.sleep(600)\n")], env=ros_env, cwd=ROOT)
+    try:
+        r = subprocess.run([sys.executable, "-m", "spm_sysid.ros.signal_publisher", "50000",
+                            "200000", "--backpressure-timeout", "2"], capture_output=True,
+                           text=True, env=ros_env, timeout=240, cwd=ROOT)
+    finally:
+        sink.kill()
+        sink.wait()
+    assert "Traceback" not in r.stderr, r.stderr
+    summary = json.loads(r.stdout.strip().splitlines()[-1])
+    assert r.returncode == 1 and summary["blocked"] > 0 and "error" in summary
+    assert r.stderr.startswith("error: the subscriber did not take messages for 2 s")
