@@ -169,7 +169,7 @@ def run(args) -> int:
             raise PipelineError(f"{path} differs from the published model")
         report = validate_model(model, signals.u, signals.y)
         stem = "model" if name == "prediction" else "model_simulation"
-        figures = write_model_figures(report, out / "figures", stem)
+        figures = write_model_figures(report, out / "figures", stem, model=model)
         free = report.free_run_metrics
         print(f"  focus {name}: {model.equation()}")
         what = " (of the free-run error)" if name == "simulation" else ""

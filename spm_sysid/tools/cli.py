@@ -353,7 +353,7 @@ def cmd_identify(args) -> int:
     if args.plots:
         from .plots import write_model_figures
 
-        paths = write_model_figures(result.report, args.plots)
+        paths = write_model_figures(result.report, args.plots, model=result.model)
         print(f"figures written to {args.plots}: {', '.join(p.name for p in paths)}")
     if args.json:
         path = model.save(args.json)
@@ -513,7 +513,7 @@ def _validate_and_report(model, u, y, segment, plots, corr_lags, segments=None,
     if plots:
         from .plots import write_model_figures
 
-        paths = write_model_figures(report, plots)
+        paths = write_model_figures(report, plots, model=model)
         print(f"figures written to {plots}: {', '.join(p.name for p in paths)}")
 
 
@@ -625,7 +625,9 @@ def cmd_experiment(args) -> int:
     if records:
         write_results(records, rows, config, args.out)
         print(summary_table(rows))
-    print(f"{len(records)} of {n_runs} runs in {elapsed:.1f} s; per-run records and figure "
+    done_here = f" ({records.resumed} from the earlier session)" if records.resumed else ""
+    print(f"{len(records)} of {n_runs} runs{done_here} in {elapsed:.1f} s; per-run records "
+          "and figure "
           f"in {args.out}")
     if records.failures:
         for f in records.failures:
@@ -641,7 +643,8 @@ def cmd_experiment(args) -> int:
     if args.report:
         from .report import write_report
 
-        path = write_report(records, rows, config, args.out, args.report, elapsed, source)
+        path = write_report(records, rows, config, args.out, args.report, elapsed, source,
+                            records.resumed)
         print(f"report written to {path}")
     return 0
 

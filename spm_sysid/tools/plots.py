@@ -20,10 +20,33 @@ import matplotlib
 matplotlib.use("Agg")  # files only; no display needed
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from matplotlib.ticker import MaxNLocator  # noqa: E402
 
 from ..core.narx.validation import ValidationReport  # noqa: E402
 
-__all__ = ["plot_convergence", "plot_correlation_tests", "plot_prediction", "write_model_figures"]
+__all__ = ["model_label", "plot_convergence", "plot_correlation_tests", "plot_prediction",
+           "write_model_figures"]
+
+#: The correlation tests' symbols, as matplotlib mathtext (the core's labels are plain text).
+MATH_LABELS = {
+    "ee": r"residual autocorrelation  $\phi_{\varepsilon\varepsilon}(\tau)$",
+    "ue": r"input–residual  $\phi_{u\varepsilon}(\tau)$",
+    "e_eu": r"residual–(residual·input)  $\phi_{\varepsilon(\varepsilon u)}(\tau)$",
+    "u2_e": r"squared input–residual  $\phi_{(u^2)'\varepsilon}(\tau)$",
+    "u2_e2": r"squared input–squared residual  $\phi_{(u^2)'(\varepsilon^2)}(\tau)$",
+}
+
+#: Samples in the zoomed window of a prediction figure.
+ZOOM = 150
+
+
+def model_label(model) -> str:
+    """Which model a figure shows: criterion, focus and size (``AIC, prediction, 8 terms``)."""
+    if model is None:
+        return ""
+    crit = (model.criterion or "model").upper()
+    focus = model.metadata.get("focus", "prediction")
+    return f"{crit}, focus {focus}, {len(model.term_indices)} terms"
 
 
 def _save(fig, stem: Path) -> list[Path]:
@@ -47,10 +70,12 @@ def plot_correlation_tests(report: ValidationReport, stem: Path, title: str = ""
         ax.axhline(-t.band, ls=":", color="k", lw=1)
         ax.axhline(0, color="0.6", lw=0.5)
         ax.set_ylim(-1.05, 1.05)
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         state = "OK" if t.passed else "outside band"
-        ax.set_title(f"{t.label} — {t.fraction_inside:.0%} inside ({state})", fontsize=9)
+        ax.set_title(f"{MATH_LABELS.get(t.name, t.label)} — {t.fraction_inside:.0%} inside "
+                     f"({state})", fontsize=9)
         ax.set_ylabel("correlation", fontsize=8)
-    np.atleast_1d(axes)[-1].set_xlabel("lag τ (samples)")
+    np.atleast_1d(axes)[-1].set_xlabel(r"lag $\tau$ (samples)")
     if title:
         fig.suptitle(title, fontsize=10)
     fig.tight_layout()
@@ -76,11 +101,21 @@ def plot_prediction(report: ValidationReport, stem: Path, kind: str = "one_step"
              "free_run": "free-run simulation"}[kind]
     t = np.arange(len(report.measured))
     err = report.measured - pred
-    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(8, 5), sharex=True,
-                                   gridspec_kw={"height_ratios": [2, 1]})
-    ax1.plot(t, report.measured, color="k", lw=1.0, label="measured")
-    ax1.plot(t, pred, color="tab:red", lw=0.9, ls="--", label=label)
+    fig, (ax1, axz, ax2) = plt.subplots(3, 1, figsize=(8, 7),
+                                        gridspec_kw={"height_ratios": [2, 1.5, 1]})
+    ax1.plot(t, report.measured, color="k", lw=0.8, label="measured")
+    ax1.plot(t, pred, color="tab:red", lw=0.7, ls="--", label=label)
     ax1.set_ylabel("output y")
+    # a zoomed window, so that the two curves can be told apart: where the error peaks
+    finite = np.isfinite(err)
+    peak = int(np.nanargmax(np.abs(np.where(finite, err, np.nan)))) if finite.any() else 0
+    a = int(np.clip(peak - ZOOM // 2, 0, max(len(t) - ZOOM, 0)))
+    z = slice(a, a + ZOOM)
+    axz.plot(t[z], report.measured[z], color="k", lw=1.0, marker=".", ms=2.5, label="measured")
+    axz.plot(t[z], pred[z], color="tab:red", lw=1.0, ls="--", label=label)
+    axz.set_ylabel("output y")
+    axz.set_title(f"samples {t[z][0]}–{t[z][-1]} (around the largest error)", fontsize=8)
+    ax1.axvspan(t[z][0], t[z][-1], color="tab:orange", alpha=0.15, lw=0)
     if m.get("diverged_at") is not None:
         bad = np.flatnonzero(~np.isfinite(pred))
         row = int(bad[0]) if bad.size else len(pred) - 1
@@ -94,10 +129,11 @@ def plot_prediction(report: ValidationReport, stem: Path, kind: str = "one_step"
         summary = (f"{label[0].upper() + label[1:]}: max |e| {m['max_abs']:.4g}, "
                    f"mean |e| {m['mean_abs']:.4g}, fit {m['fit_percent']:.1f} %")
     ax1.legend(loc="upper right", fontsize=8)
-    ax1.set_title(title or summary, fontsize=9)
-    ax2.plot(t, err, color="tab:blue", lw=0.8)
+    ax1.set_title(f"{title} — {summary}" if title else summary, fontsize=9)
+    ax2.plot(t, err, color="tab:blue", lw=0.7)
     ax2.set_ylabel("error")
     ax2.set_xlabel("sample")
+    ax2.sharex(ax1)
     fig.tight_layout()
     return _save(fig, stem)
 
@@ -113,32 +149,52 @@ def plot_convergence(
     cols = min(3, len(panels)) or 1
     rows = -(-len(panels) // cols) or 1
     fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.2 * rows), squeeze=False)
+    n_runs = 0
     for ax, title in zip(axes.ravel(), panels):
+        tops = []
         for s, runs in sorted(curves[title].items()):
             arr = np.asarray(runs, dtype=float)
+            n_runs = max(n_runs, len(arr))
             mean = np.nanmean(np.where(np.isfinite(arr), arr, np.nan), axis=0)
-            ax.plot(np.arange(len(mean)), mean, lw=1.3, label=f"{s:g}")
+            # generation + 1 on a log axis: the first tens of generations, where the
+            # search moves, get the room; the plateau takes the rest
+            ax.plot(np.arange(1, len(mean) + 1), mean, lw=1.3, label=f"{s:g}")
+            tops.append(mean[min(len(mean) - 1, 4)])  # the mean at generation 5
+            low = np.nanmin(mean)
+        ax.set_xscale("log")
+        finite = [v for v in tops if np.isfinite(v)]
+        if finite and np.isfinite(low) and max(finite) > low:
+            pad = 0.05 * (max(finite) - low)
+            ax.set_ylim(low - pad, max(finite) + pad)  # generation 0's outliers cropped
         ax.set_title(title, fontsize=9)
-        ax.set_xlabel("generation")
+        ax.set_xlabel("generation + 1 (log scale)")
         ax.set_ylabel("mean best criterion")
         ax.legend(title="SPM s", fontsize=8)
     for ax in axes.ravel()[len(panels):]:
         ax.set_visible(False)
+    fig.suptitle(f"Mean best criterion so far, over {n_runs} runs per line (lower is better; "
+                 "y axis from generation 5)", fontsize=10)
     fig.tight_layout()
     return _save(fig, stem)
 
 
 def write_model_figures(
-    report: ValidationReport, directory: Path, name: str = "model"
+    report: ValidationReport, directory: Path, name: str = "model", model=None,
 ) -> list[Path]:
-    """The correlation, one-step, k-step (with a horizon) and free-run figures."""
+    """The correlation, one-step, k-step (with a horizon) and free-run figures.
+
+    With ``model``, every title says which model it shows (criterion, focus, size).
+    """
     directory = Path(directory)
+    which = model_label(model)
+    prefix = f"{which} — " if which else ""
     paths = []
     if report.tests:  # not computed after a divergence (report.tests_skipped says why)
         paths += plot_correlation_tests(report, directory / f"{name}_correlation",
-                                        title=f"Correlation tests ({report.segment} data)")
-    paths += plot_prediction(report, directory / f"{name}_one_step", "one_step")
+                                        title=f"{prefix}correlation tests ({report.segment} "
+                                              "data)")
+    paths += plot_prediction(report, directory / f"{name}_one_step", "one_step", which)
     if report.k_step is not None:
-        paths += plot_prediction(report, directory / f"{name}_k_step", "k_step")
-    paths += plot_prediction(report, directory / f"{name}_free_run", "free_run")
+        paths += plot_prediction(report, directory / f"{name}_k_step", "k_step", which)
+    paths += plot_prediction(report, directory / f"{name}_free_run", "free_run", which)
     return paths

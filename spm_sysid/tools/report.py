@@ -88,10 +88,24 @@ def _references(records: Sequence[RunRecord]) -> dict[str, tuple[float, list[str
     return out
 
 
+def _timing(records: Sequence[RunRecord], elapsed: float, resumed: int) -> str:
+    """How long the study took, honest about a resumed one."""
+    run_time = sum(r.seconds for r in records)
+    if resumed:
+        return (f"{len(records)} runs, {resumed} of them done in an earlier session that "
+                f"was resumed; {elapsed:.1f} s of wall time in the last session, "
+                f"{run_time:.1f} s of run time in all")
+    return f"{len(records)} runs in {elapsed:.1f} s ({run_time:.1f} s of run time)"
+
+
 def write_report(records: Sequence[RunRecord], rows: Sequence[SettingSummary],
                  config: ExperimentConfig, results_dir: Path, report_dir: Path,
-                 elapsed: float, source: str) -> Path:
-    """Write ``report.md`` (and copy its figure) into ``report_dir``."""
+                 elapsed: float, source: str, resumed: int = 0) -> Path:
+    """Write ``report.md`` (and copy its figure) into ``report_dir``.
+
+    ``elapsed`` is this session's wall time; ``resumed`` runs came from an earlier
+    session (their own run times are in the records).
+    """
     report_dir = Path(report_dir)
     report_dir.mkdir(parents=True, exist_ok=True)
     for ext in ("png", "svg"):
@@ -104,7 +118,7 @@ def write_report(records: Sequence[RunRecord], rows: Sequence[SettingSummary],
         for c, (v, t, label) in best.items())
     text = f"""# SPM versus plain GA: study report
 
-Data: {source}. {len(records)} runs in {elapsed:.1f} s
+Data: {source}. {_timing(records, elapsed, resumed)}
 ({config.runs} runs per setting, {config.generations} generations, seeds
 {config.seed}..{config.seed + config.runs - 1} for every setting, roulette fitness
 `{config.fitness}`, crossover {config.crossover_prob}, mutation {config.mutation_prob}).
