@@ -78,13 +78,13 @@ def test_zero_header_stamps_are_stamped_on_receipt_and_counted(ros_env, harness)
         harness.wait_ready()
         out, err = pub.communicate(timeout=120)
         assert pub.returncode == 0, err
-        kv = harness.wait_buffer(lambda kv: int(kv["unset_stamps"]) >= 600, 30)
+        kv = harness.wait_buffer(lambda kv: int(kv["unset_stamps"]) >= 598, 30)
         level, message, _ = harness.statuses()["buffer"]
     finally:
         stop(node)
-    assert kv["unset_stamps"] == "600"
+    assert kv["unset_stamps"] == "598"  # each topic's first 0 may be a real time
     assert int(kv["samples"]) > 250  # paired by receive time, not collapsed to one
-    assert level == 1 and "header.stamp 0 (receive time used)" in message
+    assert level == 1 and "header.stamp never set (receive time used)" in message
 
 
 def test_a_second_node_with_the_same_name_is_reported(ros_env, harness):

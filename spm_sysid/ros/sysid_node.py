@@ -35,13 +35,7 @@ from std_srvs.srv import Trigger
 from ..core.errors import FieldPathError
 from ..core.files import atomic_write_text, check_writable_file
 from ..core.io.channels import parse_channels, stream_order, topic_streams
-from ..core.io.fields import (
-    default_field,
-    extract,
-    has_unset_stamp,
-    message_stamp_ns,
-    parse_path,
-)
+from ..core.io.fields import UnsetStamps, default_field, extract, parse_path
 from ..core.job import JobSettings
 from ..core.narx.model import NarxModel
 from ..core.settings import Setting, check, node_settings
@@ -121,7 +115,7 @@ class SysidNode(Node):
         self._restored_from: str | None = None
         self._last_error: str | None = None
         self._field_errors = 0
-        self._unset_stamps = 0
+        self._unset = UnsetStamps()
         self._namesakes = 0
         self._type_mismatch: dict[tuple[str, str], str] = {}
         self._unnamed_checks = 0
@@ -195,13 +189,13 @@ class SysidNode(Node):
     # -- recording ---------------------------------------------------------------------
     def _input_callback(self, stream: int, steps: list):
         def on_input(msg) -> None:
-            self._record(msg, steps, lambda t, v: self.buffer.add_input(t, v, stream))
+            self._record(msg, stream, steps, lambda t, v: self.buffer.add_input(t, v, stream))
         return on_input
 
     def _on_output(self, msg) -> None:
-        self._record(msg, self._out[1], lambda t, v: self.buffer.add_output(t, v[0]))
+        self._record(msg, "y", self._out[1], lambda t, v: self.buffer.add_output(t, v[0]))
 
-    def _record(self, msg, steps, add) -> None:
+    def _record(self, msg, stream, steps, add) -> None:
         try:
             value = [extract(msg, step) for step in steps]
         except FieldPathError as exc:
@@ -209,14 +203,13 @@ class SysidNode(Node):
             if self._field_errors == 1:
                 self.get_logger().error(str(exc))
             return
-        stamp = message_stamp_ns(msg)
-        if stamp is None and has_unset_stamp(msg):
-            self._unset_stamps += 1
-            if self._unset_stamps == 1:
-                self.get_logger().warning(
-                    f"a {type(msg).__name__} message arrived with header.stamp 0 (the "
-                    "publisher does not fill it in?): its receive time is used instead; such "
-                    "messages are counted in /diagnostics")
+        before = self._unset.count
+        stamp = self._unset.stamp(stream, msg)
+        if self._unset.count == 1 and before == 0:
+            self.get_logger().warning(
+                f"{type(msg).__name__} messages arrive with header.stamp 0 again and again "
+                "(the publisher does not fill it in?): their receive times are used "
+                "instead; such messages are counted in /diagnostics")
         add(self.get_clock().now().nanoseconds if stamp is None else stamp, value)
 
     def _check_graph(self) -> None:
@@ -394,7 +387,7 @@ class SysidNode(Node):
     def _publish_diagnostics(self) -> None:
         statuses = diagnostic_statuses(
             self.get_fully_qualified_name(), self.buffer.stats_dict(),
-            field_errors=self._field_errors, unset_stamps=self._unset_stamps,
+            field_errors=self._field_errors, unset_stamps=self._unset.count,
             worker_ready=self.worker.ready,
             worker_restarts=self.worker.restarts,
             type_mismatches=list(self._type_mismatch.values()), namesakes=self._namesakes,

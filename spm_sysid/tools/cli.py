@@ -215,8 +215,8 @@ def _load(args) -> Loaded:
                                input_field=args.input_field, output_field=args.output_field,
                                input_names=args.input_names)
         if sig.unset_stamps:
-            print(f"note: {sig.unset_stamps} message(s) in {args.bag} have header.stamp 0 (the "
-                  "recording driver did not fill it in?); their log time was used")
+            print(f"note: {sig.unset_stamps} message(s) in {args.bag} repeat header.stamp 0 (the "
+                  "recording driver did not fill it in?); their log times were used")
         return Loaded(sig.u, sig.y, f"bag {args.bag}", sig.stamps_ns,
                       sig.rejected_nonfinite, sig.unpaired,
                       input_names=sig.input_names if np.ndim(sig.u) == 2 or args.input_names

@@ -48,7 +48,7 @@ from ..errors import BagError, FieldPathError
 from ..settings import SETTINGS
 from ..stream.buffer import pair_streams
 from .channels import parse_channels, stream_order, topic_streams
-from .fields import default_field, extract, has_unset_stamp, message_stamp_ns, parse_path
+from .fields import UnsetStamps, default_field, extract, parse_path
 
 __all__ = [
     "DEFAULT_INPUT_TOPIC",
@@ -433,9 +433,10 @@ def read_bag_signals(
     (:func:`spm_sysid.core.stream.buffer.pair_streams`; ``tolerance_ns`` defaults to
     the node's ``stamp_tolerance``): NaN/inf values are rejected and counted, stamps
     that go back start a new segment, and the holes show in the stamps
-    (:func:`spm_sysid.core.narx.segments.find_segments`). A header stamp of zero
-    (never filled in) is not a time: the message's log time is used instead and
-    such messages are counted (``unset_stamps``).
+    (:func:`spm_sysid.core.narx.segments.find_segments`). Header stamps that stay
+    zero (never filled in; :class:`~spm_sysid.core.io.fields.UnsetStamps`) are
+    not times: those messages' log times are used instead, and they are counted
+    (``unset_stamps``).
 
     Raises
     ------
@@ -474,12 +475,11 @@ def read_bag_signals(
         except FieldPathError as exc:
             raise BagError(f"topic {topic} ({conns[topic].msgtype}): {exc}") from None
         events = []
-        unset = 0
+        unset = UnsetStamps()
         try:
             for c, log_ns, raw in reader.messages(connections=[conns[t] for t in streams]):
                 msg = reader.deserialize(raw, c.msgtype)
-                st = message_stamp_ns(msg)
-                unset += has_unset_stamp(msg)
+                st = unset.stamp(c.topic, msg)
                 stream, steps = streams[c.topic]
                 values = [extract(msg, s) for s in steps]
                 events.append((stream, log_ns if st is None else st,
@@ -502,5 +502,5 @@ def read_bag_signals(
         output_count=stats.received_outputs,
         topics={t: conns[t].msgtype for t in streams},
         rejected_nonfinite=stats.rejected_nonfinite, crc_checked=crc_checked,
-        input_names=tuple(c.name for c in channels), unset_stamps=unset,
+        input_names=tuple(c.name for c in channels), unset_stamps=unset.count,
     )

@@ -12,7 +12,7 @@ import re
 
 from ..errors import FieldPathError
 
-__all__ = ["DEFAULT_FIELDS", "default_field", "extract", "has_unset_stamp", "message_stamp_ns"]
+__all__ = ["DEFAULT_FIELDS", "UnsetStamps", "default_field", "extract", "message_stamp_ns"]
 
 #: Field used when none is given, per message type.
 DEFAULT_FIELDS = {
@@ -80,24 +80,37 @@ def extract(msg: object, path: str | list[str | int]) -> float:
 
 
 def message_stamp_ns(msg: object) -> int | None:
-    """``header.stamp`` in nanoseconds; None without a header or with a zero stamp.
-
-    A zero stamp is a header the publisher never filled in (a common driver
-    default), not a time: callers then use the receive (or bag log) time and
-    count such messages (:func:`has_unset_stamp`).
-    """
+    """``header.stamp`` in nanoseconds, or None for a message without a header."""
     header = getattr(msg, "header", None)
     stamp = getattr(header, "stamp", None)
     if stamp is None:
         return None
-    ns = int(stamp.sec) * 1_000_000_000 + int(getattr(stamp, "nanosec", 0))
-    return ns or None
+    return int(stamp.sec) * 1_000_000_000 + int(getattr(stamp, "nanosec", 0))
 
 
-def has_unset_stamp(msg: object) -> bool:
-    """True for a message whose header stamp is zero (never filled in)."""
-    stamp = getattr(getattr(msg, "header", None), "stamp", None)
-    return stamp is not None and int(stamp.sec) == 0 and int(getattr(stamp, "nanosec", 0)) == 0
+class UnsetStamps:
+    """Tells stamps a publisher never filled in from real ones, per stream.
+
+    A header stamp of 0 may be a real time (a synthetic record starting at 0),
+    but a stream whose stamp is 0 again right after a 0 has stamps that never
+    change: they were never filled in (a common driver default), and cannot
+    order or pair samples. From the second such message on, :meth:`stamp`
+    returns None (the caller then uses the receive or log time) and
+    :attr:`count` counts them.
+    """
+
+    def __init__(self) -> None:
+        self.count = 0
+        self._last: dict[object, int | None] = {}
+
+    def stamp(self, stream: object, msg: object) -> int | None:
+        """The message's stamp, or None when it has none or it was never set."""
+        ns = message_stamp_ns(msg)
+        last, self._last[stream] = self._last.get(stream), ns
+        if ns == 0 and last == 0:
+            self.count += 1
+            return None
+        return ns
 
 
 def _show(steps: list[str | int]) -> str:

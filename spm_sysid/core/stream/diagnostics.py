@@ -70,7 +70,8 @@ def diagnostic_statuses(name: str, stats: dict, *, field_errors: int = 0,
     if namesakes:
         problems.append(f"{namesakes} other node(s) with this node's name")
     if unset_stamps:
-        problems.append(f"{unset_stamps} message(s) with header.stamp 0 (receive time used)")
+        problems.append(f"{unset_stamps} message(s) with header.stamp never set (receive time "
+                        "used)")
     if not worker_ready:
         problems.append("worker not ready")
     level = OK
