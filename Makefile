@@ -54,12 +54,12 @@ clean:
 
 ## Certification: robot-arm data and records made hard on purpose, 60 s each.
 bench-certify: $(STAMP)
-	$(BIN)/python -m spm_sysid.tools.bench_certify
+	$(BIN)/python -m spm_sysid.bench.certify
 
 ## Study on the local pool vs a 2-worker Dask cluster (the paper's 180 runs).
 bench-dask: $(STAMP)
-	$(BIN)/python -m spm_sysid.tools.bench_cluster
+	$(BIN)/python -m spm_sysid.bench.cluster
 
 ## Node benchmark: ingest at 1 kHz for 60 s, identify latency, memory with 100000 pairs.
 bench-node: $(STAMP)
-	$(BIN)/python -m spm_sysid.apps.bench_node
+	$(BIN)/python -m spm_sysid.bench.node

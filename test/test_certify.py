@@ -176,7 +176,7 @@ def test_certify_command_and_identify_certify(tmp_path):
 
 def test_bench_certify_prints_the_table():
     """The benchmark command as `make bench-certify` runs it, on one case and criterion."""
-    r = subprocess.run([sys.executable, "-m", "spm_sysid.tools.bench_certify", "--cases",
+    r = subprocess.run([sys.executable, "-m", "spm_sysid.bench.certify", "--cases",
                         "robot-arm", "--criteria", "bic", "--time-limit", "30"],
                        capture_output=True, text=True, cwd=ROOT, timeout=300)
     assert r.returncode == 0, r.stderr
@@ -185,13 +185,13 @@ def test_bench_certify_prints_the_table():
     assert fields[1:4] == ["1024", "bic", "optimal"]
     assert float(fields[5]) == pytest.approx(-10707.48, abs=0.01)
     assert "certified 1 of 1" in r.stdout
-    r = subprocess.run([sys.executable, "-m", "spm_sysid.tools.bench_certify", "--cases",
+    r = subprocess.run([sys.executable, "-m", "spm_sysid.bench.certify", "--cases",
                         "nonsense"], capture_output=True, text=True, cwd=ROOT, timeout=60)
     assert r.returncode == 2 and "unknown case(s) nonsense" in r.stderr
 
 
 def test_hard_cases_are_made_the_same_way_each_time():
-    from spm_sysid.tools.bench_certify import CASES
+    from spm_sysid.bench.certify import CASES
 
     for name in ("dryer-0", "exchanger-1", "ar-0.97"):
         u1, y1 = CASES[name]()
@@ -201,7 +201,7 @@ def test_hard_cases_are_made_the_same_way_each_time():
 
 def test_running_out_of_room_for_open_nodes_stops_with_a_valid_bound(monkeypatch):
     import spm_sysid.core.narx.certify as certify_module
-    from spm_sysid.tools.bench_certify import CASES
+    from spm_sysid.bench.certify import CASES
 
     monkeypatch.setattr(certify_module, "MAX_OPEN_BYTES", 1)  # no room beyond the first block
     u, y = CASES["exchanger-0"]()
@@ -265,13 +265,14 @@ def test_a_search_stopped_in_its_set_up_reports_a_finite_bound(robot_arm):
 
 def test_the_local_search_in_small_batches_finds_the_same(monkeypatch):
     import spm_sysid.core.narx.certify as certify_module
+    import spm_sysid.core.narx.search as search_module
 
     P, t = _problem("structured", 2)
     start = np.zeros(P.shape[1], dtype=bool)
     start[:2] = True
     usable = np.arange(P.shape[1])
     whole = certify_module.polish(StructureEvaluator(P, t, "aic"), start, usable)
-    monkeypatch.setattr(certify_module, "SWAP_BATCH_BITS", 3 * P.shape[1])
+    monkeypatch.setattr(search_module, "BATCH_BITS", 3 * P.shape[1])
     batched = certify_module.polish(StructureEvaluator(P, t, "aic"), start, usable)
     assert np.array_equal(whole[0], batched[0]) and whole[1] == pytest.approx(batched[1])
     ev = StructureEvaluator(P, t, "aic")

@@ -188,7 +188,9 @@ def test_diagnostics_problems_and_their_levels():
                              "worker not ready")
     st = diagnostic_statuses("/n", STATS, type_mismatches=["/x publishes /t as String"])
     assert st[0].level == ERROR and st[0].values["type_mismatch"] == "/x publishes /t as String"
-    st = diagnostic_statuses("/n", STATS, running=(25, -1.5, 300, 2.0))
+    from spm_sysid.core.progress import Progress
+
+    st = diagnostic_statuses("/n", STATS, running=(Progress("search", 25, 300, -1.5, 300), 2.0))
     assert st[1].message == "running: generation 25" and st[1].values["seconds"] == "2.00"
     st = diagnostic_statuses("/n", STATS, last_error="boom", model=DOC)
     assert st[1].level == ERROR and st[1].message == "boom" and len(st) == 2

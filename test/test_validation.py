@@ -7,7 +7,7 @@ from PIL import Image
 from spm_sysid.core.narx.correlation import ccf, correlation_tests
 from spm_sysid.core.narx.model import NarxModel
 from spm_sysid.core.narx.terms import TermSpace
-from spm_sysid.core.narx.validation import metrics, split_data, validate_model
+from spm_sysid.core.narx.validation import metrics, split_segments, validate_model
 from spm_sysid.tools.plots import plot_convergence, write_model_figures
 
 
@@ -88,11 +88,12 @@ def test_validation_of_eq1_matches_the_paper(robot_arm):
 
 def test_holdout_split_keeps_initial_conditions(robot_arm):
     u, y = robot_arm
-    (ue, ye), (uv, yv) = split_data(u, y, 0.5, 4)
+    [(a, b)], [(c, d)] = split_segments([(0, len(y))], len(y), 0.5, 4)
+    ye, yv = y[a:b], y[c:d]
     assert len(ye) == 512 and len(yv) == 516
     assert np.array_equal(yv[4:], y[512:])
     with pytest.raises(ValueError):
-        split_data(u, y, 1.5, 4)
+        split_segments([(0, len(y))], len(y), 1.5, 4)
 
 
 def test_figures_are_valid_images(robot_arm, tmp_path):

@@ -1,8 +1,9 @@
-"""The ``spm-sysid`` console script: the offline command line plus ``call``.
+"""The ``spm-sysid`` console script: the offline command line, ``call`` and the benchmarks.
 
 ``call`` is the one sub-command that needs ROS; it is added here, where tools
 and ROS may meet, and imports rclpy only when it runs, so every other
-sub-command works on machines without ROS.
+sub-command works on machines without ROS. ``bench`` and ``bench-sizes`` come
+from :mod:`spm_sysid.bench`, which sits above the tools.
 """
 
 from __future__ import annotations
@@ -34,6 +35,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--show-model", action="store_true",
                    help="print the published model document after identify")
     p.set_defaults(func=_cmd_call)
+    from ..bench.commands import add_parsers as add_bench_parsers
+
+    add_bench_parsers(sub)
     return run(parser, argv)
 
 

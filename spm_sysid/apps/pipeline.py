@@ -74,17 +74,15 @@ def wait_for_buffer(node, done, timeout: float) -> dict:
 def run(args) -> int:
     """Run the pipeline; raises PipelineError on a failed step."""
     from ..core.io.bagio import read_bag_signals, write_io_bag
-    from ..core.io.data import load_io
-    from ..core.io.datasets import find_robot_arm
+    from ..core.record import DataSpec, load_record
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    data_path = Path(args.data) if args.data else find_robot_arm()
     bag = Path(args.bag)
     if args.force_bag or not (bag / "metadata.yaml").exists():
-        u, y = load_io(data_path)
-        write_io_bag(bag, u, y, rate_hz=args.bag_rate, overwrite=True)
-        print(f"[1/6] wrote bag {bag} from {data_path} ({len(u)} samples per topic)")
+        record = load_record(DataSpec.from_values({}, data=args.data))
+        write_io_bag(bag, record.u, record.y, rate_hz=args.bag_rate, overwrite=True)
+        print(f"[1/6] wrote bag {bag} from {record.source} ({len(record)} samples per topic)")
     else:
         print(f"[1/6] using bag {bag}")
     signals = read_bag_signals(bag)

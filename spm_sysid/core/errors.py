@@ -12,6 +12,7 @@ __all__ = [
     "FieldPathError",
     "FileCheckError",
     "MemoryLimitError",
+    "MissingDependencyError",
     "ModelFormatError",
     "SettingsError",
 ]
@@ -43,3 +44,7 @@ class MemoryLimitError(ValueError):
 
 class SettingsError(ValueError):
     """A setting with a wrong type or a value out of range, named in the message."""
+
+
+class MissingDependencyError(ImportError):
+    """A required library is missing or broken; the message says which and how to fix it."""

@@ -1,9 +1,14 @@
-"""One job: identify and validate, with frozen settings and a typed result.
+"""One job: a record in, a validated model out, with frozen settings and a typed result.
 
-The command line, the node's worker process, the ``make run`` pipeline and the
-benchmarks all call :func:`run_job`. Settings are a frozen
+::
+
+    Record --segments, split--> Problem --identify_problem--> model --validate--> JobResult
+
+The command line, ``batch``, the node's worker process, the ``make run``
+pipeline and the benchmarks all call :func:`run_job`. Settings are a frozen
 :class:`JobSettings` built once, at the edge, from the settings schema
-(:mod:`spm_sysid.core.settings`); the result is a :class:`JobResult` (model,
+(:mod:`spm_sysid.core.settings`); the signals' names come with the record
+(:mod:`spm_sysid.core.record`). The result is a :class:`JobResult` (model,
 validation report, search statistics, data account, timings) with the one
 summary formatter, :meth:`JobResult.summary`.
 """
@@ -11,18 +16,20 @@ summary formatter, :meth:`JobResult.summary`.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from .errors import DataError, SettingsError
+from .narx.certify import describe_certificate
 from .narx.criteria import get_criterion
 from .narx.ga import GAConfig, GAResult
-from .narx.identify import identify
+from .narx.identify import identify_problem
 from .narx.model import NarxModel
-from .narx.segments import SegmentInfo, describe_data, find_segments, segment_report
+from .narx.problem import Problem
+from .narx.segments import describe_data, segment_report
 from .narx.terms import TermSpace
 from .narx.validation import (
     ValidationReport,
@@ -30,26 +37,11 @@ from .narx.validation import (
     split_segments,
     validate_model,
 )
+from .progress import Progress, ProgressFn
+from .record import Record
 from .settings import JOB_GROUPS, check, defaults
 
-__all__ = ["JobResult", "JobSettings", "describe_certificate", "run_job", "warm_up"]
-
-
-def describe_certificate(doc: dict | None) -> str:
-    """The certificate of a model document in a few words ('' when none)."""
-    if not doc:
-        return ""
-    if doc["status"] == "optimal":
-        text = (f"certified optimal over all structures ({doc['nodes']} nodes, "
-                f"{doc['seconds']:.2f} s)")
-    elif doc["status"] == "limit":
-        text = (f"NOT certified ({doc['reason']}): lower bound {doc['lower_bound']:.2f}, "
-                f"gap {doc['gap']:.2f}")
-    else:
-        return f"not certifiable: {doc['reason']}"
-    if doc.get("ga_value") is not None and doc["value"] < doc["ga_value"]:
-        text += f"; the search improved on the GA's {doc['ga_value']:.2f}"
-    return text
+__all__ = ["JobResult", "JobSettings", "run_job", "warm_up"]
 
 
 def warm_up() -> None:
@@ -65,6 +57,7 @@ def warm_up() -> None:
     model = NarxModel(TermSpace(ny=1, nu=1, degree=1), [0, 1], np.array([0.5, 0.1]))
     model.run(np.zeros(6), np.ones(6), horizon=2)
     free_run_sensitivities(model.compiled, model.coefficients, np.zeros((6, 1)), np.ones(6))
+
 
 _TERM_FIELDS = ("ny", "nu", "degree", "delay", "constant")
 _GA_FIELDS = ("population_size", "generations", "crossover_prob", "mutation_prob",
@@ -143,16 +136,24 @@ class JobSettings:
             certify_time_limit=v["certify_time_limit"],
         )
 
-    def values(self) -> dict[str, Any]:
-        """Back to schema names (for documents and logs)."""
-        out = {**self.term_space.to_dict(), **self.ga.to_dict()}
-        out.update(criterion=self.criterion, seed=-1 if self.seed is None else self.seed,
-                   validation=self.validation, validation_split=self.validation_split,
-                   correlation_lags=self.correlation_lags, sample_period=self.sample_period,
-                   gap_factor=self.gap_factor, focus=self.focus, shortlist=self.shortlist,
-                   horizon=self.horizon, certify=self.certify,
-                   certify_time_limit=self.certify_time_limit)
-        return out
+    def for_signals(self, inputs: tuple[str, ...], output: str) -> JobSettings:
+        """These settings with the term space naming a record's signals.
+
+        Raises
+        ------
+        SettingsError
+            Per-input settings (``nu``, ``delay``) that do not fit the number of
+            inputs.
+        """
+        from dataclasses import replace
+
+        if (tuple(inputs), output) == (self.term_space.inputs, self.term_space.output):
+            return self
+        try:
+            space = replace(self.term_space, inputs=tuple(inputs), output=output)
+        except ValueError as exc:
+            raise SettingsError(str(exc)) from None
+        return replace(self, term_space=space)
 
 
 @dataclass
@@ -231,40 +232,32 @@ class JobResult:
 
 
 def run_job(
-    u: np.ndarray,
-    y: np.ndarray,
+    record: Record,
     settings: JobSettings,
     *,
-    stamps_ns: np.ndarray | None = None,
-    segments: SegmentInfo | None = None,
-    rejected: int = 0,
-    unpaired: int = 0,
-    progress: Callable[[int, float, int], None] | None = None,
+    progress: ProgressFn | None = None,
     progress_every: int = 25,
     metadata: Mapping[str, Any] | None = None,
 ) -> JobResult:
-    """Identify and validate.
+    """Identify and validate a record.
 
     Parameters
     ----------
-    u, y : ndarray, shape (n,)
-        The record, oldest first.
+    record : Record
+        The samples, their names, stamps and account
+        (:func:`spm_sysid.core.record.load_record`, or
+        :meth:`~spm_sysid.core.record.Record.from_samples`). Gaps and restarts in
+        its stamps split it into segments (``settings.sample_period``,
+        ``settings.gap_factor``) and no regression row crosses one.
     settings : JobSettings
-        Term space, GA, criterion, validation and timeline settings.
-    stamps_ns : ndarray of int, optional
-        Sample stamps: gaps and restarts in them split the record into segments
-        (:func:`spm_sysid.core.narx.segments.find_segments`) and no regression
-        row crosses one. Without stamps (and ``segments``) the record is one
-        contiguous segment.
-    segments : SegmentInfo, optional
-        Segments already found (instead of ``stamps_ns``).
-    rejected, unpaired : int
-        Samples dropped before (NaN/inf, without a partner), for the account.
+        Term space, GA, criterion, validation and timeline settings; the term
+        space takes the record's signal names.
     progress : callable, optional
-        ``progress(generation, best, evaluations)`` every ``progress_every``
-        generations and at the last.
+        Called with :class:`~spm_sysid.core.progress.Progress` records: checking
+        data, every ``progress_every`` generations of the search (and the last),
+        certification, refinement, validation.
     progress_every : int
-        Generations between progress calls.
+        Generations between search reports.
     metadata : mapping, optional
         Extra entries for the model document's metadata.
 
@@ -272,58 +265,55 @@ def run_job(
     ------
     DataError
         Too little usable data, or nothing could be fitted.
+    SettingsError
+        Settings that do not fit the data (per-input lags, correlation lags).
     """
     t0 = time.perf_counter()
-    u = np.asarray(u, dtype=float)
-    y = np.asarray(y, dtype=float)
+    report = progress or (lambda p: None)
+    report(Progress("checking data", elapsed=0.0))
+    settings = settings.for_signals(record.input_names, record.output_name)
     space = settings.term_space
-    if segments is None:
-        if stamps_ns is None:
-            segments = SegmentInfo([(0, len(y))] if len(y) else [])
-        else:
-            period = int(round(settings.sample_period * 1e9)) or None
-            segments = find_segments(stamps_ns, period, settings.gap_factor)
-    bounds, data = segment_report(segments, space.max_lag, rejected, unpaired)
+    u, y = record.u, record.y
+    period = int(round(settings.sample_period * 1e9)) or None
+    segments = record.segment_info(period, settings.gap_factor)
+    bounds, data = segment_report(segments, space.max_lag, record.rejected, record.unpaired)
     if not bounds:
         raise DataError(
             f"no contiguous segment is longer than the largest lag ({space.max_lag}): "
             f"{len(y)} samples in {len(segments.bounds)} segment(s) with {segments.gaps} gap(s)")
-    whole = bounds == [(0, len(y))]
-    est = val = None if whole else bounds
+    est = val = bounds
     if settings.validation == "holdout":
         est, val = split_segments(bounds, len(y), settings.validation_split, space.max_lag)
     if settings.validation != "none":
         check_correlation_lags(settings.correlation_lags,
-                               sum(b - a - space.max_lag for a, b in (val or [(0, len(y))])))
+                               sum(b - a - space.max_lag for a, b in val))
 
-    def callback(stats):
-        if progress is not None and (stats.generation % progress_every == 0
-                                     or stats.generation == settings.ga.generations):
-            progress(stats.generation, stats.best, stats.evaluations)
+    def throttled(p: Progress) -> None:
+        if p.phase != "search" or p.step % progress_every == 0 or p.step == p.total:
+            report(p)
 
-    ident = identify(u=u, y=y, term_space=space, criterion=settings.criterion,
-                     ga=settings.ga, seed=settings.seed, callback=callback, segments=est,
-                     focus=settings.focus, shortlist=settings.shortlist,
-                     certify_time_limit=(settings.certify_time_limit if settings.certify
-                                         else None))
+    problem = Problem.from_signals(u, y, space, est)
+    ident = identify_problem(problem, criterion=settings.criterion, ga=settings.ga,
+                             seed=settings.seed, focus=settings.focus,
+                             shortlist=settings.shortlist,
+                             certify_time_limit=(settings.certify_time_limit if settings.certify
+                                                 else None),
+                             progress=throttled, started=t0)
     t1 = time.perf_counter()
     model = ident.model
-    report = None
+    validation = None
     if settings.validation != "none":
-        report = validate_model(model, u, y, max_lag=settings.correlation_lags,
-                                segment=settings.validation, segments=val,
-                                horizon=settings.horizon or None)
-        model.metadata["validation"] = report.to_dict()
+        report(Progress("validation", elapsed=t1 - t0))
+        validation = validate_model(model, u, y, correlation_lags=settings.correlation_lags,
+                                    segment=settings.validation, segments=val,
+                                    horizon=settings.horizon or None)
+        model.metadata["validation"] = validation.to_dict()
     t2 = time.perf_counter()
     seconds = {"search": t1 - t0, "validation": t2 - t1, "total": t2 - t0}
     model.metadata["data"] = data
     model.metadata["samples_used"] = data["used_samples"]
-    if stamps_ns is not None and len(stamps_ns):
-        model.metadata["first_stamp_ns"] = int(stamps_ns[0])
-        model.metadata["last_stamp_ns"] = int(stamps_ns[-1])
+    model.metadata.update(record.metadata())
     model.metadata["identify_seconds"] = round(seconds["total"], 4)
     model.metadata.update(metadata or {})
-    used = sum(b - a for a, b in (est or [(0, len(y))]))
-    return JobResult(model=model, report=report, search=ident.ga, data=data,
-                     estimation_samples=used, seconds=seconds)
-
+    return JobResult(model=model, report=validation, search=ident.ga, data=data,
+                     estimation_samples=problem.n_samples, seconds=seconds)

@@ -85,16 +85,15 @@ def main(argv: list[str] | None = None) -> int:
     from rclpy.node import Node
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-    from ..core.io.data import load_io
-    from ..core.io.datasets import load_robot_arm
+    from ..core.record import DataSpec, load_record
 
-    if a.data == "robot_arm":
-        u, y = load_robot_arm()
-    elif a.data == "ramp":
+    if a.data == "ramp":
         u = [float(k) for k in range(a.count)]
         y = [-float(k) for k in range(a.count)]
-    else:
-        u, y = load_io(a.data)
+    else:  # the robot-arm data, or a data file: the one loader
+        record = load_record(DataSpec.from_values({}, data=None if a.data == "robot_arm"
+                                                  else a.data))
+        u, y = record.u, record.y
     rclpy.init()
     node = Node("signal_publisher")
     qos = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE)

@@ -38,11 +38,13 @@ from ..core.io.channels import parse_channels, stream_order, topic_streams
 from ..core.io.fields import UnsetStamps, default_field, extract, parse_path
 from ..core.job import JobSettings
 from ..core.narx.model import NarxModel
+from ..core.progress import Progress
+from ..core.record import Record
 from ..core.settings import Setting, check, node_settings
 from ..core.stream.buffer import SampleBuffer
 from ..core.stream.diagnostics import diagnostic_statuses
-from ..tools.worker import JobWorker
 from .common import LATCHED, RELIABLE_KEEP_ALL, message_class, run_node
+from .worker import JobWorker
 
 __all__ = ["LATCHED", "SysidNode", "main", "parameter_descriptor"]
 
@@ -70,9 +72,12 @@ class SysidNode(Node):
         super().__init__("spm_sysid")
         for s in node_settings():
             self.declare_parameter(s.name, s.default, parameter_descriptor(s))
+        # the ROS 2 demos' pattern: a change is checked in one callback, and the accepted
+        # values (and the job settings built from them) are held in another
         self.add_on_set_parameters_callback(self._check_parameters)
+        self.add_post_set_parameters_callback(self._hold_parameters)
         p = self._params()
-        self._check(p)
+        self._values, self._job = p, self._check(p)
 
         self.channels = parse_channels(p["input_topic"], p["input_field"], p["input_type"],
                                        p["input_names"])
@@ -110,7 +115,7 @@ class SysidNode(Node):
 
         self._busy = threading.Lock()
         self._started: float | None = None
-        self._progress = (0, float("nan"), 0)
+        self._progress: Progress | None = None
         self._model: dict | None = None  # the last model document published
         self._restored_from: str | None = None
         self._last_error: str | None = None
@@ -173,18 +178,21 @@ class SysidNode(Node):
 
     @staticmethod
     def _settings(values: dict, channels) -> JobSettings:
-        names = tuple(c.name for c in channels)
-        return JobSettings.from_values(values, inputs=names if names != ("u",) else ())
+        return JobSettings.from_values(values).for_signals(tuple(c.name for c in channels), "y")
 
     def _check_parameters(self, changes) -> SetParametersResult:
         """Reject a parameter change that would make an identification impossible."""
-        values = self._params()
-        values.update({c.name: c.value for c in changes})
+        values = {**self._values, **{c.name: c.value for c in changes}}
         try:
             self._check(values)
         except (ValueError, TypeError) as exc:
             return SetParametersResult(successful=False, reason=str(exc))
         return SetParametersResult(successful=True)
+
+    def _hold_parameters(self, changes) -> None:
+        """Hold the accepted values and the job settings built from them."""
+        values = {**self._values, **{c.name: c.value for c in changes}}
+        self._values, self._job = values, self._check(values)
 
     # -- recording ---------------------------------------------------------------------
     def _input_callback(self, stream: int, steps: list):
@@ -276,7 +284,7 @@ class SysidNode(Node):
                                 " s ago); try again when it has finished")
             return response
         try:
-            values = self._params()
+            values, settings = self._values, self._job
             stamps, u, y = self.buffer.snapshot()
             if u.ndim == 2:
                 u = u[:, self._order]
@@ -285,13 +293,16 @@ class SysidNode(Node):
                 response.message = (f"too few samples: {len(y)} paired samples in the buffer, "
                                     f"at least {values['min_samples']} needed (min_samples)")
                 return response
-            settings = self._settings(values, self.channels)
+            record = Record.from_samples(
+                u, y, source=f"buffer of {self.get_fully_qualified_name()}", stamps_ns=stamps,
+                input_names=tuple(c.name for c in self.channels),
+                unset_stamps=self._unset.count)
             if not self.worker.wait_ready(30.0):
                 raise RuntimeError("the worker process is not ready (see the log)")
-            self._started, self._progress = time.monotonic(), (0, float("nan"), 0)
+            self._started, self._progress = time.monotonic(), None
             self.get_logger().info(f"identifying on {len(y)} samples ({settings.criterion},"
                                    f" {settings.ga.generations} generations)")
-            result = await self._run_in_worker(u, y, settings, stamps, values)
+            result = await self._run_in_worker(record, settings, values)
             self._publish_result(result, values["model_path"])
             response.success, response.message = True, result.summary("line")
             self.get_logger().info(f"identified: {response.message}")
@@ -304,7 +315,7 @@ class SysidNode(Node):
             self._busy.release()
         return response
 
-    def _run_in_worker(self, u, y, settings, stamps, values) -> Future:
+    def _run_in_worker(self, record, settings, values) -> Future:
         """The job in the worker process, as an awaitable rclpy Future.
 
         With ``job_timeout`` > 0 a longer job is stopped (its process replaced).
@@ -312,7 +323,7 @@ class SysidNode(Node):
         done = Future()
         extra = {"node": self.get_fully_qualified_name(),
                  "input_topic": values["input_topic"], "output_topic": values["output_topic"]}
-        job = self.worker.submit(u, y, settings, stamps_ns=stamps, metadata=extra)
+        job = self.worker.submit(record, settings, metadata=extra)
         timeout = values["job_timeout"]
         timer = threading.Timer(timeout, self.worker.cancel,
                                 args=(f"stopped after {timeout:g} s (job_timeout)",))
@@ -379,10 +390,9 @@ class SysidNode(Node):
                                f"({len(doc['terms'])} terms) again")
 
     # -- progress and diagnostics ------------------------------------------------------------
-    def _on_progress(self, gen, best, evals) -> None:  # the worker's reader thread
-        self._progress = (gen, best, evals)
-        self.get_logger().info(f"search: generation {gen}, best {best:.2f}, "
-                               f"{evals} structures fitted")
+    def _on_progress(self, progress: Progress) -> None:  # the worker's reader thread
+        self._progress = progress
+        self.get_logger().info(progress.line())
 
     def _publish_diagnostics(self) -> None:
         statuses = diagnostic_statuses(
@@ -392,7 +402,7 @@ class SysidNode(Node):
             worker_restarts=self.worker.restarts,
             type_mismatches=list(self._type_mismatch.values()), namesakes=self._namesakes,
             running=None if self._started is None else (
-                *self._progress, time.monotonic() - self._started),
+                self._progress or Progress("checking data"), time.monotonic() - self._started),
             last_error=self._last_error, model=self._model,
             restored_from=self._restored_from)
         msg = DiagnosticArray(status=[DiagnosticStatus(

@@ -116,36 +116,15 @@ def model_names(inputs: Sequence[str]) -> list[str]:
     return out
 
 
-def _load(path: str, values: dict):
-    """u, y, stamps, rejected, unpaired, input names, output name of one input."""
-    from ..core.io.bagio import is_rosbag2_dir, read_bag_signals
-    from ..core.io.data import load_data
-
-    p = Path(path)
-    if p.suffix == ".mcap" or (p.is_dir() and is_rosbag2_dir(p)):
-        kw = {k: values[k] for k in ("input_topic", "input_field", "input_names",
-                                     "output_topic", "output_field") if values.get(k)}
-        sig = read_bag_signals(p, **kw)
-        names = sig.input_names if getattr(sig.u, "ndim", 1) == 2 else ()
-        return sig.u, sig.y, sig.stamps_ns, sig.rejected_nonfinite, sig.unpaired, names, "y"
-    inputs = values.get("inputs")
-    if isinstance(inputs, str):
-        inputs = [c for c in inputs.split(",") if c]
-    d = load_data(p, inputs, values.get("output"))
-    return d.u, d.y, None, d.rejected, 0, tuple(d.input_names or ()), d.output_name or "y"
-
-
 def _identify_one(task: tuple, shared) -> tuple[dict, dict]:
     """One input: identify and validate; its summary row and model document."""
     from ..core.job import JobSettings, run_job
+    from ..core.record import DataSpec, load_record
 
     path, name, values, model_path = task
     t0 = time.perf_counter()
-    u, y, stamps, rejected, unpaired, inputs, output = _load(path, values)
-    names = {"inputs": tuple(inputs), "output": output} if inputs else {}
-    settings = JobSettings.from_values(values, **names)
-    result = run_job(u, y, settings, stamps_ns=stamps, rejected=rejected, unpaired=unpaired,
-                     metadata={"source": str(path)})
+    record = load_record(DataSpec.for_path(path, values))
+    result = run_job(record, JobSettings.from_values(values))
     model = result.model
     report = result.report
     one = free = None
@@ -156,7 +135,7 @@ def _identify_one(task: tuple, shared) -> tuple[dict, dict]:
         free = f["fit_percent"] if f.get("diverged_at") is None else None
         if f.get("diverged_at") is not None:
             status = f"ok (free-run diverged at sample {f['diverged_at']})"
-    row = {"input": path, "samples": int(result.data.get("used_samples", len(y))),
+    row = {"input": path, "samples": int(result.data.get("used_samples", len(record))),
            "terms": len(model.terms), "criterion": model.criterion,
            "value": float(model.criterion_value), "one_step_fit": one, "free_run_fit": free,
            "status": status, "seconds": round(time.perf_counter() - t0, 3),

@@ -3,8 +3,11 @@
 For every combination of criterion, population size and SPM fraction, ``runs``
 GA runs are made with seeds ``seed, seed + 1, ...`` -- the *same* seeds for
 every setting (common random numbers), so settings differ only by their
-parameters. Runs go to a process pool, one process per core, each loading the
-data and building the regression matrix once.
+parameters. Runs go to a process pool, one process per core, or to a Dask
+cluster; each process builds the regression problem
+(:class:`~spm_sysid.core.narx.problem.Problem`) once, and each run is
+:func:`~spm_sysid.core.narx.identify.identify_problem` with the run's settings:
+the very computation ``identify`` does with those settings and that seed.
 
 Per setting the summary counts the runs that *reached the best*: whose final
 structure equals the best structure found across all runs of that criterion
@@ -26,51 +29,95 @@ from pathlib import Path
 import numpy as np
 
 from ..core.errors import SettingsError
-from ..core.narx.evaluator import StructureEvaluator
-from ..core.narx.ga import GAConfig, run_ga
-from ..core.narx.identify import select_for_simulation
-from ..core.narx.model import NarxModel
+from ..core.job import JobSettings
+from ..core.narx.ga import GAConfig
+from ..core.narx.identify import identify_problem
+from ..core.narx.problem import Problem
 from ..core.narx.terms import TermSpace
 from ..core.narx.validation import metrics
-from ..core.settings import check
+from ..core.settings import JOB_GROUPS, SETTINGS, check
 
 __all__ = ["ExperimentConfig", "RunRecord", "SettingSummary", "run_experiment", "summarise"]
 
+#: The study's own settings (the grid and how it runs); every other key is a job setting.
+STUDY_FIELDS = ("criteria", "populations", "spm_fractions", "runs", "seed", "workers",
+                "certify_reference")
 
-@dataclass
+#: Grid lists and the job setting each lists values of.
+GRID = {"criteria": "criterion", "populations": "population_size",
+        "spm_fractions": "spm_fraction"}
+
+
 class ExperimentConfig:
     """What to run; defaults are the paper's study (180 runs).
 
-    ``criteria``, ``populations`` and ``spm_fractions`` are the grid: lists of
-    values of the settings ``criterion``, ``population_size`` and ``spm_fraction``;
-    the other fields have the settings schema's names and rules
-    (:mod:`spm_sysid.core.settings`), ``term_space`` a mapping of ``ny``, ``nu``,
-    ``degree``, ``delay``, ``constant``. ``seed`` is the first of ``runs`` seeds.
+    Parameters
+    ----------
+    criteria, populations, spm_fractions : list
+        The grid: values of the settings ``criterion``, ``population_size`` and
+        ``spm_fraction`` (checked by the schema; no value twice).
+    runs : int
+        Runs per setting, with seeds ``seed .. seed + runs - 1``.
+    seed : int
+        The first seed.
+    workers : int
+        Local processes (0: one per core).
+    certify_reference : bool
+        Prove each AIC/BIC optimum by branch and bound after the runs (within
+        ``certify_time_limit``); "reached" then counts runs that found it.
+    **settings
+        Any job setting of the schema (:mod:`spm_sysid.core.settings`) by its one
+        name: ``generations``, ``fitness``, ``ny``, ``focus``, ``certify_time_limit``
+        ... (a nested ``term_space`` mapping of ``ny``, ``nu``, ``degree``,
+        ``delay``, ``constant`` is read too). Checked once, here; the study's
+        defaults are the schema's.
+
+    Raises
+    ------
+    SettingsError
+        An unknown setting, a value out of range, a grid value given twice.
     """
 
-    criteria: list[str] = field(default_factory=lambda: ["aic", "bic", "pmic2"])
-    populations: list[int] = field(default_factory=lambda: [200, 100])
-    spm_fractions: list[float] = field(default_factory=lambda: [0.0, 0.15])
-    runs: int = 15
-    generations: int = 300
-    seed: int = 0
-    fitness: str = "akaike"
-    crossover_prob: float = 0.6
-    mutation_prob: float = 0.01
-    workers: int = 0  # 0: one per core
-    term_space: dict = field(default_factory=lambda: TermSpace().to_dict())
-    focus: str = "prediction"
-    shortlist: int = 20
-    certify: bool = True  # prove the reference optimum (AIC, BIC) after the runs
-    certify_time_limit: float = 60.0
+    def __init__(self, *, criteria=None, populations=None, spm_fractions=None, runs: int = 15,
+                 seed: int = 0, workers: int = 0, certify_reference: bool = True,
+                 term_space: dict | None = None, **settings) -> None:
+        self.criteria = ["aic", "bic", "pmic2"] if criteria is None else criteria
+        self.populations = [200, 100] if populations is None else populations
+        self.spm_fractions = [0.0, 0.15] if spm_fractions is None else spm_fractions
+        self.runs, self.seed, self.workers = runs, seed, workers
+        self.certify_reference = certify_reference
+        if term_space is not None:
+            allowed = {"ny", "nu", "degree", "delay", "constant", "inputs", "output"}
+            if not isinstance(term_space, dict):
+                raise SettingsError("term_space must be a mapping of ny, nu, degree, delay, "
+                                    "constant")
+            unknown = set(term_space) - allowed
+            if unknown:
+                raise SettingsError(f"term_space: unknown setting(s) {sorted(unknown)}")
+            settings = {**term_space, **settings}
+        if "certify" in settings:
+            raise SettingsError(
+                "certify: in a study, the reference optimum is certified with "
+                "certify_reference (true by default); certifying every run would replace "
+                "what the study measures")
+        job_names = {n for n, st in SETTINGS.items() if st.group in JOB_GROUPS}
+        unknown = set(settings) - job_names - {"inputs", "output"}
+        if unknown:
+            raise SettingsError(f"unknown setting(s) {sorted(unknown)}")
+        self.settings = dict(settings)
+        self._check()
 
-    def __post_init__(self) -> None:
-        if not isinstance(self.runs, int) or self.runs < 1:
+    def _check(self) -> None:
+        if not isinstance(self.runs, int) or isinstance(self.runs, bool) or self.runs < 1:
             raise SettingsError(f"runs must be an integer >= 1, got {self.runs!r}")
         if not isinstance(self.workers, int) or self.workers < 0:
             raise SettingsError(f"workers must be an integer >= 0, got {self.workers!r}")
-        for name, setting in (("criteria", "criterion"), ("populations", "population_size"),
-                              ("spm_fractions", "spm_fraction")):
+        if check("seed", self.seed) < 0:
+            raise SettingsError(f"seed (the study's first seed) must be >= 0, got {self.seed}")
+        if not isinstance(self.certify_reference, bool):
+            raise SettingsError(f"certify_reference must be true or false, got "
+                                f"{self.certify_reference!r}")
+        for name, setting in GRID.items():
             values = getattr(self, name)
             if not isinstance(values, list) or not values:
                 raise SettingsError(f"{name} must be a non-empty list")
@@ -78,34 +125,38 @@ class ExperimentConfig:
             if len(set(checked)) != len(checked):
                 raise SettingsError(f"{name} lists a value more than once: {values} (each "
                                     "setting of the grid is run once)")
-        check("focus", self.focus)
-        check("shortlist", self.shortlist)
-        check("certify", self.certify)
-        check("certify_time_limit", self.certify_time_limit)
-        if check("seed", self.seed) < 0:
-            raise SettingsError(f"seed (the study's first seed) must be >= 0, got {self.seed}")
-        if not isinstance(self.term_space, dict):
-            raise SettingsError("term_space must be a mapping of ny, nu, degree, delay, "
-                                "constant")
-        unknown = set(self.term_space) - {"ny", "nu", "degree", "delay", "constant", "inputs",
-                                          "output"}
-        if unknown:
-            raise SettingsError(f"term_space: unknown setting(s) {sorted(unknown)}")
-        TermSpace.from_dict(self.term_space)  # checked against the schema
-        from ..core.narx.criteria import get_criterion
-
+        # every cell's settings, checked once by the schema (unknown criteria included)
         for c in self.criteria:
-            check("criterion", c)
-            get_criterion(c)  # unknown names fail here, before any run
-        for pop in self.populations:
-            for s in self.spm_fractions:
-                self.ga(pop, s)  # invalid GA settings fail here too
+            for pop in self.populations:
+                for s in self.spm_fractions:
+                    self.job(c, pop, s)
+
+    def __getattr__(self, name: str):
+        """A job setting by its name (``config.generations``): given, or the default."""
+        if name.startswith("_") or name == "settings":
+            raise AttributeError(name)
+        if name in SETTINGS:
+            return self.settings.get(name, SETTINGS[name].default)
+        raise AttributeError(f"ExperimentConfig has no setting {name!r}")
+
+    def job(self, criterion: str, population: int, spm: float) -> JobSettings:
+        """The settings of one cell of the grid (what ``identify`` would run)."""
+        return JobSettings.from_values({**self.settings, "criterion": criterion,
+                                        "population_size": int(population),
+                                        "spm_fraction": float(spm)})
 
     def ga(self, population: int, spm: float) -> GAConfig:
         """The GA settings of one cell."""
-        return GAConfig(population_size=int(population), generations=int(self.generations),
-                        crossover_prob=self.crossover_prob, mutation_prob=self.mutation_prob,
-                        spm_fraction=float(spm), fitness=self.fitness)
+        return self.job(self.criteria[0], population, spm).ga
+
+    @property
+    def term_space(self) -> TermSpace:
+        """The candidate terms of every run."""
+        return self.job(self.criteria[0], self.populations[0], self.spm_fractions[0]).term_space
+
+    def to_dict(self) -> dict:
+        """The study's settings as plain data (documents, the resume check)."""
+        return {**{k: getattr(self, k) for k in STUDY_FIELDS}, "settings": dict(self.settings)}
 
     @classmethod
     def from_yaml(cls, path: str | Path, **overrides) -> ExperimentConfig:
@@ -125,11 +176,11 @@ class ExperimentConfig:
         data = {} if data is None else data
         if not isinstance(data, dict) or not all(isinstance(k, str) for k in data):
             raise SettingsError(f"{source}: expected a mapping of settings (name: value)")
-        unknown = set(data) - set(cls.__dataclass_fields__)
-        if unknown:
-            raise SettingsError(f"{source}: unknown setting(s) {sorted(unknown)}")
         data = {**data, **{k: v for k, v in overrides.items() if v is not None}}
-        return cls(**data)
+        try:
+            return cls(**data)
+        except SettingsError as exc:
+            raise SettingsError(f"{source}: {exc}") from None
 
 
 @dataclass
@@ -156,36 +207,28 @@ class RunRecord:
 
 # -- workers --------------------------------------------------------------------------
 
-_DATA: dict = {}
-
-
-def _init_worker(u: np.ndarray, y: np.ndarray, space: dict) -> None:
-    ts = TermSpace.from_dict(space)
-    _DATA.update(P=ts.regression_matrix(u, y), target=ts.target(y), names=ts.term_names(),
-                 u=u, y=y, space=ts)
+_WORKER: dict = {}
 
 
 def _one_run(task: tuple) -> RunRecord:
-    criterion, population, spm, run, seed, ga, focus, shortlist = task
-    ev = StructureEvaluator(_DATA["P"], _DATA["target"], criterion)
+    """One run: ``identify_problem`` on the process's problem, with the cell's settings."""
+    criterion, population, spm, run, seed = task
+    problem, config = _WORKER["problem"], _WORKER["config"]
+    job = config.job(criterion, population, spm)
     t0 = time.perf_counter()
-    res = run_ga(ev, ga, seed=seed)
-    u, y, ts = _DATA["u"], _DATA["y"], _DATA["space"]
-    if focus == "simulation":
-        model = select_for_simulation(u, y, ts, ev.ranked(shortlist), ev.criterion)
-        value, mask = model.criterion_value, model.mask
-    else:
-        model = NarxModel.fit(u, y, res.best_mask, ts)
-        value, mask = res.best_score, res.best_mask
+    ident = identify_problem(problem, criterion=job.criterion, ga=job.ga, seed=seed,
+                             focus=job.focus, shortlist=job.shortlist,
+                             certify_time_limit=job.certify_time_limit if job.certify else None)
+    model = ident.model
     seconds = time.perf_counter() - t0
-    free = metrics(ts.target(y), model.simulate(u, y))["fit_percent"]
-    names = _DATA["names"]
+    free = metrics(model.measured(problem.y, problem.segments),
+                   model.run(problem.u, problem.y, None, problem.segments)[0])["fit_percent"]
     return RunRecord(
         criterion=criterion, population_size=population, spm_fraction=spm, run=run, seed=seed,
-        final_value=value, terms=[names[i] for i in np.flatnonzero(mask)],
-        n_terms=int(mask.sum()), first_best_generation=res.first_best_generation,
-        seconds=seconds, evaluations=res.evaluations,
-        best_curve=res.history_array("best").tolist(), focus=focus,
+        final_value=float(model.criterion_value), terms=model.terms,
+        n_terms=len(model.terms), first_best_generation=ident.ga.first_best_generation,
+        seconds=seconds, evaluations=ident.ga.evaluations,
+        best_curve=ident.ga.history_array("best").tolist(), focus=job.focus,
         free_run_fit=None if not np.isfinite(free) else float(free),
     )
 
@@ -199,10 +242,10 @@ class StudyRecords(list):
 
 def _task(task: tuple, shared: tuple) -> RunRecord:
     """One run where the data come with the task (local pool or Dask worker)."""
-    token, u, y, space = shared
-    if _DATA.get("token") != token:  # build the regression matrix once per process
-        _init_worker(u, y, space)
-        _DATA["token"] = token
+    token, u, y, config = shared
+    if _WORKER.get("token") != token:  # build the regression problem once per process
+        _WORKER.update(token=token, config=config,
+                       problem=Problem.from_signals(u, y, config.term_space))
     return _one_run(task)
 
 
@@ -218,7 +261,7 @@ def data_token(u: np.ndarray, y: np.ndarray, config: ExperimentConfig) -> str:
     h = hashlib.sha256()
     for a in (np.ascontiguousarray(u, dtype=float), np.ascontiguousarray(y, dtype=float)):
         h.update(a.tobytes())
-    cfg = {k: v for k, v in asdict(config).items() if k not in ("workers",)}
+    cfg = {k: v for k, v in config.to_dict().items() if k not in ("workers",)}
     h.update(json.dumps(cfg, sort_keys=True).encode())
     return h.hexdigest()[:16]
 
@@ -246,8 +289,7 @@ def run_experiment(
         for pop in config.populations:
             for s in config.spm_fractions:
                 for r in range(config.runs):
-                    t = (c, int(pop), float(s), r, config.seed + r, config.ga(pop, s),
-                         config.focus, config.shortlist)
+                    t = (c, int(pop), float(s), r, config.seed + r)
                     tasks[run_key(t)] = t
     token = data_token(u, y, config)
     finished: dict[str, RunRecord] = {}
@@ -263,7 +305,7 @@ def run_experiment(
                 f"{out} holds runs of an earlier study ({partial.name}); resume it with "
                 "--resume, start over with --force, or choose another --out (nothing was "
                 "overwritten)")
-        stamp.write_text(json.dumps({"token": token, "config": asdict(config)}, indent=1))
+        stamp.write_text(json.dumps({"token": token, "config": config.to_dict()}, indent=1))
     todo = {k: t for k, t in tasks.items() if k not in finished}
     count = [len(finished)]
     if progress and finished:
@@ -279,7 +321,7 @@ def run_experiment(
         if progress:
             progress(count[0], len(tasks))
 
-    outcomes = run_tasks(_task, todo, shared=(token, u, y, config.term_space),
+    outcomes = run_tasks(_task, todo, shared=(token, u, y, config),
                          scheduler=scheduler, workers=config.workers, on_done=on_done)
     records = StudyRecords()
     records.failures = [o for o in outcomes.values() if not o.ok]
@@ -289,7 +331,8 @@ def run_experiment(
             records.append(finished[key])
         elif key in outcomes and outcomes[key].ok:
             records.append(outcomes[key].result)
-    optima = certify_optima(u, y, config, records) if config.certify and records else {}
+    optima = (certify_optima(u, y, config, records) if config.certify_reference and records
+              else {})
     mark_reached(records, optima)
     return records
 
@@ -324,7 +367,7 @@ def certify_optima(u: np.ndarray, y: np.ndarray, config: ExperimentConfig,
 
     if config.focus != "prediction":
         return {}
-    space = TermSpace.from_dict(config.term_space)
+    space = config.term_space
     names = space.term_names()
     out = {}
     for crit in dict.fromkeys(r.criterion for r in records):
@@ -452,7 +495,7 @@ def write_results(records: Sequence[RunRecord], rows: Sequence[SettingSummary],
             row["terms"] = " + ".join(r.terms)
             w.writerow(row)
     (out / "runs.json").write_text(json.dumps(
-        {"config": asdict(config), "runs": [asdict(r) for r in records]}, indent=1))
+        {"config": config.to_dict(), "runs": [asdict(r) for r in records]}, indent=1))
     with open(out / "summary.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(SettingSummary.__dataclass_fields__))
         w.writeheader()

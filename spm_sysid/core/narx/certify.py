@@ -48,10 +48,10 @@ from .branch_bound import DONE, FULL, expand, words_for
 from .criteria import Criterion, get_criterion
 from .evaluator import NEAR_RANK, StructureEvaluator
 from .lstsq import DEFAULT_RANK_TOL
+from .search import local_search
 
 __all__ = ["CERTIFIABLE", "Certificate", "certify", "certify_data", "check_certify_memory",
-           "ensure_compiled",
-           "penalty_per_size", "search_is_compiled"]
+           "describe_certificate", "ensure_compiled", "penalty_per_size", "search_is_compiled"]
 
 #: Criteria whose penalty depends on the number of terms only (certifiable).
 CERTIFIABLE = ("aic", "bic")
@@ -103,19 +103,6 @@ class Certificate:
         """The search found a better structure than the warm start."""
         return self.warm_start is not None and self.value < self.warm_start - 1e-9
 
-    def summary(self) -> str:
-        """One line for people."""
-        if self.status == "optimal":
-            text = (f"certified optimal: {self.value:.2f} ({int(np.sum(self.mask))} terms), "
-                    f"{self.nodes} nodes, {self.seconds:.2f} s")
-        else:
-            text = (f"not certified ({self.reason}): best {self.value:.2f}, lower bound "
-                    f"{self.lower_bound:.2f}, gap {self.gap:.2f}, {self.nodes} nodes, "
-                    f"{self.seconds:.2f} s")
-        if self.improved:
-            text += f"; improved on the warm start ({self.warm_start:.2f})"
-        return text
-
     def to_dict(self) -> dict:
         """JSON-ready (the ``certify --json`` document and ``metadata.certificate``)."""
         return {"status": self.status, "value": float(self.value),
@@ -123,6 +110,28 @@ class Certificate:
                 "terms": list(self.terms), "nodes": int(self.nodes),
                 "seconds": round(float(self.seconds), 4), "bound": self.bound,
                 "reason": self.reason, "warm_start": self.warm_start}
+
+
+def describe_certificate(doc: dict | None) -> str:
+    """A certificate in a few words, for answers, logs and the command line ('' if none).
+
+    ``doc`` is :meth:`Certificate.to_dict` (``model.metadata["certificate"]``).
+    """
+    if not doc:
+        return ""
+    if doc["status"] == "optimal":
+        text = (f"certified optimal over all structures ({doc['nodes']} nodes, "
+                f"{doc['seconds']:.2f} s)")
+    elif doc["status"] == "limit":
+        text = (f"NOT certified ({doc['reason']}): lower bound {doc['lower_bound']:.2f}, "
+                f"gap {doc['gap']:.2f}")
+    else:
+        return f"not certifiable: {doc['reason']}"
+    if doc.get("ga_value") is not None and doc["value"] < doc["ga_value"]:
+        text += f"; the search improved on the GA's {doc['ga_value']:.2f}"
+    elif doc.get("warm_start") is not None and doc["value"] < doc["warm_start"] - 1e-9:
+        text += f"; improved on the warm start ({doc['warm_start']:.4f})"
+    return text
 
 
 def penalty_per_size(criterion: Criterion, n: int, m: int) -> np.ndarray:
@@ -183,58 +192,20 @@ ENUMERATION_BUDGET = 3000
 DEEP_FACTOR = 4
 
 
-#: Candidate structures scored at once by the local search (bounds its memory: a batch
-#: of structures over M terms takes SWAP_BATCH_BITS / 8 bytes of masks).
-SWAP_BATCH_BITS = 1 << 25
-
-
 def polish(ev: StructureEvaluator, mask: np.ndarray, usable: np.ndarray,
            seconds: float = 5.0, deadline: float | None = None) -> tuple[np.ndarray, float]:
-    """Local search from ``mask``: add, remove or swap one term while that helps.
+    """Local search from ``mask`` (:func:`~spm_sysid.core.narx.search.local_search`).
 
-    A good incumbent lets the branch and bound cut more; this costs a few
-    hundred evaluator calls per step. Moves are scored in batches of bounded
-    size (:data:`SWAP_BATCH_BITS`), and the search stops after ``seconds`` or at
-    ``deadline`` (``time.perf_counter()``), whichever is first, between batches.
+    One term added, removed or swapped while that helps; a good incumbent lets
+    the branch and bound cut more. It stops after ``seconds`` or at
+    ``deadline``, whichever is first.
     """
-    t0 = time.perf_counter()
-    stop = t0 + seconds if deadline is None else min(t0 + seconds, deadline)
-    mask = np.asarray(mask, dtype=bool).copy()
-    value = ev.cached_score(mask) if mask.any() else np.inf
-    m = len(mask)
-    allowed = np.zeros(m, dtype=bool)
+    stop = time.perf_counter() + seconds
+    allowed = np.zeros(len(mask), dtype=bool)
     allowed[usable] = True
-    rows = max(1, SWAP_BATCH_BITS // max(m, 1))
-    while time.perf_counter() < stop:
-        best_move, best_value = None, value - 1e-9
-        for moves in _moves(mask, allowed, rows):
-            scores = ev.score(moves)
-            i = int(np.argmin(scores))
-            if scores[i] < best_value:
-                best_move, best_value = moves[i].copy(), float(scores[i])
-            if time.perf_counter() >= stop:
-                break
-        if best_move is None:
-            break
-        mask, value = best_move, best_value
-    return mask, value
-
-
-def _moves(mask: np.ndarray, allowed: np.ndarray, rows: int):
-    """Batches of at most ``rows`` neighbours: one term removed, added, or swapped."""
-    inn, out = np.flatnonzero(mask), np.flatnonzero(~mask & allowed)
-    none = np.full(len(inn) + len(out), -1)
-    drop = np.concatenate([inn, none[len(inn):], np.repeat(inn, len(out))])
-    add = np.concatenate([none[:len(inn)], out, np.tile(out, len(inn))])
-    for start in range(0, len(drop), rows):
-        d, a = drop[start:start + rows], add[start:start + rows]
-        batch = np.repeat(mask[None, :], len(d), axis=0)
-        r = np.arange(len(d))
-        batch[r[d >= 0], d[d >= 0]] = False
-        batch[r[a >= 0], a[a >= 0]] = True
-        batch = batch[batch.any(axis=1)]
-        if len(batch):
-            yield batch
+    res = local_search(ev.score, mask, allowed, deadline=stop if deadline is None
+                       else min(stop, deadline))
+    return res.mask, res.value
 
 
 def _settle(ev: StructureEvaluator, usable: np.ndarray, rows: np.ndarray, best: np.ndarray,
@@ -473,9 +444,9 @@ def certify(
     pen = penalty_per_size(crit, n, m)
     # the evaluator's unit-norm Gram matrix of [P y] and triangular factor (the same
     # least-squares problem in min(n, m + 1) rows), on the non-zero columns
-    usable = np.flatnonzero(~ev._zero_cols)
+    usable = np.flatnonzero(~ev.zero_columns)
     keep = np.concatenate([usable, [m]])
-    rows_r = ev._r_ext.shape[0]
+    rows_r = ev.factor.shape[0]
     mu = len(usable)
     # node_limit asks for an exact count: one worker then; fewer when memory is short
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
@@ -486,19 +457,15 @@ def certify(
     check_memory(copies + per_worker, f"the branch and bound over {mu} candidate terms")
     workers = max(1, min(workers, int((limit - copies) // per_worker)))
     open_bytes = int(min(MAX_OPEN_BYTES, max(limit - copies - workers * per_worker, 0) / 2))
-    gram = np.ascontiguousarray(ev._gram[np.ix_(keep, keep)])
-    r_aug = np.ascontiguousarray(ev._r_ext[:, keep])
-    trivial = _trivial_bound(r_aug, float(n), ev.sse_scale, ev._sse_floor, pen)
+    gram = np.ascontiguousarray(ev.gram[np.ix_(keep, keep)])
+    r_aug = np.ascontiguousarray(ev.factor[:, keep])
+    trivial = _trivial_bound(r_aug, float(n), ev.sse_scale, ev.sse_floor, pen)
 
     # incumbent: the warm start (else forward selection), then a local search
     if warm_start is None:
         from .orders import forward_selection
 
-        _, chosen = forward_selection(r_aug[:, :mu], r_aug[:, mu], ev.criterion,
-                                      max_terms=min(60, mu), sse_scale=ev.sse_scale,
-                                      deadline=deadline)
-        warm_start = np.zeros(m, dtype=bool)
-        warm_start[usable[chosen]] = True
+        _, warm_start = forward_selection(ev, max_terms=min(60, mu), deadline=deadline)
     warm = np.asarray(warm_start, dtype=bool)
     warm_value = ev.cached_score(warm) if warm.any() else np.inf
     best_full, best_value = polish(ev, warm, usable, seconds=min(5.0, 0.1 * time_limit),
@@ -515,7 +482,7 @@ def certify(
     heaps = [_OpenNodes(mu, best_value, best_full[usable], workers, open_bytes)
              for _ in range(workers)]
     heaps[0].push_root(mu)
-    args = (gram, r_aug, pen, float(n), ev.sse_scale, ev._sse_floor, ev.rank_tol, tolerance)
+    args = (gram, r_aug, pen, float(n), ev.sse_scale, ev.sse_floor, ev.rank_tol, tolerance)
     near = NEAR_RANK * ev.rank_tol
     status, reason = "optimal", None
     chunk, last_report = 64, t0
@@ -605,28 +572,22 @@ def certify_data(
     ``started`` (``time.perf_counter()``) is when the caller's work began, e.g. a
     warm-start GA: the time limit counts from there (default: now).
     """
-    from .problem import excluded_columns
-    from .terms import power_of_two_scale
+    from .problem import Problem
 
     ensure_compiled()  # the first use compiles; the time limit starts after
     started = time.perf_counter() if started is None else started
-    u2 = term_space.inputs_2d(u)
-    y = np.asarray(y, dtype=float)
-    rows = len(y) - term_space.max_lag if segments is None else sum(
-        b - a - term_space.max_lag for a, b in segments if b - a > term_space.max_lag)
-    check_certify_memory(max(rows, 0), term_space.n_terms)
-    su = np.array([power_of_two_scale(c) for c in u2.T])
-    sy = power_of_two_scale(y)
-    P, target = term_space.regression(u2 / su, y / sy, segments)
-    zero, duplicate_of = excluded_columns(P)
-    nonzero = ~zero & (duplicate_of < 0)
-    warm = None if warm_start is None else np.asarray(warm_start, dtype=bool)[nonzero]
-    cert = certify(P[:, nonzero], target, criterion, warm_start=warm, time_limit=time_limit,
-                   node_limit=node_limit, sse_scale=sy * sy, progress=progress,
-                   threads=threads, started=started)
-    full = np.zeros(term_space.n_terms, dtype=bool)
-    full[np.flatnonzero(nonzero)] = cert.mask
-    cert.mask = full
+    n = len(np.asarray(y))
+    lag = term_space.max_lag
+    segs = [(0, n)] if segments is None else [(a, b) for a, b in segments if b - a > lag]
+    check_certify_memory(max(sum(b - a - lag for a, b in segs), 0), term_space.n_terms)
+    problem = Problem.from_signals(u, y, term_space, segments)
+    crit = get_criterion(criterion)
+    warm = None if warm_start is None else problem.restrict(
+        np.asarray(warm_start, dtype=bool) & problem.usable)
+    cert = certify(None, None, crit, warm_start=warm, time_limit=time_limit,
+                   node_limit=node_limit, progress=progress, threads=threads, started=started,
+                   evaluator=problem.evaluator(crit))
+    cert.mask = problem.expand(cert.mask)
     names = term_space.term_names()
-    cert.terms = [names[i] for i in np.flatnonzero(full)]
+    cert.terms = [names[i] for i in np.flatnonzero(cert.mask)]
     return cert

@@ -10,43 +10,36 @@ structure's Gram sub-matrix with the target last, coefficients by back
 substitution, and, where the Gram path may not be accurate enough, one step of
 corrected semi-normal equations on the triangular factor of ``[P y]``.
 
-``numba`` compiles the kernels (cached on disk after the first use). Without it,
-or with ``SPM_SYSID_NO_NUMBA=1``, the same Python functions run uncompiled (slow;
-the evaluator then uses its batched numpy path instead; see
-:data:`HAVE_NUMBA`).
+``numba`` compiles the kernels (cached on disk after the first use). It is a
+required dependency: there is one numeric path. A missing or broken numba is
+one clear error (:class:`~spm_sysid.core.errors.MissingDependencyError`) when
+the kernels are first needed, never a silently slower fallback.
 """
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 
-__all__ = ["HAVE_NUMBA", "csne_step", "fit_structures", "jit", "jit_exact"]
+from ..errors import MissingDependencyError
+
+__all__ = ["csne_step", "fit_structures", "jit", "jit_exact"]
 
 try:
-    if os.environ.get("SPM_SYSID_NO_NUMBA"):
-        raise ImportError("disabled by SPM_SYSID_NO_NUMBA")
     import numba
+except Exception as exc:  # ImportError, or a broken install raising anything
+    raise MissingDependencyError(
+        f"spm_sysid needs numba for its compiled kernels, and it cannot be imported "
+        f"({type(exc).__name__}: {exc}); install it with `pip install numba`") from None
 
-    HAVE_NUMBA = True
 
-    def jit(fn):
-        """Compile ``fn`` in nopython mode, cached on disk; sums may be reordered."""
-        return numba.njit(cache=True, nogil=True, fastmath={"reassoc", "contract"})(fn)
+def jit(fn):
+    """Compile ``fn`` in nopython mode, cached on disk; sums may be reordered."""
+    return numba.njit(cache=True, nogil=True, fastmath={"reassoc", "contract"})(fn)
 
-    def jit_exact(fn):
-        """Compile ``fn`` keeping Python's order of operations (the same results)."""
-        return numba.njit(cache=True, nogil=True)(fn)
 
-except ImportError:  # pragma: no cover - numba is a dependency; kept for odd installs
-    HAVE_NUMBA = False
-
-    def jit(fn):
-        """No compiler: the plain Python function."""
-        return fn
-
-    jit_exact = jit
+def jit_exact(fn):
+    """Compile ``fn`` keeping Python's order of operations (the same results)."""
+    return numba.njit(cache=True, nogil=True)(fn)
 
 
 @jit

@@ -48,11 +48,17 @@ class FitResult:
         Sum of squared one-step residuals.
     rank_deficient : bool
         True when the selected regressors are (numerically) linearly dependent.
+    r_factor : ndarray, shape (k, k)
+        R of the QR factorisation of the selected columns scaled to unit norm.
+    column_norms : ndarray, shape (k,)
+        Norms of the selected columns.
     """
 
     coefficients: np.ndarray
     sse: float
     rank_deficient: bool
+    r_factor: np.ndarray | None = None
+    column_norms: np.ndarray | None = None
 
 
 def reference_fit(
@@ -86,7 +92,7 @@ def reference_fit(
     z = Q.T @ target
     theta_n = linalg.solve_triangular(R, z)
     resid = target - An @ theta_n
-    return FitResult(theta_n / norms, float(resid @ resid), False)
+    return FitResult(theta_n / norms, float(resid @ resid), False, R, norms)
 
 
 def score_one(crit: Criterion, sse: float, n: int, n_terms: int, cols: np.ndarray,

@@ -19,9 +19,8 @@ import numpy as np
 
 from ..errors import ModelFormatError
 from ..files import atomic_write_text, read_bytes
-from .lstsq import reference_fit
 from .simulation import CompiledModel, divergence_bounds, run_model
-from .terms import TermSpace, power_of_two_scale
+from .terms import TermSpace
 
 __all__ = ["MODEL_SCHEMA", "MODEL_SCHEMA_VERSION", "NarxModel"]
 
@@ -71,38 +70,28 @@ class NarxModel:
     ) -> NarxModel:
         """Least-squares fit (Householder QR) of the structure ``mask`` on u, y.
 
-        ``segments`` (``[start, stop)`` ranges of contiguous samples) keep every
-        regression row inside one segment; None is the whole record.
+        A convenience for one structure: it builds the regression problem
+        (:class:`~spm_sysid.core.narx.problem.Problem`) and fits it; code that fits
+        several structures on the same data builds the problem once and calls
+        its :meth:`~spm_sysid.core.narx.problem.Problem.model`. ``segments``
+        (``[start, stop)`` ranges of contiguous samples) keep every regression row
+        inside one segment; None is the whole record.
 
         Raises
         ------
         ValueError
             If the structure is empty or its regressors are linearly dependent.
         """
+        from .problem import Problem
+
         mask = np.asarray(mask, dtype=bool)
         if mask.shape != (term_space.n_terms,):
             raise ValueError(f"mask must have {term_space.n_terms} entries, got {mask.shape}")
         if not mask.any():
             raise ValueError("cannot fit a structure with no terms")
-        u = term_space.inputs_2d(u)
-        y = np.asarray(y, dtype=float)
-        # exact power-of-two scaling keeps data of any magnitude clear of overflow
-        su = np.array([power_of_two_scale(c) for c in u.T])
-        sy = power_of_two_scale(y)
-        P, target = term_space.regression(u / su, y / sy, segments)
-        res = reference_fit(P, target, mask)
-        if res.rank_deficient:
-            names = [term_space.term_names()[i] for i in np.flatnonzero(mask)]
-            raise ValueError(f"the regressors {names} are linearly dependent on this data")
-        return cls(
-            term_space=term_space,
-            term_indices=[int(i) for i in np.flatnonzero(mask)],
-            coefficients=res.coefficients * term_space.coefficient_factors(su, sy)[mask],
-            mse=res.sse * sy * sy / len(target),
-            n_samples=len(y) if segments is None else sum(
-                b - a for a, b in segments if b - a > term_space.max_lag),
-            **info,
-        )
+        problem = Problem(term_space, u, y, [(0, len(y))] if segments is None else [
+            (a, b) for a, b in segments if b - a > term_space.max_lag])
+        return problem.model(mask, **info)
 
     # -- structure ----------------------------------------------------------------------
     @property
@@ -150,8 +139,8 @@ class NarxModel:
         divergence on (see :meth:`run`).
         """
         if horizon == 1:
-            P, _ = self.term_space.regression(u, y, segments)
-            return P[:, self.term_indices] @ self.coefficients
+            P, _ = self.term_space.regression(u, y, segments, terms=self.term_indices)
+            return P @ self.coefficients
         return self.run(u, y, horizon, segments)[0]
 
     def run(self, u: np.ndarray, y: np.ndarray, horizon: int | None = None,
@@ -177,20 +166,19 @@ class NarxModel:
                 first = a + at
         return (np.concatenate(parts) if parts else np.empty(0)), first
 
+    def measured(self, y: np.ndarray,
+                 segments: list[tuple[int, int]] | None = None) -> np.ndarray:
+        """The measured outputs of :meth:`predict`'s rows (every segment's, concatenated)."""
+        y = np.asarray(y, dtype=float)
+        lag0 = self.term_space.max_lag
+        segs = [(0, len(y))] if segments is None else segments
+        parts = [y[a + lag0:b] for a, b in segs if b - a > lag0]
+        return np.concatenate(parts) if parts else np.empty(0)
+
     def residuals(self, u: np.ndarray, y: np.ndarray,
                   segments: list[tuple[int, int]] | None = None) -> np.ndarray:
         """One-step residuals y(t) - yhat(t) on the same rows as :meth:`predict`."""
-        _, target = self.term_space.regression(u, y, segments)
-        return target - self.predict(u, y, segments)
-
-    def simulate_segments(self, u: np.ndarray, y: np.ndarray,
-                          segments: list[tuple[int, int]] | None = None) -> np.ndarray:
-        """Free-run simulation of each segment from its own initial conditions.
-
-        Returns the simulated outputs of every segment's regression rows,
-        concatenated (the rows of :meth:`predict`); NaN from a divergence on.
-        """
-        return self.run(u, y, None, segments)[0]
+        return self.measured(y, segments) - self.predict(u, y, segments)
 
     def simulate(self, u: np.ndarray, y_initial: np.ndarray) -> np.ndarray:
         """Free-run simulation: each prediction is fed back as a lagged output.

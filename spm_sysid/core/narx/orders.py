@@ -7,11 +7,15 @@ so their criterion values compare:
    1..n and input lags delay..delay+n-1 (every input) is fitted by least squares;
    the order with the lowest criterion is proposed (BIC by default: it does not
    keep adding lags for tiny gains, as AIC tends to);
-2. **degree**: at that order, for degree 1 .. ``max_degree``, a fast forward
-   selection (greedy, orthogonalised: at each step the candidate term that
-   lowers the SSE most, kept while the criterion improves) estimates the best
-   criterion reachable with that degree; the degree with the lowest value is
-   proposed. It is a screening device: the GA then searches that space.
+2. **degree**: at that order, for degree 1 .. ``max_degree``, forward
+   selection (:func:`forward_selection`: at each step the candidate term that
+   lowers the criterion most, on past the last improvement by a few steps)
+   estimates the best criterion reachable with that degree; the degree with
+   the lowest value is proposed. It is a screening device: the GA then searches
+   that space.
+
+Each space is one :class:`~spm_sysid.core.narx.problem.Problem` over the rows
+every order has, so their criterion values compare.
 
 Spaces beyond ``max_terms`` candidate terms are not scanned (reported).
 """
@@ -22,52 +26,39 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .criteria import Criterion, get_criterion
-from .lstsq import reference_fit
-from .terms import TermSpace, power_of_two_scale
+from .criteria import get_criterion
+from .problem import Problem
+from .search import local_search
+from .terms import TermSpace
 
 __all__ = ["OrderProposal", "forward_selection", "propose_orders"]
 
 
-def forward_selection(P: np.ndarray, target: np.ndarray, criterion: Criterion,
-                      max_terms: int = 60, patience: int = 3, sse_scale: float = 1.0,
-                      deadline: float | None = None) -> tuple[float, list[int]]:
-    """Greedy forward selection by SSE reduction; the best criterion value and its terms.
+def forward_selection(evaluator, max_terms: int = 60, patience: int = 3,
+                      deadline: float | None = None) -> tuple[float, np.ndarray]:
+    """Greedy forward selection; the best criterion value found and its structure.
 
-    Columns are orthogonalised against the chosen ones as the selection grows
-    (modified Gram-Schmidt), so each step costs O(N M). ``sse_scale`` turns the
-    SSE of scaled data back into the user's units. At ``deadline``
-    (``time.perf_counter()``) it stops with the best found so far.
+    From the empty structure, the term whose addition scores best is added,
+    step by step (:func:`~spm_sysid.core.narx.search.local_search` with additions
+    only), continuing ``patience`` steps past the last improvement; at most
+    ``max_terms`` steps, stopping at ``deadline`` (``time.perf_counter()``).
+    For AIC and BIC the best addition is the one that lowers the SSE most.
+
+    Parameters
+    ----------
+    evaluator : StructureEvaluator
+        Scores the structures (its criterion, its columns).
+    max_terms : int
+        Most terms added.
+    patience : int
+        Additions past the last improvement before it stops.
+    deadline : float, optional
+        ``time.perf_counter()`` at which to stop with the best so far.
     """
-    import time
-
-    W = P / np.where(np.linalg.norm(P, axis=0) > 0, np.linalg.norm(P, axis=0), 1.0)
-    r = target.astype(float).copy()
-    n = len(target)
-    chosen: list[int] = []
-    best, best_terms, since = np.inf, [], 0
-    for _ in range(min(max_terms, P.shape[1])):
-        if deadline is not None and chosen and time.perf_counter() >= deadline:
-            break
-        norms = np.einsum("ij,ij->j", W, W)
-        gain = np.where(norms > 1e-9, (W.T @ r) ** 2 / np.where(norms > 0, norms, 1.0), -1.0)
-        gain[chosen] = -1.0
-        j = int(np.argmax(gain))
-        if gain[j] <= 0:
-            break
-        q = W[:, j] / np.sqrt(norms[j])
-        r -= q * (q @ r)
-        W -= np.outer(q, q @ W)
-        chosen.append(j)
-        k = len(chosen)
-        value = float(criterion(np.array([(r @ r) * sse_scale]), n, np.array([k]), None)[0])
-        if value < best:
-            best, best_terms, since = value, list(chosen), 0
-        else:
-            since += 1
-            if since >= patience:
-                break
-    return best, best_terms
+    empty = np.zeros(evaluator.n_terms, dtype=bool)
+    res = local_search(evaluator.score, empty, ~evaluator.zero_columns, moves=("add",),
+                       patience=patience, max_steps=max_terms, deadline=deadline, min_steps=1)
+    return res.value, res.mask
 
 
 @dataclass
@@ -126,28 +117,20 @@ def propose_orders(u: np.ndarray, y: np.ndarray, *, max_order: int = 10, max_deg
     u = np.asarray(u, dtype=float)
     m = 1 if u.ndim == 1 else u.shape[1]
     names = tuple(inputs) or (("u",) if m == 1 else tuple(f"u{i + 1}" for i in range(m)))
-    su = np.array([power_of_two_scale(c) for c in (u[:, None] if u.ndim == 1 else u).T])
-    u = (u[:, None] if u.ndim == 1 else u) / su
-    sy = power_of_two_scale(y)
-    y = y / sy
     start = max(max_order, delay + max_order - 1)
     if len(y) - start <= (1 + m) * max_order + 1:
         raise ValueError(f"too few samples ({len(y)}) for orders up to {max_order}")
 
-    def rows(space: TermSpace):
-        P, target = space.regression(u, y)
-        cut = start - space.max_lag  # the same rows for every space
-        return P[cut:], target[cut:]
+    def problem(space: TermSpace) -> Problem:
+        # the rows every candidate order has: each space's one segment starts where
+        # its largest lag leaves the first row at `start`
+        return Problem.from_signals(u, y, space, [(start - space.max_lag, len(y))])
 
     scan = []
     for n in range(1, max_order + 1):
         space = TermSpace(ny=n, nu=n, degree=1, delay=delay, inputs=names)
-        P, target = rows(space)
-        fit = reference_fit(P, target, np.ones(space.n_terms, dtype=bool))
-        value = np.inf if fit.rank_deficient else float(
-            crit(np.array([fit.sse * sy * sy]), len(target), np.array([space.n_terms]),
-                 None)[0])
-        scan.append((n, value))
+        ev = problem(space).evaluator(crit)
+        scan.append((n, ev.cached_score(np.ones(ev.n_terms, dtype=bool))))
     order = min(scan, key=lambda item: item[1])[0]
     degrees, skipped = [], []
     for d in range(1, max_degree + 1):
@@ -155,8 +138,7 @@ def propose_orders(u: np.ndarray, y: np.ndarray, *, max_order: int = 10, max_deg
         if space.n_terms > max_terms:
             skipped.append((d, space.n_terms))
             continue
-        P, target = rows(space)
-        value, terms = forward_selection(P, target, crit, sse_scale=sy * sy)
-        degrees.append((d, space.n_terms, value, len(terms)))
+        value, mask = forward_selection(problem(space).evaluator(crit))
+        degrees.append((d, space.n_terms, value, int(mask.sum())))
     degree = min(degrees, key=lambda item: item[2])[0] if degrees else 1
     return OrderProposal(order, degree, crit.name, scan, degrees, skipped)

@@ -1,20 +1,156 @@
-"""The regression problem of an identification: candidate columns the search may use.
+"""The regression problem of an identification, built once.
 
-A candidate term whose column is zero on every row (a term of an input that is
-zero), or proportional to an earlier candidate's column (every lag of a
-constant input; an input equal to the output), can never be part of an
-identifiable structure with that other term: such columns are left out of the
-search, once, here, and the result names them.
+Every step from a record to a model -- the GA search, its certification, the
+simulation-focused selection, the lag proposal, a study's runs, the final fit
+-- works on the same least-squares problem: the candidate terms' columns over
+the regression rows of the record's segments, and the target. :class:`Problem`
+builds it once:
+
+1. the segments are explicit (``[start, stop)`` ranges; the whole record is one
+   segment), and only those longer than the largest lag are kept;
+2. the signals are scaled by powers of two (exact: data of any magnitude fit
+   alike; coefficients and criteria are given back in the user's units);
+3. the candidate matrix is built (rows never cross from one segment to the
+   next; :meth:`TermSpace.regression`);
+4. candidate columns that can never be part of an identifiable structure are
+   set aside and named: zero on every row (every term of an input that is
+   zero), or proportional to an earlier candidate's column (every lag of a
+   constant input but the first; an input equal to the output).
+
+It then serves what the steps need: a structure evaluator over the usable
+columns (:meth:`evaluator`; the Gram matrix and triangular factor it holds are
+computed once and shared by every criterion), the mapping between the usable
+columns and the whole term space (:meth:`expand`, :meth:`restrict`), and the
+least-squares fit of one structure (:meth:`fit`, :meth:`model`).
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from dataclasses import dataclass
+
 import numpy as np
 
-__all__ = ["excluded_columns"]
+from ..errors import DataError
+from ..memory import check_memory
+from .criteria import Criterion, get_criterion
+from .lstsq import DEFAULT_RANK_TOL, reference_fit
+from .segments import normalise_segments, usable_segments
+from .terms import TermSpace, power_of_two_scale
+
+__all__ = ["LARGE_SPACE", "Problem", "StructureFit", "check_magnitudes", "check_samples",
+           "excluded_columns", "validate_signals"]
+
+#: In larger term spaces the data need rows for structures of this many terms only.
+LARGE_SPACE = 100
+
+#: Largest and smallest RMS of the output that squared sums (SSE, MSE) still hold.
+Y_RMS_RANGE = (1e-150, 1e150)
 
 #: Columns equal after normalisation to this many bits are the same column.
 _BITS = 36
+
+
+# -- checks at the boundary ------------------------------------------------------------
+
+
+def check_samples(n_samples: int, max_lag: int, n_terms: int = 1) -> None:
+    """Raise DataError when there are too few samples to fit with these lags.
+
+    A fit needs more regression rows (``n_samples - max_lag``) than the largest
+    possible structure has terms.
+    """
+    rows = n_samples - max_lag
+    if rows <= n_terms:
+        raise DataError(
+            f"too few samples: {n_samples} samples give {max(rows, 0)} regression rows "
+            f"with maximum lag {max_lag}, but {n_terms + 1} or more are needed for "
+            f"{n_terms} candidate terms (need at least {max_lag + n_terms + 1} samples)"
+        )
+
+
+def _rms(x: np.ndarray) -> float:
+    x = np.asarray(x, dtype=float)
+    peak = float(np.max(np.abs(x))) if x.size else 0.0
+    return peak * float(np.sqrt(np.mean(np.square(x / peak)))) if peak > 0 else 0.0
+
+
+def check_magnitudes(u: np.ndarray, y: np.ndarray, term_space: TermSpace) -> None:
+    """Refuse signals whose magnitudes double precision cannot carry through a fit.
+
+    Fits run on data scaled by powers of two (exact), but the SSE, the MSE and
+    the coefficients are reported in the user's units: the output's RMS must lie
+    in :data:`Y_RMS_RANGE` (else its squared sums under- or overflow), and every
+    coefficient's unit factor (output scale over input and output scales to the
+    term's powers) must be a normal float.
+
+    Raises
+    ------
+    DataError
+        Naming the signal, its RMS and what to do.
+    """
+    ry = _rms(y)
+    low, high = Y_RMS_RANGE
+    if ry > 0 and not low <= ry <= high:
+        raise DataError(
+            f"the output {term_space.output} has RMS {ry:.1e}: beyond {low:.0e}..{high:.0e}, "
+            "its squared errors cannot be represented in double precision; rescale it "
+            f"(e.g. multiply by 1e{-int(np.floor(np.log10(ry)))}) and scale the model's "
+            "output back")
+    u2 = term_space.inputs_2d(u)
+    su = np.array([power_of_two_scale(c) for c in u2.T])
+    factors = term_space.coefficient_factors(su, power_of_two_scale(y))
+    bad = ~(np.isfinite(factors) & (factors >= np.finfo(float).tiny))
+    if bad.any():
+        term = term_space.term_names()[int(np.flatnonzero(bad)[0])]
+        sizes = ", ".join(f"{n} {_rms(c):.1e}" for n, c in zip(term_space.inputs, u2.T))
+        raise DataError(
+            f"the signals' magnitudes (RMS: {sizes}; {term_space.output} {ry:.1e}) are too far "
+            f"apart for the coefficients of terms such as {term} to be represented in double "
+            "precision; rescale the inputs and the output to similar magnitudes")
+
+
+def validate_signals(u, y, term_space: TermSpace,
+                     segments: list[tuple[int, int]] | None = None
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Check and convert u, y at the public boundary.
+
+    Raises
+    ------
+    DataError
+        Not 1-D, different lengths, non-finite values, too few samples, or
+        magnitudes double precision cannot carry (:func:`check_magnitudes`).
+    """
+    u = np.asarray(u, dtype=float)
+    y = np.asarray(y, dtype=float)
+    m = term_space.n_inputs
+    if y.ndim != 1 or not (u.ndim == 1 and m == 1 or u.ndim == 2 and u.shape[1] == m):
+        raise DataError(f"y must be 1-D and u of shape (n,) or (n, {m}) for {m} input(s) "
+                        f"{', '.join(term_space.inputs)}; got shapes {u.shape} and {y.shape}")
+    if len(u) != len(y):
+        raise DataError(f"u and y must have the same length, got {len(u)} and {len(y)}")
+    for name, arr in (("u", u), ("y", y)):
+        bad = np.flatnonzero(~np.isfinite(arr))
+        if bad.size:
+            raise DataError(
+                f"{name} has {bad.size} non-finite value(s) (NaN or inf), first at index "
+                f"{bad[0]}"
+            )
+    # Rows for the largest structure of the space -- or, in spaces of more than
+    # LARGE_SPACE terms, for structures of LARGE_SPACE terms: larger ones simply cannot
+    # be fitted on this data (rank-deficient, never selected).
+    need = min(term_space.n_terms, LARGE_SPACE)
+    if segments is None:
+        check_samples(len(y), term_space.max_lag, need)
+    else:
+        rows = sum(b - a - term_space.max_lag for a, b in segments)
+        if rows <= need:
+            raise DataError(
+                f"too few samples: {len(segments)} segment(s) longer than the largest lag "
+                f"({term_space.max_lag}) give {max(rows, 0)} regression rows, but "
+                f"{need + 1} or more are needed for {term_space.n_terms} candidate terms")
+    check_magnitudes(u, y, term_space)
+    return u, y
 
 
 def excluded_columns(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -49,3 +185,234 @@ def excluded_columns(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         else:
             first[key] = j
     return zero, duplicate_of
+
+
+# -- the problem ----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class StructureFit:
+    """The least-squares fit of one structure, in the user's units.
+
+    Attributes
+    ----------
+    mask : ndarray of bool, shape (n_terms,)
+        The structure over the whole term space.
+    coefficients : ndarray, shape (k,)
+        One per selected term, in term order.
+    sse : float
+        Sum of squared one-step residuals.
+    residuals : ndarray, shape (rows,)
+        One-step residuals of the problem's rows.
+    r_factor : ndarray, shape (k, k)
+        Upper-triangular factor R of the selected columns scaled to unit norm
+        (``A / norms = Q R``); with ``column_norms`` it gives the coefficients'
+        covariance, ``sigma^2 (R^T R)^-1`` on the unit-norm columns.
+    column_norms : ndarray, shape (k,)
+        Norms of the selected columns in the user's units.
+    """
+
+    mask: np.ndarray
+    coefficients: np.ndarray
+    sse: float
+    residuals: np.ndarray
+    r_factor: np.ndarray
+    column_norms: np.ndarray
+
+
+class Problem:
+    """The least-squares problem of one record and one term space (see the module doc).
+
+    Build it with :meth:`from_signals` (checked at the boundary).
+
+    Attributes
+    ----------
+    term_space : TermSpace
+    u : ndarray, shape (n, n_inputs)
+    y : ndarray, shape (n,)
+        The signals as given (simulations and refinements run on them).
+    segments : list of (start, stop)
+        The segments that give regression rows (always explicit).
+    u_scale : ndarray, shape (n_inputs,)
+    y_scale : float
+        The powers of two the signals were divided by.
+    columns : ndarray, shape (rows, n_terms)
+        Every candidate term's column of the scaled signals.
+    target : ndarray, shape (rows,)
+        The scaled output of the regression rows.
+    zero : ndarray of bool, shape (n_terms,)
+    duplicate_of : ndarray of int, shape (n_terms,)
+        See :func:`excluded_columns`.
+    usable : ndarray of bool, shape (n_terms,)
+        Columns the search may use (neither zero nor a repeat).
+    """
+
+    def __init__(self, term_space: TermSpace, u: np.ndarray, y: np.ndarray,
+                 segments: Sequence[tuple[int, int]]) -> None:
+        self.term_space = term_space
+        self.u = term_space.inputs_2d(u)
+        self.y = np.asarray(y, dtype=float)
+        self.segments = [(int(a), int(b)) for a, b in segments]
+        self.u_scale = np.array([power_of_two_scale(c) for c in self.u.T])
+        self.y_scale = power_of_two_scale(self.y)
+        self.columns, self.target = term_space.regression(self.u / self.u_scale,
+                                                          self.y / self.y_scale, self.segments)
+        self.zero, self.duplicate_of = excluded_columns(self.columns)
+        self.usable = ~self.zero & (self.duplicate_of < 0)
+        self._factors = term_space.coefficient_factors(self.u_scale, self.y_scale)
+        self._evaluators: dict[float, object] = {}  # the shared numbers, by rank_tol
+        self._norms: np.ndarray | None = None
+
+    @classmethod
+    def from_signals(cls, u, y, term_space: TermSpace | None = None,
+                     segments: Sequence[tuple[int, int]] | None = None) -> Problem:
+        """Check the signals (at the public boundary) and build the problem.
+
+        ``segments`` (``[start, stop)`` ranges; None: the whole record) are checked
+        and those no longer than the largest lag dropped.
+
+        Raises
+        ------
+        DataError
+            Bad shapes, non-finite values, too few samples, out-of-range
+            magnitudes, no usable segment, an output that is zero throughout.
+        MemoryLimitError
+            The candidate matrix and the evaluator's factors would exceed the
+            memory bound.
+        """
+        term_space = term_space or TermSpace()
+        n = len(np.asarray(y))
+        given = segments is not None
+        segs = normalise_segments(segments, n) if given else [(0, n)]
+        segs, _, _ = usable_segments(segs, term_space.max_lag)
+        if not segs:
+            raise DataError(f"no segment of the data is longer than the largest lag "
+                            f"({term_space.max_lag}): nothing to fit")
+        u, y = validate_signals(u, y, term_space, segs if given else None)
+        if not np.any(y):
+            raise DataError("the output y is zero throughout: there is nothing to identify")
+        rows = sum(b - a - term_space.max_lag for a, b in segs)
+        m = term_space.n_terms
+        # the matrix, its scaled copy in the evaluator and the QR work space, with margin,
+        # plus the evaluator's Gram matrix and triangular factor of all candidate terms
+        check_memory(5 * 8 * rows * (m + 1) + 2 * 8 * (m + 2) ** 2,
+                     f"the regression matrix of {rows} rows x {m} candidate terms")
+        return cls(term_space, u, y, segs)
+
+    # -- sizes and names ------------------------------------------------------------------
+    @property
+    def rows(self) -> int:
+        """Regression rows (the N of the criteria)."""
+        return len(self.target)
+
+    @property
+    def n_samples(self) -> int:
+        """Samples in the segments (rows plus each segment's initial conditions)."""
+        return sum(b - a for a, b in self.segments)
+
+    @property
+    def sse_scale(self) -> float:
+        """SSE in the user's units per SSE of the scaled target."""
+        return self.y_scale * self.y_scale
+
+    @property
+    def whole(self) -> bool:
+        """True when the problem's rows are those of the whole record, in one segment."""
+        return self.segments == [(0, len(self.y))]
+
+    @property
+    def column_norms(self) -> np.ndarray:
+        """Every candidate column's norm in the user's units, shape (n_terms,)."""
+        if self._norms is None:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                self._norms = np.linalg.norm(self.columns, axis=0) * self.y_scale / self._factors
+        return self._norms
+
+    def excluded_terms(self) -> dict[str, dict]:
+        """The terms set aside, by reason: ``{"zero": [...], "duplicate": {term: first}}``."""
+        names = self.term_space.term_names()
+        return {"zero": [names[i] for i in np.flatnonzero(self.zero)],
+                "duplicate": {names[i]: names[self.duplicate_of[i]]
+                              for i in np.flatnonzero(self.duplicate_of >= 0)}}
+
+    # -- the search's view: the usable columns --------------------------------------------
+    def evaluator(self, criterion: str | Criterion = "aic", rank_tol: float = DEFAULT_RANK_TOL):
+        """A new :class:`StructureEvaluator` over the usable columns (masks of that length).
+
+        Its Gram matrix and triangular factor are computed once per problem and
+        shared by every evaluator; each evaluator has its own cache, so every
+        search on the problem starts afresh (a study's runs in one process are
+        independent of one another).
+        """
+        from .evaluator import StructureEvaluator
+
+        crit = get_criterion(criterion)
+        base = self._evaluators.get(rank_tol)
+        if base is None:
+            base = StructureEvaluator(self.columns[:, self.usable], self.target, crit,
+                                      rank_tol=rank_tol, sse_scale=self.sse_scale)
+            self._evaluators[rank_tol] = base
+        return base.with_criterion(crit)
+
+    def expand(self, masks: np.ndarray) -> np.ndarray:
+        """Masks over the usable columns -> masks over the whole term space."""
+        masks = np.asarray(masks, dtype=bool)
+        full = np.zeros(masks.shape[:-1] + (self.term_space.n_terms,), dtype=bool)
+        full[..., self.usable] = masks
+        return full
+
+    def restrict(self, masks: np.ndarray) -> np.ndarray:
+        """Masks over the whole term space -> masks over the usable columns.
+
+        Raises
+        ------
+        ValueError
+            A mask selects a column that was set aside.
+        """
+        masks = np.asarray(masks, dtype=bool)
+        if (masks[..., ~self.usable]).any():
+            raise ValueError("a structure selects a term that was set aside (zero or a repeat "
+                             "of another on this data)")
+        return masks[..., self.usable]
+
+    # -- one structure ------------------------------------------------------------------
+    def fit(self, mask: np.ndarray, rank_tol: float = DEFAULT_RANK_TOL) -> StructureFit:
+        """Least-squares fit (Householder QR) of the structure ``mask`` (whole term space).
+
+        Raises
+        ------
+        ValueError
+            An empty structure, or regressors linearly dependent on this data.
+        """
+        mask = np.asarray(mask, dtype=bool)
+        ts = self.term_space
+        if mask.shape != (ts.n_terms,):
+            raise ValueError(f"mask must have {ts.n_terms} entries, got {mask.shape}")
+        if not mask.any():
+            raise ValueError("cannot fit a structure with no terms")
+        res = reference_fit(self.columns, self.target, mask, rank_tol)
+        if res.rank_deficient:
+            names = [ts.term_names()[i] for i in np.flatnonzero(mask)]
+            raise ValueError(f"the regressors {names} are linearly dependent on this data")
+        factors = self._factors[mask]
+        coefficients = res.coefficients * factors
+        cols = self.columns[:, mask]
+        residuals = (self.target - cols @ res.coefficients) * self.y_scale
+        return StructureFit(mask=mask.copy(), coefficients=coefficients,
+                            sse=res.sse * self.sse_scale, residuals=residuals,
+                            r_factor=res.r_factor,
+                            column_norms=res.column_norms * self.y_scale / factors)
+
+    def model(self, mask: np.ndarray, fit: StructureFit | None = None, **info):
+        """The least-squares :class:`NarxModel` of the structure ``mask``.
+
+        ``fit`` is the structure's :meth:`fit` when the caller has it; ``info``
+        are further model fields (``criterion``, ``criterion_value``, ``metadata``).
+        """
+        from .model import NarxModel
+
+        fit = self.fit(mask) if fit is None else fit
+        return NarxModel(term_space=self.term_space,
+                         term_indices=[int(i) for i in np.flatnonzero(fit.mask)],
+                         coefficients=fit.coefficients, mse=fit.sse / self.rows,
+                         n_samples=self.n_samples, **info)

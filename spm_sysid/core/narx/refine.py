@@ -35,7 +35,7 @@ from scipy.optimize import least_squares
 from .model import NarxModel
 from .simulation import divergence_bounds, free_run_sensitivities
 
-__all__ = ["Refinement", "linear_radius", "refine_simulation", "simulation_sse"]
+__all__ = ["Refinement", "linear_radius", "refine_simulation"]
 
 
 def linear_radius(term_space, term_indices, theta) -> float:
@@ -75,28 +75,6 @@ class Refinement:
 def _segments(y: np.ndarray, segments, lag0: int) -> list[tuple[int, int]]:
     segs = [(0, len(y))] if segments is None else list(segments)
     return [(a, b) for a, b in segs if b - a > lag0]
-
-
-def simulation_sse(model: NarxModel, u: np.ndarray, y: np.ndarray,
-                   segments: list[tuple[int, int]] | None = None,
-                   theta: np.ndarray | None = None) -> tuple[float, int | None]:
-    """Free-run SSE over the segments' rows and the first divergence (or None).
-
-    A diverged run has SSE ``inf``.
-    """
-    ts = model.term_space
-    u = ts.inputs_2d(u)
-    y = np.asarray(y, dtype=float)
-    theta = model.coefficients if theta is None else theta
-    bounds = divergence_bounds(y)
-    total = 0.0
-    for a, b in _segments(y, segments, ts.max_lag):
-        yhat, _, at = free_run_sensitivities(model.compiled, theta, u[a:b], y[a:b], bounds)
-        if at is not None:
-            return float("inf"), a + at
-        e = y[a + ts.max_lag:b] - yhat
-        total += float(e @ e)
-    return total, None
 
 
 def refine_simulation(model: NarxModel, u: np.ndarray, y: np.ndarray,

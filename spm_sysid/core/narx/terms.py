@@ -16,7 +16,9 @@ With the paper's setting (ny=4, nu=4, degree=2, delay=1, no constant) this gives
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 from itertools import combinations_with_replacement
 
 import numpy as np
@@ -125,7 +127,7 @@ class TermSpace:
         """Delay per input."""
         return self.delay if isinstance(self.delay, tuple) else (self.delay,)
 
-    @property
+    @cached_property
     def linear(self) -> list[tuple[int, int]]:
         """The lagged signals as ``(source, lag)`` pairs, in term order.
 
@@ -145,7 +147,7 @@ class TermSpace:
         """Largest lag; the first regression row is at t = max_lag."""
         return max([self.ny] + [d + nu - 1 for nu, d in zip(self.nus, self.delays) if nu])
 
-    @property
+    @cached_property
     def terms(self) -> list[tuple[int, ...]]:
         """Every candidate term as a sorted tuple of indices into :attr:`linear`.
 
@@ -169,6 +171,10 @@ class TermSpace:
 
     def term_names(self) -> list[str]:
         """Readable names such as ``y(t-1)*u(t-2)``, ``u(t-1)^2``, ``y(t-1)*torque(t)``."""
+        return list(self._names)
+
+    @cached_property
+    def _names(self) -> tuple[str, ...]:
         lin = self.linear
         names = []
         for term in self.terms:
@@ -250,15 +256,23 @@ class TermSpace:
             return np.empty((stop - start, 0))
         return np.column_stack(cols)
 
-    def regression_matrix(self, u: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """All candidate regressors, shape ``(N, n_terms)`` with ``N = len(y) - max_lag``.
+    def regression_matrix(self, u: np.ndarray, y: np.ndarray,
+                          terms: Sequence[int] | None = None) -> np.ndarray:
+        """Candidate regressors, shape ``(N, n_terms)`` with ``N = len(y) - max_lag``.
 
         Column ``j`` is term ``j`` of :attr:`terms` evaluated at t = max_lag..len-1.
         Products are built degree by degree from the previous degree's columns, so
-        each column costs one vectorised multiplication.
+        each column costs one vectorised multiplication. With ``terms`` (indices),
+        only those columns, in that order (a model's own regressors).
         """
         lin = self.lagged(u, y)
         n_rows, n_lin = lin.shape
+        if terms is not None:
+            out = np.ones((n_rows, len(terms)))
+            for c, j in enumerate(terms):
+                for i in self.terms[j]:
+                    out[:, c] *= lin[:, i]
+            return out
         columns: dict[tuple[int, ...], np.ndarray] = {(): np.ones(n_rows)}
         for i in range(n_lin):
             columns[(i,)] = lin[:, i]
@@ -274,19 +288,21 @@ class TermSpace:
         return np.asarray(y, dtype=float)[self.max_lag :]
 
     def regression(self, u: np.ndarray, y: np.ndarray,
-                   segments: list[tuple[int, int]] | None = None
-                   ) -> tuple[np.ndarray, np.ndarray]:
+                   segments: list[tuple[int, int]] | None = None,
+                   terms: Sequence[int] | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Regression matrix and target built inside each segment, stacked.
 
         ``segments`` are ``[start, stop)`` index ranges of contiguous samples
         (see :mod:`spm_sysid.core.narx.segments`); rows never cross from one segment to
         the next. Segments with no more than ``max_lag`` samples give no row.
-        None means the whole record is one segment.
+        None means the whole record is one segment. ``terms``: only these
+        columns (see :meth:`regression_matrix`).
         """
         if segments is None:
-            return self.regression_matrix(u, y), self.target(y)
-        parts = [(self.regression_matrix(u[a:b], y[a:b]), self.target(y[a:b]))
+            return self.regression_matrix(u, y, terms), self.target(y)
+        width = self.n_terms if terms is None else len(terms)
+        parts = [(self.regression_matrix(u[a:b], y[a:b], terms), self.target(y[a:b]))
                  for a, b in segments if b - a > self.max_lag]
         if not parts:
-            return np.empty((0, self.n_terms)), np.empty(0)
+            return np.empty((0, width)), np.empty(0)
         return np.vstack([p for p, _ in parts]), np.concatenate([t for _, t in parts])

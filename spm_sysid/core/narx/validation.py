@@ -16,8 +16,8 @@ from ..errors import DataError, SettingsError
 from .correlation import CorrelationTest, correlation_tests
 from .model import NarxModel
 
-__all__ = ["ValidationReport", "describe_metrics", "metrics", "split_data", "split_segments",
-           "validate_model", "check_correlation_lags"]
+__all__ = ["ValidationReport", "check_correlation_lags", "describe_metrics", "metrics",
+           "split_segments", "validate_model"]
 
 
 def metrics(y: np.ndarray, yhat: np.ndarray, diverged_at: int | None = None
@@ -59,23 +59,6 @@ def describe_metrics(label: str, m: dict) -> str:
                 f"output's range; no error metrics)")
     return (f"  {label}: MSE {m['mse']:.4e}, max |e| {m['max_abs']:.4g}, "
             f"mean |e| {m['mean_abs']:.4g}, fit {m['fit_percent']:.2f} %")
-
-
-def split_data(
-    u: np.ndarray, y: np.ndarray, fraction: float, max_lag: int
-) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
-    """Split into an estimation head and a validation tail.
-
-    The tail keeps the ``max_lag`` samples before it as initial conditions, so
-    its predictions start right after the estimation data ends.
-    """
-    if not 0.0 < fraction < 1.0:
-        raise ValueError(f"split fraction must be in (0, 1), got {fraction}")
-    n = len(y)
-    cut = int(round(fraction * n))
-    if cut <= max_lag or n - cut < 2:
-        raise DataError(f"cannot split {n} samples at {fraction:g}: a part would be too short")
-    return (u[:cut], y[:cut]), (u[cut - max_lag:], y[cut - max_lag:])
 
 
 @dataclass
@@ -160,11 +143,12 @@ def _finite(d: dict) -> dict:
 
 def split_segments(bounds: list[tuple[int, int]], n: int, fraction: float, max_lag: int
                    ) -> tuple[list[tuple[int, int]], list[tuple[int, int]]]:
-    """Split segments at ``round(fraction * n)`` like :func:`split_data`.
+    """Split segments at ``round(fraction * n)`` into estimation and validation parts.
 
     The estimation part keeps what lies before the cut; the validation part what
     lies after it, plus the ``max_lag`` samples before the cut as initial
-    conditions where they belong to the same segment.
+    conditions where they belong to the same segment (so its predictions start
+    right after the estimation data ends).
     """
     if not 0.0 < fraction < 1.0:
         raise ValueError(f"split fraction must be in (0, 1), got {fraction}")
@@ -187,7 +171,7 @@ def check_correlation_lags(lags: int, rows: int) -> None:
 
 
 def validate_model(
-    model: NarxModel, u: np.ndarray, y: np.ndarray, *, max_lag: int = 20,
+    model: NarxModel, u: np.ndarray, y: np.ndarray, *, correlation_lags: int = 20,
     segment: str = "estimation", segments: list[tuple[int, int]] | None = None,
     horizon: int | None = None,
 ) -> ValidationReport:
@@ -200,7 +184,7 @@ def validate_model(
     u, y : ndarray, shape (n,)
         The segment; its first ``model.term_space.max_lag`` samples serve as
         initial conditions.
-    max_lag : int
+    correlation_lags : int
         Largest lag of the correlation tests.
     segment : str
         Label for reports (``"estimation"`` or ``"holdout"``).
@@ -223,10 +207,10 @@ def validate_model(
     if segments is not None:
         segments = [(a, b) for a, b in segments if b - a > lag0]
     rows = len(y) - lag0 if segments is None else sum(b - a - lag0 for a, b in segments)
-    if rows < max(3, max_lag + 1):
+    if rows < max(3, correlation_lags + 1):
         raise DataError(f"too few samples to validate: {rows} regression rows (need at "
-                        f"least {max(3, max_lag + 1)})")
-    _, measured = model.term_space.regression(u, y, segments)
+                        f"least {max(3, correlation_lags + 1)})")
+    measured = model.measured(y, segments)
     one_step = model.predict(u, y, segments)
     free_run, diverged = model.run(u, y, None, segments)
     k_step = k_metrics = None
@@ -245,7 +229,7 @@ def validate_model(
         # the correlation tests use the first input (several inputs: docs/method.md)
         u_rows = u[lag0:, 0] if segments is None else np.concatenate(
             [u[a + lag0:b, 0] for a, b in segments])
-        tests = correlation_tests(residuals, u_rows, max_lag)
+        tests = correlation_tests(residuals, u_rows, correlation_lags)
     return ValidationReport(
         measured=measured,
         one_step=one_step,

@@ -50,7 +50,8 @@ def diagnostic_statuses(name: str, stats: dict, *, field_errors: int = 0,
     namesakes : int
         Other nodes on the domain with this node's name (calls may reach them).
     running : tuple, optional
-        ``(generation, best, evaluations, seconds)`` of a running search.
+        ``(progress, seconds)`` of a running job: its last
+        :class:`~spm_sysid.core.progress.Progress` and the seconds since it began.
     last_error : str, optional
         Why the last identification failed.
     model : dict, optional
@@ -91,9 +92,11 @@ def diagnostic_statuses(name: str, stats: dict, *, field_errors: int = 0,
                                       "type_mismatch": "; ".join(type_mismatches)})})]
     ident = f"{name}: identification"
     if running is not None:
-        gen, best, evals, seconds = running
-        statuses.append(Status(OK, ident, f"running: generation {gen}", _values(
-            {"generation": gen, "best": f"{best:.4f}", "evaluations": evals,
+        p, seconds = running
+        what = f"generation {p.step}" if p.phase == "search" else f"{p.phase} ({p.step})"
+        statuses.append(Status(OK, ident, f"running: {what}", _values(
+            {"phase": p.phase, "step": p.step, "total": p.total, "best": f"{p.best:.4f}",
+             "evaluations": p.evaluations, "bound": f"{p.bound:.4f}",
              "seconds": f"{seconds:.2f}"})))
     elif last_error:
         statuses.append(Status(ERROR, ident, last_error))

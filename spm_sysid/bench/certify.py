@@ -1,6 +1,6 @@
 """Benchmark: certifying the optimum on the robot-arm data and on records made hard on purpose.
 
-``python -m spm_sysid.tools.bench_certify`` (``make bench-certify``) runs, for
+``python -m spm_sysid.bench.certify`` (``make bench-certify``) runs, for
 each case and criterion, the GA (seed 1, the paper's settings) and then the
 branch and bound warm-started with its result, within ``--time-limit`` seconds,
 and prints one row each: status, the GA's value, the certified (or best found)

@@ -36,8 +36,8 @@ def run(args) -> None:
     import rclpy
     from rclpy.node import Node
 
-    from .call import call_trigger, wait_for_model
-    from .pipeline import wait_for_buffer
+    from ..apps.call import call_trigger, wait_for_model
+    from ..apps.pipeline import wait_for_buffer
 
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                ROS_DOMAIN_ID=str(args.domain), PYTHONUNBUFFERED="1")

@@ -156,7 +156,7 @@ def run(args) -> int:
         spec = dict(cell, budget=args.budget, criterion=args.criterion,
                     fastcan=args.fastcan and cell["samples"] is None,
                     spm0=cell["samples"] is None)
-        r = subprocess.run([sys.executable, "-m", "spm_sysid.tools.bench_sizes", "--cell",
+        r = subprocess.run([sys.executable, "-m", "spm_sysid.bench.sizes", "--cell",
                             json.dumps(spec)], capture_output=True, text=True,
                            env={**__import__("os").environ, "OPENBLAS_NUM_THREADS": "1"})
         if r.returncode != 0:

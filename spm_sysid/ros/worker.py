@@ -1,8 +1,10 @@
-"""A job worker in its own process, that can be cancelled, timed out and never orphaned.
+"""The node's job worker: its own process, cancelled, timed out, never orphaned.
 
-The ROS node runs each identification here so the search never blocks
-recording and uses the other core. The worker is a plain child process
-(``python -m spm_sysid.tools.worker``) talking over its stdin/stdout pipes with
+The ROS node (:mod:`spm_sysid.ros.sysid_node`) runs each identification here so
+the search never blocks recording and uses the other core. The module uses no
+ROS itself (it is plain process management), so it is tested without ROS. The
+worker is a plain child process (``python -m spm_sysid.ros.worker``) talking
+over its stdin/stdout pipes with
 pickled messages; no multiprocessing pool, queue or resource tracker is
 involved, so nothing is left behind:
 
@@ -152,7 +154,7 @@ class JobWorker:
     def _start(self) -> None:
         self._ready.clear()
         self._proc = subprocess.Popen(
-            [sys.executable, "-m", "spm_sysid.tools.worker", self.function],
+            [sys.executable, "-m", "spm_sysid.ros.worker", self.function],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=self.env,
             start_new_session=False)
         threading.Thread(target=self._read, args=(self._proc,), name="worker-reader",

@@ -1,0 +1,165 @@
+"""Local search over structures: one term added, removed or swapped at a time.
+
+One routine serves every search that moves through structures by single-term
+changes: the polish of a certification's incumbent (add, remove, swap), the
+simulation-focused selection's search around the best refined structure
+(add, remove), and forward selection (add only, greedy, with patience).
+
+Each step scores every neighbour allowed by ``moves`` (in batches of bounded
+memory), and moves to the best one:
+
+* by default only while that improves the value (best improvement; a local
+  optimum ends the search);
+* with ``patience`` > 0 also when it does not, until ``patience`` steps in a
+  row have brought no new best (forward selection's look-ahead); the best
+  structure seen is returned.
+
+The search stops at ``deadline`` (``time.perf_counter()``) between batches,
+after ``max_steps`` steps, or when no neighbour is left.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["MOVES", "SearchResult", "local_search", "neighbours"]
+
+#: The moves a step may take.
+MOVES = ("remove", "add", "swap")
+
+#: Neighbours scored at once (bounds memory: a batch of structures over M terms
+#: takes BATCH_BITS / 8 bytes of masks).
+BATCH_BITS = 1 << 25
+
+
+@dataclass
+class SearchResult:
+    """Where a local search ended: the best structure seen and its value."""
+
+    mask: np.ndarray
+    value: float
+    steps: int
+    scored: int
+    stopped: str  # "local optimum", "patience", "max steps", "deadline", "no neighbour"
+
+
+def neighbours(mask: np.ndarray, allowed: np.ndarray, moves: Sequence[str] = MOVES,
+               batch_bits: int | None = None):
+    """Batches of the structures one move away from ``mask`` (empty structures left out).
+
+    ``allowed`` marks the terms a move may add (and swap in).
+    """
+    mask = np.asarray(mask, dtype=bool)
+    inn = np.flatnonzero(mask)
+    out = np.flatnonzero(~mask & np.asarray(allowed, dtype=bool))
+    drop, add = [], []
+    if "remove" in moves:
+        drop.append(inn)
+        add.append(np.full(len(inn), -1))
+    if "add" in moves:
+        drop.append(np.full(len(out), -1))
+        add.append(out)
+    if "swap" in moves:
+        drop.append(np.repeat(inn, len(out)))
+        add.append(np.tile(out, len(inn)))
+    drop = np.concatenate(drop) if drop else np.empty(0, dtype=int)
+    add = np.concatenate(add) if add else np.empty(0, dtype=int)
+    rows = max(1, (BATCH_BITS if batch_bits is None else batch_bits) // max(len(mask), 1))
+    for start in range(0, len(drop), rows):
+        d, a = drop[start:start + rows], add[start:start + rows]
+        batch = np.repeat(mask[None, :], len(d), axis=0)
+        r = np.arange(len(d))
+        batch[r[d >= 0], d[d >= 0]] = False
+        batch[r[a >= 0], a[a >= 0]] = True
+        batch = batch[batch.any(axis=1)]
+        if len(batch):
+            yield batch
+
+
+def local_search(
+    score: Callable[[np.ndarray], np.ndarray],
+    start: np.ndarray,
+    allowed: np.ndarray,
+    *,
+    moves: Sequence[str] = MOVES,
+    start_value: float | None = None,
+    patience: int = 0,
+    max_steps: int | None = None,
+    deadline: float | None = None,
+    min_steps: int = 0,
+    tolerance: float = 1e-9,
+    on_step: Callable[[np.ndarray, float], None] | None = None,
+) -> SearchResult:
+    """Move from ``start`` by single-term changes while that helps (see the module doc).
+
+    Parameters
+    ----------
+    score : callable
+        ``score(masks) -> values`` for a (B, M) batch; lower is better; +inf for
+        structures that cannot be used.
+    start : ndarray of bool, shape (M,)
+        Where to begin (may be empty: then only additions are possible).
+    allowed : ndarray of bool, shape (M,)
+        Terms a move may bring in.
+    moves : sequence of str
+        Among :data:`MOVES`.
+    start_value : float, optional
+        The start's value when known (else it is scored; an empty start is +inf).
+    patience : int
+        Steps in a row without a new best after which the search stops; such
+        steps are taken (0: stop at a local optimum instead).
+    max_steps : int, optional
+        Most steps.
+    deadline : float, optional
+        ``time.perf_counter()`` at which to stop, checked between batches once
+        ``min_steps`` steps are done.
+    min_steps : int
+        Steps taken whatever the deadline (forward selection takes one, so an
+        empty start always gives a structure).
+    tolerance : float
+        An improvement must exceed this.
+    on_step : callable, optional
+        Called with the new current structure and its value after every step.
+    """
+    unknown = set(moves) - set(MOVES)
+    if unknown:
+        raise ValueError(f"moves must be among {', '.join(MOVES)}, got {sorted(unknown)}")
+    current = np.asarray(start, dtype=bool).copy()
+    if start_value is None:
+        start_value = float(score(current[None, :])[0]) if current.any() else np.inf
+    value = float(start_value)
+    best, best_value = current.copy(), value
+    steps = scored = since = 0
+    while True:
+        if max_steps is not None and steps >= max_steps:
+            return SearchResult(best, best_value, steps, scored, "max steps")
+        timed = deadline is not None and steps >= min_steps
+        if timed and time.perf_counter() >= deadline:
+            return SearchResult(best, best_value, steps, scored, "deadline")
+        move, move_value = None, np.inf
+        for batch in neighbours(current, allowed, moves):
+            values = np.asarray(score(batch), dtype=float)
+            scored += len(batch)
+            i = int(np.argmin(values))
+            if values[i] < move_value:
+                move, move_value = batch[i].copy(), float(values[i])
+            if timed and time.perf_counter() >= deadline:
+                break
+        if move is None or not np.isfinite(move_value):
+            return SearchResult(best, best_value, steps, scored, "no neighbour")
+        if not move_value < value - tolerance and patience == 0:
+            return SearchResult(best, best_value, steps, scored, "local optimum")
+        current, value = move, move_value
+        steps += 1
+        if on_step is not None:
+            on_step(current, value)
+        if value < best_value - tolerance:
+            best, best_value, since = current.copy(), value, 0
+        else:
+            since += 1
+            if since >= patience:
+                return SearchResult(best, best_value, steps, scored, "patience")

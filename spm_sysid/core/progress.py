@@ -1,0 +1,73 @@
+"""Where a job is: one progress record for progress bars, logs and ROS feedback.
+
+A job goes through phases (:data:`PHASES`): checking the data, the GA search,
+the certification (branch and bound), the simulation-focused refinement, and
+the validation. Each reports :class:`Progress` records to a callback; the
+command line draws them as progress bars, the node logs them and sends them as
+an action's feedback.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+__all__ = ["PHASES", "Progress", "ProgressFn"]
+
+#: The phases of a job, in order.
+PHASES = ("checking data", "search", "certification", "refinement", "validation")
+
+
+@dataclass(frozen=True)
+class Progress:
+    """One progress report.
+
+    Attributes
+    ----------
+    phase : str
+        One of :data:`PHASES`.
+    step : int
+        Generation (search), nodes explored (certification), structures refined
+        (refinement).
+    total : int
+        Steps in the phase when known (generations, structures to refine); 0
+        when not known.
+    best : float
+        Best criterion value so far (NaN when none yet).
+    evaluations : int
+        Structures fitted so far.
+    bound : float
+        The certification's lower bound (NaN outside certification).
+    elapsed : float
+        Seconds since the job began.
+    """
+
+    phase: str
+    step: int = 0
+    total: int = 0
+    best: float = math.nan
+    evaluations: int = 0
+    bound: float = math.nan
+    elapsed: float = 0.0
+
+    @property
+    def gap(self) -> float:
+        """``best - bound`` during certification (NaN otherwise)."""
+        return self.best - self.bound if math.isfinite(self.bound) else math.nan
+
+    def line(self) -> str:
+        """One line for a log."""
+        of = f"/{self.total}" if self.total else ""
+        text = f"{self.phase}: {self.step}{of}"
+        if math.isfinite(self.best):
+            text += f", best {self.best:.2f}"
+        if math.isfinite(self.bound):
+            text += f", lower bound {self.bound:.2f} (gap {self.gap:.2f})"
+        if self.evaluations:
+            text += f", {self.evaluations} structures fitted"
+        return text + f", {self.elapsed:.1f} s"
+
+
+#: What a progress callback looks like.
+ProgressFn = Callable[[Progress], None]

@@ -1,0 +1,270 @@
+"""One record type and one loader: every way data comes in ends as a :class:`Record`.
+
+A record is what an identification needs of its data: the input and output
+samples, the signals' names (in the order the user gave them), the sample
+stamps when there are any, and an account of what was dropped on the way
+(rejected NaN/inf samples, unpaired messages, stamps never filled in). Several
+records (``--data`` given several times) combine into one whose segments keep
+them apart.
+
+Where data come from is a :class:`DataSpec` -- data files, a bag, which columns,
+topics and fields -- and :func:`load_record` turns any spec into a record:
+
+* data files (:mod:`spm_sysid.core.io.data`): two columns, CSV, chosen columns,
+  a time column;
+* a rosbag2 bag (:mod:`spm_sysid.core.io.bagio`), topics and fields as the node
+  reads them;
+* nothing given: the robot-arm data set (:mod:`spm_sysid.core.io.datasets`).
+
+The node's buffer snapshot becomes a record with :meth:`Record.from_samples`.
+The command line, ``batch``, ``make-bag``, the benchmarks, the signal publisher
+and the ``make run`` pipeline all load through here, so the same input gives the
+same record -- and the same model document -- whichever command reads it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from .errors import DataError
+from .narx.segments import SegmentInfo, find_segments
+
+__all__ = ["DataSpec", "Record", "combine", "load_record"]
+
+
+def default_input_names(m: int) -> tuple[str, ...]:
+    """``u`` for one input, ``u1, u2, ...`` for several."""
+    return ("u",) if m == 1 else tuple(f"u{i + 1}" for i in range(m))
+
+
+@dataclass
+class Record:
+    """The samples of an identification, named and accounted for.
+
+    Attributes
+    ----------
+    u : ndarray, shape (n,) or (n, m)
+        Inputs, oldest first (one column per input, in the user's order).
+    y : ndarray, shape (n,)
+        The output.
+    source : str
+        Where the samples came from, for people.
+    input_names : tuple of str
+        One name per input (default ``u``, or ``u1, u2, ...``).
+    output_name : str
+    stamps_ns : ndarray of int, or None
+        Sample stamps (bags, the node, CSV time columns); gaps and restarts in
+        them split the record into segments.
+    segments : SegmentInfo or None
+        Segments already known (records combined, a time column); None: found
+        from the stamps (or one segment without stamps).
+    rejected, unpaired, unset_stamps : int
+        Samples dropped as NaN/inf, messages without a partner, messages whose
+        header stamp was never filled in (their receive/log time used).
+    parts : list of dict
+        ``{"source", "samples"}`` per data file when files were read.
+    notes : list of str
+        Things a user should know about this data (printed by the commands).
+    """
+
+    u: np.ndarray
+    y: np.ndarray
+    source: str
+    input_names: tuple[str, ...] = ()
+    output_name: str = "y"
+    stamps_ns: np.ndarray | None = None
+    segments: SegmentInfo | None = None
+    rejected: int = 0
+    unpaired: int = 0
+    unset_stamps: int = 0
+    parts: list[dict] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self.u = np.asarray(self.u, dtype=float)
+        self.y = np.asarray(self.y, dtype=float)
+        if not self.input_names:
+            self.input_names = default_input_names(self.n_inputs)
+
+    @classmethod
+    def from_samples(cls, u, y, *, source: str, stamps_ns=None, input_names=(),
+                     output_name: str = "y", rejected: int = 0, unpaired: int = 0,
+                     unset_stamps: int = 0) -> Record:
+        """A record of samples already in memory (the node's buffer, a Python caller)."""
+        return cls(u, y, source, tuple(input_names), output_name,
+                   None if stamps_ns is None else np.asarray(stamps_ns, dtype=np.int64),
+                   rejected=rejected, unpaired=unpaired, unset_stamps=unset_stamps)
+
+    @property
+    def n_inputs(self) -> int:
+        return 1 if self.u.ndim == 1 else self.u.shape[1]
+
+    def __len__(self) -> int:
+        return len(self.y)
+
+    def segment_info(self, period_ns: int | None = None, gap_factor: float = 1.5
+                     ) -> SegmentInfo:
+        """How the record splits into contiguous segments.
+
+        The segments given with the record (records combined, a time column); else
+        those the stamps show (``period_ns`` given or estimated); else one.
+        """
+        if self.segments is not None:
+            return self.segments
+        if self.stamps_ns is None:
+            return SegmentInfo([(0, len(self.y))] if len(self.y) else [])
+        return find_segments(self.stamps_ns, period_ns, gap_factor)
+
+    def metadata(self) -> dict:
+        """What a model document records of its data: source, files, stamps."""
+        out: dict = {"source": self.source}
+        if len(self.parts) > 1 or (self.parts and self.parts[0]["source"] != self.source):
+            out["records"] = [dict(p) for p in self.parts]
+        if self.stamps_ns is not None and len(self.stamps_ns):
+            out["first_stamp_ns"] = int(self.stamps_ns[0])
+            out["last_stamp_ns"] = int(self.stamps_ns[-1])
+        if self.unset_stamps:
+            out["unset_stamps"] = int(self.unset_stamps)
+        return out
+
+
+def combine(records: Sequence[Record]) -> Record:
+    """Several records as one: arrays concatenated, segments kept apart (offsets).
+
+    Raises
+    ------
+    DataError
+        The records differ in their signals (names or number of inputs).
+    """
+    if len(records) == 1:
+        return records[0]
+    if len({(r.input_names, r.output_name, r.u.ndim) for r in records}) > 1:
+        raise DataError("the records differ in their signals (columns); give files of the "
+                        "same layout")
+    bounds, gaps, missing, restarts, start = [], 0, 0, 0, 0
+    periods = set()
+    for r in records:
+        info = r.segment_info()
+        bounds += [(a + start, b + start) for a, b in info.bounds]
+        gaps, missing, restarts = (gaps + info.gaps, missing + info.missing_samples,
+                                   restarts + info.restarts)
+        periods.add((info.period_ns, info.period_source))
+        start += len(r.y)
+    period, how = periods.pop() if len(periods) == 1 else (None, "per record")
+    first = records[0]
+    return Record(
+        np.concatenate([r.u for r in records]), np.concatenate([r.y for r in records]),
+        f"{len(records)} records ({', '.join(r.source for r in records)})",
+        first.input_names, first.output_name,
+        segments=SegmentInfo(bounds, period, how, gaps, missing, restarts),
+        rejected=sum(r.rejected for r in records), unpaired=sum(r.unpaired for r in records),
+        unset_stamps=sum(r.unset_stamps for r in records),
+        parts=[p for r in records for p in r.parts],
+        notes=[n for r in records for n in r.notes])
+
+
+# -- where data come from ---------------------------------------------------------------
+
+#: The data options of a spec, by their settings names.
+BAG_OPTIONS = ("input_topic", "input_field", "input_names", "output_topic", "output_field")
+
+
+@dataclass(frozen=True)
+class DataSpec:
+    """Where the data of an identification come from (see the module doc).
+
+    Attributes
+    ----------
+    data : tuple of str
+        Data files; several are records combined.
+    bag : str or None
+        A rosbag2 bag directory or ``.mcap`` file.
+    inputs : tuple of str or None
+        Input columns of data files, by header name or 0-based index.
+    output : str or None
+        Output column of data files.
+    bag_options : mapping
+        ``input_topic``, ``input_field``, ``input_names``, ``output_topic``,
+        ``output_field`` for bags (None: the defaults).
+    """
+
+    data: tuple[str, ...] = ()
+    bag: str | None = None
+    inputs: tuple[str, ...] | None = None
+    output: str | None = None
+    bag_options: Mapping[str, str | None] = field(default_factory=dict)
+
+    @classmethod
+    def from_values(cls, values: Mapping, data=None, bag=None) -> DataSpec:
+        """A spec from settings-style values (command-line options, per-input YAML).
+
+        ``inputs`` may be a comma-separated string or a list; the bag options
+        are read by their settings names.
+        """
+        inputs = values.get("inputs")
+        if isinstance(inputs, str):
+            inputs = [c for c in inputs.split(",") if c.strip()]
+        files = () if not data else ((data,) if isinstance(data, str) else tuple(data))
+        return cls(files, bag, tuple(inputs) if inputs else None, values.get("output"),
+                   {k: values.get(k) for k in BAG_OPTIONS if values.get(k)})
+
+    @classmethod
+    def for_path(cls, path: str, values: Mapping) -> DataSpec:
+        """The spec of one input path: a bag when it is one, else a data file."""
+        from .io.bagio import is_rosbag2_dir
+
+        p = Path(path)
+        is_bag = p.suffix == ".mcap" or (p.is_dir() and is_rosbag2_dir(p))
+        return cls.from_values(values, data=None if is_bag else path,
+                               bag=path if is_bag else None)
+
+
+def load_record(spec: DataSpec | None = None) -> Record:
+    """Read the data a spec names (the robot-arm data when it names none).
+
+    Raises
+    ------
+    DataError
+        Both files and a bag, or anything the readers refuse (the message names
+        the file, line or topic).
+    """
+    spec = spec or DataSpec()
+    if spec.bag and spec.data:
+        raise DataError("give either --data or --bag (data files or a bag), not both")
+    if spec.bag:
+        return _load_bag(spec)
+    if spec.data:
+        return combine([_load_file(p, spec) for p in spec.data])
+    from .io.datasets import find_robot_arm
+
+    path = find_robot_arm()
+    record = _load_file(str(path), DataSpec())
+    return replace(record, source=f"robot-arm data ({path})")
+
+
+def _load_file(path: str, spec: DataSpec) -> Record:
+    from .io.data import load_data
+
+    inputs = list(spec.inputs) if spec.inputs else None
+    d = load_data(path, inputs, spec.output)
+    stamps = None if d.t is None else np.round(d.t * 1e9).astype(np.int64)
+    return Record(d.u, d.y, path, tuple(d.input_names), d.output_name or "y", stamps,
+                  rejected=d.rejected, parts=[{"source": path, "samples": int(len(d.y))}])
+
+
+def _load_bag(spec: DataSpec) -> Record:
+    from .io.bagio import read_bag_signals
+
+    opts = {k: v for k, v in spec.bag_options.items() if v}
+    sig = read_bag_signals(spec.bag, **opts)
+    notes = []
+    if sig.unset_stamps:
+        notes.append(f"{sig.unset_stamps} message(s) in {spec.bag} repeat header.stamp 0 (the "
+                     "recording driver did not fill it in?); their log times were used")
+    return Record(sig.u, sig.y, f"bag {spec.bag}", tuple(sig.input_names), "y", sig.stamps_ns,
+                  rejected=sig.rejected_nonfinite, unpaired=sig.unpaired,
+                  unset_stamps=sig.unset_stamps, notes=notes)

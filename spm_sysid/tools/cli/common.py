@@ -1,0 +1,238 @@
+"""What the commands share: options from the settings schema, data, destinations, errors.
+
+Every option of a job setting comes from the schema (:mod:`spm_sysid.core.settings`):
+its name (``--population-size`` for ``population_size``, older spellings as
+aliases), type, default and allowed values. Every failure a user can cause is a
+:class:`UserError` (or one of the core's ``ValueError`` subclasses) and ends as
+one ``error: ...`` line with exit status 2 (:func:`spm_sysid.tools.cli.run`).
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from ...core.errors import SettingsError
+from ...core.files import check_writable_dir, check_writable_file
+from ...core.settings import SETTINGS, check
+
+__all__ = ["JOB_TITLES", "PER_INPUT", "Parser", "UserError", "add_data_options",
+           "add_schema_options", "check_correlation_lags_option", "check_outputs", "data_spec",
+           "job_settings", "load", "positive_int", "read_yaml", "schema_type", "seed_type"]
+
+
+class UserError(Exception):
+    """A problem the user can fix; printed without a traceback."""
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse with one-line errors (``spm-sysid identify: error: ...``), exit status 2."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+# -- option types -------------------------------------------------------------------------
+
+PER_INPUT = ("nu", "delay")  # one value for all inputs, or a comma list: one per input
+
+
+def schema_type(name: str):
+    """An argparse type that checks a value against the settings schema."""
+    setting = SETTINGS[name]
+
+    def convert(text: str):
+        if name in PER_INPUT and "," in text:
+            return tuple(convert(part) for part in text.split(","))
+        try:
+            value = setting.kind(text) if setting.kind is not bool else text
+        except ValueError:
+            kind = {int: "an integer", float: "a number"}.get(setting.kind, "text")
+            raise argparse.ArgumentTypeError(f"must be {kind}, got {text!r}") from None
+        try:
+            return check(name, value)
+        except SettingsError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
+
+    convert.__name__ = setting.kind.__name__
+    return convert
+
+
+def positive_int(text: str) -> int:
+    """An integer >= 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {value}")
+    return value
+
+
+def seed_type(text: str) -> int:
+    """A seed: an integer >= 0."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {value}")
+    return value
+
+
+def comma_list(text: str) -> list[str]:
+    """``a,b`` -> ``["a", "b"]`` (empty items dropped)."""
+    return [c for c in text.split(",") if c]
+
+
+# -- options ---------------------------------------------------------------------------------
+
+JOB_TITLES = {
+    "term_space": "term space (default: the paper's)",
+    "ga": "genetic algorithm (default: the paper's settings)",
+    "criterion": "criterion and seed",
+    "validation": "validation",
+}
+
+#: The bag options (settings names) every data-reading command offers.
+BAG_OPTIONS = ("input_topic", "input_field", "input_names", "output_topic", "output_field")
+
+
+def add_schema_options(p: argparse.ArgumentParser, groups: tuple[str, ...],
+                       titles: dict[str, str] = JOB_TITLES, exclude: tuple[str, ...] = ()
+                       ) -> None:
+    """Options for every command-line setting of ``groups``, from the schema.
+
+    The option is ``--`` + the setting's name with dashes; older spellings are
+    aliases; the default and the allowed values come from the schema. Settings
+    in ``exclude`` are left to the command.
+    """
+    for group in groups:
+        g = p.add_argument_group(titles.get(group, group))
+        for s in SETTINGS.values():
+            if s.group != group or not s.cli or s.name in exclude:
+                continue
+            names = [s.option, *s.aliases]
+            rng = s.describe_range()
+            text = f"{s.help} (default {s.default!r}{'; ' + rng if rng else ''})"
+            # default None: "not given" (the schema's default applies in JobSettings)
+            if s.kind is bool:
+                g.add_argument(*names, dest=s.name, action="store_true", default=None,
+                               help=f"{s.help}")
+            elif s.choices:
+                g.add_argument(*names, dest=s.name, choices=s.choices, help=text)
+            else:
+                g.add_argument(*names, dest=s.name, type=schema_type(s.name),
+                               metavar=s.kind.__name__.upper(), help=text)
+
+
+def add_data_options(p: argparse.ArgumentParser, bag: bool = True,
+                     title: str = "data (default: the robot-arm data)") -> None:
+    """``--data`` (repeatable), and with ``bag`` also ``--bag``, columns, topics and fields."""
+    g = p.add_argument_group(title)
+    g.add_argument("--data", metavar="PATH", action="append",
+                   help="two-column or CSV file of u, y; give it several times for several "
+                        "records (no regression row crosses from one to the next)")
+    if bag:
+        g.add_argument("--bag", metavar="PATH", help="rosbag2 bag (MCAP) to read u, y from")
+        add_column_options(g)
+        for name in BAG_OPTIONS:
+            s = SETTINGS[name]
+            g.add_argument(s.option, dest=name, default=s.default or None,
+                           help=f"{s.help} (default {s.default!r})")
+
+
+def add_column_options(g) -> None:
+    """``--inputs`` and ``--output``: the columns of data files."""
+    g.add_argument("--inputs", metavar="NAMES", type=comma_list,
+                   help="input columns of --data files, by header name or 0-based index "
+                        "(comma-separated; several inputs make a MISO model)")
+    g.add_argument("--output", dest="output_column", metavar="NAME",
+                   help="output column of --data files (default: 'y', else the last)")
+
+
+# -- settings, data, destinations --------------------------------------------------------
+
+
+def job_settings(args):
+    """The job's settings from the options, checked once (names come with the data)."""
+    from ...core.job import JobSettings
+
+    try:
+        return JobSettings.from_values(vars(args))
+    except (TypeError, ValueError) as exc:
+        raise UserError(str(exc)) from None
+
+
+def data_spec(args):
+    """Where the command's data come from (:class:`~spm_sysid.core.record.DataSpec`)."""
+    from ...core.record import DataSpec
+
+    values = {k: getattr(args, k, None) for k in BAG_OPTIONS}
+    values["inputs"] = getattr(args, "inputs", None)
+    values["output"] = getattr(args, "output_column", None)
+    data = getattr(args, "data", None)
+    return DataSpec.from_values(values, data=data, bag=getattr(args, "bag", None))
+
+
+def load(args):
+    """The command's data as a :class:`~spm_sysid.core.record.Record`; its notes printed."""
+    from ...core.record import load_record
+
+    record = load_record(data_spec(args))
+    for note in record.notes:
+        print(f"note: {note}")
+    return record
+
+
+def read_yaml(path: str, option: str):
+    """A YAML file's content, or one ``error:`` line naming the option, line and problem."""
+    import yaml
+
+    from ...core.files import read_bytes
+
+    raw = read_bytes(path, f"{option} file", error=UserError)
+    try:
+        return yaml.safe_load(raw.decode("utf-8-sig"))
+    except UnicodeDecodeError:
+        raise UserError(f"{option} {path} is not a text file") from None
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""
+        problem = " ".join(str(getattr(exc, "problem", None) or exc).split())
+        raise UserError(f"{option} {path} is not valid YAML{where}: {problem}") from None
+
+
+def check_outputs(args) -> None:
+    """Check --json and --plots destinations before any work (a search must not be lost).
+
+    A destination that is one of the inputs (``--json`` naming the ``--data`` file)
+    is refused: the recording would be overwritten by the model.
+    """
+    from ...core.files import same_file
+
+    data = getattr(args, "data", None) or []
+    inputs = [p for p in ([data] if isinstance(data, str) else data)
+              + [getattr(args, "model", None)] if p]
+    if getattr(args, "json", None):
+        check_writable_file(args.json, "--json")
+        for p in inputs:
+            if same_file(args.json, p):
+                raise UserError(f"--json {args.json} is the input {p}: it would be "
+                                "overwritten; give another path")
+    if getattr(args, "plots", None):
+        check_writable_dir(args.plots, "--plots directory")
+
+
+def check_correlation_lags_option(corr_lags: int, rows: int) -> None:
+    """The validation rule, named as the option (before any work)."""
+    from ...core.narx.validation import check_correlation_lags
+
+    try:
+        check_correlation_lags(corr_lags, rows)
+    except SettingsError as exc:
+        raise UserError(as_option(exc)) from None
+
+
+def as_option(exc: Exception) -> str:
+    """A settings message with the setting named as its option."""
+    return str(exc).replace("correlation_lags", "--correlation-lags")
