@@ -32,18 +32,70 @@ again:
 Values are ``n ln(max(SSE, floor) * scale / n) + pen[k]``, the evaluator's
 formula. The heap lives in caller-owned arrays so a search can pause (after
 ``max_pops`` nodes) to report progress and go on, and grow when full.
+
+Three named tuples carry the state (numba compiles them like structs):
+:class:`Data`, the problem's numbers; :class:`Heap`, the open nodes, the
+incumbent and the counters (indexed by :data:`OPEN`, :data:`EXPANDED`, ...);
+:class:`Work`, one worker's scratch arrays, allocated once
+(:func:`workspace`). :func:`expand` pops nodes and runs the named steps on each:
+:func:`_node_columns`, :func:`_factorise`, :func:`_branch_on`, :func:`_fit_all`,
+:func:`_bound_sizes` (with :func:`_consider` for incumbents), :func:`_walk_chain`.
 """
 
 from __future__ import annotations
 
+from collections import namedtuple
+
 import numpy as np
 
-from .kernels import csne_step, jit
+from .kernels import cholesky_rows, csne_step, jit
 
-__all__ = ["DONE", "FULL", "PAUSED", "expand", "words_for"]
+__all__ = ["COUNTERS", "DONE", "Data", "FULL", "Heap", "PAUSED", "Work", "expand",
+           "words_for", "workspace"]
 
 #: :func:`expand` results.
 DONE, PAUSED, FULL = 0, 1, 2
+
+#: The counters of a :class:`Heap`, by position.
+OPEN, EXPANDED, OFFERED, NEAR_BRANCHES, PENDING = range(5)
+COUNTERS = ("open", "expanded", "offered", "near_branches", "pending")
+
+#: The problem's numbers: ``gram`` (m + 1, m + 1) of the unit-norm candidates and the
+#: target (last), ``r_ext`` their triangular factor, ``pen`` the penalty of each size,
+#: ``n``/``scale``/``floor`` the rows, SSE scale and SSE floor, ``rank_tol`` the
+#: smallest squared pivot of an identifiable structure, ``tol`` the pruning tolerance,
+#: ``near`` the squared pivot below which the evaluator decides a candidate.
+Data = namedtuple("Data", "gram r_ext pen n scale floor rank_tol tol near")
+
+#: The open nodes (a binary heap on ``bound``; ``inside``/``free`` are term masks in
+#: 64-bit words), the ``counts`` (see :data:`COUNTERS`), the incumbent ``best`` (1,)
+#: and ``best_mask``, and ``pending``: candidates whose rank the evaluator decides.
+Heap = namedtuple("Heap", "bound inside free counts best best_mask pending")
+
+#: One worker's scratch space (see :func:`workspace`).
+Work = namedtuple("Work", [
+    "inside", "free", "child_in", "child_free", "members", "cols", "cand", "chain",
+    "order", "L", "Lc", "piv", "Winv", "Hff", "pcost", "pairs", "Q", "At", "S", "cvec",
+    "exact", "small", "chosen", "lrow", "wbuf", "gbuf", "pick", "edges", "deg", "gone",
+    "theta", "theta2", "r", "g", "delta", "hdiag", "column", "drop", "prefmin", "wvals",
+    "cored"])
+
+
+def workspace(m: int, rows: int, nw: int) -> Work:
+    """Scratch arrays for a search over m terms (``rows``: rows of r_ext; ``nw`` words)."""
+    z, e = np.zeros, np.empty
+    i64 = np.int64
+    return Work(
+        inside=z(nw, np.uint64), free=z(nw, np.uint64), child_in=z(nw, np.uint64),
+        child_free=z(nw, np.uint64), members=e(m, i64), cols=e(m + 1, i64),
+        cand=e(m + 1, i64), chain=e(m + 1, i64), order=e(m + 1, i64), L=z((m + 1, m + 1)),
+        Lc=z((m + 1, m + 1)), piv=z(m + 1), Winv=z((m, m)), Hff=z((m, m)),
+        pcost=z((m, m)), pairs=z((m, m)), Q=z((rows, m + 1)), At=z((rows, m + 1)),
+        S=z((m, m)), cvec=z(m), exact=z(m + 1), small=z(m + 1), chosen=z((m + 1, m + 1), i64),
+        lrow=z((m + 1, m + 1)), wbuf=z(m + 1), gbuf=z(m + 1), pick=z(m + 1, i64),
+        edges=e(max(m * m, 1)), deg=e(m, i64), gone=z(m, np.bool_), theta=e(m + 1),
+        theta2=e(m + 1), r=e(rows), g=e(m + 1), delta=e(m), hdiag=e(m), column=e(m),
+        drop=e(m + 1), prefmin=e(m + 1), wvals=e(m + 1), cored=z(m + 1, np.bool_))
 
 #: Drop costs (from the Gram matrix of T, relative rounding about eps * cond) count
 #: ``1 - DROP_MARGIN * eps * |T| * cond`` of themselves, cond estimated per node
@@ -156,34 +208,6 @@ def _pop(heap_bound, heap_in, heap_free, size, inside, free):  # pragma: no cove
         _swap(heap_bound, heap_in, heap_free, child, i)
         i = child
     return bound, size
-
-
-@jit
-def _cholesky_rows(gram, cols, start, stop, L):  # pragma: no cover - compiled
-    """Rows start..stop-1 of the up-looking Cholesky factor of gram[cols, cols].
-
-    A non-positive pivot leaves a zero diagonal (its column then counts as
-    dependent for the rows after it); returns the first such row, or -1.
-    ``L[j, j] ** 2`` is the squared pivot of row j.
-    """
-    first = -1
-    for j in range(start, stop):
-        cj = cols[j]
-        for i in range(j):
-            acc = gram[cj, cols[i]]
-            for p in range(i):
-                acc -= L[j, p] * L[i, p]
-            L[j, i] = acc / L[i, i] if L[i, i] > 0.0 else 0.0
-        d = gram[cj, cj]
-        for p in range(j):
-            d -= L[j, p] * L[j, p]
-        if d > 0.0:
-            L[j, j] = np.sqrt(d)
-        else:
-            L[j, j] = 0.0
-            if first < 0:
-                first = j
-    return first
 
 
 @jit
@@ -474,72 +498,235 @@ def _drop_costs(L, theta, k, f, Winv, Hff, hdiag, pcost, pairs, delta, column, d
 
 
 @jit
-def _consider(gram, r_ext, cand, kk, yi, rank_tol, near, n, scale, floor, pen, best,
-              best_mask, pending, counts, Lc, theta, r, g):  # pragma: no cover - compiled
-    """Offer the structure cand[:kk] as the incumbent.
+def _consider(data, heap, work, kk):  # pragma: no cover - compiled
+    """Offer the structure work.cand[:kk] as the incumbent.
 
     Its pivots are tested in index order, as the evaluator tests them: a
     squared pivot at or below ``rank_tol`` rules it out; one below ``near``
     leaves the verdict to the evaluator (the structure goes to ``pending``, for
     the caller); otherwise it is fitted accurately and kept if better.
     """
+    m = data.gram.shape[0] - 1
+    cand, Lc = work.cand, work.Lc
     _shell_sort(cand, kk)
-    cand[kk] = yi
-    _cholesky_rows(gram, cand, 0, kk + 1, Lc)
+    cand[kk] = m
+    cholesky_rows(data.gram, cand, 0, kk + 1, Lc, work.piv, 0.0, False)
     smallest = np.inf
     for j in range(kk):
         smallest = min(smallest, Lc[j, j] * Lc[j, j])
-    if not smallest > rank_tol:
+    if not smallest > data.rank_tol:
         return
-    if smallest < near:
-        row = counts[4]
-        if row < pending.shape[0]:
-            pending[row, :] = 0
+    counts = heap.counts
+    if smallest < data.near:
+        row = counts[PENDING]
+        if row < heap.pending.shape[0]:
+            heap.pending[row, :] = 0
             for a in range(kk):
-                _set_bit(pending[row], cand[a])
-            counts[4] = row + 1
+                _set_bit(heap.pending[row], cand[a])
+            counts[PENDING] = row + 1
         return
-    value = _value(_refined_sse(Lc, r_ext, cand, kk, yi, theta, r, g), kk, n, scale,
-                   floor, pen)
-    if value < best[0]:
-        best[0] = value
-        best_mask[:] = False
+    sse = _refined_sse(Lc, data.r_ext, cand, kk, m, work.theta2, work.r, work.g)
+    value = _value(sse, kk, data.n, data.scale, data.floor, data.pen)
+    if value < heap.best[0]:
+        heap.best[0] = value
+        heap.best_mask[:] = False
         for a in range(kk):
-            best_mask[cand[a]] = True
+            heap.best_mask[cand[a]] = True
 
 
 @jit
-def expand(gram, r_ext, pen, n, scale, floor, rank_tol, tol, heap_bound, heap_in,
-           heap_free, counts, best, best_mask, pending, near, max_pops, budget,
-           deep_budget):  # pragma: no cover - compiled
+def _node_columns(work, m):  # pragma: no cover - compiled
+    """The popped node's columns: I (in index order), then F; returns (|I|, |F|)."""
+    k = _members(work.inside, m, work.members)
+    for j in range(k):
+        work.cols[j] = work.members[j]
+    f = _members(work.free, m, work.members)
+    for j in range(f):
+        work.cols[k + j] = work.members[j]
+    work.cols[k + f] = m  # the target
+    return k, f
+
+
+@jit
+def _factorise(data, work, t):  # pragma: no cover - compiled
+    """Factorise T's Gram sub-matrix; the first nearly dependent row, or -1."""
+    L = work.L
+    cholesky_rows(data.gram, work.cols, 0, t, L, work.piv, 0.0, False)
+    for j in range(t):
+        if not L[j, j] * L[j, j] > data.rank_tol:
+            return j
+    return -1
+
+
+@jit
+def _branch_on(heap, work, size, bound, c):  # pragma: no cover - compiled
+    """Push the node's two children on the free term c: c out, then c in."""
+    work.child_in[:] = work.inside
+    work.child_free[:] = work.free
+    _clear_bit(work.child_free, c)
+    size = _push(heap.bound, heap.inside, heap.free, size, bound, work.child_in,
+                 work.child_free)
+    _set_bit(work.child_in, c)
+    return _push(heap.bound, heap.inside, heap.free, size, bound, work.child_in,
+                 work.child_free)
+
+
+@jit
+def _fit_all(data, work, t):  # pragma: no cover - compiled
+    """SSE(T), all the node's terms in (the target's row of the factor, then CSNE)."""
+    m = data.gram.shape[0] - 1
+    cholesky_rows(data.gram, work.cols, t, t + 1, work.L, work.piv, 0.0, False)
+    return _refined_sse(work.L, data.r_ext, work.cols, t, m, work.theta, work.r, work.g)
+
+
+@jit
+def _bound_sizes(data, heap, work, k, f, sse_t, bound0, budget,
+                 deep_budget):  # pragma: no cover - compiled
+    """Bound every size |I| .. |T| of the node; returns (amax, safety, cut).
+
+    Sizes |I| .. |I| + amax exactly (their best structures offered as
+    incumbents), larger ones from T down by the drop and pair bounds; amax
+    grows by one where that size is the one left open and ``deep_budget``
+    allows. ``cut``: no structure of the node can beat the incumbent. Leaves
+    ``small``, ``drop``, ``prefmin``, ``delta``, ``pairs`` for :func:`_walk_chain`.
+    """
+    w = work
+    t = k + f
+    best, tol = heap.best, data.tol
+    n, scale, floor, pen = data.n, data.scale, data.floor, data.pen
+    m = data.gram.shape[0] - 1
+    amax = max(min(2, f), _visits_for(f, budget))
+    zz = _project_free(data.r_ext, w.cols, k, f, m, w.Q, w.At, w.S, w.cvec)
+    have_drops = False
+    safety = 0.0
+    n_edges = 0
+    while True:
+        _small_sizes(w.S, w.cvec, zz, f, amax, w.exact, w.chosen, w.lrow, w.wbuf, w.gbuf,
+                     w.pick)
+        quick = np.inf
+        for a in range(amax + 1):
+            w.small[a] = _value(w.exact[a], k + a, n, scale, floor, pen)
+            quick = min(quick, w.small[a])
+            if ((a > 0 or k > 0) and w.small[a] < best[0] - tol
+                    and (a == 0 or w.chosen[a, 0] >= 0)):
+                for j in range(k):
+                    w.cand[j] = w.cols[j]
+                for j in range(a):
+                    w.cand[k + j] = w.cols[k + w.chosen[a, j]]
+                heap.counts[OFFERED] += 1
+                _consider(data, heap, work, k + a)
+        if k + amax < t:  # larger sizes: at least SSE(T) and their penalty
+            quick = min(quick, _value(sse_t, k + amax + 1, n, scale, floor, pen))
+        if max(quick, bound0) >= best[0] - tol:
+            return amax, safety, True
+        if amax == f:  # all sizes known exactly: closed if their best were offered
+            closed = True
+            for a in range(amax + 1):
+                if w.small[a] < best[0] - tol:
+                    closed = False  # that size's best was ruled out or is pending
+            if closed:
+                return amax, safety, True
+        # --- the cost of leaving out free terms, and the bound of each size t - q
+        if not have_drops:
+            minpiv = 1.0
+            for j in range(t):
+                minpiv = min(minpiv, w.L[j, j] * w.L[j, j])
+            safety = _drop_costs(w.L, w.theta, k, f, w.Winv, w.Hff, w.hdiag, w.pcost, w.pairs,
+                                 w.delta, w.column, w.drop, minpiv)
+            for q in range(f + 1):
+                w.cored[q] = False
+            have_drops = True
+            n_edges = 0
+        lowest = np.inf
+        for q in range(f + 1):
+            wq = _value(sse_t + w.drop[q], t - q, n, scale, floor, pen)
+            if f - q <= amax:
+                wq = max(wq, w.small[f - q])
+            elif q >= 3 and wq < best[0] - tol and not w.cored[q]:
+                # could beat the incumbent: try the sharper pair bound (a core of the
+                # graph of cheap pairs)
+                w.cored[q] = True
+                if n_edges == 0:
+                    for a in range(f):
+                        for b in range(a + 1, f):
+                            w.edges[n_edges] = w.pcost[a, b]
+                            n_edges += 1
+                    _shell_sort(w.edges, n_edges)
+                core = safety * _core_bound(w.pcost, f, q, w.edges, n_edges, w.deg, w.gone)
+                if core > w.drop[q]:
+                    w.drop[q] = core
+                    wq = _value(sse_t + core, t - q, n, scale, floor, pen)
+            w.wvals[q] = wq
+            lowest = min(lowest, wq)
+            w.prefmin[q] = lowest
+        if max(bound0, w.prefmin[f]) >= best[0] - tol:
+            return amax, safety, True
+        # the next size up still alive: enumerate it too, if affordable
+        q = f - amax - 1
+        if (amax < f and w.wvals[q] < best[0] - tol
+                and _visits_for(f, deep_budget) > amax):
+            amax += 1
+            continue
+        return amax, safety, False
+
+
+@jit
+def _walk_chain(data, heap, work, k, f, sse_t, bound0, amax, safety,
+                size):  # pragma: no cover - compiled
+    """Walk the node's "in" chain (F by delta, largest first); push its "out" children.
+
+    Chain node p fixes I + chain[:p]; its "out" child leaves chain[p] out and is
+    pushed with its own bound; the walk stops where the chain's bound reaches
+    the incumbent. Returns the new heap size.
+    """
+    w = work
+    t = k + f
+    best, tol = heap.best, data.tol
+    n, scale, floor, pen = data.n, data.scale, data.floor, data.pen
+    _order_descending(w.delta, f, w.order)
+    for a in range(f):
+        w.chain[a] = w.cols[k + w.order[a]]
+    w.child_in[:] = w.inside
+    for p in range(f):
+        bound_p = max(bound0, w.prefmin[f - p])
+        if bound_p >= best[0] - tol:
+            break
+        dp = safety * w.delta[w.order[p]]
+        ob = np.inf
+        for q in range(1, f - p + 1):
+            # chain[p] and q - 1 others: at least its (q-1)-th cheapest pair
+            dq = max(dp, w.drop[q])
+            if q >= 2:
+                dq = max(dq, safety * w.pairs[w.order[p], q - 2])
+            vq = _value(sse_t + dq, t - q, n, scale, floor, pen)
+            if f - q <= amax:
+                vq = max(vq, w.small[f - q])
+            ob = min(ob, vq)
+        ob = max(ob, bound_p)
+        if ob < best[0] - tol:
+            w.child_free[:] = 0
+            for a in range(p + 1, f):
+                _set_bit(w.child_free, w.chain[a])
+            size = _push(heap.bound, heap.inside, heap.free, size, ob, w.child_in,
+                         w.child_free)
+        _set_bit(w.child_in, w.chain[p])
+    return size
+
+
+@jit
+def expand(data, heap, work, max_pops, budget, deep_budget):  # pragma: no cover - compiled
     """Expand up to ``max_pops`` nodes, best first (see the module doc).
 
     Parameters
     ----------
-    gram : ndarray, shape (m + 1, m + 1)
-        Gram matrix of the unit-norm candidate columns and the target (last).
-    r_ext : ndarray, shape (rows, m + 1)
-        Triangular factor of the same ``[P y]``.
-    pen : ndarray, shape (m + 1,)
-        Penalty of each size.
-    n, scale, floor : float
-        Rows, SSE scale and SSE floor of the criterion (the evaluator's).
-    rank_tol, tol : float
-        Smallest squared pivot of an identifiable structure; pruning tolerance.
-    heap_bound, heap_in, heap_free : ndarray
-        The open nodes (a binary heap on the bound); in/free are term masks.
-    counts : ndarray of int64, shape (5,)
-        In/out: open nodes, nodes expanded so far, candidate structures offered,
-        nodes branched on a nearly dependent free term, rows used in ``pending``.
-    best : ndarray, shape (1,)
-        In/out: the incumbent's value.
-    best_mask : ndarray of bool, shape (m,)
-        In/out: the incumbent.
-    pending : ndarray of uint64, shape (rows, words)
-        Out: candidates whose rank the evaluator must decide (squared pivot below
-        ``near``); the caller scores them and empties it (``counts[4] = 0``).
-    near : float
-        See ``pending`` (the evaluator's ``NEAR_RANK * rank_tol``).
+    data : Data
+        The problem's numbers.
+    heap : Heap
+        In/out: the open nodes, the incumbent, the counters; ``pending`` is
+        filled with candidates the evaluator must decide (the caller scores them
+        and sets ``counts[PENDING] = 0``).
+    work : Work
+        Scratch space (:func:`workspace`).
     max_pops : int
         Nodes to expand in this call.
     budget : int
@@ -553,202 +740,39 @@ def expand(gram, r_ext, pen, n, scale, floor, rank_tol, tol, heap_bound, heap_in
         :data:`DONE` (no open node can beat the incumbent: proved), :data:`PAUSED`
         or :data:`FULL` (the heap needs room).
     """
-    m = gram.shape[0] - 1
-    yi = m
-    nw = heap_in.shape[1]
-    cap = heap_bound.shape[0]
-    rows = r_ext.shape[0]
-    inside = np.zeros(nw, dtype=np.uint64)
-    free = np.zeros(nw, dtype=np.uint64)
-    child_in = np.zeros(nw, dtype=np.uint64)
-    child_free = np.zeros(nw, dtype=np.uint64)
-    members = np.empty(m, dtype=np.int64)
-    cols = np.empty(m + 1, dtype=np.int64)
-    cand = np.empty(m + 1, dtype=np.int64)
-    chain = np.empty(m + 1, dtype=np.int64)
-    order = np.empty(m + 1, dtype=np.int64)
-    L = np.zeros((m + 1, m + 1))
-    Lc = np.zeros((m + 1, m + 1))
-    Winv = np.zeros((m, m))
-    Hff = np.zeros((m, m))
-    pcost = np.zeros((m, m))
-    pairs = np.zeros((m, m))
-    Q = np.zeros((rows, m + 1))
-    At = np.zeros((rows, m + 1))
-    S = np.zeros((m, m))
-    cvec = np.zeros(m)
-    exact = np.zeros(m + 1)
-    small = np.zeros(m + 1)
-    chosen = np.zeros((m + 1, m + 1), dtype=np.int64)
-    lrow = np.zeros((m + 1, m + 1))
-    wbuf = np.zeros(m + 1)
-    gbuf = np.zeros(m + 1)
-    pick = np.zeros(m + 1, dtype=np.int64)
-    edges = np.empty(m * m)
-    deg = np.empty(m, dtype=np.int64)
-    gone = np.zeros(m, dtype=np.bool_)
-    theta = np.empty(m + 1)
-    theta2 = np.empty(m + 1)
-    r = np.empty(rows)
-    g = np.empty(m + 1)
-    delta = np.empty(m)
-    hdiag = np.empty(m)
-    column = np.empty(m)
-    drop = np.empty(m + 1)
-    safety = 0.0
-    prefmin = np.empty(m + 1)
-    wvals = np.empty(m + 1)
-    cored = np.zeros(m + 1, dtype=np.bool_)
-    n_edges = 0
+    m = data.gram.shape[0] - 1
+    cap = heap.bound.shape[0]
+    counts = heap.counts
+    best, tol = heap.best, data.tol
     pops = 0
-    size = counts[0]
+    size = counts[OPEN]
     while True:
-        if size == 0 or heap_bound[0] >= best[0] - tol:
-            counts[0] = size
+        if size == 0 or heap.bound[0] >= best[0] - tol:
+            counts[OPEN] = size
             return DONE
-        if pops >= max_pops or counts[4] + 2 * m + 2 > pending.shape[0]:
-            counts[0] = size
+        if pops >= max_pops or counts[PENDING] + 2 * m + 2 > heap.pending.shape[0]:
+            counts[OPEN] = size
             return PAUSED
         if size + m + 2 > cap:
-            counts[0] = size
+            counts[OPEN] = size
             return FULL
-        bound0, size = _pop(heap_bound, heap_in, heap_free, size, inside, free)
+        bound0, size = _pop(heap.bound, heap.inside, heap.free, size, work.inside, work.free)
         if bound0 >= best[0] - tol:
             continue
         pops += 1
-        counts[1] += 1
-        k = _members(inside, m, members)
-        for j in range(k):
-            cols[j] = members[j]
-        f = _members(free, m, members)
-        for j in range(f):
-            cols[k + j] = members[j]
+        counts[EXPANDED] += 1
+        k, f = _node_columns(work, m)
         t = k + f
-        cols[t] = yi
-        # --- factorise T; rank-deficient I: nothing identifiable below this node
-        _cholesky_rows(gram, cols, 0, t, L)
-        weak = -1
-        for j in range(t):
-            if not L[j, j] * L[j, j] > rank_tol:
-                weak = j
-                break
-        if 0 <= weak < k:
+        weak = _factorise(data, work, t)
+        if 0 <= weak < k:  # rank-deficient I: nothing identifiable below this node
             continue
         if weak >= k:  # a free term nearly dependent on the others: branch on it
-            counts[3] += 1
-            c = cols[weak]
-            child_in[:] = inside
-            child_free[:] = free
-            _clear_bit(child_free, c)
-            size = _push(heap_bound, heap_in, heap_free, size, bound0, child_in, child_free)
-            _set_bit(child_in, c)
-            size = _push(heap_bound, heap_in, heap_free, size, bound0, child_in, child_free)
+            counts[NEAR_BRANCHES] += 1
+            size = _branch_on(heap, work, size, bound0, work.cols[weak])
             continue
-        _cholesky_rows(gram, cols, t, t + 1, L)
-        sse_t = _refined_sse(L, r_ext, cols, t, yi, theta, r, g)
-        # --- sizes |I| .. |I| + 3 exactly (leaving out many terms is what the drop
-        # bounds see least); their best structures are incumbent candidates
-        amax = max(min(2, f), _visits_for(f, budget))
-        zz = _project_free(r_ext, cols, k, f, yi, Q, At, S, cvec)
-        have_drops = False
-        cut = False
-        while True:
-            _small_sizes(S, cvec, zz, f, amax, exact, chosen, lrow, wbuf, gbuf, pick)
-            quick = np.inf
-            for a in range(amax + 1):
-                small[a] = _value(exact[a], k + a, n, scale, floor, pen)
-                quick = min(quick, small[a])
-                if ((a > 0 or k > 0) and small[a] < best[0] - tol
-                        and (a == 0 or chosen[a, 0] >= 0)):
-                    for j in range(k):
-                        cand[j] = cols[j]
-                    for j in range(a):
-                        cand[k + j] = cols[k + chosen[a, j]]
-                    counts[2] += 1
-                    _consider(gram, r_ext, cand, k + a, yi, rank_tol, near, n, scale, floor,
-                              pen, best, best_mask, pending, counts, Lc, theta2, r, g)
-            if k + amax < t:  # larger sizes: at least SSE(T) and their penalty
-                quick = min(quick, _value(sse_t, k + amax + 1, n, scale, floor, pen))
-            if max(quick, bound0) >= best[0] - tol:
-                cut = True
-                break
-            if amax == f:  # all sizes known exactly: closed if their best were offered
-                cut = True
-                for a in range(amax + 1):
-                    if small[a] < best[0] - tol:
-                        cut = False  # that size's best was ruled out or is pending
-                if cut:
-                    break
-            # --- the cost of leaving out free terms, and the bound of each size t - q
-            if not have_drops:
-                minpiv = 1.0
-                for j in range(t):
-                    minpiv = min(minpiv, L[j, j] * L[j, j])
-                safety = _drop_costs(L, theta, k, f, Winv, Hff, hdiag, pcost, pairs, delta,
-                                     column, drop, minpiv)
-                for q in range(f + 1):
-                    cored[q] = False
-                have_drops = True
-                n_edges = 0
-            lowest = np.inf
-            for q in range(f + 1):
-                wq = _value(sse_t + drop[q], t - q, n, scale, floor, pen)
-                if f - q <= amax:
-                    wq = max(wq, small[f - q])
-                elif q >= 3 and wq < best[0] - tol and not cored[q]:
-                    # could beat the incumbent: try the sharper pair bound (a core
-                    # of the graph of cheap pairs)
-                    cored[q] = True
-                    if n_edges == 0:
-                        for a in range(f):
-                            for b in range(a + 1, f):
-                                edges[n_edges] = pcost[a, b]
-                                n_edges += 1
-                        _shell_sort(edges, n_edges)
-                    core = safety * _core_bound(pcost, f, q, edges, n_edges, deg, gone)
-                    if core > drop[q]:
-                        drop[q] = core
-                        wq = _value(sse_t + core, t - q, n, scale, floor, pen)
-                wvals[q] = wq
-                lowest = min(lowest, wq)
-                prefmin[q] = lowest
-            if max(bound0, prefmin[f]) >= best[0] - tol:
-                cut = True
-                break
-            # the next size up still alive: enumerate it too, if affordable
-            q = f - amax - 1
-            if (amax < f and wvals[q] < best[0] - tol
-                    and _visits_for(f, deep_budget) > amax):
-                amax += 1
-                continue
-            break
+        sse_t = _fit_all(data, work, t)
+        amax, safety, cut = _bound_sizes(data, heap, work, k, f, sse_t, bound0, budget,
+                                         deep_budget)
         if cut:
             continue
-        # --- the chain, F by delta, largest first
-        _order_descending(delta, f, order)
-        for a in range(f):
-            chain[a] = cols[k + order[a]]
-        # --- walk the chain: node p fixes I + chain[:p]; push its "out" child
-        child_in[:] = inside
-        for p in range(f):
-            bound_p = max(bound0, prefmin[f - p])
-            if bound_p >= best[0] - tol:
-                break
-            dp = safety * delta[order[p]]
-            ob = np.inf
-            for q in range(1, f - p + 1):
-                # chain[p] and q - 1 others: at least its (q-1)-th cheapest pair
-                dq = max(dp, drop[q])
-                if q >= 2:
-                    dq = max(dq, safety * pairs[order[p], q - 2])
-                vq = _value(sse_t + dq, t - q, n, scale, floor, pen)
-                if f - q <= amax:
-                    vq = max(vq, small[f - q])
-                ob = min(ob, vq)
-            ob = max(ob, bound_p)
-            if ob < best[0] - tol:
-                child_free[:] = 0
-                for a in range(p + 1, f):
-                    _set_bit(child_free, chain[a])
-                size = _push(heap_bound, heap_in, heap_free, size, ob, child_in, child_free)
-            _set_bit(child_in, chain[p])
+        size = _walk_chain(data, heap, work, k, f, sse_t, bound0, amax, safety, size)

@@ -44,7 +44,19 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..memory import check_memory, memory_limit
-from .branch_bound import DONE, FULL, expand, words_for
+from .branch_bound import (
+    COUNTERS,
+    DONE,
+    EXPANDED,
+    FULL,
+    OPEN,
+    PENDING,
+    Data,
+    Heap,
+    expand,
+    words_for,
+    workspace,
+)
 from .criteria import Criterion, get_criterion
 from .evaluator import NEAR_RANK, StructureEvaluator
 from .lstsq import DEFAULT_RANK_TOL
@@ -223,49 +235,58 @@ def _settle(ev: StructureEvaluator, usable: np.ndarray, rows: np.ndarray, best: 
 
 
 class _OpenNodes:
-    """One worker's open nodes (a heap in arrays the compiled search fills) and incumbent."""
+    """One worker of the search: open nodes, incumbent, counters, scratch space.
 
-    def __init__(self, mu: int, best: float, best_mask: np.ndarray, share: int = 1,
+    The open nodes are a heap in arrays the compiled search fills; the counters
+    are named in :data:`~.branch_bound.COUNTERS`.
+    """
+
+    def __init__(self, mu: int, rows: int, best: float, best_mask: np.ndarray, share: int = 1,
                  open_bytes: int = MAX_OPEN_BYTES) -> None:
         self.nw = words_for(mu)
         cap = 1 << 12
         self.bound = np.empty(cap)
         self.inside = np.zeros((cap, self.nw), dtype=np.uint64)
         self.free = np.zeros((cap, self.nw), dtype=np.uint64)
-        # open nodes, nodes expanded, candidates, dependent-term branches, pending rows
-        self.counts = np.zeros(5, dtype=np.int64)
+        self.counts = np.zeros(len(COUNTERS), dtype=np.int64)
         self.pending = np.zeros((max(4096, 4 * mu + 8), self.nw), dtype=np.uint64)
         self.best = np.array([best])
         self.best_mask = np.asarray(best_mask, dtype=bool).copy()
         self.max_open = open_bytes // share // (8 + 16 * self.nw)
+        self.work = workspace(mu, rows, self.nw)
 
     @property
     def size(self) -> int:
-        return int(self.counts[0])
+        return int(self.counts[OPEN])
 
     @property
     def nodes(self) -> int:
-        return int(self.counts[1])
+        return int(self.counts[EXPANDED])
+
+    @property
+    def heap(self) -> Heap:
+        """The arrays as the compiled search takes them (rebuilt after a resize)."""
+        return Heap(self.bound, self.inside, self.free, self.counts, self.best,
+                    self.best_mask, self.pending)
 
     def push_root(self, mu: int) -> None:
         self.bound[0] = -np.inf
         self.free[0] = 0
         for j in range(mu):
             self.free[0, j // 64] |= np.uint64(1) << np.uint64(j % 64)
-        self.counts[0] = 1
+        self.counts[OPEN] = 1
 
     def open_bound(self) -> float:
         return float(self.bound[0]) if self.size else np.inf
 
-    def expand(self, args: tuple, near: float, pops: int, budget: int) -> int:
-        return expand(*args, self.bound, self.inside, self.free, self.counts, self.best,
-                      self.best_mask, self.pending, near, pops, budget, DEEP_FACTOR * budget)
+    def expand(self, data: Data, pops: int, budget: int) -> int:
+        return expand(data, self.heap, self.work, pops, budget, DEEP_FACTOR * budget)
 
     def settle(self, ev: StructureEvaluator, usable: np.ndarray) -> None:
         """Near rank-deficient candidates: the evaluator decides."""
-        if self.counts[4]:
-            _settle(ev, usable, self.pending[:self.counts[4]], self.best, self.best_mask)
-            self.counts[4] = 0
+        if self.counts[PENDING]:
+            _settle(ev, usable, self.pending[:self.counts[PENDING]], self.best, self.best_mask)
+            self.counts[PENDING] = 0
 
     def resize(self, cap: int) -> None:
         keep = self.size
@@ -316,7 +337,7 @@ def _balance(heaps: list[_OpenNodes]) -> None:
         h.bound[:len(pick)] = bound[pick]
         h.inside[:len(pick)] = inside[pick]
         h.free[:len(pick)] = free[pick]
-        h.counts[0] = len(pick)
+        h.counts[OPEN] = len(pick)
 
 
 _COMPILED = False
@@ -479,11 +500,11 @@ def certify(
                                   "search up)", warm_start=warm_value)
 
     budget = ENUMERATION_BUDGET if enumeration_budget is None else int(enumeration_budget)
-    heaps = [_OpenNodes(mu, best_value, best_full[usable], workers, open_bytes)
-             for _ in range(workers)]
+    heaps = [_OpenNodes(mu, r_aug.shape[0], best_value, best_full[usable], workers,
+                        open_bytes) for _ in range(workers)]
     heaps[0].push_root(mu)
-    args = (gram, r_aug, pen, float(n), ev.sse_scale, ev.sse_floor, ev.rank_tol, tolerance)
-    near = NEAR_RANK * ev.rank_tol
+    data = Data(gram, r_aug, pen, float(n), ev.sse_scale, ev.sse_floor, ev.rank_tol, tolerance,
+                NEAR_RANK * ev.rank_tol)
     status, reason = "optimal", None
     chunk, last_report = 64, t0
     pool = ThreadPoolExecutor(workers) if workers > 1 else None
@@ -494,11 +515,10 @@ def certify(
             started = time.perf_counter()
             busy = [h for h in heaps if h.size]
             if pool is None or len(busy) == 1:
-                results = [h.expand(args, near, pops, budget) for h in busy]
+                results = [h.expand(data, pops, budget) for h in busy]
             else:
-                results = list(pool.map(_OpenNodes.expand, busy, [args] * len(busy),
-                                        [near] * len(busy), [pops] * len(busy),
-                                        [budget] * len(busy)))
+                results = list(pool.map(_OpenNodes.expand, busy, [data] * len(busy),
+                                        [pops] * len(busy), [budget] * len(busy)))
             for h in busy:
                 h.settle(ev, usable)
             _share_best(heaps)

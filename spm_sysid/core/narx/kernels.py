@@ -22,7 +22,7 @@ import numpy as np
 
 from ..errors import MissingDependencyError
 
-__all__ = ["csne_step", "fit_structures", "jit", "jit_exact"]
+__all__ = ["cholesky_rows", "csne_step", "fit_structures", "jit", "jit_exact"]
 
 try:
     import numba
@@ -40,6 +40,40 @@ def jit(fn):
 def jit_exact(fn):
     """Compile ``fn`` keeping Python's order of operations (the same results)."""
     return numba.njit(cache=True, nogil=True)(fn)
+
+
+@jit
+def cholesky_rows(gram, cols, start, stop, L, piv, tol, halt):  # pragma: no cover - compiled
+    """Rows start..stop-1 of the up-looking Cholesky factor of gram[cols, cols].
+
+    Row j of L needs only rows 0..j-1, so a factor of a prefix extends row by
+    row. ``piv[j]`` receives row j's squared pivot. A squared pivot not above
+    ``tol`` (NaN included) leaves a zero diagonal (later rows then give that
+    column 0); the first such row is returned (-1: none), and with ``halt`` the
+    factorisation stops there. The evaluator's fits and the branch and bound's
+    nodes both factorise with this routine.
+    """
+    first = -1
+    for j in range(start, stop):
+        cj = cols[j]
+        for i in range(j):
+            acc = gram[cj, cols[i]]
+            for p in range(i):
+                acc -= L[j, p] * L[i, p]
+            L[j, i] = acc / L[i, i] if L[i, i] > 0.0 else 0.0
+        d = gram[cj, cj]
+        for p in range(j):
+            d -= L[j, p] * L[j, p]
+        piv[j] = d
+        if d > tol:
+            L[j, j] = np.sqrt(d)
+        else:
+            L[j, j] = 0.0
+            if first < 0:
+                first = j
+            if halt:
+                break
+    return first
 
 
 @jit
@@ -119,6 +153,7 @@ def fit_structures(gram, r_ext, idx, offsets, rank_tol, y_norm, n, refine_all,
     for b in range(len(offsets) - 1):
         kmax = max(kmax, offsets[b + 1] - offsets[b])
     L = np.zeros((kmax + 1, kmax + 1))
+    piv = np.zeros(kmax + 1)
     cols = np.empty(kmax + 1, dtype=np.int64)
     rows = r_ext.shape[0]
     r = np.empty(rows)
@@ -141,34 +176,22 @@ def fit_structures(gram, r_ext, idx, offsets, rank_tol, y_norm, n, refine_all,
         for j in range(k):
             cols[j] = idx[s + j]
         cols[k] = m
+        weak = cholesky_rows(gram, cols, same, k, L, piv, rank_tol, True)
+        last = k if weak < 0 else weak + 1
+        for j in range(last):  # the reused rows' pivots count too
+            if piv[j] < minpiv[b]:
+                minpiv[b] = piv[j]
+        if weak >= 0:  # a term reproduced by those before it (or NaN): rank-deficient
+            bad[b] = True
+            valid = weak
+            minpiv[b] = piv[weak] if piv[weak] == piv[weak] else -np.inf
+            continue
         valid = k
-        for j in range(same):  # the reused rows' pivots count too
-            if L[j, j] * L[j, j] < minpiv[b]:
-                minpiv[b] = L[j, j] * L[j, j]
-        # up-looking Cholesky: row j of L from rows 0..j-1, pivot j known at once
-        for j in range(same, k + 1):
-            cj = cols[j]
-            for i in range(j):
-                acc = gram[cj, cols[i]]
-                for p in range(i):
-                    acc -= L[j, p] * L[i, p]
-                L[j, i] = acc / L[i, i]
-            d = gram[cj, cj]
-            for p in range(j):
-                d -= L[j, p] * L[j, p]
-            if j < k and d < minpiv[b]:
-                minpiv[b] = d
-            if not d > rank_tol and j < k:  # also catches NaN
-                bad[b] = True
-                valid = j
-                minpiv[b] = d if d == d else -np.inf
-                break
-            if j == k and not d > 0.0:
-                if not d == d:  # NaN
-                    bad[b] = True
-                    break
-                d = 0.0  # an exact fit: the SSE is lost in rounding; refined below
-            L[j, j] = np.sqrt(d)
+        # the target's row: its pivot is sqrt(SSE); at or below 0 an exact fit whose
+        # SSE is lost in rounding (refined below), NaN a failure
+        cholesky_rows(gram, cols, k, k + 1, L, piv, 0.0, False)
+        if not piv[k] == piv[k]:
+            bad[b] = True
         if bad[b]:
             continue
         ssq = L[k, k] * L[k, k]
