@@ -58,7 +58,7 @@ setup(
     entry_points={
         "console_scripts": [
             "spm-sysid = spm_sysid.apps.main:main",
-            "sysid_node = spm_sysid.ros.sysid_node:main",
+            "sysid_node = spm_sysid.ros.entry:sysid_node",
             "bag_player = spm_sysid.ros.bag_player:main",
         ],
     },

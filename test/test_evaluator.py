@@ -75,6 +75,11 @@ def test_a_missing_or_broken_numba_is_one_clear_error(tmp_path):
     assert r.stderr.strip() == ("error: spm_sysid needs numba for its compiled kernels, and it "
                                 "cannot be imported (ImportError: broken build of llvmlite); "
                                 "install it with `pip install numba`")
+    # the node's executable (what `ros2 run spm_sysid sysid_node` starts) says the same
+    node = subprocess.run([sys.executable, "-m", "spm_sysid.ros.entry"], capture_output=True,
+                          text=True, cwd=ROOT, env=env, timeout=120)
+    assert node.returncode == 1 and "Traceback" not in node.stderr
+    assert node.stderr.startswith("error: spm_sysid needs numba")
 
 
 @pytest.mark.parametrize("criterion", ["aic", "bic", "pmic2"])

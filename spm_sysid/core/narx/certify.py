@@ -593,12 +593,13 @@ def certify_data(
     warm-start GA: the time limit counts from there (default: now).
     """
     from .problem import Problem
+    from .segments import normalise_segments
 
     ensure_compiled()  # the first use compiles; the time limit starts after
     started = time.perf_counter() if started is None else started
     n = len(np.asarray(y))
     lag = term_space.max_lag
-    segs = [(0, n)] if segments is None else [(a, b) for a, b in segments if b - a > lag]
+    segs = [(a, b) for a, b in normalise_segments(segments, n) if b - a > lag]
     check_certify_memory(max(sum(b - a - lag for a, b in segs), 0), term_space.n_terms)
     problem = Problem.from_signals(u, y, term_space, segments)
     crit = get_criterion(criterion)

@@ -19,6 +19,7 @@ import numpy as np
 
 from ..errors import ModelFormatError
 from ..files import atomic_write_text, read_bytes
+from .segments import normalise_segments
 from .simulation import CompiledModel, divergence_bounds, run_model
 from .terms import TermSpace
 
@@ -89,8 +90,8 @@ class NarxModel:
             raise ValueError(f"mask must have {term_space.n_terms} entries, got {mask.shape}")
         if not mask.any():
             raise ValueError("cannot fit a structure with no terms")
-        problem = Problem(term_space, u, y, [(0, len(y))] if segments is None else [
-            (a, b) for a, b in segments if b - a > term_space.max_lag])
+        problem = Problem(term_space, u, y, [(a, b) for a, b in normalise_segments(
+            segments, len(y)) if b - a > term_space.max_lag])
         return problem.model(mask, **info)
 
     # -- structure ----------------------------------------------------------------------
@@ -156,7 +157,7 @@ class NarxModel:
         lag0 = self.term_space.max_lag
         bounds = divergence_bounds(y)
         parts, first = [], None
-        for a, b in ([(0, len(y))] if segments is None else segments):
+        for a, b in normalise_segments(segments, len(y)):
             if b - a <= lag0:
                 continue
             yhat, at = run_model(self.compiled, self.coefficients, u[a:b], y[a:b], horizon,
@@ -171,8 +172,7 @@ class NarxModel:
         """The measured outputs of :meth:`predict`'s rows (every segment's, concatenated)."""
         y = np.asarray(y, dtype=float)
         lag0 = self.term_space.max_lag
-        segs = [(0, len(y))] if segments is None else segments
-        parts = [y[a + lag0:b] for a, b in segs if b - a > lag0]
+        parts = [y[a + lag0:b] for a, b in normalise_segments(segments, len(y)) if b - a > lag0]
         return np.concatenate(parts) if parts else np.empty(0)
 
     def residuals(self, u: np.ndarray, y: np.ndarray,

@@ -33,6 +33,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from .model import NarxModel
+from .segments import normalise_segments
 from .simulation import divergence_bounds, free_run_sensitivities
 
 __all__ = ["Refinement", "linear_radius", "refine_simulation"]
@@ -73,8 +74,7 @@ class Refinement:
 
 
 def _segments(y: np.ndarray, segments, lag0: int) -> list[tuple[int, int]]:
-    segs = [(0, len(y))] if segments is None else list(segments)
-    return [(a, b) for a, b in segs if b - a > lag0]
+    return [(a, b) for a, b in normalise_segments(segments, len(y)) if b - a > lag0]
 
 
 def refine_simulation(model: NarxModel, u: np.ndarray, y: np.ndarray,

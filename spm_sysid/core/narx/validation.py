@@ -15,6 +15,7 @@ import numpy as np
 from ..errors import DataError, SettingsError
 from .correlation import CorrelationTest, correlation_tests
 from .model import NarxModel
+from .segments import normalise_segments
 
 __all__ = ["ValidationReport", "check_correlation_lags", "describe_metrics", "metrics",
            "split_segments", "validate_model"]
@@ -204,9 +205,8 @@ def validate_model(
     lag0 = model.term_space.max_lag
     if len(y) != len(u):
         raise DataError(f"u and y differ in length: {len(u)} and {len(y)}")
-    if segments is not None:
-        segments = [(a, b) for a, b in segments if b - a > lag0]
-    rows = len(y) - lag0 if segments is None else sum(b - a - lag0 for a, b in segments)
+    segments = [(a, b) for a, b in normalise_segments(segments, len(y)) if b - a > lag0]
+    rows = sum(b - a - lag0 for a, b in segments)
     if rows < max(3, correlation_lags + 1):
         raise DataError(f"too few samples to validate: {rows} regression rows (need at "
                         f"least {max(3, correlation_lags + 1)})")
@@ -227,8 +227,7 @@ def validate_model(
         skipped = "the one-step residuals are not finite"
     else:
         # the correlation tests use the first input (several inputs: docs/method.md)
-        u_rows = u[lag0:, 0] if segments is None else np.concatenate(
-            [u[a + lag0:b, 0] for a, b in segments])
+        u_rows = np.concatenate([u[a + lag0:b, 0] for a, b in segments])
         tests = correlation_tests(residuals, u_rows, correlation_lags)
     return ValidationReport(
         measured=measured,
@@ -238,7 +237,7 @@ def validate_model(
         free_run_metrics=free_metrics,
         tests=tests,
         segment=segment,
-        n_samples=len(y) if segments is None else sum(b - a for a, b in segments),
+        n_samples=sum(b - a for a, b in segments),
         horizon=horizon if k_step is not None else None,
         k_step=k_step,
         k_step_metrics=k_metrics,
