@@ -26,8 +26,9 @@ identify: $(STAMP)
 	$(BIN)/spm-sysid identify --criterion aic --seed 1 --json out/model.json --plots out/figures
 
 test: $(STAMP)
-	# two workers (2 cores; most ROS tests wait on processes), one test file per worker
-	ROS_DOMAIN_ID=62 $(BIN)/python -m pytest -q -n 2 --dist loadfile test
+	# three workers on 2 cores (most ROS tests wait on processes); tests spread one by one,
+	# the files with an expensive module fixture (Dask cluster, colcon build) kept together
+	ROS_DOMAIN_ID=62 $(BIN)/python -m pytest -q -n 3 --dist loadgroup test
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

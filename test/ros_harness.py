@@ -23,9 +23,17 @@ from spm_sysid.ros.sysid_node import LATCHED
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def start_node(env, *params, params_file=None, log=None):
-    """Start sysid_node as its own process."""
+def start_node(env, *params, params_file=None, log=None, schema_defaults=False):
+    """Start sysid_node as its own process.
+
+    Diagnostics come every 0.2 s unless a test sets the period or asks for the
+    schema's defaults (the harness waits on them), so a test does not idle a
+    second per wait.
+    """
     args = [sys.executable, "-m", "spm_sysid.ros.sysid_node", "--ros-args"]
+    if (params_file is None and not schema_defaults
+            and not any(p.startswith("diagnostics_period:=") for p in params)):
+        params = ("diagnostics_period:=0.2", *params)
     for p in params:
         args += ["-p", p]
     if params_file:

@@ -10,6 +10,9 @@ import pytest
 from .conftest import ROOT
 from .ros_harness import Harness, stop
 
+#: one worker runs this file (its module fixture is expensive to make twice)
+pytestmark = pytest.mark.xdist_group("colcon")
+
 
 @pytest.fixture(scope="module")
 def workspace(tmp_path_factory):

@@ -106,8 +106,8 @@ def test_the_candidate_matrix_is_built_once_per_identification(robot_arm, monkey
     record = Record.from_samples(u, y, source="arm")
     for focus, extra in (("prediction", {"certify": True}), ("simulation", {})):
         calls.clear()
-        settings = JobSettings.from_values({"seed": 1, "generations": 40, "focus": focus,
-                                            "horizon": 5, **extra})
+        settings = JobSettings.from_values({"seed": 1, "generations": 20, "focus": focus,
+                                            "shortlist": 3, "horizon": 5, **extra})
         result = run_job(record, settings)
         assert result.report is not None and len(calls) == 1, (focus, calls)
 

@@ -45,7 +45,7 @@ def test_help_offers_every_command_line_setting_with_its_aliases():
 
 
 def test_node_declares_the_schema_parameters(ros_env):
-    node = start_node(ros_env)
+    node = start_node(ros_env, schema_defaults=True)
     h = Harness(ros_env)
     try:
         h.wait_ready()

@@ -36,8 +36,8 @@ from typing import Any
 
 __all__ = ["CONNECT_TIMEOUT", "TaskOutcome", "check_scheduler", "run_tasks"]
 
-#: Seconds to wait for a Dask scheduler's answer.
-CONNECT_TIMEOUT = 30.0
+#: Seconds to wait for a Dask scheduler's answer (``SPM_SYSID_DASK_CONNECT_TIMEOUT``).
+CONNECT_TIMEOUT = float(__import__("os").environ.get("SPM_SYSID_DASK_CONNECT_TIMEOUT", "30"))
 
 
 @dataclass
