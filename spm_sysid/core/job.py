@@ -41,7 +41,7 @@ from .progress import Progress, ProgressFn
 from .record import Record
 from .settings import JOB_GROUPS, check, defaults
 
-__all__ = ["JobResult", "JobSettings", "run_job", "warm_up"]
+__all__ = ["JobResult", "JobSettings", "describe_selection", "run_job", "warm_up"]
 
 
 def warm_up() -> None:
@@ -93,6 +93,8 @@ class JobSettings:
     gap_factor: float = 1.5
     focus: str = "prediction"
     shortlist: int = 20
+    selection: str = "auto"
+    max_terms: int = 0
     horizon: int = 0
     certify: bool = False
     certify_time_limit: float = 60.0
@@ -111,7 +113,7 @@ class JobSettings:
         v.update({k: values[k] for k in v if k in values and values[k] is not None})
         for name in ("criterion", "seed", "validation", "validation_split",
                      "correlation_lags", "sample_period", "gap_factor", "focus", "shortlist",
-                     "horizon", "certify", "certify_time_limit"):
+                     "selection", "max_terms", "horizon", "certify", "certify_time_limit"):
             v[name] = check(name, v[name])
         criterion = v["criterion"].lower()
         try:
@@ -131,6 +133,8 @@ class JobSettings:
             gap_factor=v["gap_factor"],
             focus=v["focus"],
             shortlist=v["shortlist"],
+            selection=v["selection"],
+            max_terms=v["max_terms"],
             horizon=v["horizon"],
             certify=v["certify"],
             certify_time_limit=v["certify_time_limit"],
@@ -193,16 +197,21 @@ class JobResult:
         """The one summary formatter.
 
         ``"line"``: one paragraph (the node's answer, logs). ``"lines"``: the
-        command line's block (equation, criterion, data, validation).
+        command line's block (equation, criterion, selection, coefficients with
+        their intervals, warnings, validation).
         """
         m, crit = self.model, self.model.criterion.upper()
         value = m.criterion_value
         if m.metadata.get("focus") == "simulation":
             crit += " (simulation)"
         cert = describe_certificate(m.metadata.get("certificate"))
+        warnings = m.metadata.get("warnings") or []
+        selected = describe_selection(m.metadata.get("selection"))
         if style == "line":
             text = (f"{m.equation()} | {crit} {value:.2f}, {len(m.term_indices)} terms, "
                     f"one-step MSE {m.mse:.4e}, {describe_data(self.data)}")
+            if selected:
+                text += f", {selected}"
             if cert:
                 text += f", {cert}"
             if self.report is not None:
@@ -217,6 +226,8 @@ class JobResult:
                                                  else "outside the band: " + ", ".join(failed)))
                 text += (f" ({r.segment} validation: one-step fit {o['fit_percent']:.1f} %, "
                          f"{free}, {tests})")
+            if warnings:
+                text += "; WARNING: " + "; WARNING: ".join(warnings)
             return text + f", {self.seconds.get('total', 0.0):.2f} s"
         lines = [m.equation(),
                  f"criterion {crit} = {value:.2f}, {len(m.term_indices)} terms, one-step MSE "
@@ -224,11 +235,31 @@ class JobResult:
                  f"{self.seconds.get('search', self.search.elapsed):.2f} s "
                  f"({self.search.evaluations} structures fitted, cache hit rate "
                  f"{self.search.cache_hit_rate:.0%})"]
+        if selected:
+            lines.append(selected)
         if cert:
             lines.append(cert)
+        lines.append(m.coefficient_table())
+        lines += [f"warning: {w}" for w in warnings]
         if self.report is not None:
             lines.append(self.report.summary())
         return "\n".join(lines)
+
+
+def describe_selection(doc: dict | None) -> str:
+    """How the structure was chosen, in a few words ('' when the document has nothing)."""
+    if not doc:
+        return ""
+    if doc.get("method") == "validated":
+        held = doc.get("held_out_mse")
+        text = (f"selected by its {doc['what']} error on {doc['folds']} held-out blocks "
+                + (f"(MSE {held:.4g})" if held is not None else ""))
+        removed = doc.get("removed_by_guard")
+        if removed:
+            text += (f"; the stability guard removed {removed} structure(s) whose simulation "
+                     "left the output's range off the estimation data")
+        return text
+    return f"selected by the criterion on the estimation data ({doc.get('note', '')})"
 
 
 def run_job(
@@ -295,7 +326,8 @@ def run_job(
     problem = Problem.from_signals(u, y, space, est)
     ident = identify_problem(problem, criterion=settings.criterion, ga=settings.ga,
                              seed=settings.seed, focus=settings.focus,
-                             shortlist=settings.shortlist,
+                             shortlist=settings.shortlist, selection=settings.selection,
+                             max_terms=settings.max_terms,
                              certify_time_limit=(settings.certify_time_limit if settings.certify
                                                  else None),
                              progress=throttled, started=t0)

@@ -128,8 +128,9 @@ _LIST = [
     _s("elitism", bool, True, "carry the best structure into the next generation", "ga",
        cli=False, node=False),
     # -- criterion and seed ----------------------------------------------------------------
-    _s("criterion", str, "aic", "information criterion: aic, bic, pmic2 (or a registered "
-       "name)", "criterion"),
+    _s("criterion", str, "aic", "information criterion: aic, aicc (small-sample AIC), bic, "
+       "pmic2 (or a registered name); with fewer than 10 rows per candidate term prefer bic "
+       "or aicc (aic's weak penalty admits far too many terms)", "criterion"),
     _s("seed", int, -1, "random seed; -1: a new random seed each run", "criterion", low=-1,
        high=2**31 - 1),
     # -- what the model is for -------------------------------------------------------------
@@ -137,8 +138,14 @@ _LIST = [
        "simulation (free-run error: refined coefficients, structure by the criterion on "
        "the simulation error; docs/method.md)", "criterion",
        choices=("prediction", "simulation")),
-    _s("shortlist", int, 20, "with focus simulation: the GA's best structures refined and "
-       "compared", "criterion", low=1, high=10_000),
+    _s("shortlist", int, 20, "the GA's best structures judged further (focus simulation, "
+       "validated selection)", "criterion", low=1, high=10_000),
+    _s("selection", str, "auto", "how the structure is chosen: criterion (on the estimation "
+       "data, the paper's), validated (by its error on held-out blocks; docs/method.md), or "
+       "auto (validated for focus simulation, and for prediction with fewer than 10 rows per "
+       "candidate term)", "criterion", choices=("auto", "criterion", "validated")),
+    _s("max_terms", int, 0, "largest number of terms a model may have (0: no limit)",
+       "criterion", low=0, high=100_000),
     _s("certify", bool, False, "after the GA, prove its result the best of all structures "
        "by branch and bound (aic, bic), or report the gap (docs/method.md)", "criterion"),
     _s("certify_time_limit", float, 60.0, "seconds the certification may take before it "

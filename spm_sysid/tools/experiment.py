@@ -217,7 +217,8 @@ def _one_run(task: tuple) -> RunRecord:
     job = config.job(criterion, population, spm)
     t0 = time.perf_counter()
     ident = identify_problem(problem, criterion=job.criterion, ga=job.ga, seed=seed,
-                             focus=job.focus, shortlist=job.shortlist,
+                             focus=job.focus, shortlist=job.shortlist, selection=job.selection,
+                             max_terms=job.max_terms, check_data=False,
                              certify_time_limit=job.certify_time_limit if job.certify else None)
     model = ident.model
     seconds = time.perf_counter() - t0

@@ -103,6 +103,7 @@ def plot_prediction(report: ValidationReport, stem: Path, kind: str = "one_step"
     err = report.measured - pred
     fig, (ax1, axz, ax2) = plt.subplots(3, 1, figsize=(8, 7),
                                         gridspec_kw={"height_ratios": [2, 1.5, 1]})
+    band = {"one_step": report.one_step_band, "free_run": report.free_run_band}.get(kind)
     ax1.plot(t, report.measured, color="k", lw=0.8, label="measured")
     ax1.plot(t, pred, color="tab:red", lw=0.7, ls="--", label=label)
     ax1.set_ylabel("output y")
@@ -111,6 +112,12 @@ def plot_prediction(report: ValidationReport, stem: Path, kind: str = "one_step"
     peak = int(np.nanargmax(np.abs(np.where(finite, err, np.nan)))) if finite.any() else 0
     a = int(np.clip(peak - ZOOM // 2, 0, max(len(t) - ZOOM, 0)))
     z = slice(a, a + ZOOM)
+    if band is not None:
+        text = f"{band.level:.0%} band (coefficient uncertainty)"
+        ax1.fill_between(t, band.lower, band.upper, color="tab:red", alpha=0.2, lw=0,
+                         label=text)
+        axz.fill_between(t[z], band.lower[z], band.upper[z], color="tab:red", alpha=0.2, lw=0,
+                         label=text)
     axz.plot(t[z], report.measured[z], color="k", lw=1.0, marker=".", ms=2.5, label="measured")
     axz.plot(t[z], pred[z], color="tab:red", lw=1.0, ls="--", label=label)
     axz.set_ylabel("output y")

@@ -66,7 +66,7 @@ __all__ = ["CERTIFIABLE", "Certificate", "certify", "certify_data", "check_certi
            "describe_certificate", "ensure_compiled", "penalty_per_size", "search_is_compiled"]
 
 #: Criteria whose penalty depends on the number of terms only (certifiable).
-CERTIFIABLE = ("aic", "bic")
+CERTIFIABLE = ("aic", "aicc", "bic")
 
 
 @dataclass
@@ -146,21 +146,31 @@ def describe_certificate(doc: dict | None) -> str:
     return text
 
 
-def penalty_per_size(criterion: Criterion, n: int, m: int) -> np.ndarray:
+def penalty_per_size(criterion: Criterion, n: int, m: int, max_terms: int = 0) -> np.ndarray:
     """``pen(k)`` for k = 0..m, or a ValueError when the criterion is not certifiable.
 
     The criterion must be ``n ln(SSE/n) + pen(k)`` (checked numerically) with
-    ``pen`` increasing.
+    ``pen`` increasing. Sizes the criterion rules out (AICc with no degrees of
+    freedom left) and sizes above ``max_terms`` (when > 0) get ``+inf``: no
+    structure of those sizes can be selected, nor certified.
     """
     if criterion.name not in CERTIFIABLE or criterion.needs_coefficients:
         raise ValueError(
             f"criterion {criterion.name} cannot be certified: its value depends on more "
             f"than the SSE and the number of terms (certifiable: {', '.join(CERTIFIABLE)})")
     k = np.arange(m + 1)
-    pen = criterion(np.full(m + 1, float(n)), n, k, None)
-    check = criterion(np.full(m + 1, float(n) * np.e), n, k, None)
-    if not np.allclose(check - pen, n) or np.any(np.diff(pen) <= 0):
+    with np.errstate(invalid="ignore"):
+        pen = criterion(np.full(m + 1, float(n)), n, k, None)
+        check = criterion(np.full(m + 1, float(n) * np.e), n, k, None)
+    finite = np.isfinite(pen)
+    usable = int(finite.sum())  # only the largest sizes may be ruled out
+    head = slice(0, usable)
+    if (usable == 0 or not finite[head].all() or not np.allclose(check[head] - pen[head], n)
+            or np.any(np.diff(pen[head]) <= 0)):
         raise ValueError(f"criterion {criterion.name} is not of the form N ln(SSE/N) + pen(k)")
+    if max_terms and max_terms < m:
+        pen = pen.copy()
+        pen[max_terms + 1:] = np.inf
     return pen
 
 
@@ -462,7 +472,7 @@ def certify(
     n, m = ev.n, ev.n_terms
     if ev.criterion.name != crit.name:
         raise ValueError(f"the evaluator scores {ev.criterion.name}, not {crit.name}")
-    pen = penalty_per_size(crit, n, m)
+    pen = penalty_per_size(crit, n, m, ev.max_terms)
     # the evaluator's unit-norm Gram matrix of [P y] and triangular factor (the same
     # least-squares problem in min(n, m + 1) rows), on the non-zero columns
     usable = np.flatnonzero(~ev.zero_columns)

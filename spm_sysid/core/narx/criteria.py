@@ -28,6 +28,7 @@ __all__ = [
     "CRITERIA",
     "Criterion",
     "aic",
+    "aicc",
     "bic",
     "get_criterion",
     "make_pmic2",
@@ -81,6 +82,16 @@ def _bic(sse, n, k, beta=None):
     return n * _log_mse(sse, n) + k * np.log(n)
 
 
+def _aicc(sse, n, k, beta=None):
+    # small-sample corrected AIC (Hurvich & Tsai): AIC + 2k(k+1)/(N-k-1); a structure
+    # with k >= N - 1 terms has no degrees of freedom left and scores +inf
+    k = np.asarray(k, dtype=float)
+    room = n - k - 1.0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        extra = np.where(room > 0, 2.0 * k * (k + 1.0) / np.where(room > 0, room, 1.0), np.inf)
+    return n * _log_mse(sse, n) + 2.0 * k + extra
+
+
 def make_pmic2(rho: float = 1.0) -> Criterion:
     """Build this project's reconstruction of PMIC2 with magnitude weight ``rho``.
 
@@ -124,10 +135,12 @@ def make_pmic2(rho: float = 1.0) -> Criterion:
 
 
 aic = Criterion("aic", _aic, description="Akaike: N ln(SSE/N) + 2k")
+aicc = Criterion("aicc", _aicc, description="Akaike corrected for small samples: "
+                 "N ln(SSE/N) + 2k + 2k(k+1)/(N-k-1)")
 bic = Criterion("bic", _bic, description="Bayesian: N ln(SSE/N) + k ln N")
 pmic2 = make_pmic2()
 
-CRITERIA: dict[str, Criterion] = {c.name: c for c in (aic, bic, pmic2)}
+CRITERIA: dict[str, Criterion] = {c.name: c for c in (aic, aicc, bic, pmic2)}
 
 
 def register_criterion(criterion: Criterion) -> None:

@@ -84,6 +84,8 @@ class StructureEvaluator:
     sse_scale : float
         Factor from the SSE of ``target`` to the SSE in the user's units (when
         the caller scaled the data).
+    max_terms : int
+        Structures of more terms score +inf (0: no limit).
 
     Attributes
     ----------
@@ -114,6 +116,7 @@ class StructureEvaluator:
         criterion: str | Criterion = "aic",
         rank_tol: float = DEFAULT_RANK_TOL,
         sse_scale: float = 1.0,
+        max_terms: int = 0,
     ) -> None:
         P = np.asarray(P, dtype=float)
         target = np.asarray(target, dtype=float)
@@ -123,6 +126,7 @@ class StructureEvaluator:
         self.sse_scale = float(sse_scale)
         self.n, self.n_terms = P.shape
         self.rank_tol = rank_tol
+        self.max_terms = int(max_terms)
         norms = np.linalg.norm(P, axis=0)
         self.zero_columns = norms == 0
         self.column_norms = np.where(norms > 0, norms, 1.0)
@@ -144,10 +148,16 @@ class StructureEvaluator:
         self.evaluations = 0
         self.lookups = 0
 
-    def with_criterion(self, criterion: str | Criterion) -> StructureEvaluator:
-        """An evaluator of another criterion on the same problem (the numbers shared)."""
+    def with_criterion(self, criterion: str | Criterion,
+                       max_terms: int | None = None) -> StructureEvaluator:
+        """An evaluator of another criterion (and size limit) on the same problem.
+
+        The numbers (Gram matrix, factor) are shared; the cache is new.
+        """
         other = copy.copy(self)
         other.criterion = get_criterion(criterion)
+        if max_terms is not None:
+            other.max_terms = int(max_terms)
         other._reset()
         return other
 
@@ -189,6 +199,22 @@ class StructureEvaluator:
         bits = np.unpackbits(packed.reshape(len(items), -1), axis=1, bitorder="little")
         return bits[:, :self.n_terms].astype(bool)
 
+    def best_per_size(self) -> np.ndarray:
+        """The best-scoring structure of every size scored so far, by size (masks)."""
+        best: dict[int, tuple[float, bytes]] = {}
+        for key, value in self._cache.items():
+            if not np.isfinite(value):
+                continue
+            size = int(np.unpackbits(np.frombuffer(key, dtype=np.uint8)).sum())
+            if size not in best or value < best[size][0]:
+                best[size] = (value, key)
+        if not best:
+            return np.zeros((0, self.n_terms), dtype=bool)
+        keys = [best[k][1] for k in sorted(best)]
+        packed = np.frombuffer(b"".join(keys), dtype=np.uint8)
+        bits = np.unpackbits(packed.reshape(len(keys), -1), axis=1, bitorder="little")
+        return bits[:, :self.n_terms].astype(bool)
+
     def cached_score(self, mask: np.ndarray) -> float:
         """Score of one structure (cached)."""
         return float(self.score(np.asarray(mask, dtype=bool)[None, :])[0])
@@ -224,7 +250,8 @@ class StructureEvaluator:
         sse = np.maximum(sse, self.sse_floor)  # exact fits: see lstsq.sse_floor
         with np.errstate(invalid="ignore", divide="ignore"):
             values = self.criterion(sse * self.sse_scale, self.n, k, beta)
-        return np.where(bad | (k == 0) | ~np.isfinite(values), np.inf, values)
+        too_big = (k > self.max_terms) if self.max_terms else False
+        return np.where(bad | (k == 0) | too_big | ~np.isfinite(values), np.inf, values)
 
     def fit_batch(self, masks: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
         """SSE, standardised coefficients and rank-deficiency flags for a batch.

@@ -26,12 +26,13 @@ from .criteria import Criterion, get_criterion
 from .ga import GAConfig, GAResult, GenerationStats, run_ga
 from .model import NarxModel
 from .problem import Problem, check_samples, validate_signals
-from .refine import refine_simulation
+from .refine import free_run_uncertainty, refine_simulation
 from .search import local_search
+from .selection import Scores, blocked_folds, candidate_structures, cv_scores, stress_check
 from .terms import TermSpace
 
-__all__ = ["FOCUS", "IdentificationResult", "check_samples", "identify", "identify_problem",
-           "select_for_simulation", "validate_signals"]
+__all__ = ["FOCUS", "SELECTION", "IdentificationResult", "check_samples", "identify",
+           "identify_problem", "select_for_simulation", "validate_signals"]
 
 #: What a model is selected and fitted for.
 FOCUS = ("prediction", "simulation")
@@ -63,6 +64,8 @@ def identify(
     focus: str = "prediction",
     shortlist: int = 20,
     certify_time_limit: float | None = None,
+    selection: str = "auto",
+    max_terms: int = 0,
     progress: ProgressFn | None = None,
 ) -> IdentificationResult:
     """Select a NARX structure with the SPM-GA and fit it.
@@ -104,6 +107,14 @@ def identify(
         ``model.metadata["certificate"]`` (``optimal``, or ``limit`` with the
         lower bound and gap, or ``refused`` with the reason). A better structure
         found on the way replaces the GA's.
+    selection : {"auto", "criterion", "validated"}
+        How the structure is chosen: by the criterion on the estimation data
+        (the paper's), or by its error on held-out blocks of the estimation
+        data (:mod:`spm_sysid.core.narx.selection`; the final model is fitted
+        on all of it). ``auto``: validated for the simulation focus, and for the
+        prediction focus when there are fewer than 10 rows per candidate term.
+    max_terms : int
+        Structures of more terms are not selected (0: no limit).
     progress : callable, optional
         Called with :class:`~spm_sysid.core.progress.Progress` records (search,
         certification, refinement).
@@ -122,7 +133,19 @@ def identify(
     problem = Problem.from_signals(u, y, term_space, segments)
     return identify_problem(problem, criterion=criterion, ga=ga, seed=seed, callback=callback,
                             focus=focus, shortlist=shortlist,
-                            certify_time_limit=certify_time_limit, progress=progress)
+                            certify_time_limit=certify_time_limit, selection=selection,
+                            max_terms=max_terms, progress=progress)
+
+
+#: How a structure is chosen (see :mod:`spm_sysid.core.narx.selection`).
+SELECTION = ("auto", "criterion", "validated")
+
+#: ``auto`` validates the prediction focus too when there are fewer rows than this many
+#: per usable candidate term (where an in-sample criterion can overfit badly).
+AUTO_ROWS_PER_TERM = 10
+
+#: A held-out error this many times the in-sample error is reported as overfitting.
+OVERFIT_RATIO = 3.0
 
 
 def identify_problem(
@@ -135,21 +158,35 @@ def identify_problem(
     focus: str = "prediction",
     shortlist: int = 20,
     certify_time_limit: float | None = None,
+    selection: str = "auto",
+    max_terms: int = 0,
+    check_data: bool = True,
     progress: ProgressFn | None = None,
     started: float | None = None,
 ) -> IdentificationResult:
     """:func:`identify` on a problem already built (see there for the parameters).
 
     ``started`` is ``time.perf_counter()`` at the job's start (progress reports
-    count their seconds from it; default: now).
+    count their seconds from it; default: now). ``check_data``: run the data
+    check (:mod:`spm_sysid.core.narx.excitation`) first; its warnings go into
+    ``model.metadata["warnings"]``.
     """
     crit = get_criterion(criterion)
     if focus not in FOCUS:
         raise ValueError(f"focus must be one of {', '.join(FOCUS)}, got {focus!r}")
+    if selection not in SELECTION:
+        raise ValueError(f"selection must be one of {', '.join(SELECTION)}, got {selection!r}")
     started = time.perf_counter() if started is None else started
     report = progress or (lambda p: None)
     ga = ga or GAConfig()
-    evaluator = problem.evaluator(crit)
+    warnings: list[str] = []
+    data_check = None
+    if check_data:
+        from .excitation import check_problem
+
+        data_check = check_problem(problem)
+        warnings += data_check.warnings
+    evaluator = problem.evaluator(crit, max_terms=max_terms)
 
     def on_generation(stats: GenerationStats):
         report(Progress("search", stats.generation, ga.generations, stats.best,
@@ -161,6 +198,7 @@ def identify_problem(
         raise DataError(
             "no structure could be fitted: every structure the search tried has linearly "
             "dependent regressors on this data (repeated or constant signals?)"
+            + (f", or more than max_terms = {max_terms} terms" if max_terms else "")
         )
     certificate = None
     if certify_time_limit is not None:
@@ -176,19 +214,323 @@ def identify_problem(
         "evaluations": result.evaluations,
         "search_seconds": round(result.elapsed, 4),
         "focus": focus,
+        **({"max_terms": max_terms} if max_terms else {}),
         **({"excluded_zero_terms": excluded["zero"]} if excluded["zero"] else {}),
         **({"excluded_duplicate_terms": excluded["duplicate"]} if excluded["duplicate"]
            else {}),
         **({"certificate": certificate} if certificate is not None else {}),
+        **({"data_check": data_check.to_dict()} if data_check is not None else {}),
     }
-    if focus == "simulation":
+    mode, note = _selection_mode(selection, focus, problem)
+    folds = blocked_folds(problem)
+    if mode == "validated" and not folds:
+        mode, note = "criterion", "the record is too short for held-out blocks"
+    simulate = focus == "simulation"
+    chosen = None
+    if mode == "validated":
+        model, chosen = _select_validated(problem, evaluator, folds, crit, shortlist,
+                                          max_terms, simulate, report, started)
+        model.metadata = {**info, **model.metadata}
+    elif simulate:
         candidates = problem.expand(evaluator.ranked(shortlist))
         model = select_for_simulation(problem, candidates, crit, metadata=info,
                                       progress=report, started=started)
     else:
         model = problem.model(result.best_mask, criterion=crit.name,
                               criterion_value=result.best_score, metadata=info)
+    model.metadata["selection"] = _generalisation(problem, folds, model, mode, note, simulate,
+                                                  chosen)
+    warnings += _overfit_warnings(problem, model)
+    if warnings:
+        model.metadata["warnings"] = warnings
     return IdentificationResult(model=model, ga=result, problem=problem)
+
+
+def _selection_mode(selection: str, focus: str, problem: Problem) -> tuple[str, str]:
+    """``criterion`` or ``validated``, and why (for the document)."""
+    if selection != "auto":
+        return selection, "as asked"
+    if focus == "simulation":
+        return "validated", "auto: the simulation focus is always validated"
+    per_term = problem.rows / max(int(problem.usable.sum()), 1)
+    if per_term < AUTO_ROWS_PER_TERM:
+        return "validated", (f"auto: {per_term:.1f} rows per candidate term (fewer than "
+                             f"{AUTO_ROWS_PER_TERM}): an in-sample criterion could overfit")
+    return "criterion", f"auto: {per_term:.1f} rows per candidate term"
+
+
+#: Structure sizes judged on held-out blocks after the in-sample screening (simulation),
+#: and structures of each size.
+FINALISTS = 8
+PER_SIZE = 2
+
+#: Levenberg-Marquardt evaluations of a fold's fit (from least squares on its rows).
+FOLD_STEPS = 100
+
+
+def _select_validated(problem, evaluator, folds, crit, shortlist, max_terms, simulate,
+                      report, started) -> tuple[NarxModel, dict]:
+    """Validated selection (see :mod:`spm_sysid.core.narx.selection`); model and record."""
+    from .orders import forward_selection_path
+
+    limit = min(60, max(1, problem.rows // AUTO_ROWS_PER_TERM))
+    degree = np.array([len(t) for t in problem.term_space.terms])[problem.usable]
+
+    def forward() -> np.ndarray:
+        # forward selection over all terms and, below the space's degree, over the terms
+        # of each lower degree: simpler models the GA may never visit
+        paths = [forward_selection_path(evaluator, max_terms=limit)]
+        for d in range(1, problem.term_space.degree):
+            lower = degree <= d
+            if lower.any():
+                paths.append(forward_selection_path(evaluator, max_terms=min(limit, int(
+                    lower.sum())), allowed=lower))
+        return np.concatenate([p for p in paths if len(p)]) if any(len(p) for p in paths) \
+            else np.zeros((0, evaluator.n_terms), dtype=bool)
+
+    candidates = candidate_structures(problem, evaluator, shortlist, forward=forward)
+    # structures of more than one term per AUTO_ROWS_PER_TERM rows are not judged: the
+    # warning threshold of an overfit (and max_terms, when smaller)
+    cap = min(limit, max_terms) if max_terms else limit
+    candidates = candidates[candidates.sum(axis=1) <= cap]
+    if not len(candidates):
+        raise DataError(f"no candidate structure of at most {cap} terms could be fitted")
+    if simulate:
+        return _validated_simulation(problem, candidates, folds, crit, max_terms, report,
+                                     started)
+    scores = cv_scores(problem, folds, candidates, simulate=False)
+    report(Progress("refinement", len(candidates), len(candidates),
+                    elapsed=time.perf_counter() - started))
+    i = scores.best()
+    if i is None:
+        raise DataError("no candidate structure could be fitted on the held-out folds")
+    mask = scores.masks[i]
+    model = problem.model(mask, criterion=crit.name,
+                          criterion_value=evaluator.cached_score(problem.restrict(mask)))
+    return model, {"held_out_mse": scores.mean[i], "held_out_stderr": scores.stderr[i],
+                   "candidates": len(candidates)}
+
+
+def _validated_simulation(problem, candidates, folds, crit, max_terms, report,
+                          started) -> tuple[NarxModel, dict]:
+    """Simulation focus, validated: screen in-sample, judge finalists on held-out blocks.
+
+    1. every candidate by the criterion of its free-run error after a short
+       refinement on all estimation data;
+    2. finalists: the best screened structure of each size, up to
+       :data:`FINALISTS` sizes spread over the range (the best overall always
+       among them) -- the held-out blocks decide how large a model the data
+       support; each fold fits least squares on its rows, refines on its
+       free-run error over its segments, and simulates the held-out block; a
+       run that leaves the measured range rejects the structure;
+    3. the chosen (fewest terms within one standard error of the best held-out
+       error) is refined to convergence on all data and must pass the guard
+       (:func:`~spm_sysid.core.narx.selection.stress_check`); otherwise the next.
+    """
+    u, y, segments = problem.u, problem.y, problem.segments
+    screened = _screen_in_sample(problem, candidates, crit, max_terms, report, started,
+                                 search=False)
+    finals = _finalists(screened, problem.term_space.n_terms)
+    if not finals:
+        raise DataError("every candidate structure's free-run simulation diverges on the "
+                        "estimation data (or cannot be fitted): no model simulates")
+    n = problem.term_space.n_terms
+    scores = Scores()
+    for _, key in finals:
+        mask = np.unpackbits(np.frombuffer(key, dtype=np.uint8))[:n].astype(bool)
+        values = [_fold_free_run(problem, fold, mask) for fold in folds]
+        scores.masks.append(mask)
+        if all(np.isfinite(values)):
+            scores.mean.append(float(np.mean(values)))
+            scores.stderr.append(float(np.std(values, ddof=1) / np.sqrt(len(values))))
+        else:
+            scores.mean.append(np.inf)
+            scores.stderr.append(np.inf)
+            scores.rejected += 1
+        report(Progress("refinement", len(scores.masks), len(finals),
+                        elapsed=time.perf_counter() - started))
+    removed, reasons = scores.rejected, []
+    for i in scores.order():
+        mask = scores.masks[i]
+        model = screened[np.packbits(mask).tobytes()][1]
+        start = model.coefficients
+        final = refine_simulation(model, u, y, segments)
+        if final.success and np.isfinite(final.sse):
+            model.coefficients = final.coefficients
+        reason = stress_check(model, u, y, segments)
+        if reason and final.success:
+            model.coefficients = start
+            reason = stress_check(model, u, y, segments)
+        if reason:
+            removed += 1
+            reasons.append(reason)
+            continue
+        e = model.measured(y, segments) - model.run(u, y, None, segments)[0]
+        sse = float(e @ e)
+        one_step = model.residuals(u, y, segments)
+        model.mse = float(one_step @ one_step) / len(one_step)
+        model.criterion = crit.name
+        model.criterion_value = _simulation_value(crit, sse, problem.rows, mask,
+                                                  model.coefficients, problem)
+        model.n_samples = problem.n_samples
+        model.uncertainty = free_run_uncertainty(model, u, y, segments)
+        model.metadata = {"simulation": {
+            "refinement": final.message, "free_run_sse": sse,
+            "least_squares_free_run_sse": final.sse_start,
+            "criterion_meaning": f"{crit.name.upper()} of the free-run simulation error "
+                                 "(SSE of the simulated output) on the estimation data"}}
+        return model, {"held_out_mse": scores.mean[i], "held_out_stderr": scores.stderr[i],
+                       "candidates": len(candidates), "screened": len(screened),
+                       "finalists": len(finals), "removed_by_guard": removed,
+                       **({"guard_reasons": reasons} if reasons else {})}
+    raise DataError(f"every finalist structure's simulation leaves the output's range off the "
+                    f"estimation data ({removed} removed by the guard"
+                    + (f": {reasons[0]}" if reasons else "") + ")")
+
+
+def _finalists(screened: dict, n_terms: int) -> list[tuple[float, bytes]]:
+    """The best screened structures of each size (:data:`PER_SIZE`), sizes spread.
+
+    At most :data:`FINALISTS` sizes, spread on a log scale (small models are
+    cheap to overlook and often what the data support), the best overall among
+    them.
+    """
+    by_size: dict[int, list[tuple[float, bytes]]] = {}
+    for key, (value, _) in screened.items():
+        if np.isfinite(value):
+            size = int(np.unpackbits(np.frombuffer(key, dtype=np.uint8))[:n_terms].sum())
+            by_size.setdefault(size, []).append((value, key))
+    if not by_size:
+        return []
+    sizes = sorted(by_size)
+    if len(sizes) > FINALISTS:
+        best_size = min(sizes, key=lambda k: min(by_size[k])[0])
+        targets = np.geomspace(sizes[0], sizes[-1], FINALISTS - 1)
+        spread = {min(sizes, key=lambda k: abs(np.log(k) - np.log(t))) for t in targets}
+        sizes = sorted(spread | {best_size})
+    return sorted(item for k in sizes for item in sorted(by_size[k])[:PER_SIZE])
+
+
+def _screen_in_sample(problem, candidates, crit, max_terms, report, started,
+                      search: bool = True) -> dict:
+    """Structure key -> (criterion of the free-run error after a short refinement, model).
+
+    The candidates, then (with ``search``) a local search (one term removed or
+    added) around the best.
+    """
+    u, y, segments = problem.u, problem.y, problem.segments
+    scored: dict[bytes, tuple[float, NarxModel | None]] = {}
+    current: list[NarxModel | None] = [None]
+
+    def one(mask: np.ndarray) -> float:
+        key = np.packbits(mask).tobytes()
+        if key in scored:
+            return scored[key][0]
+        value, model = np.inf, None
+        if mask.any() and not (mask & ~problem.usable).any() and not (
+                max_terms and mask.sum() > max_terms):
+            try:
+                model = problem.model(mask)
+            except ValueError:  # linearly dependent on this data
+                model = None
+        if model is not None:
+            start = current[0]
+            if start is not None:  # warm start: the neighbour's refined coefficients
+                theta = dict(zip(start.term_indices, start.coefficients))
+                ls = model.coefficients
+                model.coefficients = np.array([theta.get(i, 0.0) for i in model.term_indices])
+                ref = refine_simulation(model, u, y, segments, max_evaluations=SEARCH_STEPS)
+                if not ref.success:
+                    model.coefficients = ls
+                    ref = refine_simulation(model, u, y, segments, max_evaluations=SEARCH_STEPS)
+            else:
+                ref = refine_simulation(model, u, y, segments, max_evaluations=SEARCH_STEPS)
+            if ref.success and np.isfinite(ref.sse):
+                model.coefficients = ref.coefficients
+                value = _simulation_value(crit, ref.sse, problem.rows, mask, ref.coefficients,
+                                          problem)
+            else:
+                model = None
+        scored[key] = (value, model)
+        report(Progress("refinement", len(scored), 0,
+                        min(v for v, _ in scored.values()),
+                        elapsed=time.perf_counter() - started))
+        return value
+
+    for mask in candidates:
+        one(mask)
+    best = min(scored, key=lambda k: scored[k][0])
+    if search and np.isfinite(scored[best][0]):
+        n = problem.term_space.n_terms
+        start = np.unpackbits(np.frombuffer(best, dtype=np.uint8))[:n].astype(bool)
+        current[0] = scored[best][1]
+        pool = problem.usable.copy() if n <= 100 else candidates.any(axis=0)
+
+        def moved(mask: np.ndarray, value: float) -> None:
+            current[0] = scored[np.packbits(mask).tobytes()][1]
+
+        local_search(lambda masks: np.array([one(m) for m in masks]), start, pool,
+                     moves=("remove", "add"), start_value=scored[best][0], max_steps=10,
+                     on_step=moved)
+    return scored
+
+
+def _fold_free_run(problem, fold, mask: np.ndarray) -> float:
+    """Held-out free-run MSE of the structure fitted and refined on the fold (inf: diverged)."""
+    u, y = problem.u, problem.y
+    try:
+        fit = problem.fit(mask, rows=fold.train)
+    except ValueError:
+        return np.nan
+    model = problem.model(mask, fit)
+    ref = refine_simulation(model, u, y, fold.train_segments, max_evaluations=FOLD_STEPS)
+    if ref.success and np.isfinite(ref.sse):
+        model.coefficients = ref.coefficients
+    yhat, at = model.run(u, y, None, fold.held_out)
+    if at is not None:
+        return np.inf
+    e = model.measured(y, fold.held_out) - yhat
+    return float(np.mean(e * e))
+
+
+def _generalisation(problem, folds, model, mode, note, simulate, chosen) -> dict:
+    """How the structure was chosen and how it does on held-out data (the document's)."""
+    what = "free-run" if simulate else "one-step"
+    out = {"method": mode, "note": note, "what": what, "folds": len(folds)}
+    if chosen is None and folds:
+        sc = cv_scores(problem, folds, [model.mask], simulate)
+        chosen = {"held_out_mse": sc.mean[0], "held_out_stderr": sc.stderr[0]}
+    if chosen:
+        out.update({k: (None if isinstance(v, float) and not np.isfinite(v) else v)
+                    for k, v in chosen.items()})
+    if simulate:
+        sse = (model.metadata.get("simulation") or {}).get("free_run_sse")
+        in_sample = None if sse is None else sse / problem.rows
+    else:
+        in_sample = model.mse
+    out["in_sample_mse"] = in_sample
+    held = out.get("held_out_mse")
+    out["ratio"] = (held / in_sample if held is not None and in_sample else None)
+    return out
+
+
+def _overfit_warnings(problem, model) -> list[str]:
+    """Warnings when the model may fit noise: its size, its held-out error."""
+    out = []
+    k, rows = len(model.term_indices), problem.rows
+    if k > rows / 10:
+        out.append(f"{k} terms from {rows} rows (more than one term per 10 rows): the model "
+                   "may fit noise; prefer BIC or AICc, max_terms, fewer lags, or "
+                   "selection: validated")
+    sel = model.metadata.get("selection") or {}
+    ratio = sel.get("ratio")
+    if ratio is not None and ratio > OVERFIT_RATIO:
+        out.append(f"its {sel['what']} error on held-out blocks is {ratio:.1f} times its error "
+                   "on the data it was fitted on: it describes the estimation data much "
+                   "better than other data (overfit?)")
+    elif sel.get("folds") and sel.get("held_out_mse") is None:
+        out.append(f"its {sel['what']} simulation diverges on a held-out block of the data")
+    return out
 
 
 def select_for_simulation(
@@ -293,6 +635,7 @@ def select_for_simulation(
     model.mse = float(one_step @ one_step) / len(one_step)
     model.criterion, model.criterion_value = criterion.name, value
     model.n_samples = problem.n_samples
+    model.uncertainty = free_run_uncertainty(model, u, y, segments)
     model.metadata = {**(metadata or {}), "simulation": {
         **model.metadata, "candidates": len(candidates), "refinements": refinements,
         "local_search_steps": found.steps,

@@ -22,13 +22,15 @@ from ..files import atomic_write_text, read_bytes
 from .segments import normalise_segments
 from .simulation import CompiledModel, divergence_bounds, run_model
 from .terms import TermSpace
+from .uncertainty import Uncertainty
 
 __all__ = ["MODEL_SCHEMA", "MODEL_SCHEMA_VERSION", "NarxModel"]
 
 MODEL_SCHEMA = "spm_sysid/narx-model"
-MODEL_SCHEMA_VERSION = 2
-#: Versions this code reads (1: one input named u, no "inputs" in the term space).
-READABLE_VERSIONS = (1, 2)
+MODEL_SCHEMA_VERSION = 3
+#: Versions this code reads (1: one input named u, no "inputs" in the term space;
+#: 2: no coefficient uncertainty).
+READABLE_VERSIONS = (1, 2, 3)
 
 
 @dataclass
@@ -52,6 +54,9 @@ class NarxModel:
         Samples in the estimation data (regression rows = n_samples - max_lag).
     metadata : dict
         Free-form, JSON-serialisable extras (GA settings, seed, validation ...).
+    uncertainty : Uncertainty or None
+        The coefficients' covariance and how it was obtained
+        (:mod:`spm_sysid.core.narx.uncertainty`); None when unknown.
     """
 
     term_space: TermSpace
@@ -62,6 +67,7 @@ class NarxModel:
     mse: float | None = None
     n_samples: int | None = None
     metadata: dict = field(default_factory=dict)
+    uncertainty: Uncertainty | None = None
 
     # -- construction -------------------------------------------------------------------
     @classmethod
@@ -94,6 +100,11 @@ class NarxModel:
             segments, len(y)) if b - a > term_space.max_lag])
         return problem.model(mask, **info)
 
+    def with_coefficients(self, coefficients: np.ndarray) -> NarxModel:
+        """The same structure with other coefficients (no uncertainty, no metadata)."""
+        return NarxModel(self.term_space, list(self.term_indices),
+                         np.asarray(coefficients, dtype=float))
+
     # -- structure ----------------------------------------------------------------------
     @property
     def mask(self) -> np.ndarray:
@@ -121,6 +132,34 @@ class NarxModel:
             else:
                 parts.append(f" {sign} {num}{term}")
         return f"{self.term_space.output}(t) = " + ("".join(parts) if parts else "0")
+
+    def coefficient_table(self, level: float = 0.95) -> str:
+        """The terms with coefficient, standard error and interval, one line each.
+
+        ``*`` marks a term whose interval spans zero (its presence is not supported
+        by the data).
+        """
+        terms = self.terms
+        width = max([len(t) for t in terms] + [4])
+        head = f"  {'term':<{width}}  {'coefficient':>12}"
+        if self.uncertainty is None:
+            rows = [head] + [f"  {t:<{width}}  {c:>12.5g}" for t, c in
+                             zip(terms, self.coefficients)]
+            return "\n".join(rows + ["  (no coefficient uncertainty for this model)"])
+        se = self.uncertainty.standard_errors
+        iv = self.uncertainty.intervals(self.coefficients, level)
+        zero = self.uncertainty.spans_zero(self.coefficients, level)
+        rows = [head + f"  {'std. error':>11}  {f'{level:.0%} interval':>25}"]
+        for t, c, s_, (a, b), z in zip(terms, self.coefficients, se, iv, zero):
+            rows.append(f"  {t:<{width}}  {c:>12.5g}  {s_:>11.3g}  [{a:>11.4g}, {b:>11.4g}]"
+                        + ("  *" if z else ""))
+        if zero.any():
+            rows.append(f"  * interval spans zero ({int(zero.sum())} term(s)); "
+                        f"{self.uncertainty.method}, {self.uncertainty.dof} degrees of freedom")
+        else:
+            rows.append(f"  {self.uncertainty.method}, {self.uncertainty.dof} degrees of "
+                        "freedom")
+        return "\n".join(rows)
 
     # -- prediction -------------------------------------------------------------------
     @cached_property
@@ -231,6 +270,8 @@ class NarxModel:
             },
             "mse": _json_float(self.mse),
             "n_samples": self.n_samples,
+            "uncertainty": None if self.uncertainty is None else self.uncertainty.to_dict(
+                self.coefficients),
             "metadata": self.metadata,
         }
 
@@ -309,6 +350,12 @@ class NarxModel:
         metadata = doc.get("metadata") or {}
         if not isinstance(metadata, dict):
             raise ModelFormatError("'metadata' must be an object")
+        uncertainty = None
+        if version >= 3 and doc.get("uncertainty") is not None:
+            try:
+                uncertainty = Uncertainty.from_dict(doc["uncertainty"], len(coefs))
+            except (KeyError, TypeError, ValueError, OverflowError) as exc:
+                raise ModelFormatError(f"'uncertainty' is invalid: {exc}") from None
         return cls(
             term_space=space,
             term_indices=[int(i) for i in indices],
@@ -318,6 +365,7 @@ class NarxModel:
             mse=doc.get("mse"),
             n_samples=doc.get("n_samples"),
             metadata=metadata,
+            uncertainty=uncertainty,
         )
 
     def to_json(self) -> str:

@@ -31,7 +31,7 @@ from .problem import Problem
 from .search import local_search
 from .terms import TermSpace
 
-__all__ = ["OrderProposal", "forward_selection", "propose_orders"]
+__all__ = ["OrderProposal", "forward_selection", "forward_selection_path", "propose_orders"]
 
 
 def forward_selection(evaluator, max_terms: int = 60, patience: int = 3,
@@ -59,6 +59,24 @@ def forward_selection(evaluator, max_terms: int = 60, patience: int = 3,
     res = local_search(evaluator.score, empty, ~evaluator.zero_columns, moves=("add",),
                        patience=patience, max_steps=max_terms, deadline=deadline, min_steps=1)
     return res.value, res.mask
+
+
+def forward_selection_path(evaluator, max_terms: int = 60,
+                           allowed: np.ndarray | None = None) -> np.ndarray:
+    """Every structure forward selection passes through, smallest first (masks).
+
+    The greedy additions of :func:`forward_selection`, without stopping at the
+    criterion's minimum: one structure of each size up to ``max_terms`` (the
+    small sizes a validated selection should judge too). ``allowed`` restricts
+    the terms it may add (e.g. to the linear ones).
+    """
+    path: list[np.ndarray] = []
+    empty = np.zeros(evaluator.n_terms, dtype=bool)
+    ok = ~evaluator.zero_columns if allowed is None else (allowed & ~evaluator.zero_columns)
+    local_search(evaluator.score, empty, ok, moves=("add",),
+                 patience=max_terms + 1, max_steps=max_terms,
+                 on_step=lambda mask, value: path.append(mask.copy()))
+    return np.array(path, dtype=bool).reshape(len(path), evaluator.n_terms)
 
 
 @dataclass

@@ -245,6 +245,8 @@ class Problem:
         See :func:`excluded_columns`.
     usable : ndarray of bool, shape (n_terms,)
         Columns the search may use (neither zero nor a repeat).
+    row_times : ndarray of int, shape (rows,)
+        The sample index t of each regression row.
     """
 
     def __init__(self, term_space: TermSpace, u: np.ndarray, y: np.ndarray,
@@ -257,6 +259,8 @@ class Problem:
         self.y_scale = power_of_two_scale(self.y)
         self.columns, self.target = term_space.regression(self.u / self.u_scale,
                                                           self.y / self.y_scale, self.segments)
+        lag = term_space.max_lag
+        self.row_times = np.concatenate([np.arange(a + lag, b) for a, b in self.segments])
         self.zero, self.duplicate_of = excluded_columns(self.columns)
         self.usable = ~self.zero & (self.duplicate_of < 0)
         self._factors = term_space.coefficient_factors(self.u_scale, self.y_scale)
@@ -336,13 +340,14 @@ class Problem:
                               for i in np.flatnonzero(self.duplicate_of >= 0)}}
 
     # -- the search's view: the usable columns --------------------------------------------
-    def evaluator(self, criterion: str | Criterion = "aic", rank_tol: float = DEFAULT_RANK_TOL):
+    def evaluator(self, criterion: str | Criterion = "aic", rank_tol: float = DEFAULT_RANK_TOL,
+                  max_terms: int = 0):
         """A new :class:`StructureEvaluator` over the usable columns (masks of that length).
 
         Its Gram matrix and triangular factor are computed once per problem and
         shared by every evaluator; each evaluator has its own cache, so every
         search on the problem starts afresh (a study's runs in one process are
-        independent of one another).
+        independent of one another). ``max_terms`` > 0: larger structures score +inf.
         """
         from .evaluator import StructureEvaluator
 
@@ -352,7 +357,7 @@ class Problem:
             base = StructureEvaluator(self.columns[:, self.usable], self.target, crit,
                                       rank_tol=rank_tol, sse_scale=self.sse_scale)
             self._evaluators[rank_tol] = base
-        return base.with_criterion(crit)
+        return base.with_criterion(crit, max_terms)
 
     def expand(self, masks: np.ndarray) -> np.ndarray:
         """Masks over the usable columns -> masks over the whole term space."""
@@ -376,8 +381,12 @@ class Problem:
         return masks[..., self.usable]
 
     # -- one structure ------------------------------------------------------------------
-    def fit(self, mask: np.ndarray, rank_tol: float = DEFAULT_RANK_TOL) -> StructureFit:
+    def fit(self, mask: np.ndarray, rank_tol: float = DEFAULT_RANK_TOL,
+            rows: np.ndarray | None = None) -> StructureFit:
         """Least-squares fit (Householder QR) of the structure ``mask`` (whole term space).
+
+        ``rows`` (bool over the problem's rows) fits on those rows only (a fold of
+        validated selection); the residuals are then those rows'.
 
         Raises
         ------
@@ -390,14 +399,15 @@ class Problem:
             raise ValueError(f"mask must have {ts.n_terms} entries, got {mask.shape}")
         if not mask.any():
             raise ValueError("cannot fit a structure with no terms")
-        res = reference_fit(self.columns, self.target, mask, rank_tol)
+        columns, target = ((self.columns, self.target) if rows is None
+                           else (self.columns[rows], self.target[rows]))
+        res = reference_fit(columns, target, mask, rank_tol)
         if res.rank_deficient:
             names = [ts.term_names()[i] for i in np.flatnonzero(mask)]
             raise ValueError(f"the regressors {names} are linearly dependent on this data")
         factors = self._factors[mask]
         coefficients = res.coefficients * factors
-        cols = self.columns[:, mask]
-        residuals = (self.target - cols @ res.coefficients) * self.y_scale
+        residuals = (target - columns[:, mask] @ res.coefficients) * self.y_scale
         return StructureFit(mask=mask.copy(), coefficients=coefficients,
                             sse=res.sse * self.sse_scale, residuals=residuals,
                             r_factor=res.r_factor,
@@ -410,9 +420,13 @@ class Problem:
         are further model fields (``criterion``, ``criterion_value``, ``metadata``).
         """
         from .model import NarxModel
+        from .uncertainty import from_least_squares
 
         fit = self.fit(mask) if fit is None else fit
+        rows = len(fit.residuals)  # all the problem's rows, or a fold's
         return NarxModel(term_space=self.term_space,
                          term_indices=[int(i) for i in np.flatnonzero(fit.mask)],
-                         coefficients=fit.coefficients, mse=fit.sse / self.rows,
-                         n_samples=self.n_samples, **info)
+                         coefficients=fit.coefficients, mse=fit.sse / rows,
+                         n_samples=self.n_samples,
+                         uncertainty=from_least_squares(fit.r_factor, fit.column_norms,
+                                                        fit.sse, rows), **info)

@@ -36,7 +36,7 @@ from .model import NarxModel
 from .segments import normalise_segments
 from .simulation import divergence_bounds, free_run_sensitivities
 
-__all__ = ["Refinement", "linear_radius", "refine_simulation"]
+__all__ = ["Refinement", "free_run_uncertainty", "linear_radius", "refine_simulation"]
 
 
 def linear_radius(term_space, term_indices, theta) -> float:
@@ -75,6 +75,34 @@ class Refinement:
 
 def _segments(y: np.ndarray, segments, lag0: int) -> list[tuple[int, int]]:
     return [(a, b) for a, b in normalise_segments(segments, len(y)) if b - a > lag0]
+
+
+def free_run_uncertainty(model: NarxModel, u: np.ndarray, y: np.ndarray,
+                         segments: list[tuple[int, int]] | None = None):
+    """The coefficients' covariance for the free-run problem (Gauss-Newton), or None.
+
+    None when the simulation diverges on u, y (there is no local quadratic
+    model of the error there). See :mod:`spm_sysid.core.narx.uncertainty`.
+    """
+    from .uncertainty import from_jacobian
+
+    ts = model.term_space
+    u = ts.inputs_2d(u)
+    y = np.asarray(y, dtype=float)
+    bounds = divergence_bounds(y)
+    jacs, sse = [], 0.0
+    for a, b in _segments(y, segments, ts.max_lag):
+        yhat, jac, at = free_run_sensitivities(model.compiled, model.coefficients, u[a:b],
+                                               y[a:b], bounds)
+        if at is not None:
+            return None
+        e = y[a + ts.max_lag:b] - yhat
+        sse += float(e @ e)
+        jacs.append(jac)
+    J = np.vstack(jacs)
+    if J.shape[0] <= J.shape[1] or not np.all(np.isfinite(J)):
+        return None
+    return from_jacobian(J, sse)
 
 
 def refine_simulation(model: NarxModel, u: np.ndarray, y: np.ndarray,

@@ -16,6 +16,7 @@ from ..errors import DataError, SettingsError
 from .correlation import CorrelationTest, correlation_tests
 from .model import NarxModel
 from .segments import normalise_segments
+from .uncertainty import Band, output_band
 
 __all__ = ["ValidationReport", "check_correlation_lags", "describe_metrics", "metrics",
            "split_segments", "validate_model"]
@@ -82,6 +83,8 @@ class ValidationReport:
     k_step: np.ndarray | None = None
     k_step_metrics: dict | None = None
     tests_skipped: str | None = None
+    one_step_band: Band | None = None
+    free_run_band: Band | None = None
 
     @property
     def residuals(self) -> np.ndarray:
@@ -117,6 +120,11 @@ class ValidationReport:
             out["k_step"] = {"horizon": self.horizon, **_finite(self.k_step_metrics)}
         if self.tests_skipped:
             out["correlation_tests_skipped"] = self.tests_skipped
+        for key, band in (("one_step_band", self.one_step_band),
+                          ("free_run_band", self.free_run_band)):
+            if band is not None:
+                out[key] = _finite({"level": band.level, "mean_width": band.mean_width,
+                                    "draws": band.draws, "diverged_fraction": band.diverged})
         return out
 
     def summary(self) -> str:
@@ -126,6 +134,12 @@ class ValidationReport:
         if self.k_step_metrics is not None:
             lines.append(describe_metrics(f"{self.horizon}-step", self.k_step_metrics))
         lines.append(describe_metrics("free-run", self.free_run_metrics))
+        for label, band in (("one-step", self.one_step_band), ("free-run", self.free_run_band)):
+            if band is not None:
+                lines.append(f"  {label} {band.level:.0%} band from the coefficients' "
+                             f"uncertainty: mean width {band.mean_width:.4g}"
+                             + (f"; {band.diverged:.0%} of {band.draws} draws diverged"
+                                if band.diverged else ""))
         if self.tests_skipped:
             lines.append(f"  correlation tests: not computed ({self.tests_skipped})")
             return "\n".join(lines)
@@ -174,7 +188,7 @@ def check_correlation_lags(lags: int, rows: int) -> None:
 def validate_model(
     model: NarxModel, u: np.ndarray, y: np.ndarray, *, correlation_lags: int = 20,
     segment: str = "estimation", segments: list[tuple[int, int]] | None = None,
-    horizon: int | None = None,
+    horizon: int | None = None, bands: bool = True,
 ) -> ValidationReport:
     """Validate ``model`` on u, y (one-step, free-run, correlation tests).
 
@@ -196,6 +210,9 @@ def validate_model(
         all segments, concatenated.
     horizon : int, optional
         Also report k-step-ahead prediction for this k (> 1).
+    bands : bool
+        With a model that carries coefficient uncertainty, 95 % bands of its
+        one-step and free-run outputs (:func:`~spm_sysid.core.narx.uncertainty.output_band`).
     """
     try:
         u = model.term_space.inputs_2d(u)
@@ -229,7 +246,13 @@ def validate_model(
         # the correlation tests use the first input (several inputs: docs/method.md)
         u_rows = np.concatenate([u[a + lag0:b, 0] for a, b in segments])
         tests = correlation_tests(residuals, u_rows, correlation_lags)
+    one_band = free_band = None
+    if bands and model.uncertainty is not None:
+        one_band = output_band(model, u, y, horizon=1, segments=segments)
+        free_band = output_band(model, u, y, horizon=None, segments=segments)
     return ValidationReport(
+        one_step_band=one_band,
+        free_run_band=free_band,
         measured=measured,
         one_step=one_step,
         free_run=free_run,

@@ -128,6 +128,12 @@ def diagnostic_statuses(name: str, stats: dict, *, field_errors: int = 0,
              "free_run_fit_percent": free.get("fit_percent"), "diverged_at": diverged,
              "certificate": cert.get("status", "none"), "certificate_gap": cert.get("gap"),
              **{f"data_{k}": v for k, v in data.items()}})))
+        warnings = meta.get("warnings") or []
+        if warnings:
+            statuses.append(Status(WARN, f"{name}: warnings",
+                                   f"{len(warnings)} warning(s): {warnings[0]}",
+                                   _values({f"warning_{i + 1}": w
+                                            for i, w in enumerate(warnings)})))
         if validation.get("correlation_tests_skipped"):
             statuses.append(Status(WARN, f"{name}: correlation tests",
                                    "not computed: " + validation["correlation_tests_skipped"]))

@@ -6,6 +6,7 @@ command                   what it does                                        mo
 ``identify``              select and fit a model on data (the main job)       ``models``
 ``certify``               prove the best structure of the space, or the gap   ``models``
 ``validate``              validate a saved model on data                      ``models``
+``check-data``            can the data identify the space? (excitation ...)   ``models``
 ``propose-lags``          propose lags and degree from the data               ``models``
 ``experiment``            the paper's study: SPM vs plain GA                  ``studies``
 ``batch``                 one model per input, here or on a Dask cluster      ``studies``

@@ -55,8 +55,13 @@ def cmd_identify(args) -> int:
         raise UserError(as_option(exc)) from None
     finally:
         bars.close()
+    from ...core.narx.excitation import describe_check
+
     model = result.model
     print(f"data: {record.source}, {result.estimation_samples} samples used for estimation")
+    check = describe_check(model.metadata.get("data_check"))
+    if check:
+        print(check)
     for note in data_notes(result.data, model.metadata):
         print(f"note: {note}")
     print(result.summary("lines"))
@@ -215,6 +220,29 @@ def cmd_validate(args) -> int:
     return 0
 
 
+# -- check-data -------------------------------------------------------------------------------
+
+
+def cmd_check_data(args) -> int:
+    from ...core.narx.excitation import check_problem
+    from ...core.narx.problem import Problem
+
+    settings = job_settings(args)
+    record = load(args)
+    settings = settings.for_signals(record.input_names, record.output_name)
+    space = settings.term_space
+    segments = usable_segments(record, space.max_lag)
+    problem = Problem.from_signals(record.u, record.y, space, segments)
+    print(f"data: {record.source}, {len(record)} samples in {len(segments)} segment(s); "
+          f"term space ny={space.ny}, nu={space.nu}, degree={space.degree}, "
+          f"delay={space.delay}{', constant' if space.constant else ''}")
+    check = check_problem(problem)  # a hopeless space is refused (DataError: one line)
+    print("\n".join(check.lines()))
+    if not check.warnings:
+        print("no warning: the data can identify this space")
+    return 0
+
+
 # -- propose-lags ----------------------------------------------------------------------------
 
 
@@ -286,6 +314,12 @@ def add_parsers(sub) -> None:
     p.add_argument("--horizon", type=schema_type("horizon"), default=0, metavar="K",
                    help="also report K-step-ahead prediction (0: only one-step and free-run)")
     p.set_defaults(func=cmd_validate)
+
+    p = sub.add_parser("check-data", help="can these data identify this space? excitation, "
+                       "conditioning, terms that cannot be identified")
+    add_data_options(p)
+    add_schema_options(p, ("term_space",))
+    p.set_defaults(func=cmd_check_data)
 
     p = sub.add_parser("propose-lags", help="propose lags and degree from the data")
     add_data_options(p, bag=True)

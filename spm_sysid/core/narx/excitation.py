@@ -1,0 +1,212 @@
+"""Can these data identify this space? A check before any search.
+
+For a :class:`~spm_sysid.core.narx.problem.Problem` it reports:
+
+* **persistent excitation** of each input: the largest order n for which n
+  lagged copies of the input are linearly independent on the data (smallest
+  over largest eigenvalue of their Gram matrix above :data:`PE_TOL`). An input
+  persistently exciting of order p can tell apart at most p of its own lags: a
+  constant input has order 1, a sine order 2, white noise every order tried;
+* the **candidate matrix**: its size against the rows (``rows per candidate``),
+  its condition number (columns scaled to unit norm), and the candidate terms
+  it cannot identify -- zero on every row, repeating an earlier column, or
+  nearly a combination of others (a pivoted QR of the problem's triangular
+  factor: a squared relative pivot below the evaluator's rank tolerance; spaces
+  of at most :data:`COLLINEAR_LIMIT` usable terms);
+* a **refusal** when nothing can be identified (no candidate term varies), and
+  **warnings** otherwise: too few rows per candidate, an input too simple for
+  its lags, terms that cannot be identified, an ill-conditioned matrix, a
+  constant output.
+
+``spm-sysid check-data`` prints the report; ``identify`` prints its warnings
+first; the node's answer, ``/diagnostics`` and the model document carry them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import linalg
+
+from ..errors import DataError
+
+__all__ = ["COLLINEAR_LIMIT", "DataCheck", "check_problem", "describe_check",
+           "excitation_order"]
+
+#: Relative eigenvalue below which an autocorrelation matrix is singular.
+PE_TOL = 1e-8
+
+#: Rows per candidate term below which the search may select too many terms.
+ROWS_PER_TERM = 10
+
+#: Condition number of the unit-norm candidate matrix above which a warning is given.
+CONDITION_WARN = 1e8
+
+#: Spaces with more usable candidates than this skip the collinearity scan (its
+#: pivoted QR costs O(M^3)).
+COLLINEAR_LIMIT = 600
+
+
+def excitation_order(u: np.ndarray, segments, max_order: int) -> int:
+    """Order of persistent excitation of one input (up to ``max_order``).
+
+    The largest n for which the n lagged copies of the input, ``u(t-1) ..
+    u(t-n)`` over the rows every segment has for n lags, are linearly
+    independent to within :data:`PE_TOL` (smallest over largest eigenvalue of
+    their Gram matrix). 0 for a zero input.
+    """
+    max_order = max(int(max_order), 1)
+    gram = np.zeros((max_order, max_order))
+    for a, b in segments:
+        x = np.asarray(u[a:b], dtype=float)
+        if len(x) <= max_order:
+            continue
+        lagged = np.column_stack([x[max_order - j:len(x) - j] for j in range(1, max_order + 1)])
+        gram += lagged.T @ lagged
+    if not np.trace(gram) > 0:
+        return 0
+    order = 0
+    for n in range(1, max_order + 1):
+        w = np.linalg.eigvalsh(gram[:n, :n])
+        if w[-1] <= 0 or w[0] / w[-1] <= PE_TOL:
+            break
+        order = n
+    return order
+
+
+@dataclass
+class DataCheck:
+    """The report of :func:`check_problem` (see the module doc)."""
+
+    rows: int
+    candidates: int
+    usable: int
+    excitation: dict[str, int]
+    lags: dict[str, int]
+    tried_order: int
+    condition: float | None
+    zero_terms: list[str] = field(default_factory=list)
+    repeated_terms: dict[str, str] = field(default_factory=dict)
+    collinear_terms: list[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+    refusal: str | None = None
+
+    @property
+    def rows_per_candidate(self) -> float:
+        return self.rows / max(self.usable, 1)
+
+    def lines(self) -> list[str]:
+        """The report for people (``spm-sysid check-data``)."""
+        out = [f"rows: {self.rows}; candidate terms: {self.candidates} ({self.usable} usable); "
+               f"{self.rows_per_candidate:.1f} rows per usable candidate"]
+        for name, order in self.excitation.items():
+            shown = f">= {order}" if order >= self.tried_order else str(order)
+            out.append(f"input {name}: persistently exciting of order {shown} "
+                       f"({self.lags[name]} lag(s) in the space)")
+        if self.condition is not None:
+            out.append(f"condition number of the candidate matrix (unit-norm columns): "
+                       f"{self.condition:.3g}")
+        if self.zero_terms:
+            out.append(f"zero on every row: {', '.join(self.zero_terms)}")
+        if self.repeated_terms:
+            out.append("repeating an earlier term: " + ", ".join(
+                f"{a} (= {b})" for a, b in self.repeated_terms.items()))
+        if self.collinear_terms:
+            out.append(f"nearly a combination of others: {', '.join(self.collinear_terms)}")
+        out += [f"warning: {w}" for w in self.warnings]
+        if self.refusal:
+            out.append(f"refused: {self.refusal}")
+        return out
+
+    def to_dict(self) -> dict:
+        """Plain data for the model document (``metadata.data_check``)."""
+        return {"rows": self.rows, "candidates": self.candidates, "usable": self.usable,
+                "rows_per_candidate": round(self.rows_per_candidate, 3),
+                "excitation_order": dict(self.excitation), "lags": dict(self.lags),
+                "condition": self.condition, "collinear_terms": list(self.collinear_terms),
+                "warnings": list(self.warnings)}
+
+
+def describe_check(doc: dict | None) -> str:
+    """One line of a model document's ``metadata.data_check`` ('' when none)."""
+    if not doc:
+        return ""
+    text = (f"data check: {doc['rows']} rows, {doc['usable']} of {doc['candidates']} candidate "
+            f"terms usable ({doc['rows_per_candidate']:.1f} rows per term)")
+    for name, order in doc.get("excitation_order", {}).items():
+        text += (f"; input {name} persistently exciting of order {order}"
+                 f" ({doc['lags'][name]} lags)")
+    if doc.get("condition") is not None:
+        text += f"; condition number {doc['condition']:.2g}"
+    return text
+
+
+def check_problem(problem, rank_tol: float = 1e-9) -> DataCheck:
+    """Check what the problem's data can identify (see the module doc).
+
+    Raises
+    ------
+    DataError
+        When nothing can be identified (the refusal's reason).
+    """
+    ts = problem.term_space
+    names = ts.term_names()
+    excluded = problem.excluded_terms()
+    usable = int(problem.usable.sum())
+    tried = max(ts.nus) + 2
+    excitation = {name: excitation_order(problem.u[:, i], problem.segments, tried)
+                  for i, name in enumerate(ts.inputs)}
+    lags = dict(zip(ts.inputs, ts.nus))
+    check = DataCheck(rows=problem.rows, candidates=ts.n_terms, usable=usable,
+                      excitation=excitation, lags=lags, tried_order=tried, condition=None,
+                      zero_terms=excluded["zero"], repeated_terms=excluded["duplicate"])
+    if usable == 0:
+        check.refusal = ("no candidate term varies on this data (every one is zero or "
+                         "repeats another): there is nothing to identify")
+        raise DataError(check.refusal)
+    if usable <= COLLINEAR_LIMIT:
+        ev = problem.evaluator()
+        R = linalg.qr(ev.factor[:, :usable], mode="r", pivoting=True)
+        r_mat, piv = R[0], R[1]
+        diag = np.abs(np.diag(r_mat))
+        if diag.size and diag[0] > 0:
+            check.condition = float(diag[0] / max(diag[-1], np.finfo(float).tiny))
+        usable_names = [names[i] for i in np.flatnonzero(problem.usable)]
+        weak = [usable_names[piv[j]] for j in range(len(diag)) if diag[j] ** 2 < rank_tol]
+        check.collinear_terms = sorted(weak, key=usable_names.index)
+    _warn(check, problem)
+    return check
+
+
+def _warn(check: DataCheck, problem) -> None:
+    ts = problem.term_space
+    w = check.warnings
+    if check.rows_per_candidate < ROWS_PER_TERM:
+        w.append(f"{check.rows} rows for {check.usable} candidate terms (fewer than "
+                 f"{ROWS_PER_TERM} per candidate): a criterion with a weak penalty (AIC) may "
+                 "select far too many terms; prefer BIC or AICc, max_terms, or fewer lags")
+    for name, order in check.excitation.items():
+        need = check.lags[name]
+        if order == 0 and need:
+            w.append(f"input {name} is zero: its terms cannot be identified")
+        elif order < need:
+            kind = "constant" if order == 1 else f"persistently exciting of order {order} only"
+            w.append(f"input {name} is {kind}: of its {need} lags only {order} can be told "
+                     "apart, the terms of the others cannot be identified")
+    if check.repeated_terms:
+        terms = list(check.repeated_terms)
+        w.append(f"{len(terms)} term(s) repeat others on this data and were left out "
+                 f"({', '.join(terms[:6])}{', ...' if len(terms) > 6 else ''})")
+    if check.collinear_terms:
+        terms = check.collinear_terms
+        w.append(f"{len(terms)} term(s) are nearly combinations of others and cannot be "
+                 f"identified together with them ({', '.join(terms[:6])}"
+                 f"{', ...' if len(terms) > 6 else ''})")
+    if check.condition is not None and check.condition > CONDITION_WARN:
+        w.append(f"the candidate matrix is ill-conditioned (condition number "
+                 f"{check.condition:.2g}): coefficients of correlated terms are poorly "
+                 "determined (see their intervals)")
+    y = problem.y
+    if np.ptp(y) == 0:
+        w.append(f"the output {ts.output} is constant")

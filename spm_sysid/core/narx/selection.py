@@ -1,0 +1,260 @@
+"""Choosing a structure by how well it predicts or simulates data it was not fitted on.
+
+An in-sample criterion (AIC, BIC, ...) judges a structure on the rows it was
+fitted to. *Validated selection* judges it on rows held out:
+
+1. **Blocked folds.** The estimation samples (all segments, in order) are cut
+   into K contiguous blocks (:data:`FOLDS`, fewer for short records). Fold i
+   fits on the rows whose whole regression window lies outside block i and is
+   judged on block i, simulated from the block's own first samples (time
+   series are not shuffled: neighbouring samples are not independent).
+2. **Candidates.** The GA's best structures by the criterion (the
+   short-list), the best structure of every size the search scored (a ladder
+   of sizes, so a smaller structure can win when the criterion overfits), and
+   the path of forward selection (small structures the GA may never visit).
+3. **Score.** The mean over folds of the held-out MSE of the one-step
+   prediction (focus prediction) or of the free-run simulation (focus
+   simulation; a run that leaves the measured range anywhere rejects the
+   structure). Among the structures within one standard error (over folds)
+   of the best, the one with the fewest terms is chosen.
+4. **Guard** (focus simulation). The chosen structure's model -- fitted on all
+   data, refined on its free-run error -- must stay in range off the
+   estimation data: on every held-out block, and driven by the record's input
+   shifted by half its length and reversed in time (inputs within the
+   measured range, in orders the estimation never saw). A model that leaves
+   the output's range widened by :data:`STRESS_FACTOR` spans is removed and
+   the next candidate tried; the answer counts the structures removed.
+
+The final model is always fitted on all estimation data.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .lstsq import reference_fit
+from .simulation import divergence_bounds, run_model
+
+__all__ = ["FOLDS", "Fold", "Scores", "blocked_folds", "candidate_structures", "cv_scores",
+           "stress_check"]
+
+#: Folds of validated selection.
+FOLDS = 3
+
+#: Held-out rows a block must have to be judged on.
+MIN_BLOCK_ROWS = 20
+
+#: Structures within this many standard errors of the best held-out error count as
+#: equally good; the one with the fewest terms among them is chosen.
+ONE_SE = 1.0
+
+#: A stressed simulation may leave the measured output's range by this many spans.
+STRESS_FACTOR = 2.0
+
+
+@dataclass(frozen=True)
+class Fold:
+    """One fold: what to fit on and the held-out segments to judge on.
+
+    ``train`` marks the problem's rows whose regression window misses the held-out
+    block; ``train_segments`` are the same data as sample ranges (the segments
+    with the block cut out), for fits on the free-run error.
+    """
+
+    train: np.ndarray                      # bool over the problem's rows
+    held_out: list[tuple[int, int]]        # sample ranges [start, stop), simulated from start
+    train_segments: list[tuple[int, int]]  # the rest of the segments
+
+
+def blocked_folds(problem, k: int = FOLDS) -> list[Fold]:
+    """K contiguous held-out blocks over the problem's segments (fewer if the data are short).
+
+    Returns an empty list when not even two blocks of :data:`MIN_BLOCK_ROWS`
+    held-out rows fit.
+    """
+    lag = problem.term_space.max_lag
+    positions = np.concatenate([np.arange(a, b) for a, b in problem.segments])
+    while k >= 2:
+        edges = np.linspace(0, len(positions), k + 1).round().astype(int)
+        folds = []
+        for i in range(k):
+            block = positions[edges[i]:edges[i + 1]]
+            held = _runs(block, problem.segments)
+            rows = sum(max(b - a - lag, 0) for a, b in held)
+            if rows < MIN_BLOCK_ROWS:
+                break
+            t = problem.row_times
+            outside = np.ones(len(t), dtype=bool)
+            for a, b in held:  # the row's window [t - lag, t] must miss the block
+                outside &= (t < a) | (t - lag >= b)
+            rest = _complement(problem.segments, held, lag)
+            folds.append(Fold(outside, [(a, b) for a, b in held if b - a > lag], rest))
+        if len(folds) == k and all(f.train.sum() > 0 for f in folds):
+            return folds
+        k -= 1
+    return []
+
+
+def _complement(segments, held, lag: int) -> list[tuple[int, int]]:
+    """The parts of the segments outside the held-out ranges (longer than the lag)."""
+    out = []
+    for a, b in segments:
+        cuts = sorted((max(c, a), min(d, b)) for c, d in held if c < b and d > a)
+        start = a
+        for c, d in cuts:
+            if c - start > lag:
+                out.append((start, c))
+            start = max(start, d)
+        if b - start > lag:
+            out.append((start, b))
+    return out
+
+
+def _runs(block: np.ndarray, segments) -> list[tuple[int, int]]:
+    """The sample ranges of a block, split where the segments split it."""
+    out = []
+    for a, b in segments:
+        inside = block[(block >= a) & (block < b)]
+        if inside.size:
+            out.append((int(inside[0]), int(inside[-1]) + 1))
+    return out
+
+
+@dataclass
+class Scores:
+    """Validated scores of structures: mean held-out MSE and its standard error."""
+
+    masks: list[np.ndarray] = field(default_factory=list)
+    mean: list[float] = field(default_factory=list)
+    stderr: list[float] = field(default_factory=list)
+    rejected: int = 0  # structures whose held-out simulation left the range
+
+    def best(self) -> int | None:
+        """Index of the chosen structure: fewest terms within one SE of the lowest mean."""
+        finite = [i for i, v in enumerate(self.mean) if np.isfinite(v)]
+        if not finite:
+            return None
+        low = min(finite, key=lambda i: self.mean[i])
+        limit = self.mean[low] + ONE_SE * self.stderr[low]
+        near = [i for i in finite if self.mean[i] <= limit]
+        return min(near, key=lambda i: (int(self.masks[i].sum()), self.mean[i]))
+
+    def order(self) -> list[int]:
+        """Indices by the selection rule: the chosen first, then by mean."""
+        first = self.best()
+        rest = sorted((i for i, v in enumerate(self.mean) if np.isfinite(v) and i != first),
+                      key=lambda i: self.mean[i])
+        return ([first] if first is not None else []) + rest
+
+
+def cv_scores(problem, folds: list[Fold], masks, simulate: bool) -> Scores:
+    """Validated scores of structures (masks over the whole term space)."""
+    out = Scores()
+    for mask in masks:
+        values = [_fold_mse(problem, f, mask, simulate) for f in folds]
+        out.masks.append(np.asarray(mask, dtype=bool))
+        if not all(np.isfinite(values)):
+            out.mean.append(np.inf)
+            out.stderr.append(np.inf)
+            out.rejected += bool(simulate and any(v == np.inf for v in values))
+            continue
+        out.mean.append(float(np.mean(values)))
+        out.stderr.append(float(np.std(values, ddof=1) / np.sqrt(len(values)))
+                          if len(values) > 1 else 0.0)
+    return out
+
+
+def _fold_mse(problem, fold: Fold, mask: np.ndarray, simulate: bool) -> float:
+    """Held-out MSE of the structure fitted on the fold's training rows (inf: unusable)."""
+    mask = np.asarray(mask, dtype=bool)
+    train = fold.train
+    if not mask.any() or (mask & ~problem.usable).any() or train.sum() <= mask.sum():
+        return np.nan
+    fit = reference_fit(problem.columns[train], problem.target[train], mask)
+    if fit.rank_deficient:
+        return np.nan
+    theta = fit.coefficients  # on the scaled problem
+    ts = problem.term_space
+    lag = ts.max_lag
+    if not simulate:
+        held = np.zeros(len(train), dtype=bool)
+        t = problem.row_times
+        for a, b in fold.held_out:
+            held |= (t >= a + lag) & (t < b)
+        e = problem.target[held] - problem.columns[held][:, mask] @ theta
+        return float(np.mean(e * e)) * problem.sse_scale
+    model = _scaled_model(problem, mask, theta)
+    u = problem.u / problem.u_scale
+    y = problem.y / problem.y_scale
+    bounds = divergence_bounds(y)
+    sse, rows = 0.0, 0
+    for a, b in fold.held_out:
+        yhat, at = run_model(model.compiled, theta, u[a:b], y[a:b], None, bounds)
+        if at is not None:
+            return np.inf
+        e = y[a + lag:b] - yhat
+        sse += float(e @ e)
+        rows += len(e)
+    return sse / rows * problem.sse_scale
+
+
+def _scaled_model(problem, mask, theta):
+    from .model import NarxModel
+
+    return NarxModel(problem.term_space, [int(i) for i in np.flatnonzero(mask)], theta)
+
+
+def stress_check(model, u: np.ndarray, y: np.ndarray, segments) -> str | None:
+    """Why the model's simulation is not bounded off the estimation data, or None.
+
+    Its free run on every segment, and driven by each segment's input shifted
+    by half its length and reversed in time (from the segment's own initial
+    outputs), must stay inside the measured output's range widened by
+    :data:`STRESS_FACTOR` spans.
+    """
+    y = np.asarray(y, dtype=float)
+    lo, hi = float(np.min(y)), float(np.max(y))
+    span = max(hi - lo, 1e-300)
+    bounds = (lo - STRESS_FACTOR * span, hi + STRESS_FACTOR * span)
+    u2 = model.term_space.inputs_2d(u)
+    lag = model.term_space.max_lag
+    for a, b in segments:
+        if b - a <= lag:
+            continue
+        seg_u, seg_y = u2[a:b], y[a:b]
+        for label, uu in (("the estimation input", seg_u),
+                          ("the input shifted by half its length", np.roll(seg_u, (b - a) // 2,
+                                                                           axis=0)),
+                          ("the input reversed in time", seg_u[::-1])):
+            yy = seg_y.copy()
+            yy[lag:] = 0.0  # only the initial conditions are measured
+            yhat, at = run_model(model.compiled, model.coefficients, uu, yy, None, bounds)
+            if at is not None or not np.all(np.isfinite(yhat)):
+                return f"its simulation driven by {label} left the output's range"
+    return None
+
+
+def candidate_structures(problem, evaluator, shortlist: int, forward: Callable | None = None,
+                         max_candidates: int = 60) -> np.ndarray:
+    """Masks (whole term space) to judge: the short-list, a ladder of sizes, forward path.
+
+    ``forward`` returns forward selection's path (masks over the usable columns).
+    """
+    sets = [evaluator.ranked(shortlist)]
+    each = max(2, (max_candidates - shortlist) // 2)
+    for ladder in (evaluator.best_per_size(), forward() if forward is not None else None):
+        if ladder is None or not len(ladder):
+            continue
+        if len(ladder) > each:  # sizes spread over the whole range
+            pick = np.unique(np.linspace(0, len(ladder) - 1, each).round()).astype(int)
+            ladder = ladder[pick]
+        sets.append(ladder)
+    masks = np.concatenate([s for s in sets if len(s)]) if any(len(s) for s in sets) \
+        else np.zeros((0, evaluator.n_terms), dtype=bool)
+    if not len(masks):
+        return np.zeros((0, problem.term_space.n_terms), dtype=bool)
+    masks = np.unique(masks, axis=0)
+    return problem.expand(masks)

@@ -1,0 +1,178 @@
+"""How well each coefficient is determined, and what that means for the model's output.
+
+Least squares (focus prediction): with residual variance
+``sigma^2 = SSE / (N - k)``, the coefficients' covariance is
+``sigma^2 (A^T A)^-1`` for the selected columns A. It is computed from the
+QR factor of A's unit-norm columns on the scaled problem (``A / norms = Q R``,
+so ``(A^T A)^-1 = D^-1 R^-1 R^-T D^-1`` with ``D = diag(norms)``), which keeps
+it accurate when the columns are nearly collinear, and mapped to the user's
+units with the columns' norms in those units.
+
+Simulation focus: the coefficients minimise the free-run error, so the
+covariance is the Gauss-Newton one of that problem, ``sigma^2 (J^T J)^-1`` with
+J the free-run sensitivities (the Levenberg-Marquardt Jacobian) at the solution
+and ``sigma^2`` from the free-run SSE. Free-run errors are correlated in time,
+so these intervals are an approximation (too narrow when the errors are
+strongly coloured); the document says which method gave them.
+
+Intervals use Student's t with ``N - k`` degrees of freedom. Output bands
+(:func:`output_band`) propagate the covariance to predictions and
+simulations by Monte Carlo over the coefficients' normal distribution: the
+band of each sample is the central ``level`` interval of the outputs of the
+draws (draws whose simulation diverged are counted, not used).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import linalg, stats
+
+__all__ = ["Band", "Uncertainty", "from_jacobian", "from_least_squares", "output_band"]
+
+#: Confidence level of the intervals written into model documents.
+LEVEL = 0.95
+
+
+@dataclass(frozen=True)
+class Uncertainty:
+    """The covariance of a model's coefficients and how it was obtained.
+
+    Attributes
+    ----------
+    covariance : ndarray, shape (k, k)
+        In the user's units, coefficient order.
+    dof : int
+        Degrees of freedom of the residual variance, N - k.
+    sigma2 : float
+        Residual variance (one-step for least squares, free-run for the
+        simulation focus).
+    method : str
+        ``least squares`` or ``free-run Jacobian``.
+    """
+
+    covariance: np.ndarray
+    dof: int
+    sigma2: float
+    method: str
+
+    @property
+    def standard_errors(self) -> np.ndarray:
+        """One per coefficient."""
+        return np.sqrt(np.maximum(np.diag(self.covariance), 0.0))
+
+    def intervals(self, coefficients: np.ndarray, level: float = LEVEL) -> np.ndarray:
+        """Confidence intervals, shape (k, 2): coefficient -/+ t * standard error."""
+        t = float(stats.t.ppf(0.5 + level / 2.0, max(self.dof, 1)))
+        half = t * self.standard_errors
+        c = np.asarray(coefficients, dtype=float)
+        return np.column_stack([c - half, c + half])
+
+    def spans_zero(self, coefficients: np.ndarray, level: float = LEVEL) -> np.ndarray:
+        """Terms whose interval contains 0 (not distinguishable from no term)."""
+        iv = self.intervals(coefficients, level)
+        return (iv[:, 0] <= 0.0) & (iv[:, 1] >= 0.0)
+
+    def to_dict(self, coefficients: np.ndarray, level: float = LEVEL) -> dict:
+        """The document's ``uncertainty`` object (numbers as JSON floats)."""
+        iv = self.intervals(coefficients, level)
+        return {"method": self.method, "dof": int(self.dof), "sigma2": float(self.sigma2),
+                "level": level, "standard_errors": [float(v) for v in self.standard_errors],
+                "intervals": [[float(a), float(b)] for a, b in iv],
+                "covariance": [[float(v) for v in row] for row in self.covariance]}
+
+    @classmethod
+    def from_dict(cls, doc: dict, k: int) -> Uncertainty:
+        """Read the document's ``uncertainty`` object (checked; ValueError if malformed)."""
+        cov = np.asarray(doc["covariance"], dtype=float)
+        if cov.shape != (k, k) or not np.all(np.isfinite(cov)):
+            raise ValueError(f"uncertainty.covariance must be a finite {k} x {k} matrix")
+        dof = doc["dof"]
+        if not isinstance(dof, int) or isinstance(dof, bool) or dof < 0:
+            raise ValueError("uncertainty.dof must be an integer >= 0")
+        return cls(cov, dof, float(doc["sigma2"]), str(doc["method"]))
+
+
+def from_least_squares(r_factor: np.ndarray, column_norms: np.ndarray, sse: float,
+                       rows: int) -> Uncertainty:
+    """The covariance of a least-squares fit from its QR factor (see the module doc).
+
+    ``r_factor`` is R of the selected columns scaled to unit norm, ``column_norms``
+    those columns' norms in the user's units, ``sse`` the SSE in the user's units.
+    """
+    k = r_factor.shape[0]
+    dof = rows - k
+    sigma2 = sse / dof if dof > 0 else float("nan")
+    rinv = linalg.solve_triangular(r_factor, np.eye(k))  # R^-1
+    scaled = rinv / np.asarray(column_norms, dtype=float)[:, None]  # D^-1 R^-1
+    return Uncertainty(sigma2 * scaled @ scaled.T, dof, sigma2, "least squares")
+
+
+def from_jacobian(jacobian: np.ndarray, sse: float) -> Uncertainty:
+    """Gauss-Newton covariance ``sigma^2 (J^T J)^-1`` of a nonlinear least-squares fit.
+
+    ``jacobian`` (rows, k) is d(prediction)/d(coefficient) at the solution.
+    """
+    rows, k = jacobian.shape
+    dof = rows - k
+    sigma2 = sse / dof if dof > 0 else float("nan")
+    r = np.linalg.qr(jacobian, mode="r")
+    rinv = linalg.solve_triangular(r, np.eye(k))
+    return Uncertainty(sigma2 * rinv @ rinv.T, dof, sigma2, "free-run Jacobian")
+
+
+@dataclass(frozen=True)
+class Band:
+    """A band around a model's output, one value per row of the prediction.
+
+    ``diverged`` is the fraction of coefficient draws whose run left the
+    measured range (those draws are not in the band).
+    """
+
+    lower: np.ndarray
+    upper: np.ndarray
+    level: float
+    draws: int
+    diverged: float
+
+    @property
+    def mean_width(self) -> float:
+        """Mean width over the rows where the band is defined."""
+        w = self.upper - self.lower
+        return float(np.nanmean(w)) if np.isfinite(w).any() else float("nan")
+
+
+def output_band(model, u: np.ndarray, y: np.ndarray, *, horizon: int | None = 1,
+                segments=None, level: float = LEVEL, draws: int = 200,
+                seed: int = 0) -> Band | None:
+    """The ``level`` band of one-step (``horizon=1``), k-step or free-run (None) outputs.
+
+    Monte Carlo over ``draws`` coefficient vectors from the model's normal
+    distribution (fixed ``seed``: the same band every time). None when the
+    model carries no uncertainty.
+    """
+    unc = getattr(model, "uncertainty", None)
+    if unc is None:
+        return None
+    rng = np.random.default_rng(seed)
+    cov = 0.5 * (unc.covariance + unc.covariance.T)
+    theta = rng.multivariate_normal(model.coefficients, cov, size=draws,
+                                     check_valid="ignore", method="eigh")
+    if horizon == 1:
+        P, _ = model.term_space.regression(u, y, segments, terms=model.term_indices)
+        outputs = P @ theta.T  # (rows, draws)
+        ok = np.ones(draws, dtype=bool)
+    else:
+        runs, ok = [], np.ones(draws, dtype=bool)
+        for i, th in enumerate(theta):
+            yhat, at = model.with_coefficients(th).run(u, y, horizon, segments)
+            ok[i] = at is None
+            runs.append(yhat)
+        outputs = np.column_stack(runs)
+    lo, hi = 0.5 - level / 2.0, 0.5 + level / 2.0
+    if ok.any():
+        q = np.quantile(outputs[:, ok], [lo, hi], axis=1)
+    else:
+        q = np.full((2, outputs.shape[0]), np.nan)
+    return Band(q[0], q[1], level, draws, float(1.0 - ok.mean()))
