@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 # ROS traffic stays on this machine; each target picks its own domain.
 export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
 
-.PHONY: setup run identify test lint bench bench-sizes bench-node bench-dask bench-certify bag experiment report clean
+.PHONY: setup run identify test lint bench bench-sizes bench-node bench-dask bench-certify bench-generalise bag experiment report clean
 
 $(STAMP): setup.py package.xml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -56,6 +56,10 @@ clean:
 ## Certification: robot-arm data and records made hard on purpose, 60 s each.
 bench-certify: $(STAMP)
 	$(BIN)/python -m spm_sysid.bench.certify
+
+## Models on data they were not fitted on: two-tank cascade, robot-arm halves, coverage.
+bench-generalise: $(STAMP)
+	$(BIN)/python -m spm_sysid.bench.generalise
 
 ## Study on the local pool vs a 2-worker Dask cluster (the paper's 180 runs).
 bench-dask: $(STAMP)

@@ -85,7 +85,19 @@ def test_identify_plots_and_validate_saved_model_on_other_data(tmp_path, robot_a
     r = spm("validate", str(model), "--data", str(other), "--plots", str(tmp_path / "v"))
     assert r.returncode == 0, r.stderr
     assert "validation on supplied data (512 samples)" in r.stdout
+    assert "one-step 95% band from the coefficients' uncertainty" in r.stdout  # schema 3
+    assert "std. error" in r.stdout and "95% interval" in r.stdout
     assert (tmp_path / "v" / "model_free_run.png").stat().st_size > 1000
+    # a version 2 document (no uncertainty) is still validated, without bands
+    doc["schema_version"] = 2
+    del doc["uncertainty"]
+    old = tmp_path / "v2.json"
+    old.write_text(json.dumps(doc))
+    r = spm("validate", str(old), "--data", str(other))
+    assert r.returncode == 0, r.stderr
+    assert "validation on supplied data (512 samples)" in r.stdout
+    assert "uncertainty" not in r.stdout.split("validation on")[1]  # no bands
+    assert "(no coefficient uncertainty for this model)" in r.stdout
     r = spm("validate", str(tmp_path / "missing.json"))
     assert r.returncode == 2 and "model file not found" in r.stderr
 

@@ -40,11 +40,15 @@ def test_json_round_trip_then_predict_and_simulate_on_new_data(robot_arm, tmp_pa
     m.metadata["note"] = "test"
     path = m.save(tmp_path / "sub" / "model.json")
     doc = json.loads(path.read_text())
-    assert doc["schema"] == "spm_sysid/narx-model" and doc["schema_version"] == 2
+    assert doc["schema"] == "spm_sysid/narx-model" and doc["schema_version"] == 3
     assert doc["terms"] == EQ1 and doc["criterion"] == {"name": "aic", "value": -10744.78}
+    unc = doc["uncertainty"]
+    assert unc["method"] == "least squares" and unc["dof"] == 1020 - 8
+    assert len(unc["standard_errors"]) == 8 and len(unc["intervals"]) == 8
     back = NarxModel.load(path)
     assert back.terms == m.terms and np.array_equal(back.coefficients, m.coefficients)
     assert back.term_space == m.term_space and back.metadata["note"] == "test"
+    assert np.array_equal(back.uncertainty.covariance, m.uncertainty.covariance)
     # new data: the second half only
     u2, y2 = u[512:], y[512:]
     assert np.array_equal(back.predict(u2, y2), m.predict(u2, y2))

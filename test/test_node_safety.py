@@ -124,3 +124,35 @@ def test_the_publisher_waits_out_back_pressure_and_never_crashes(ros_env, tmp_pa
     summary = json.loads(r.stdout.strip().splitlines()[-1])
     assert r.returncode == 1 and summary["blocked"] > 0 and "error" in summary
     assert r.stderr.startswith("error: the subscriber did not take messages for 2 s")
+
+
+def test_the_answer_and_diagnostics_carry_the_data_checks_warnings(ros_env, harness, tmp_path):
+    """A sine input excites two lags of the four in the space: the node says so."""
+    t = np.arange(400)
+    u = np.sin(2 * np.pi * t / 37)
+    y = np.zeros(400)
+    for k in range(2, 400):
+        y[k] = 1.5 * y[k - 1] - 0.7 * y[k - 2] + 0.5 * u[k - 1]
+    y += 1e-3 * np.random.default_rng(0).standard_normal(400)
+    data = tmp_path / "sine.dat"
+    np.savetxt(data, np.column_stack([u, y]))
+    node = start_node(ros_env, "generations:=20")
+    try:
+        harness.wait_ready()
+        pub = subprocess.run([sys.executable, "-m", "spm_sysid.ros.signal_publisher", "400",
+                              "400", "--data", str(data)], capture_output=True, text=True,
+                             env=ros_env, timeout=120, cwd=ROOT)
+        assert pub.returncode == 0, pub.stderr
+        harness.wait_buffer(lambda kv: int(kv.get("samples", 0)) >= 400, 30)
+        res = harness.call("/spm_sysid/identify")
+        assert res.success, res.message
+        assert ("WARNING: input u is persistently exciting of order 2 only: of its 4 lags "
+                "only 2 can be told apart") in res.message
+        assert harness.spin_until(lambda: "warnings" in harness.statuses(), 10)
+        level, message, values = harness.statuses()["warnings"]
+        doc = json.loads(harness.latched(String, "/spm_sysid/model").data)
+    finally:
+        stop(node)
+    assert level == 1 and message.startswith(f"{len(doc['metadata']['warnings'])} warning(s)")
+    assert any("persistently exciting of order 2" in v for v in values.values())
+    assert doc["metadata"]["data_check"]["excitation_order"] == {"u": 2}

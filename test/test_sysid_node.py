@@ -62,7 +62,9 @@ def test_replay_identify_and_latched_results(ros_env, harness, arm_bag, robot_ar
         resid = harness.latched(Float64MultiArray, "/spm_sysid/residuals")
     finally:
         stop(node)
-    assert doc["schema"] == "spm_sysid/narx-model" and doc["schema_version"] == 2
+    assert doc["schema"] == "spm_sysid/narx-model" and doc["schema_version"] == 3
+    assert doc["uncertainty"]["method"] == "least squares"
+    assert len(doc["uncertainty"]["standard_errors"]) == len(EQ1)
     assert doc["terms"] == EQ1
     assert doc["criterion"]["name"] == "aic"
     assert doc["criterion"]["value"] == pytest.approx(-10744.78, abs=0.01)

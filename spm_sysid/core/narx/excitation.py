@@ -43,6 +43,9 @@ ROWS_PER_TERM = 10
 #: Condition number of the unit-norm candidate matrix above which a warning is given.
 CONDITION_WARN = 1e8
 
+#: Terms named on one line of the report (the document lists them all).
+SHOWN_TERMS = 20
+
 #: Spaces with more usable candidates than this skip the collinearity scan (its
 #: pivoted QR costs O(M^3)).
 COLLINEAR_LIMIT = 600
@@ -113,7 +116,12 @@ class DataCheck:
             out.append("repeating an earlier term: " + ", ".join(
                 f"{a} (= {b})" for a, b in self.repeated_terms.items()))
         if self.collinear_terms:
-            out.append(f"nearly a combination of others: {', '.join(self.collinear_terms)}")
+            shown = self.collinear_terms[:SHOWN_TERMS]
+            more = len(self.collinear_terms) - len(shown)
+            out.append(f"nearly a combination of others ({len(self.collinear_terms)}): "
+                       f"{', '.join(shown)}" + (f", ... ({more} more; all in the model "
+                                               "document's metadata.data_check)" if more
+                                               else ""))
         out += [f"warning: {w}" for w in self.warnings]
         if self.refusal:
             out.append(f"refused: {self.refusal}")

@@ -317,11 +317,12 @@ def _validated_simulation(problem, candidates, folds, crit, max_terms, report,
 
     1. every candidate by the criterion of its free-run error after a short
        refinement on all estimation data;
-    2. finalists: the best screened structure of each size, up to
-       :data:`FINALISTS` sizes spread over the range (the best overall always
-       among them) -- the held-out blocks decide how large a model the data
-       support; each fold fits least squares on its rows, refines on its
-       free-run error over its segments, and simulates the held-out block; a
+    2. finalists: for each highest degree (linear, quadratic, ...) the best
+       screened structures of each size, up to :data:`FINALISTS` sizes spread
+       over the range (the group's best always among them) -- the held-out
+       blocks decide how large and how nonlinear a model the data support;
+       each fold fits least squares on its rows, refines on its free-run
+       error over its segments, and simulates the held-out block; a
        run that leaves the measured range rejects the structure;
     3. the chosen (fewest terms within one standard error of the best held-out
        error) is refined to convergence on all data and must pass the guard
@@ -330,7 +331,7 @@ def _validated_simulation(problem, candidates, folds, crit, max_terms, report,
     u, y, segments = problem.u, problem.y, problem.segments
     screened = _screen_in_sample(problem, candidates, crit, max_terms, report, started,
                                  search=False)
-    finals = _finalists(screened, problem.term_space.n_terms)
+    finals = _finalists(screened, problem.term_space)
     if not finals:
         raise DataError("every candidate structure's free-run simulation diverges on the "
                         "estimation data (or cannot be fitted): no model simulates")
@@ -388,27 +389,35 @@ def _validated_simulation(problem, candidates, folds, crit, max_terms, report,
                     + (f": {reasons[0]}" if reasons else "") + ")")
 
 
-def _finalists(screened: dict, n_terms: int) -> list[tuple[float, bytes]]:
-    """The best screened structures of each size (:data:`PER_SIZE`), sizes spread.
+def _finalists(screened: dict, term_space) -> list[tuple[float, bytes]]:
+    """The best screened structures of each size (:data:`PER_SIZE`), sizes spread, by degree.
 
-    At most :data:`FINALISTS` sizes, spread on a log scale (small models are
-    cheap to overlook and often what the data support), the best overall among
-    them.
+    Structures are grouped by their highest degree (linear, quadratic, ...):
+    in-sample, a nonlinear structure nearly always beats a linear one of the
+    same size, yet off the estimation data the linear one often simulates
+    better, so each group sends its own finalists to the held-out blocks. In
+    each group at most :data:`FINALISTS` sizes, spread on a log scale (small
+    models are cheap to overlook and often what the data support), the group's
+    best among them.
     """
-    by_size: dict[int, list[tuple[float, bytes]]] = {}
+    n_terms = term_space.n_terms
+    degree = np.array([len(t) for t in term_space.terms])
+    groups: dict[int, dict[int, list[tuple[float, bytes]]]] = {}
     for key, (value, _) in screened.items():
         if np.isfinite(value):
-            size = int(np.unpackbits(np.frombuffer(key, dtype=np.uint8))[:n_terms].sum())
-            by_size.setdefault(size, []).append((value, key))
-    if not by_size:
-        return []
-    sizes = sorted(by_size)
-    if len(sizes) > FINALISTS:
-        best_size = min(sizes, key=lambda k: min(by_size[k])[0])
-        targets = np.geomspace(sizes[0], sizes[-1], FINALISTS - 1)
-        spread = {min(sizes, key=lambda k: abs(np.log(k) - np.log(t))) for t in targets}
-        sizes = sorted(spread | {best_size})
-    return sorted(item for k in sizes for item in sorted(by_size[k])[:PER_SIZE])
+            mask = np.unpackbits(np.frombuffer(key, dtype=np.uint8))[:n_terms].astype(bool)
+            by_size = groups.setdefault(int(degree[mask].max()), {})
+            by_size.setdefault(int(mask.sum()), []).append((value, key))
+    out = []
+    for by_size in groups.values():
+        sizes = sorted(by_size)
+        if len(sizes) > FINALISTS:
+            best_size = min(sizes, key=lambda k: min(by_size[k])[0])
+            targets = np.geomspace(sizes[0], sizes[-1], FINALISTS - 1)
+            spread = {min(sizes, key=lambda k: abs(np.log(k) - np.log(t))) for t in targets}
+            sizes = sorted(spread | {best_size})
+        out += [item for k in sizes for item in sorted(by_size[k])[:PER_SIZE]]
+    return sorted(out)
 
 
 def _screen_in_sample(problem, candidates, crit, max_terms, report, started,

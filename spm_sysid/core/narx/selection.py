@@ -19,9 +19,11 @@ fitted to. *Validated selection* judges it on rows held out:
    of the best, the one with the fewest terms is chosen.
 4. **Guard** (focus simulation). The chosen structure's model -- fitted on all
    data, refined on its free-run error -- must stay in range off the
-   estimation data: on every held-out block, and driven by the record's input
-   shifted by half its length and reversed in time (inputs within the
-   measured range, in orders the estimation never saw). A model that leaves
+   estimation data: on every held-out block, driven by the record's input
+   shifted by half its length and reversed in time, and driven by
+   :data:`SURROGATES` inputs with the same amplitude spectrum and random
+   phases (clipped to the measured range) -- inputs like those it was fitted
+   on, in orders the estimation never saw. A model that leaves
    the output's range widened by :data:`STRESS_FACTOR` spans is removed and
    the next candidate tried; the answer counts the structures removed.
 
@@ -39,7 +41,7 @@ from .lstsq import reference_fit
 from .simulation import divergence_bounds, run_model
 
 __all__ = ["FOLDS", "Fold", "Scores", "blocked_folds", "candidate_structures", "cv_scores",
-           "stress_check"]
+           "stress_check", "surrogate_input"]
 
 #: Folds of validated selection.
 FOLDS = 3
@@ -53,6 +55,10 @@ ONE_SE = 1.0
 
 #: A stressed simulation may leave the measured output's range by this many spans.
 STRESS_FACTOR = 2.0
+
+#: Random-phase inputs (same amplitude spectrum as the estimation input) per segment in
+#: the guard, drawn with a fixed seed so that a selection is repeatable.
+SURROGATES = 4
 
 
 @dataclass(frozen=True)
@@ -211,8 +217,9 @@ def stress_check(model, u: np.ndarray, y: np.ndarray, segments) -> str | None:
     """Why the model's simulation is not bounded off the estimation data, or None.
 
     Its free run on every segment, and driven by each segment's input shifted
-    by half its length and reversed in time (from the segment's own initial
-    outputs), must stay inside the measured output's range widened by
+    by half its length, reversed in time and with its phases randomised
+    (:data:`SURROGATES` draws, :func:`surrogate_input`), from the segment's own
+    initial outputs, must stay inside the measured output's range widened by
     :data:`STRESS_FACTOR` spans.
     """
     y = np.asarray(y, dtype=float)
@@ -225,16 +232,44 @@ def stress_check(model, u: np.ndarray, y: np.ndarray, segments) -> str | None:
         if b - a <= lag:
             continue
         seg_u, seg_y = u2[a:b], y[a:b]
-        for label, uu in (("the estimation input", seg_u),
-                          ("the input shifted by half its length", np.roll(seg_u, (b - a) // 2,
-                                                                           axis=0)),
-                          ("the input reversed in time", seg_u[::-1])):
+        rng = np.random.default_rng(0)
+        stresses = [("the estimation input", seg_u),
+                    ("the input shifted by half its length", np.roll(seg_u, (b - a) // 2,
+                                                                     axis=0)),
+                    ("the input reversed in time", seg_u[::-1])]
+        stresses += [(f"an input with the estimation input's spectrum and random phases "
+                      f"(draw {i + 1} of {SURROGATES})", surrogate_input(seg_u, rng))
+                     for i in range(SURROGATES)]
+        for label, uu in stresses:
             yy = seg_y.copy()
             yy[lag:] = 0.0  # only the initial conditions are measured
             yhat, at = run_model(model.compiled, model.coefficients, uu, yy, None, bounds)
             if at is not None or not np.all(np.isfinite(yhat)):
                 return f"its simulation driven by {label} left the output's range"
     return None
+
+
+def surrogate_input(u: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """An input like ``u`` (n, m): each column's amplitude spectrum, random phases.
+
+    The result is clipped to each column's measured range, so it excites the
+    model at the frequencies and amplitudes of the estimation data but in an
+    order the estimation never saw (a second multisine phase draw, a second run
+    of a random signal).
+    """
+    out = np.empty_like(u, dtype=float)
+    n = len(u)
+    for j in range(u.shape[1]):
+        col = u[:, j]
+        mean = col.mean()
+        spectrum = np.fft.rfft(col - mean)
+        phases = rng.uniform(0.0, 2.0 * np.pi, len(spectrum))
+        phases[0] = 0.0
+        if n % 2 == 0:
+            phases[-1] = 0.0  # the Nyquist bin stays real
+        out[:, j] = np.clip(np.fft.irfft(np.abs(spectrum) * np.exp(1j * phases), n) + mean,
+                            col.min(), col.max())
+    return out
 
 
 def candidate_structures(problem, evaluator, shortlist: int, forward: Callable | None = None,

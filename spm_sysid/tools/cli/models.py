@@ -205,6 +205,9 @@ def cmd_validate(args) -> int:
                                   sum(b - a - lag0 for a, b in segments))
     print(f"model: {args.model}")
     print(model.equation())
+    print(model.coefficient_table())
+    for w in model.metadata.get("warnings") or []:
+        print(f"warning (from identification): {w}")
     print(f"data: {record.source}" + (f", last {args.tail:.0%}" if args.tail is not None
                                       else ""))
     report = validate_model(model, u, y, correlation_lags=args.correlation_lags,
