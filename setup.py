@@ -35,7 +35,7 @@ setup(
             "ros-jazzy-std-srvs",
         ],
         # benchmark-only: the forward-selection baseline of `spm-sysid bench-sizes --fastcan`
-        "bench": ["fastcan>=0.4"],
+        "bench": ["fastcan>=0.4", "deap>=1.4"],
         # studies and batches on a Dask cluster (`--scheduler`); not needed on the robot
         "dask": ["dask>=2024.1", "distributed>=2024.1"],
         "test": [

@@ -19,6 +19,9 @@ def test_make_run_pipeline_prints_both_foci(ros_env, tmp_path):
     assert "[4/6] sysid_node buffered 1024 paired samples" in out
     assert "~/identify (focus prediction, the paper's): y(t) = 3.158y(t-1)" in out
     assert "AIC -10744.78" in out and "free-run fit 11.1 %" in out
+    # the node certifies by default (AIC, 44 terms, the criterion's choice)
+    first = [ln for ln in out.splitlines() if "focus prediction, the paper's" in ln][0]
+    assert "certified optimal over all structures" in first
     assert "~/identify (focus simulation):" in out
     sim = NarxModel.load(tmp_path / "run" / "model_simulation.json")
     assert sim.metadata["focus"] == "simulation"

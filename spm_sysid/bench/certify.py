@@ -100,6 +100,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--cases", default=",".join(CASES),
                    help=f"comma list of cases (default all: {','.join(CASES)})")
     p.add_argument("--criteria", default="aic,bic", help="comma list (default aic,bic)")
+    p.add_argument("--seeds", type=int, default=5,
+                   help="GA runs per case and criterion for the reach table (0: skip it)")
     args = p.parse_args(argv)
     from ..core.narx.certify import certify_data
     from ..core.narx.identify import identify
@@ -118,7 +120,8 @@ def main(argv: list[str] | None = None) -> int:
     for name in cases:
         u, y = CASES[name]()
         for crit in criteria:
-            res = identify(u=u, y=y, term_space=ts, criterion=crit, seed=1)
+            res = identify(u=u, y=y, term_space=ts, criterion=crit, seed=1, polish=False,
+                           auto_certify_time_limit=0, selection="criterion")
             t0 = time.perf_counter()
             cert = certify_data(u, y, term_space=ts, criterion=crit,
                                 warm_start=res.model.mask, time_limit=args.time_limit)
@@ -129,7 +132,52 @@ def main(argv: list[str] | None = None) -> int:
                   f"{cert.value:>12.2f}{cert.gap:>8.2f}{cert.nodes:>10}{seconds:>9.2f}",
                   flush=True)
     print(f"certified {certified} of {total}; gap = best found - lower bound (0 when optimal)")
+    if args.seeds:
+        reach(cases, criteria, args.seeds, args.time_limit)
     return 0
+
+
+def reach(cases: list[str], criteria: list[str], seeds: int, time_limit: float) -> None:
+    """How often the GA alone, and the GA with its polish, reach the certified optimum."""
+    from ..core.narx.certify import certify
+    from ..core.narx.identify import identify_problem
+    from ..core.narx.problem import Problem
+    from ..core.narx.terms import TermSpace
+
+    print(f"\nGA (paper settings) alone and with the polish, seeds 1..{seeds}: runs that reach "
+          "the certified optimum (within 1e-6)")
+    print(f"{'case':<13} {'crit':<5}{'optimum':>12}{'GA':>6}{'GA+polish':>11}"
+          f"{'worst miss':>12}{'polish s':>10}")
+    totals = [0, 0, 0]
+    for name in cases:
+        u, y = CASES[name]()
+        problem = Problem.from_signals(u, y, TermSpace())
+        for crit in criteria:
+            opt = certify(None, None, crit, evaluator=problem.evaluator(crit),
+                          time_limit=time_limit)
+            ga_hits = polish_hits = 0
+            miss, polish_seconds = 0.0, []
+            for seed in range(1, seeds + 1):
+                runs = {}
+                for polish in (False, True):
+                    t0 = time.perf_counter()
+                    res = identify_problem(problem, criterion=crit, seed=seed, polish=polish,
+                                           auto_certify_time_limit=0, selection="criterion",
+                                           check_data=False)
+                    runs[polish] = (res.model.criterion_value, time.perf_counter() - t0)
+                ga_hits += runs[False][0] <= opt.value + 1e-6
+                polish_hits += runs[True][0] <= opt.value + 1e-6
+                miss = max(miss, runs[True][0] - opt.value)
+                polish_seconds.append(runs[True][1] - runs[False][1])
+            totals[0] += ga_hits
+            totals[1] += polish_hits
+            totals[2] += seeds
+            mark = "" if opt.status == "optimal" else " (not proven)"
+            print(f"{name:<13} {crit:<5}{opt.value:>12.2f}{ga_hits:>4}/{seeds}"
+                  f"{polish_hits:>8}/{seeds}{miss:>12.3g}"
+                  f"{float(np.median(polish_seconds)):>10.3f}{mark}", flush=True)
+    print(f"reached: GA alone {totals[0]} of {totals[2]} ({100 * totals[0] / totals[2]:.0f} %), "
+          f"GA + polish {totals[1]} of {totals[2]} ({100 * totals[1] / totals[2]:.0f} %)")
 
 
 if __name__ == "__main__":  # pragma: no cover

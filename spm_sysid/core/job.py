@@ -98,6 +98,8 @@ class JobSettings:
     horizon: int = 0
     certify: bool = False
     certify_time_limit: float = 60.0
+    polish: bool = True
+    auto_certify_time_limit: float = 10.0
 
     @classmethod
     def from_values(cls, values: Mapping[str, Any], inputs: tuple[str, ...] = (),
@@ -113,7 +115,8 @@ class JobSettings:
         v.update({k: values[k] for k in v if k in values and values[k] is not None})
         for name in ("criterion", "seed", "validation", "validation_split",
                      "correlation_lags", "sample_period", "gap_factor", "focus", "shortlist",
-                     "selection", "max_terms", "horizon", "certify", "certify_time_limit"):
+                     "selection", "max_terms", "horizon", "certify", "certify_time_limit",
+                     "polish", "auto_certify_time_limit"):
             v[name] = check(name, v[name])
         criterion = v["criterion"].lower()
         try:
@@ -138,6 +141,8 @@ class JobSettings:
             horizon=v["horizon"],
             certify=v["certify"],
             certify_time_limit=v["certify_time_limit"],
+            polish=v["polish"],
+            auto_certify_time_limit=v["auto_certify_time_limit"],
         )
 
     def for_signals(self, inputs: tuple[str, ...], output: str) -> JobSettings:
@@ -205,6 +210,10 @@ class JobResult:
         if m.metadata.get("focus") == "simulation":
             crit += " (simulation)"
         cert = describe_certificate(m.metadata.get("certificate"))
+        pol = m.metadata.get("polish") or {}
+        if pol.get("value") is not None and pol["value"] < pol["ga_value"]:
+            cert = (f"the polish after the GA improved its best from {pol['ga_value']:.2f} "
+                    f"({pol['steps']} step(s))" + (f", {cert}" if cert else ""))
         warnings = m.metadata.get("warnings") or []
         selected = describe_selection(m.metadata.get("selection"))
         if style == "line":
@@ -330,6 +339,8 @@ def run_job(
                              max_terms=settings.max_terms,
                              certify_time_limit=(settings.certify_time_limit if settings.certify
                                                  else None),
+                             polish=settings.polish,
+                             auto_certify_time_limit=settings.auto_certify_time_limit,
                              progress=throttled, started=t0)
     t1 = time.perf_counter()
     model = ident.model

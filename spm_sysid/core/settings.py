@@ -146,6 +146,13 @@ _LIST = [
        "candidate term)", "criterion", choices=("auto", "criterion", "validated")),
     _s("max_terms", int, 0, "largest number of terms a model may have (0: no limit)",
        "criterion", low=0, high=100_000),
+    _s("polish", bool, True, "after the GA, a local search (one term added, removed or "
+       "swapped) from its best while that improves the criterion, within a fixed number of "
+       "structures (off in the paper's study, which measures the GA alone)", "criterion"),
+    _s("auto_certify_time_limit", float, 10.0, "seconds of certification after every GA "
+       "with aic, aicc or bic whose structure is chosen by the criterion (focus prediction) "
+       "on spaces of at most 120 usable terms: the answer then says certified optimal or "
+       "gives the gap (0: off)", "criterion", low=0.0, high=86_400.0),
     _s("certify", bool, False, "after the GA, prove its result the best of all structures "
        "by branch and bound (aic, bic), or report the gap (docs/method.md)", "criterion"),
     _s("certify_time_limit", float, 60.0, "seconds the certification may take before it "

@@ -95,11 +95,14 @@ class ExperimentConfig:
             if unknown:
                 raise SettingsError(f"term_space: unknown setting(s) {sorted(unknown)}")
             settings = {**term_space, **settings}
-        if "certify" in settings:
-            raise SettingsError(
-                "certify: in a study, the reference optimum is certified with "
-                "certify_reference (true by default); certifying every run would replace "
-                "what the study measures")
+        for name in ("certify", "auto_certify_time_limit"):
+            if settings.get(name, 0) not in (0, False):
+                raise SettingsError(
+                    f"{name}: in a study, the reference optimum is certified with "
+                    "certify_reference (true by default); certifying every run would replace "
+                    "what the study measures")
+        # a study measures the GA: no polish (unless asked), no certification of each run
+        settings = {"polish": False, **settings, "auto_certify_time_limit": 0.0}
         job_names = {n for n, st in SETTINGS.items() if st.group in JOB_GROUPS}
         unknown = set(settings) - job_names - {"inputs", "output"}
         if unknown:
@@ -218,7 +221,8 @@ def _one_run(task: tuple) -> RunRecord:
     t0 = time.perf_counter()
     ident = identify_problem(problem, criterion=job.criterion, ga=job.ga, seed=seed,
                              focus=job.focus, shortlist=job.shortlist, selection=job.selection,
-                             max_terms=job.max_terms, check_data=False,
+                             max_terms=job.max_terms, check_data=False, polish=job.polish,
+                             auto_certify_time_limit=job.auto_certify_time_limit,
                              certify_time_limit=job.certify_time_limit if job.certify else None)
     model = ident.model
     seconds = time.perf_counter() - t0

@@ -315,11 +315,11 @@ class StructureEvaluator:
         the rank is decided as the reference fit decides it, on the triangular
         factor of ``[P y]`` (the same least-squares problem in fewer rows).
         """
-        A = self.factor[:, cols]
-        t = self.factor[:, self.n_terms]
-        Q, R = np.linalg.qr(A)
-        if np.min(np.diag(R) ** 2) < self.rank_tol:
-            return np.nan, np.zeros(len(cols)), True
-        th = linalg.solve_triangular(R, Q.T @ t, check_finite=False)
-        r = t - A @ th
-        return float(r @ r), th, False
+        k = len(cols)
+        # R of [A t] alone (no Q): its last diagonal entry is the residual's norm
+        R = np.linalg.qr(np.column_stack([self.factor[:, cols], self.factor[:, self.n_terms]]),
+                         mode="r")
+        if np.min(np.diag(R)[:k] ** 2) < self.rank_tol:
+            return np.nan, np.zeros(k), True
+        th = linalg.solve_triangular(R[:k, :k], R[:k, k], check_finite=False)
+        return float(R[k, k] ** 2) if R.shape[0] > k else 0.0, th, False

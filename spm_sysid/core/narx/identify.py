@@ -66,6 +66,8 @@ def identify(
     certify_time_limit: float | None = None,
     selection: str = "auto",
     max_terms: int = 0,
+    polish: bool = True,
+    auto_certify_time_limit: float = 10.0,
     progress: ProgressFn | None = None,
 ) -> IdentificationResult:
     """Select a NARX structure with the SPM-GA and fit it.
@@ -115,6 +117,17 @@ def identify(
         prediction focus when there are fewer than 10 rows per candidate term.
     max_terms : int
         Structures of more terms are not selected (0: no limit).
+    polish : bool
+        After the GA, a local search from its best structure (one term added,
+        removed or swapped while that improves the criterion; at most
+        :data:`POLISH_STRUCTURES` structures scored, so the result does not
+        depend on the machine's speed). ``model.metadata["polish"]`` says what
+        it changed.
+    auto_certify_time_limit : float
+        When the structure is the criterion's choice (focus prediction,
+        selection ``criterion``), the criterion is AIC, AICc or BIC and the space
+        has at most :data:`AUTO_CERTIFY_TERMS` usable terms, certify the result
+        within this many seconds even without ``certify_time_limit`` (0: off).
     progress : callable, optional
         Called with :class:`~spm_sysid.core.progress.Progress` records (search,
         certification, refinement).
@@ -134,7 +147,8 @@ def identify(
     return identify_problem(problem, criterion=criterion, ga=ga, seed=seed, callback=callback,
                             focus=focus, shortlist=shortlist,
                             certify_time_limit=certify_time_limit, selection=selection,
-                            max_terms=max_terms, progress=progress)
+                            max_terms=max_terms, polish=polish,
+                            auto_certify_time_limit=auto_certify_time_limit, progress=progress)
 
 
 #: How a structure is chosen (see :mod:`spm_sysid.core.narx.selection`).
@@ -146,6 +160,14 @@ AUTO_ROWS_PER_TERM = 10
 
 #: A held-out error this many times the in-sample error is reported as overfitting.
 OVERFIT_RATIO = 3.0
+
+#: Structures the polish after the GA may score (a count, not seconds: the same seed
+#: gives the same result on any machine).
+POLISH_STRUCTURES = 20_000
+
+#: Spaces of at most this many usable terms are certified after the GA by default
+#: (``auto_certify_time_limit``).
+AUTO_CERTIFY_TERMS = 120
 
 
 def identify_problem(
@@ -161,6 +183,8 @@ def identify_problem(
     selection: str = "auto",
     max_terms: int = 0,
     check_data: bool = True,
+    polish: bool = True,
+    auto_certify_time_limit: float = 10.0,
     progress: ProgressFn | None = None,
     started: float | None = None,
 ) -> IdentificationResult:
@@ -200,7 +224,18 @@ def identify_problem(
             "dependent regressors on this data (repeated or constant signals?)"
             + (f", or more than max_terms = {max_terms} terms" if max_terms else "")
         )
+    polished = _polish(problem, evaluator, result) if polish else None
+    mode, note = _selection_mode(selection, focus, problem)
+    folds = blocked_folds(problem)
+    if mode == "validated" and not folds:
+        mode, note = "criterion", "the record is too short for held-out blocks"
     certificate = None
+    if certify_time_limit is None and auto_certify_time_limit > 0:
+        from .certify import CERTIFIABLE
+
+        if (mode == "criterion" and focus == "prediction" and crit.name in CERTIFIABLE
+                and problem.usable.sum() <= AUTO_CERTIFY_TERMS):
+            certify_time_limit = auto_certify_time_limit
     if certify_time_limit is not None:
         certificate = _certify_search(problem, evaluator, result, crit, certify_time_limit,
                                       report, started)
@@ -215,16 +250,13 @@ def identify_problem(
         "search_seconds": round(result.elapsed, 4),
         "focus": focus,
         **({"max_terms": max_terms} if max_terms else {}),
+        **({"polish": polished} if polished is not None else {}),
         **({"excluded_zero_terms": excluded["zero"]} if excluded["zero"] else {}),
         **({"excluded_duplicate_terms": excluded["duplicate"]} if excluded["duplicate"]
            else {}),
         **({"certificate": certificate} if certificate is not None else {}),
         **({"data_check": data_check.to_dict()} if data_check is not None else {}),
     }
-    mode, note = _selection_mode(selection, focus, problem)
-    folds = blocked_folds(problem)
-    if mode == "validated" and not folds:
-        mode, note = "criterion", "the record is too short for held-out blocks"
     simulate = focus == "simulation"
     chosen = None
     if mode == "validated":
@@ -244,6 +276,26 @@ def identify_problem(
     if warnings:
         model.metadata["warnings"] = warnings
     return IdentificationResult(model=model, ga=result, problem=problem)
+
+
+def _polish(problem: Problem, evaluator, result: GAResult) -> dict:
+    """Local search from the GA's best (in place); what it did, for the document."""
+    from .search import local_search
+
+    ga_value = float(result.best_score)
+    if not np.isfinite(ga_value):
+        return {"ga_value": None, "value": None, "steps": 0, "structures": 0}
+    n = problem.usable.sum()
+    k = int(result.best_mask.sum())
+    # swaps are k (n - k) neighbours a step: in large spaces only additions and removals
+    moves = ("remove", "add", "swap") if k * (n - k) <= POLISH_STRUCTURES // 4 else (
+        "remove", "add")
+    res = local_search(evaluator.score, result.best_mask, np.ones(evaluator.n_terms, dtype=bool),
+                       moves=moves, start_value=ga_value, max_scored=POLISH_STRUCTURES)
+    if res.value < ga_value:
+        result.best_mask, result.best_score = res.mask.copy(), float(res.value)
+    return {"ga_value": ga_value, "value": float(result.best_score), "steps": res.steps,
+            "structures": res.scored, "moves": list(moves), "stopped": res.stopped}
 
 
 def _selection_mode(selection: str, focus: str, problem: Problem) -> tuple[str, str]:

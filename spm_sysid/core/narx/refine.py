@@ -30,7 +30,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from .model import NarxModel
 from .segments import normalise_segments
@@ -168,6 +167,8 @@ def refine_simulation(model: NarxModel, u: np.ndarray, y: np.ndarray,
         return Refinement(theta0, sse0, sse0, div0, 1, div0 is None,
                           "too few rows to refine; least squares kept")
     try:
+        from scipy.optimize import least_squares  # imported when a refinement runs
+
         sol = least_squares(lambda t: simulate(t)[0], theta0, jac=lambda t: simulate(t)[1],
                             method="lm", x_scale="jac", max_nfev=max_evaluations)
         theta, nfev, msg = sol.x, int(sol.nfev), str(sol.message)

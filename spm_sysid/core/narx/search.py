@@ -44,7 +44,8 @@ class SearchResult:
     value: float
     steps: int
     scored: int
-    stopped: str  # "local optimum", "patience", "max steps", "deadline", "no neighbour"
+    stopped: str  # "local optimum", "patience", "max steps", "deadline", "budget",
+    #               "no neighbour"
 
 
 def neighbours(mask: np.ndarray, allowed: np.ndarray, moves: Sequence[str] = MOVES,
@@ -91,6 +92,7 @@ def local_search(
     max_steps: int | None = None,
     deadline: float | None = None,
     min_steps: int = 0,
+    max_scored: int | None = None,
     tolerance: float = 1e-9,
     on_step: Callable[[np.ndarray, float], None] | None = None,
 ) -> SearchResult:
@@ -120,6 +122,10 @@ def local_search(
     min_steps : int
         Steps taken whatever the deadline (forward selection takes one, so an
         empty start always gives a structure).
+    max_scored : int, optional
+        Most neighbours scored in all (a budget that, unlike ``deadline``, gives
+        the same result on any machine). When it runs out inside a step, the
+        best neighbour scored so far is still taken if it improves.
     tolerance : float
         An improvement must exceed this.
     on_step : callable, optional
@@ -141,14 +147,29 @@ def local_search(
         if timed and time.perf_counter() >= deadline:
             return SearchResult(best, best_value, steps, scored, "deadline")
         move, move_value = None, np.inf
+        spent = False
         for batch in neighbours(current, allowed, moves):
+            if max_scored is not None:
+                batch = batch[:max(max_scored - scored, 0)]
+                spent = scored + len(batch) >= max_scored
+                if not len(batch):
+                    break
             values = np.asarray(score(batch), dtype=float)
             scored += len(batch)
             i = int(np.argmin(values))
             if values[i] < move_value:
                 move, move_value = batch[i].copy(), float(values[i])
-            if timed and time.perf_counter() >= deadline:
+            if spent or (timed and time.perf_counter() >= deadline):
                 break
+        if spent:
+            if move is not None and move_value < value - tolerance:
+                current, value = move, move_value
+                steps += 1
+                if on_step is not None:
+                    on_step(current, value)
+                if value < best_value - tolerance:
+                    best, best_value = current.copy(), value
+            return SearchResult(best, best_value, steps, scored, "budget")
         if move is None or not np.isfinite(move_value):
             return SearchResult(best, best_value, steps, scored, "no neighbour")
         if not move_value < value - tolerance and patience == 0:

@@ -27,7 +27,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import linalg, stats
+from scipy import linalg, special
 
 __all__ = ["Band", "Uncertainty", "from_jacobian", "from_least_squares", "output_band"]
 
@@ -64,7 +64,7 @@ class Uncertainty:
 
     def intervals(self, coefficients: np.ndarray, level: float = LEVEL) -> np.ndarray:
         """Confidence intervals, shape (k, 2): coefficient -/+ t * standard error."""
-        t = float(stats.t.ppf(0.5 + level / 2.0, max(self.dof, 1)))
+        t = float(special.stdtrit(max(self.dof, 1), 0.5 + level / 2.0))  # Student's t quantile
         half = t * self.standard_errors
         c = np.asarray(coefficients, dtype=float)
         return np.column_stack([c - half, c + half])

@@ -16,8 +16,9 @@ from ...core.files import check_writable_dir, check_writable_file
 from ...core.settings import SETTINGS, check
 
 __all__ = ["JOB_TITLES", "PER_INPUT", "Parser", "UserError", "add_data_options",
-           "add_schema_options", "check_correlation_lags_option", "check_outputs", "data_spec",
-           "job_settings", "load", "positive_int", "read_yaml", "schema_type", "seed_type"]
+           "add_schema_options", "announce_compile", "check_correlation_lags_option",
+           "check_outputs", "data_spec", "job_settings", "load", "positive_int", "read_yaml",
+           "schema_type", "seed_type"]
 
 
 class UserError(Exception):
@@ -115,7 +116,10 @@ def add_schema_options(p: argparse.ArgumentParser, groups: tuple[str, ...],
             rng = s.describe_range()
             text = f"{s.help} (default {s.default!r}{'; ' + rng if rng else ''})"
             # default None: "not given" (the schema's default applies in JobSettings)
-            if s.kind is bool:
+            if s.kind is bool and s.default:  # on by default: --no-NAME turns it off
+                g.add_argument(*names, dest=s.name, action=argparse.BooleanOptionalAction,
+                               default=None, help=f"{s.help} (default: on)")
+            elif s.kind is bool:
                 g.add_argument(*names, dest=s.name, action="store_true", default=None,
                                help=f"{s.help}")
             elif s.choices:
@@ -236,3 +240,13 @@ def check_correlation_lags_option(corr_lags: int, rows: int) -> None:
 def as_option(exc: Exception) -> str:
     """A settings message with the setting named as its option."""
     return str(exc).replace("correlation_lags", "--correlation-lags")
+
+
+def announce_compile() -> None:
+    """Say so when this command will compile numba's kernels (their first use here)."""
+    from ...core.narx.warmup import kernels_are_cached
+
+    if not kernels_are_cached():
+        print("note: compiling the numeric kernels (first use on this machine, about 30 s; "
+              "cached after; `spm-sysid compile` does it ahead, `make setup` runs it) ...",
+              flush=True)

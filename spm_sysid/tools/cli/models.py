@@ -7,6 +7,7 @@ from .common import (
     UserError,
     add_data_options,
     add_schema_options,
+    announce_compile,
     as_option,
     check_correlation_lags_option,
     check_outputs,
@@ -48,6 +49,7 @@ def cmd_identify(args) -> int:
                         "(the estimation fraction of the data)")
     check_outputs(args)
     record = load(args)
+    announce_compile()
     bars = PhaseBars(not args.quiet)
     try:
         result = run_job(record, settings, progress=bars, progress_every=1)
@@ -142,7 +144,8 @@ def cmd_certify(args) -> int:
           f"{space.n_terms} candidate terms, {args.criterion.upper()}")
     if not search_is_compiled():
         print("compiling the branch and bound (the first use on this machine, about 20 s; "
-              "cached after; not counted in the time limit) ...", flush=True)
+              "cached after; not counted in the time limit; `spm-sysid compile` does it "
+              "ahead) ...", flush=True)
         ensure_compiled()
     started = time.perf_counter()  # the time limit covers the warm start and the proof
     warm = None
@@ -267,6 +270,19 @@ def cmd_propose_lags(args) -> int:
     return 0
 
 
+# -- compile ----------------------------------------------------------------------------------
+
+
+def cmd_compile(args) -> int:
+    from ...core.narx.warmup import compile_all, kernels_are_cached
+
+    before = kernels_are_cached()
+    seconds = compile_all(report=lambda text: print(text, flush=True))
+    print(f"kernels {'loaded from the cache' if before else 'compiled and cached'} in "
+          f"{seconds:.1f} s")
+    return 0
+
+
 # -- the parsers -----------------------------------------------------------------------------
 
 
@@ -282,6 +298,10 @@ def add_parsers(sub) -> None:
     g.add_argument("--plots", metavar="DIR", help="write validation figures here")
     g.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_identify)
+
+    p = sub.add_parser("compile", help="compile the numeric kernels ahead of their first use "
+                       "(make setup runs it)")
+    p.set_defaults(func=cmd_compile)
 
     p = sub.add_parser("certify", help="prove the best structure of the whole term space "
                        "(branch and bound; AIC, BIC), or bound the gap")

@@ -29,7 +29,8 @@ class PhaseBars:
     """Draws Progress records: a bar for the current phase, replaced when it changes."""
 
     def __init__(self, enabled: bool = True) -> None:
-        self.enabled = enabled
+        # tqdm stays silent off a terminal; not importing it then saves its import time
+        self.enabled = enabled and _terminal()
         self.phase: str | None = None
         self.bar = None
 
@@ -72,5 +73,12 @@ class PhaseBars:
 
 
 def count_bar(total: int, desc: str, unit: str, enabled: bool = True):
-    """A bar counting finished items (None when disabled)."""
-    return _bar(total=total, desc=desc, unit=unit) if enabled else None
+    """A bar counting finished items (None when disabled or stderr is not a terminal)."""
+    return _bar(total=total, desc=desc, unit=unit) if enabled and _terminal() else None
+
+
+def _terminal() -> bool:
+    try:
+        return sys.stderr.isatty()
+    except (AttributeError, ValueError):  # replaced or closed stderr
+        return False

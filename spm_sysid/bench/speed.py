@@ -1,0 +1,221 @@
+"""Benchmark: where the time of a command goes, and the speed targets.
+
+``python -m spm_sysid.bench.speed`` (``make bench-speed``) prints
+
+1. **the quick command**: ``spm-sysid identify --quiet`` on the robot-arm data,
+   whole process, median of ``--repeats`` runs, against the DEAP baseline
+   (:mod:`spm_sysid.bench.deap_ga`, ``--baseline-repeats`` runs, interleaved in
+   the same call) and their ratio; then where the time goes: imports by
+   package (``python -X importtime``) and each phase of the job in-process;
+2. **the GA** at the paper's settings in-process (median of repeats, a fresh
+   evaluator each), without and with the polish;
+3. **simulation focus**: the robot-arm data (paper's space, default settings)
+   and the two-tank records (``ny = nu = 3``, degree 3, constant, BIC);
+4. with ``--large``: a GA run of 454 candidates (``ny = nu = 6``, degree 3)
+   on the robot-arm data with BIC and with AIC (SPM 0.15).
+
+Times depend on the machine; ratios measured in the same call are the
+comparable figures. Needs the ``bench`` extra for the baseline (``make
+bench-speed`` installs it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import statistics
+import subprocess
+import sys
+import time
+
+__all__ = ["import_breakdown", "main", "phase_breakdown"]
+
+_CLI = [sys.executable, "-m", "spm_sysid.apps.main"]
+
+
+def _wall(cmd: list[str]) -> float:
+    t0 = time.perf_counter()
+    r = subprocess.run(cmd, capture_output=True, text=True)
+    if r.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)} failed: {r.stderr.strip()[-400:]}")
+    return time.perf_counter() - t0
+
+
+def quick_command(repeats: int, baseline_repeats: int) -> tuple[list[float], list[float]]:
+    """Wall seconds of ``identify`` runs and of baseline runs, interleaved."""
+    ours, base = [], []
+    _wall(_CLI + ["identify", "--quiet"])  # warm caches
+    for i in range(max(repeats, baseline_repeats)):
+        if i < repeats:
+            ours.append(_wall(_CLI + ["identify", "--quiet"]))
+        if i < baseline_repeats:
+            base.append(_wall([sys.executable, "-m", "spm_sysid.bench.deap_ga"]))
+    return ours, base
+
+
+def import_breakdown(top: int = 8) -> list[tuple[str, float]]:
+    """(package, cumulative import seconds) of ``identify``'s imports, largest first."""
+    r = subprocess.run([sys.executable, "-X", "importtime", *_CLI[1:], "identify", "--quiet"],
+                       capture_output=True, text=True)
+    totals: dict[str, float] = {}
+    for line in r.stderr.splitlines():
+        m = re.match(r"import time:\s+(\d+) \|\s+(\d+) \|( *)(\S+)", line)
+        if m and len(m.group(3)) == 1:  # top-level imports: their cumulative time
+            pkg = m.group(4).split(".")[0]
+            if pkg == "spm_sysid":
+                pkg = ".".join(m.group(4).split(".")[:3])
+            totals[pkg] = totals.get(pkg, 0.0) + int(m.group(2)) / 1e6
+    return sorted(totals.items(), key=lambda kv: -kv[1])[:top]
+
+
+def phase_breakdown() -> list[tuple[str, float]]:
+    """Seconds of each phase of the default identification, in this (warm) process."""
+    from ..core.narx.certify import certify
+    from ..core.narx.excitation import check_problem
+    from ..core.narx.ga import GAConfig, run_ga
+    from ..core.narx.identify import _polish
+    from ..core.narx.problem import Problem
+    from ..core.narx.validation import validate_model
+    from ..core.record import DataSpec, load_record
+
+    out = []
+    t = time.perf_counter()
+
+    def lap(name: str) -> None:
+        nonlocal t
+        now = time.perf_counter()
+        out.append((name, now - t))
+        t = now
+
+    rec = load_record(DataSpec())
+    lap("read the data")
+    problem = Problem.from_signals(rec.u, rec.y)
+    check_problem(problem)
+    ev = problem.evaluator("aic")
+    lap("build the problem, data check")
+    res = run_ga(ev, GAConfig(), seed=None)
+    lap("GA (300 generations)")
+    _polish(problem, ev, res)
+    lap("polish")
+    certify(None, None, "aic", evaluator=ev, warm_start=res.best_mask, time_limit=10)
+    lap("certification")
+    model = problem.model(problem.expand(res.best_mask))
+    validate_model(model, rec.u, rec.y)
+    lap("fit, validation, bands")
+    return out
+
+
+def ga_times(repeats: int) -> tuple[list[float], list[float]]:
+    """Seconds of the GA at paper settings (fresh evaluator each), and of GA + polish."""
+    from ..core.narx.ga import GAConfig, run_ga
+    from ..core.narx.identify import _polish
+    from ..core.narx.problem import Problem
+    from ..core.record import DataSpec, load_record
+
+    rec = load_record(DataSpec())
+    problem = Problem.from_signals(rec.u, rec.y)
+    run_ga(problem.evaluator("aic"), GAConfig(generations=5), seed=0)  # kernels loaded
+    ga, polished = [], []
+    for seed in range(repeats):
+        ev = problem.evaluator("aic")
+        t0 = time.perf_counter()
+        res = run_ga(ev, GAConfig(), seed=seed)
+        ga.append(time.perf_counter() - t0)
+        _polish(problem, ev, res)
+        polished.append(time.perf_counter() - t0)
+    return ga, polished
+
+
+def simulation_times(repeats: int) -> list[tuple[str, float, int]]:
+    """(case, median seconds, terms) of the default simulation-focused identification."""
+    from ..core.narx.identify import identify
+    from ..core.narx.terms import TermSpace
+    from ..core.record import DataSpec, load_record
+    from .tanks import record
+
+    rec = load_record(DataSpec())
+    cases = [("robot arm, paper's space, BIC", rec.u, rec.y, TermSpace(), "bic"),
+             ("two tanks, ny=nu=3 deg 3 constant, BIC", *record(1),
+              TermSpace(ny=3, nu=3, degree=3, constant=True), "bic")]
+    out = []
+    for label, u, y, ts, crit in cases:
+        times, terms = [], 0
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            m = identify(u=u, y=y, term_space=ts, criterion=crit, seed=1,
+                         focus="simulation").model
+            times.append(time.perf_counter() - t0)
+            terms = len(m.terms)
+        out.append((label, statistics.median(times), terms))
+    return out
+
+
+def large_space() -> list[tuple[str, float, int, float]]:
+    """(criterion, GA seconds, terms, value) for 454 candidates on the robot-arm data."""
+    from ..core.narx.ga import GAConfig, run_ga
+    from ..core.narx.problem import Problem
+    from ..core.narx.terms import TermSpace
+    from ..core.record import DataSpec, load_record
+
+    rec = load_record(DataSpec())
+    problem = Problem.from_signals(rec.u, rec.y, TermSpace(ny=6, nu=6, degree=3))
+    out = []
+    for crit in ("bic", "aic"):
+        ev = problem.evaluator(crit)
+        t0 = time.perf_counter()
+        res = run_ga(ev, GAConfig(), seed=1)
+        out.append((crit, time.perf_counter() - t0, int(res.best_mask.sum()),
+                    float(res.best_score)))
+    return out
+
+
+def _med(values: list[float]) -> str:
+    return (f"median {statistics.median(values):.3f} s (min {min(values):.3f}, max "
+            f"{max(values):.3f}, n={len(values)})")
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m spm_sysid.bench.speed",
+                                description=__doc__.split("\n\n")[0])
+    p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--baseline-repeats", type=int, default=2)
+    p.add_argument("--large", action="store_true",
+                   help="also the 454-candidate GA runs (about 1.5 minutes)")
+    a = p.parse_args(argv)
+    print(f"speed benchmark ({os.cpu_count()} cores); repeats {a.repeats}, "
+          f"baseline repeats {a.baseline_repeats}", flush=True)
+
+    ours, base = quick_command(a.repeats, a.baseline_repeats)
+    print("\n1. spm-sysid identify --quiet (robot arm, paper settings, AIC, polish and "
+          "certification), whole process")
+    print(f"   spm-sysid identify   {_med(ours)}")
+    if base:
+        print(f"   DEAP + lstsq GA      {_med(base)}")
+        print(f"   ratio baseline / identify: "
+              f"{statistics.median(base) / statistics.median(ours):.1f}x")
+    print("   imports of identify (cumulative, by package):")
+    for name, sec in import_breakdown():
+        print(f"     {name:<34} {sec:6.3f} s")
+    print("   phases in a warm process:")
+    for name, sec in phase_breakdown():
+        print(f"     {name:<34} {sec:6.3f} s")
+
+    ga, polished = ga_times(a.repeats)
+    print("\n2. GA at the paper's settings, in-process (AIC, robot arm)")
+    print(f"   GA alone             {_med(ga)}")
+    print(f"   GA + polish          {_med(polished)}")
+
+    print("\n3. simulation focus, default settings (validated selection), in-process")
+    for label, sec, k in simulation_times(max(1, min(a.repeats, 3))):
+        print(f"   {label:<42} {sec:6.2f} s  ({k} terms)")
+
+    if a.large:
+        print("\n4. 454 candidates (ny=nu=6, degree 3), robot arm, SPM 0.15, seed 1: one GA run")
+        for crit, sec, k, value in large_space():
+            print(f"   {crit.upper():<4} {sec:7.1f} s  {k} terms  value {value:.2f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
