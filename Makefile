@@ -9,10 +9,14 @@ export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
 
 .PHONY: setup run identify test lint bench bench-sizes bench-node bench-dask bench-certify bench-generalise bench-speed bag experiment report clean
 
-$(STAMP): setup.py package.xml
+INTERFACES := $(wildcard interfaces/spm_sysid_interfaces/*.* interfaces/spm_sysid_interfaces/*/*)
+
+$(STAMP): setup.py package.xml interfaces/build_in_venv.py $(INTERFACES)
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[ros,test]'
+	$(BIN)/python -m pip install --quiet -e '.[ros,test,interfaces]'
+	# the messages, service and action (spm_sysid_interfaces), built with colcon into .venv
+	$(BIN)/python interfaces/build_in_venv.py
 	# compile the numeric kernels now (cached on disk), not in the first command
 	$(BIN)/spm-sysid compile
 	touch $(STAMP)

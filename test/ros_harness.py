@@ -158,3 +158,45 @@ def finish_publisher(proc, timeout=120):
     out, err = proc.communicate(timeout=timeout)
     assert proc.returncode == 0, err
     return json.loads(out.strip().splitlines()[-1])
+
+
+class IdentifyClient:
+    """An action client of ``/spm_sysid/identify`` on a harness's node."""
+
+    def __init__(self, harness: Harness, name: str = "/spm_sysid/identify"):
+        from rclpy.action import ActionClient
+        from spm_sysid_interfaces.action import Identify
+
+        self.harness, self.Identify = harness, Identify
+        self.client = ActionClient(harness.node, Identify, name)
+        assert self.client.wait_for_server(timeout_sec=30.0), f"no action server {name}"
+
+    def send(self, feedback: list | None = None, bag_path: str = "", **overrides):
+        """Send a goal; the accepted goal handle (overrides as setting=text)."""
+        goal = self.Identify.Goal(setting_names=list(overrides),
+                                  setting_values=[str(v) for v in overrides.values()],
+                                  bag_path=str(bag_path))
+        cb = None if feedback is None else (lambda m: feedback.append(m.feedback))
+        future = self.client.send_goal_async(goal, feedback_callback=cb)
+        assert self.harness.spin_until(future.done, 30), "goal not answered"
+        handle = future.result()
+        assert handle.accepted
+        return handle
+
+    def result(self, handle, timeout: float = 120.0):
+        """(status, result) of a goal."""
+        future = handle.get_result_async()
+        assert self.harness.spin_until(future.done, timeout), "no result"
+        return future.result().status, future.result().result
+
+    def get_model(self, name: str = "/spm_sysid/get_model"):
+        from spm_sysid_interfaces.srv import GetModel
+
+        client = self.harness.node.create_client(GetModel, name)
+        try:
+            assert client.wait_for_service(timeout_sec=30.0)
+            future = client.call_async(GetModel.Request())
+            assert self.harness.spin_until(future.done, 30)
+            return future.result()
+        finally:
+            self.harness.node.destroy_client(client)

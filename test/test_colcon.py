@@ -22,11 +22,36 @@ def workspace(tmp_path_factory):
     ws = tmp_path_factory.mktemp("ws")
     (ws / "src").mkdir()
     os.symlink(ROOT, ws / "src" / "spm_sysid")
-    r = subprocess.run([colcon, "build", "--build-base", str(ws / "build"),
-                        "--install-base", str(ws / "install")],
-                       cwd=ws, capture_output=True, text=True, timeout=600)
+    # the README's workspace command: both packages (colcon does not look for packages
+    # inside the spm_sysid package's folder, so both are named); the ROS wheels of the
+    # environment are the underlay, as /opt/ros/jazzy would be
+    env = dict(os.environ)
+    for var in ("AMENT_PREFIX_PATH", "CMAKE_PREFIX_PATH"):
+        env[var] = os.pathsep.join(p for p in (sys.prefix, env.get(var, "")) if p)
+    r = subprocess.run([colcon, "build", "--base-paths", "src/spm_sysid",
+                        "src/spm_sysid/interfaces", "--build-base", str(ws / "build"),
+                        "--install-base", str(ws / "install"), "--cmake-args",
+                        f"-DPython3_EXECUTABLE={sys.executable}", "-DBUILD_TESTING=OFF"],
+                       cwd=ws, capture_output=True, text=True, timeout=900, env=env)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     return ws
+
+
+def test_both_packages_are_built_and_the_interfaces_import_from_the_workspace(workspace):
+    pkg = workspace / "install" / "spm_sysid_interfaces"
+    site = next((pkg / "lib").glob("python3*/site-packages"))
+    assert (site / "spm_sysid_interfaces" / "action" / "_identify.py").exists()
+    assert list((pkg / "lib").glob("libspm_sysid_interfaces__rosidl_typesupport_fastrtps_c.so"))
+    env = dict(os.environ, PYTHONPATH=str(site),
+               LD_LIBRARY_PATH=os.pathsep.join([str(pkg / "lib"),
+                                                os.environ.get("LD_LIBRARY_PATH", "")]))
+    probe = subprocess.run(
+        [sys.executable, "-c", "import spm_sysid_interfaces.msg as m; "
+         "print(m.__file__); print(m.NarxModel.CERTIFICATION_OPTIMAL)"],
+        env=env, capture_output=True, text=True, cwd=workspace)
+    assert probe.returncode == 0, probe.stderr
+    assert probe.stdout.splitlines() == [str(site / "spm_sysid_interfaces" / "msg" /
+                                             "__init__.py"), "1"]
 
 
 def test_install_tree(workspace):

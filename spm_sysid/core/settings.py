@@ -27,7 +27,7 @@ from typing import Any
 
 from .errors import SettingsError
 
-__all__ = ["SETTINGS", "Setting", "check", "check_all", "defaults", "node_settings",
+__all__ = ["SETTINGS", "Setting", "check", "check_all", "defaults", "node_settings", "parse_text",
            "node_yaml", "settings_table"]
 
 
@@ -258,6 +258,32 @@ def check(name: str, value: Any) -> Any:
     if (s.low is not None and value < s.low) or (s.high is not None and value > s.high):
         raise SettingsError(f"{name} must be {s.describe_range()}, got {value!r} ({s.help})")
     return value
+
+
+def parse_text(setting: Setting | str, text: str) -> Any:
+    """A value written as text (an action goal's override) in the setting's type.
+
+    ``true``/``false`` for booleans, a number for numbers, the text itself for
+    text settings. The result still goes through :func:`check`.
+
+    Raises
+    ------
+    SettingsError
+        Text that is not a value of the setting's type; the message names it.
+    """
+    s = SETTINGS[setting] if isinstance(setting, str) else setting
+    word = text.strip()
+    if s.kind is str:
+        return text
+    if s.kind is bool:
+        if word.lower() in ("true", "false"):
+            return word.lower() == "true"
+        raise SettingsError(f"{s.name} must be true or false, got {text!r}")
+    try:
+        return int(word) if s.kind is int else float(word)
+    except ValueError:
+        kind = "an integer" if s.kind is int else "a number"
+        raise SettingsError(f"{s.name} must be {kind}, got {text!r}") from None
 
 
 def check_all(values: Mapping[str, Any], names: Iterable[str] | None = None) -> dict[str, Any]:

@@ -16,6 +16,8 @@ import os
 import sys
 import threading
 import time
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -25,10 +27,15 @@ from rcl_interfaces.msg import (
     ParameterDescriptor,
     SetParametersResult,
 )
+from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
+from spm_sysid_interfaces.action import Identify
+from spm_sysid_interfaces.msg import NarxModel as NarxModelMsg
+from spm_sysid_interfaces.msg import ValidationReport as ValidationReportMsg
+from spm_sysid_interfaces.srv import GetModel
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
 from std_srvs.srv import Trigger
 
@@ -39,17 +46,38 @@ from ..core.io.fields import UnsetStamps, default_field, extract, parse_path
 from ..core.job import JobSettings
 from ..core.narx.model import NarxModel
 from ..core.progress import Progress
-from ..core.record import Record
-from ..core.settings import Setting, check, node_settings
+from ..core.record import BAG_OPTIONS, DataSpec, Record, load_record
+from ..core.settings import SETTINGS, Setting, check, node_settings, parse_text
 from ..core.stream.buffer import SampleBuffer
 from ..core.stream.diagnostics import diagnostic_statuses
 from .common import LATCHED, RELIABLE_KEEP_ALL, message_class, run_node
-from .worker import JobWorker
+from .typed import feedback_message, model_message, report_message
+from .worker import JobCancelledError, JobError, JobWorker
 
 __all__ = ["LATCHED", "SysidNode", "main", "parameter_descriptor"]
 
 #: Graph checks (1 s apart) to wait for discovery to name a publisher of a wrong type.
 UNNAMED_CHECKS = 10
+
+#: The action result's error codes (``spm_sysid_interfaces/action/Identify``).
+Code = Identify.Result
+
+
+class TooFewSamplesError(ValueError):
+    """The buffer holds fewer paired samples than ``min_samples``."""
+
+
+class SaveFailedError(RuntimeError):
+    """The model could not be saved to ``model_path`` (so nothing was published)."""
+
+
+@dataclass
+class Outcome:
+    """How an identification ended: an error code of :data:`Code`, the answer, the job."""
+
+    code: int
+    message: str
+    result: Any = None
 
 
 def parameter_descriptor(s: Setting) -> ParameterDescriptor:
@@ -106,7 +134,15 @@ class SysidNode(Node):
         self.coef_pub = self.create_publisher(Float64MultiArray, "~/coefficients", LATCHED)
         self.resid_pub = self.create_publisher(Float64MultiArray, "~/residuals", LATCHED)
         self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.narx_pub = self.create_publisher(NarxModelMsg, "~/narx_model", LATCHED)
+        self.report_pub = self.create_publisher(ValidationReportMsg, "~/validation", LATCHED)
         self.create_service(Trigger, "~/identify", self._on_identify, callback_group=services)
+        self.create_service(GetModel, "~/get_model", self._on_get_model,
+                            callback_group=services)
+        # the action shares the Trigger's name (actions live in their own namespace)
+        self.action = ActionServer(self, Identify, "~/identify", self._execute_goal,
+                                   goal_callback=self._on_goal,
+                                   cancel_callback=self._on_cancel, callback_group=services)
         self.create_service(Trigger, "~/clear", self._on_clear, callback_group=services)
         self.create_timer(p["diagnostics_period"], self._publish_diagnostics)
         self.create_timer(1.0, self._check_graph)
@@ -117,6 +153,11 @@ class SysidNode(Node):
         self._started: float | None = None
         self._progress: Progress | None = None
         self._model: dict | None = None  # the last model document published
+        self._model_msg: NarxModelMsg | None = None
+        self._report_msg: ValidationReportMsg | None = None
+        self._goal = None  # the action goal being executed
+        self._feedback = None  # its feedback sender
+        self._cancel_requested = False
         self._restored_from: str | None = None
         self._last_error: str | None = None
         self._field_errors = 0
@@ -270,50 +311,180 @@ class SysidNode(Node):
                 "with another name: --ros-args -r __node:=NAME)")
         self._namesakes = max(count - 1, 0)
 
-    # -- services ----------------------------------------------------------------------
+    # -- services and the action ----------------------------------------------------------
     def _on_clear(self, request, response):
         response.success, response.message = True, f"cleared {self.buffer.clear()} samples"
         self.get_logger().info(response.message)
         return response
 
     async def _on_identify(self, request, response):
-        if not self._busy.acquire(blocking=False):
-            response.success = False
-            response.message = (f"an identification is already running (started "
-                                f"{time.monotonic() - (self._started or time.monotonic()):.1f}"
-                                " s ago); try again when it has finished")
-            return response
-        try:
-            values, settings = self._values, self._job
-            stamps, u, y = self.buffer.snapshot()
-            if u.ndim == 2:
-                u = u[:, self._order]
-            if len(y) < values["min_samples"]:
-                response.success = False
-                response.message = (f"too few samples: {len(y)} paired samples in the buffer, "
-                                    f"at least {values['min_samples']} needed (min_samples)")
-                return response
-            record = Record.from_samples(
-                u, y, source=f"buffer of {self.get_fully_qualified_name()}", stamps_ns=stamps,
-                input_names=tuple(c.name for c in self.channels),
-                unset_stamps=self._unset.count)
-            if not self.worker.wait_ready(30.0):
-                raise RuntimeError("the worker process is not ready (see the log)")
-            self._started, self._progress = time.monotonic(), None
-            self.get_logger().info(f"identifying on {len(y)} samples ({settings.criterion},"
-                                   f" {settings.ga.generations} generations)")
-            result = await self._run_in_worker(record, settings, values)
-            self._publish_result(result, values["model_path"])
-            response.success, response.message = True, result.summary("line")
-            self.get_logger().info(f"identified: {response.message}")
-        except Exception as exc:  # any failure of the search is a refusal, not a crash
-            self._last_error = str(exc)
-            response.success, response.message = False, f"identification failed: {exc}"
-            self.get_logger().error(response.message)
-        finally:
-            self._started = None
-            self._busy.release()
+        """``~/identify`` (Trigger): the action's job, answered as a paragraph."""
+        out = await self._identify()
+        response.success = out.code in (Code.NONE, Code.DIVERGED)
+        response.message = out.message
         return response
+
+    def _on_goal(self, goal) -> GoalResponse:
+        # Every goal is accepted: a second one while one runs ends at once with BUSY and
+        # the reason, which a rejection could not carry.
+        return GoalResponse.ACCEPT
+
+    def _on_cancel(self, goal_handle) -> CancelResponse:
+        running = self._goal
+        if running is not None and bytes(goal_handle.goal_id.uuid) == bytes(
+                running.goal_id.uuid):
+            self._cancel_requested = True
+            self.worker.cancel("canceled by the client")
+            self.get_logger().info("identification canceled by the client")
+        return CancelResponse.ACCEPT
+
+    async def _execute_goal(self, goal_handle) -> Identify.Result:
+        """``~/identify`` (action): feedback while it runs; a typed result with a code."""
+        goal = goal_handle.request
+        t0 = time.monotonic()
+
+        def feedback(progress: Progress) -> None:  # the worker's reader thread
+            try:
+                goal_handle.publish_feedback(feedback_message(progress, time.monotonic() - t0))
+            except Exception:  # noqa: BLE001 - the goal ended meanwhile: nothing to tell
+                pass
+
+        out = await self._identify(list(goal.setting_names), list(goal.setting_values),
+                                   goal.bag_path, feedback=feedback, goal=goal_handle)
+        result = Identify.Result(error_code=out.code, message=out.message)
+        if out.result is not None:
+            result.model, result.report = self._model_msg, self._report_msg
+            result.document = json.dumps(self._model, allow_nan=False)
+        if out.code == Code.CANCELED and goal_handle.is_cancel_requested:
+            goal_handle.canceled()
+        elif out.code in (Code.NONE, Code.DIVERGED):
+            goal_handle.succeed()
+        else:
+            goal_handle.abort()
+        return result
+
+    def _on_get_model(self, request, response):
+        """``~/get_model``: the current model, for nodes that cannot use latched topics."""
+        if self._model is None:
+            response.available = False
+            response.message = "no model yet: call ~/identify (or set model_path)"
+            return response
+        response.available = True
+        response.model, response.report = self._model_msg, self._report_msg
+        response.document = json.dumps(self._model, allow_nan=False)
+        response.message = (f"{len(self._model['terms'])} terms"
+                            + (f", restored from {self._restored_from}"
+                               if self._restored_from else ""))
+        return response
+
+    def _override(self, names: list[str], texts: list[str]) -> tuple[dict, JobSettings]:
+        """The held values with a goal's overrides, checked by the parameters' schema."""
+        if len(names) != len(texts):
+            raise ValueError(f"{len(names)} setting_names but {len(texts)} setting_values")
+        values = dict(self._values)
+        for name, text in zip(names, texts):
+            s = SETTINGS.get(name)
+            if s is None or not s.node:
+                raise ValueError(f"unknown setting {name!r} (the node's parameters: "
+                                 "config/sysid_node.yaml)")
+            if s.read_only:
+                raise ValueError(f"{name} is set when the node starts; a goal cannot change it")
+            values[name] = check(name, parse_text(s, text))
+        return values, self._check(values)
+
+    def _load(self, values: dict, bag_path: str) -> Record:
+        """The record a job runs on: the buffer's snapshot, or a bag read like the topics."""
+        if bag_path:
+            spec = DataSpec(bag=bag_path, bag_options={k: values[k] for k in BAG_OPTIONS
+                                                        if values.get(k)})
+            return load_record(spec)
+        stamps, u, y = self.buffer.snapshot()
+        if u.ndim == 2:
+            u = u[:, self._order]
+        if len(y) < values["min_samples"]:
+            raise TooFewSamplesError(f"too few samples: {len(y)} paired samples in the buffer, "
+                                f"at least {values['min_samples']} needed (min_samples)")
+        return Record.from_samples(
+            u, y, source=f"buffer of {self.get_fully_qualified_name()}", stamps_ns=stamps,
+            input_names=tuple(c.name for c in self.channels), unset_stamps=self._unset.count)
+
+    async def _identify(self, names=(), texts=(), bag_path: str = "", *, feedback=None,
+                        goal=None) -> Outcome:
+        """One identification for the Trigger and the action: an outcome with its code."""
+        if not self._busy.acquire(blocking=False):
+            return Outcome(Code.BUSY, (
+                f"an identification is already running (started "
+                f"{time.monotonic() - (self._started or time.monotonic()):.1f} s ago); "
+                "try again when it has finished"))
+        self._goal, self._cancel_requested, self._feedback = goal, False, feedback
+        try:
+            try:
+                values, settings = (self._override(names, texts) if names or texts
+                                    else (self._values, self._job))
+            except (ValueError, TypeError) as exc:
+                return Outcome(Code.INVALID_SETTINGS, f"invalid settings: {exc}")
+            try:
+                record = self._load(values, bag_path)
+            except TooFewSamplesError as exc:
+                return Outcome(Code.TOO_FEW_SAMPLES, str(exc))
+            except (ValueError, OSError) as exc:
+                return self._failed(Code.BAD_DATA, exc)
+            if not await self._worker_ready(30.0):
+                return self._failed(Code.FAILED, RuntimeError(
+                    "the worker process is not ready (see the log)"))
+            if self._cancel_requested:
+                return Outcome(Code.CANCELED, "canceled before the search started")
+            self._started, self._progress = time.monotonic(), None
+            self.get_logger().info(f"identifying on {len(record.y)} samples "
+                                   f"({settings.criterion}, {settings.ga.generations} "
+                                   "generations)")
+            try:
+                result = await self._run_in_worker(record, settings, values)
+            except JobCancelledError as exc:
+                if self._cancel_requested:
+                    return Outcome(Code.CANCELED, "canceled by the client; the previous "
+                                   "model stays published")
+                return self._failed(Code.TIMEOUT if "job_timeout" in str(exc) else Code.FAILED,
+                                    exc)
+            except JobError as exc:
+                code = {"DataError": Code.BAD_DATA, "BagError": Code.BAD_DATA,
+                        "SettingsError": Code.INVALID_SETTINGS}.get(exc.kind, Code.FAILED)
+                if code == Code.BAD_DATA and str(exc).startswith("too few samples"):
+                    code = Code.TOO_FEW_SAMPLES
+                return self._failed(code, exc)
+            try:
+                self._publish_result(result, values["model_path"])
+            except SaveFailedError as exc:
+                return self._failed(Code.SAVE_FAILED, exc)
+            message = result.summary("line")
+            self.get_logger().info(f"identified: {message}")
+            diverged = result.report is not None and result.report.diverged_at is not None
+            return Outcome(Code.DIVERGED if diverged else Code.NONE, message, result)
+        except Exception as exc:  # noqa: BLE001 - any failure of the search is a refusal
+            return self._failed(Code.FAILED, exc)
+        finally:
+            self._started = self._goal = self._feedback = None
+            self._busy.release()
+
+    def _failed(self, code: int, exc: BaseException) -> Outcome:
+        self._last_error = str(exc)
+        message = f"identification failed: {exc}"
+        self.get_logger().error(message)
+        return Outcome(code, message)
+
+    def _worker_ready(self, timeout: float) -> Future:
+        """An awaitable: the worker process is ready (it restarts after a cancel)."""
+        ready = Future()
+
+        def wait() -> None:
+            ready.set_result(self.worker.wait_ready(timeout))
+            self._wake.trigger()
+
+        if self.worker.ready:
+            ready.set_result(True)
+        else:
+            threading.Thread(target=wait, daemon=True).start()
+        return ready
 
     def _run_in_worker(self, record, settings, values) -> Future:
         """The job in the worker process, as an awaitable rclpy Future.
@@ -336,7 +507,9 @@ class SysidNode(Node):
             if job.exception() is None:
                 done.set_result(job.result())
             else:
-                done.set_exception(RuntimeError(str(job.exception())))
+                exc = job.exception()
+                done.set_exception(exc if isinstance(exc, (JobCancelledError, JobError))
+                                   else RuntimeError(str(exc)))
             self._wake.trigger()
 
         job.add_done_callback(finished)
@@ -350,10 +523,10 @@ class SysidNode(Node):
             try:
                 atomic_write_text(model_path, json.dumps(doc, indent=2, allow_nan=False) + "\n")
             except (OSError, ValueError) as exc:
-                raise RuntimeError(f"the model could not be saved to {model_path} ({exc}); "
-                                   "nothing was published") from None
+                raise SaveFailedError(f"the model could not be saved to {model_path} ({exc}); "
+                                 "nothing was published") from None
             self.get_logger().info(f"model saved to {model_path}")
-        self._publish_model(doc)
+        self._publish_model(doc, result.residuals)
         resid = Float64MultiArray(data=[float(e) for e in result.residuals])
         resid.layout.dim = [MultiArrayDimension(label="one_step_residuals",
                                                 size=len(resid.data), stride=len(resid.data))]
@@ -361,14 +534,20 @@ class SysidNode(Node):
         self._restored_from = self._last_error = None
         self._publish_diagnostics()
 
-    def _publish_model(self, doc: dict) -> None:
+    def _publish_model(self, doc: dict, residuals=None) -> None:
+        """The model on every latched topic: JSON, coefficients, typed model and report."""
+        stamp = self.get_clock().now().to_msg()
+        model_msg = model_message(doc, stamp)  # before publishing anything: all or nothing
+        report_msg = report_message(doc, residuals, stamp)
         self.model_pub.publish(String(data=json.dumps(doc, allow_nan=False)))
         coefs = Float64MultiArray(data=[float(c) for c in doc["coefficients"]])
         coefs.layout.dim = [MultiArrayDimension(
             label="terms: " + "; ".join(doc["terms"]), size=len(doc["terms"]),
             stride=len(doc["terms"]))]
         self.coef_pub.publish(coefs)
-        self._model = doc
+        self.narx_pub.publish(model_msg)
+        self.report_pub.publish(report_msg)
+        self._model, self._model_msg, self._report_msg = doc, model_msg, report_msg
 
     def _republish_saved(self, path: str) -> None:
         """At start-up: publish the model saved by an earlier run again, latched.
@@ -393,6 +572,9 @@ class SysidNode(Node):
     def _on_progress(self, progress: Progress) -> None:  # the worker's reader thread
         self._progress = progress
         self.get_logger().info(progress.line())
+        feedback = self._feedback
+        if feedback is not None:
+            feedback(progress)
 
     def _publish_diagnostics(self) -> None:
         statuses = diagnostic_statuses(

@@ -17,7 +17,7 @@ involved, so nothing is left behind:
   error, and a new worker is started.
 
 Messages from the worker: ``("ready",)``, ``("progress", *values)``,
-``("result", value)``, ``("error", text)``.
+``("result", value)``, ``("error", text, exception class name)``.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ from collections.abc import Callable
 from concurrent.futures import Future
 from typing import Any
 
-__all__ = ["JobCancelledError", "JobWorker", "WorkerDiedError"]
+__all__ = ["JobCancelledError", "JobError", "JobWorker", "WorkerDiedError"]
 
 _HEADER = struct.Struct("!Q")
 
@@ -44,6 +44,14 @@ class WorkerDiedError(RuntimeError):
 
 class JobCancelledError(RuntimeError):
     """The job was cancelled (timeout, shutdown or a user's request)."""
+
+
+class JobError(RuntimeError):
+    """The job raised; ``kind`` is its exception's class name (e.g. ``DataError``)."""
+
+    def __init__(self, message: str, kind: str = "") -> None:
+        super().__init__(message)
+        self.kind = kind
 
 
 def _send(stream, message: Any) -> None:
@@ -115,7 +123,7 @@ class JobWorker:
         """Start ``function(*args, **kwargs, progress=...)``; a Future of its result.
 
         It fails with WorkerDiedError or JobCancelledError when the process dies or
-        the job is cancelled, and with RuntimeError(message) when the job raises.
+        the job is cancelled, and with :class:`JobError` when the job raises.
         """
         with self._lock:
             if self._job is not None:
@@ -189,7 +197,7 @@ class JobWorker:
                     if kind == "result":
                         job.set_result(message[1])
                     else:
-                        job.set_exception(RuntimeError(message[1]))
+                        job.set_exception(JobError(*message[1:3]))
         proc.wait()
         with self._lock:
             if proc is not self._proc:
@@ -259,7 +267,7 @@ def _worker_main(function: str) -> int:
             result = func(*args, **kwargs, progress=progress)
             reply = ("result", result)
         except Exception as exc:  # reported to the parent as the job's error
-            reply = ("error", str(exc) or type(exc).__name__)
+            reply = ("error", str(exc) or type(exc).__name__, type(exc).__name__)
         with lock:
             _send(out, reply)
 

@@ -191,6 +191,16 @@ class TermSpace:
             names.append("*".join(parts))
         return names
 
+    def term_factors(self, index: int) -> list[tuple[str, int, int]]:
+        """Term ``index`` as its factors ``(signal name, lag, power)``; [] for ``1``.
+
+        For readers that evaluate the model without parsing names (the typed ROS
+        message ``NarxTerm``).
+        """
+        term = self.terms[index]
+        return [(self.signal_name(self.linear[i][0]), self.linear[i][1], term.count(i))
+                for i in sorted(set(term))]
+
     def to_dict(self) -> dict:
         """Plain-data form for JSON documents (model schema version 2)."""
         one = self.n_inputs == 1

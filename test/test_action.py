@@ -1,0 +1,196 @@
+"""The typed interface over real DDS: the Identify action, GetModel, typed topics.
+
+A real sysid_node process; this test's rclpy node is the client. Goals read the
+robot-arm bag directly (``bag_path``), so no replay is needed.
+"""
+
+import json
+import math
+import re
+import time
+
+import pytest
+from action_msgs.msg import GoalStatus
+from spm_sysid_interfaces.action import Identify
+from spm_sysid_interfaces.msg import NarxModel as NarxModelMsg
+from spm_sysid_interfaces.msg import ValidationReport
+from std_msgs.msg import String
+
+from spm_sysid.core.io.bagio import write_io_bag
+from spm_sysid.core.progress import PHASES
+
+from .conftest import EQ1
+from .ros_harness import Harness, IdentifyClient, start_node, stop
+
+Code = Identify.Result
+FACTOR = re.compile(r"^(\w+)\(t(?:-(\d+))?\)(?:\^(\d+))?$")
+
+
+@pytest.fixture
+def harness(ros_env):
+    h = Harness(ros_env)
+    yield h
+    h.close()
+
+
+@pytest.fixture(scope="module")
+def arm_bag(robot_arm, tmp_path_factory):
+    u, y = robot_arm
+    return write_io_bag(tmp_path_factory.mktemp("bags") / "robot_arm", u, y)
+
+
+def factors_from_name(name: str) -> list[tuple[str, int, int]]:
+    """An independent reading of a printed term name, e.g. ``y(t-1)*u(t-2)^2``."""
+    if name == "1":
+        return []
+    out = []
+    for part in name.split("*"):
+        m = FACTOR.match(part)
+        assert m, part
+        out.append((m.group(1), int(m.group(2) or 0), int(m.group(3) or 1)))
+    return out
+
+
+def test_goal_gives_feedback_in_order_and_a_typed_result_equal_to_the_document(
+        ros_env, harness, arm_bag):
+    node = start_node(ros_env, "seed:=1")
+    try:
+        harness.wait_ready()
+        client = IdentifyClient(harness)
+        before = client.get_model()
+        assert not before.available and "no model yet" in before.message
+
+        feedback: list = []
+        handle = client.send(feedback, bag_path=arm_bag)
+        status, result = client.result(handle)
+        assert status == GoalStatus.STATUS_SUCCEEDED, result.message
+        assert result.error_code == Code.NONE
+        assert "AIC -10744.78" in result.message and "certified optimal" in result.message
+
+        # feedback: phases in the job's order, generations never going back
+        phases = [f.phase for f in feedback]
+        assert phases[0] == "checking data" and "search" in phases and phases[-1] == "validation"
+        order = [PHASES.index(p) for p in phases]
+        assert order == sorted(order)
+        gens = [f.step for f in feedback if f.phase == "search"]
+        assert gens == sorted(gens) and gens[-1] == 300
+        assert all(f.elapsed >= 0 for f in feedback)
+        assert any(f.structures_evaluated > 0 and math.isfinite(f.best_value) for f in feedback)
+
+        # the typed model is the JSON document, term by term
+        doc = json.loads(harness.latched(String, "/spm_sysid/model").data)
+        assert json.loads(result.document) == doc
+        m = result.model
+        assert [t.name for t in m.terms] == doc["terms"] == EQ1
+        assert [t.index for t in m.terms] == doc["term_indices"]
+        assert list(m.coefficients) == doc["coefficients"]
+        for term in m.terms:
+            assert [(f.signal, f.lag, f.power) for f in term.factors] == \
+                factors_from_name(term.name)
+        unc = doc["uncertainty"]
+        assert list(m.standard_errors) == unc["standard_errors"]
+        assert [[a, b] for a, b in zip(m.interval_lower, m.interval_upper)] == unc["intervals"]
+        assert m.criterion == "aic" and m.criterion_value == doc["criterion"]["value"]
+        assert m.certification == NarxModelMsg.CERTIFICATION_OPTIMAL and m.gap == 0.0
+        assert m.samples == 1024 and m.gaps == 0 and m.document_version == 3
+        assert (m.output_name, list(m.input_names), m.ny, list(m.nu), m.degree) == \
+            ("y", ["u"], 4, [4], 2)
+        val = doc["metadata"]["validation"]
+        assert m.free_run_fit_percent == pytest.approx(val["free_run"]["fit_percent"])
+        assert m.diverged == (val["diverged_at"] is not None)
+
+        r = result.report
+        assert [t.name for t in r.correlation_tests] == [
+            t["name"] for t in val["correlation_tests"]]
+        assert [t.passed for t in r.correlation_tests] == [
+            t["passed"] for t in val["correlation_tests"]]
+        assert r.one_step.fit_percent == pytest.approx(val["one_step"]["fit_percent"])
+        assert r.residual_count == val["n_samples"] - 4
+        assert r.residual_rms == pytest.approx(val["one_step"]["rmse"], rel=1e-9)
+
+        # the same model latched on the typed topics and from GetModel
+        latched = harness.latched(NarxModelMsg, "/spm_sysid/narx_model")
+        assert list(latched.coefficients) == doc["coefficients"]
+        report = harness.latched(ValidationReport, "/spm_sysid/validation")
+        assert report.n_samples == val["n_samples"]
+        after = client.get_model()
+        assert after.available and json.loads(after.document) == doc
+        assert list(after.model.coefficients) == doc["coefficients"]
+
+        # the Trigger service keeps working beside the action (the old contract)
+        res = harness.call("/spm_sysid/identify")
+        assert not res.success and "too few samples: 0 paired samples" in res.message
+    finally:
+        stop(node)
+
+
+def test_cancel_stops_a_long_search_and_keeps_the_model_a_second_goal_is_busy(
+        ros_env, harness, arm_bag):
+    node = start_node(ros_env, "seed:=1")
+    try:
+        harness.wait_ready()
+        client = IdentifyClient(harness)
+        status, first = client.result(client.send(bag_path=arm_bag, generations=20))
+        assert status == GoalStatus.STATUS_SUCCEEDED, first.message
+        doc = json.loads(harness.latched(String, "/spm_sysid/model").data)
+
+        feedback: list = []
+        long_goal = client.send(feedback, bag_path=arm_bag, generations=100000)
+        assert harness.spin_until(lambda: any(f.phase == "search" and f.step > 0
+                                              for f in feedback), 60)
+        # a second goal and a Trigger call while it runs: BUSY, with the reason
+        status, busy = client.result(client.send(bag_path=arm_bag), 30)
+        assert status == GoalStatus.STATUS_ABORTED and busy.error_code == Code.BUSY
+        assert "already running" in busy.message
+        assert "already running" in harness.call("/spm_sysid/identify").message
+
+        cancel = long_goal.cancel_goal_async()
+        t0 = time.monotonic()
+        assert harness.spin_until(cancel.done, 10)
+        status, canceled = client.result(long_goal, 30)
+        waited = time.monotonic() - t0
+        assert status == GoalStatus.STATUS_CANCELED and canceled.error_code == Code.CANCELED
+        assert "previous model stays published" in canceled.message
+        assert waited < 5.0  # well under a second here; generous for loaded machines
+        assert len(canceled.model.terms) == 0
+
+        # the previous model is still the published one, on every topic and from GetModel
+        assert json.loads(harness.latched(String, "/spm_sysid/model").data) == doc
+        assert list(harness.latched(NarxModelMsg, "/spm_sysid/narx_model").coefficients) == \
+            doc["coefficients"]
+        assert json.loads(client.get_model().document) == doc
+        # and the node goes on: the next goal runs on a fresh worker
+        status, again = client.result(client.send(bag_path=arm_bag, generations=20), 60)
+        assert status == GoalStatus.STATUS_SUCCEEDED and again.error_code == Code.NONE
+    finally:
+        stop(node)
+
+
+def test_bad_goals_end_with_a_code_and_the_reason(ros_env, harness, tmp_path):
+    node = start_node(ros_env)
+    try:
+        harness.wait_ready()
+        client = IdentifyClient(harness)
+        cases = [
+            ({"criterion": "xyz"}, "", Code.INVALID_SETTINGS, "unknown criterion 'xyz'"),
+            ({"generations": "many"}, "", Code.INVALID_SETTINGS,
+             "generations must be an integer"),
+            ({"input_topic": "/other"}, "", Code.INVALID_SETTINGS,
+             "input_topic is set when the node starts"),
+            ({"no_such_setting": "1"}, "", Code.INVALID_SETTINGS, "unknown setting"),
+            ({}, "", Code.TOO_FEW_SAMPLES, "too few samples: 0 paired samples"),
+            ({}, tmp_path / "missing.mcap", Code.BAD_DATA, "missing.mcap"),
+        ]
+        for overrides, bag, code, words in cases:
+            status, result = client.result(client.send(bag_path=bag, **overrides), 30)
+            assert status == GoalStatus.STATUS_ABORTED, (overrides, result.message)
+            assert result.error_code == code, (overrides, result.message)
+            assert words in result.message, (overrides, result.message)
+        assert not client.get_model().available  # nothing was published
+        # a goal's override is checked by the parameters' schema: the same reason
+        refused = harness.set_parameters("/spm_sysid", criterion="xyz")[0]
+        assert not refused.successful
+        status, result = client.result(client.send(criterion="xyz"), 30)
+        assert result.message == f"invalid settings: {refused.reason}"
+    finally:
+        stop(node)
