@@ -7,6 +7,9 @@ robot-arm bag directly (``bag_path``), so no replay is needed.
 import json
 import math
 import re
+import signal
+import subprocess
+import sys
 import time
 
 import pytest
@@ -19,7 +22,7 @@ from std_msgs.msg import String
 from spm_sysid.core.io.bagio import write_io_bag
 from spm_sysid.core.progress import PHASES
 
-from .conftest import EQ1
+from .conftest import EQ1, ROOT
 from .ros_harness import Harness, IdentifyClient, start_node, stop
 
 Code = Identify.Result
@@ -192,5 +195,53 @@ def test_bad_goals_end_with_a_code_and_the_reason(ros_env, harness, tmp_path):
         assert not refused.successful
         status, result = client.result(client.send(criterion="xyz"), 30)
         assert result.message == f"invalid settings: {refused.reason}"
+    finally:
+        stop(node)
+
+
+def test_call_identify_uses_the_action_and_ctrl_c_cancels_the_goal(ros_env, harness, arm_bag):
+    """``spm-sysid call identify`` as the README writes it: progress, then the answer."""
+    node = start_node(ros_env, "seed:=1")
+    call = [sys.executable, "-m", "spm_sysid.apps.main", "call", "identify"]
+    try:
+        harness.wait_ready()
+        r = subprocess.run(call + ["--bag", str(arm_bag), "--show-model"], capture_output=True,
+                           text=True, env=ros_env, timeout=120, cwd=ROOT)
+        assert r.returncode == 0, r.stderr
+        assert r.stdout.startswith("success: y(t) = 3.158y(t-1) - 4.439y(t-2)")
+        doc = json.loads(r.stdout.split("\n", 1)[1])
+        assert doc["terms"] == EQ1
+        progress = r.stderr.splitlines()  # not a terminal: a line per phase
+        assert progress[0].startswith("checking data: 0") and any(
+            p.startswith("search: ") for p in progress)
+
+        # the example client of examples/, as its docstring says to run it
+        r = subprocess.run([sys.executable, "examples/identify_action_client.py", str(arm_bag),
+                            "generations=300"], capture_output=True, text=True, env=ros_env,
+                           timeout=120, cwd=ROOT)
+        assert r.returncode == 0, r.stderr
+        lines = r.stdout.splitlines()
+        assert lines[0].startswith("AIC -10744.78, 8 terms, free-run fit")
+        assert "y(t-1)" in lines[1] and "= y[t-1]^1" in lines[1] and "(+- " in lines[1]
+        assert "phase" not in r.stdout and "search: step" in r.stderr  # feedback logged
+
+        r = subprocess.run(call + ["--set", "criterion=xyz"], capture_output=True, text=True,
+                           env=ros_env, timeout=60, cwd=ROOT)
+        assert r.returncode == 1
+        assert r.stderr.strip().endswith("refused (INVALID_SETTINGS): invalid settings: "
+                                         "unknown criterion 'xyz'; choose one of ['aic', "
+                                         "'aicc', 'bic', 'pmic2'] or pass a callable "
+                                         "f(sse, n, k, coefficients)")
+
+        proc = subprocess.Popen(call + ["--bag", str(arm_bag), "--set", "generations=100000"],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                env=ros_env, cwd=ROOT)
+        first = proc.stderr.readline()  # the first feedback line: the goal runs
+        assert first.startswith("checking data"), first
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=30)
+        assert proc.returncode == 130, err
+        assert "canceled: canceled by the client" in err and out == ""
+        assert json.loads(harness.latched(String, "/spm_sysid/model").data)["terms"] == EQ1
     finally:
         stop(node)

@@ -355,4 +355,9 @@ def test_call_errors_go_to_stderr(ros_env):
                         "--timeout", "1"], capture_output=True, text=True, env=ros_env,
                        timeout=60, cwd=ROOT)
     assert r.returncode == 2 and r.stdout == ""
+    assert r.stderr.startswith("error: action /spm_sysid/identify is not available")
+    r = subprocess.run([sys.executable, "-m", "spm_sysid.apps.main", "call", "identify",
+                        "--trigger", "--timeout", "1"], capture_output=True, text=True,
+                       env=ros_env, timeout=60, cwd=ROOT)
+    assert r.returncode == 2 and r.stdout == ""
     assert r.stderr.startswith("error: service /spm_sysid/identify is not available")

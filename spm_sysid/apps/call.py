@@ -1,8 +1,11 @@
-"""Calling the node's services without the ``ros2`` command line.
+"""Calling the node without the ``ros2`` command line.
 
-``spm-sysid call identify`` / ``spm-sysid call clear`` use :func:`call_trigger`;
-another rclpy node can do the same with its own client (see
-``examples/identify_from_node.py``).
+``spm-sysid call identify`` sends a goal to the node's ``~/identify`` action
+(:func:`identify_goal`): a progress line from its feedback, Ctrl-C cancels the
+goal, the typed result's code decides the exit status. ``spm-sysid call clear``
+and ``call identify --trigger`` use the ``std_srvs/Trigger`` services
+(:func:`call_trigger`). Another rclpy node can do the same with its own client
+(``examples/identify_action_client.py``, ``examples/identify_from_node.py``).
 """
 
 from __future__ import annotations
@@ -18,7 +21,11 @@ from std_srvs.srv import Trigger
 
 from ..ros.common import LATCHED
 
-__all__ = ["call_trigger", "main", "set_parameters", "wait_for_model"]
+__all__ = ["GoalOutcome", "call_trigger", "identify_goal", "main", "set_parameters",
+           "wait_for_model"]
+
+#: Seconds to wait for a canceled goal's result after Ctrl-C.
+CANCEL_WAIT = 10.0
 
 
 def set_parameters(node: Node, target: str, timeout: float = 10.0, **values) -> None:
@@ -74,6 +81,99 @@ def call_trigger(node: Node, service: str, timeout: float = 300.0) -> tuple[bool
         node.destroy_client(client)
 
 
+class GoalOutcome:
+    """How a goal ended: ``status`` (action_msgs GoalStatus), ``result`` (Identify.Result)."""
+
+    def __init__(self, status: int, result, interrupted: bool = False) -> None:
+        self.status, self.result, self.interrupted = status, result, interrupted
+
+
+def identify_goal(node: Node, action: str, overrides: dict[str, str] | None = None,
+                  bag_path: str = "", timeout: float = 300.0,
+                  on_feedback=None) -> GoalOutcome:
+    """Send an ``Identify`` goal and wait for its result.
+
+    Ctrl-C (KeyboardInterrupt) while waiting cancels the goal and waits up to
+    :data:`CANCEL_WAIT` seconds for the canceled result. ``overrides`` are
+    settings as text (``{"criterion": "bic"}``), checked by the node.
+
+    Raises
+    ------
+    TimeoutError
+        No action server, no answer to the goal, or no result within ``timeout``.
+    """
+    from rclpy.action import ActionClient
+    from spm_sysid_interfaces.action import Identify
+
+    overrides = overrides or {}
+    client = ActionClient(node, Identify, action)
+    try:
+        deadline = time.monotonic() + timeout
+        if not client.wait_for_server(timeout_sec=min(timeout, 30.0)):
+            raise TimeoutError(f"action {action} is not available (is sysid_node running, "
+                               "with the same ROS_DOMAIN_ID?)")
+        goal = Identify.Goal(setting_names=list(overrides),
+                             setting_values=[str(v) for v in overrides.values()],
+                             bag_path=bag_path)
+        sent = client.send_goal_async(
+            goal, feedback_callback=None if on_feedback is None
+            else (lambda m: on_feedback(m.feedback)))
+        rclpy.spin_until_future_complete(node, sent, timeout_sec=min(timeout, 30.0))
+        if not sent.done() or not sent.result().accepted:
+            raise TimeoutError(f"{action} did not accept the goal")
+        handle = sent.result()
+        result = handle.get_result_async()
+        interrupted = False
+        try:
+            rclpy.spin_until_future_complete(
+                node, result, timeout_sec=max(0.1, deadline - time.monotonic()))
+        except KeyboardInterrupt:
+            interrupted = True
+            cancel = handle.cancel_goal_async()
+            rclpy.spin_until_future_complete(node, cancel, timeout_sec=CANCEL_WAIT)
+            rclpy.spin_until_future_complete(node, result, timeout_sec=CANCEL_WAIT)
+        if not result.done():
+            if not interrupted:
+                handle.cancel_goal_async()  # do not leave a search running for nobody
+                rclpy.spin_once(node, timeout_sec=0.5)
+            raise TimeoutError(f"no result from {action} within "
+                               f"{CANCEL_WAIT if interrupted else timeout:.0f} s")
+        return GoalOutcome(result.result().status, result.result().result, interrupted)
+    finally:
+        client.destroy()
+
+
+class FeedbackLine:
+    """The feedback as one progress line (redrawn on a terminal, a line per phase else)."""
+
+    def __init__(self, stream=sys.stderr) -> None:
+        self.stream, self.tty = stream, stream.isatty()
+        self.phase, self.last = None, 0.0
+
+    def __call__(self, fb) -> None:
+        now = time.monotonic()
+        if not self.tty and fb.phase == self.phase and now - self.last < 5.0:
+            return
+        of = f"/{fb.total}" if fb.total else ""
+        text = f"{fb.phase}: {fb.step}{of}"
+        if fb.best_value == fb.best_value:  # not NaN
+            text += f", best {fb.best_value:.2f}"
+        if fb.gap == fb.gap:
+            text += f", gap {fb.gap:.2f}"
+        text += f", {fb.structures_evaluated} structures, {fb.elapsed:.1f} s"
+        if self.tty:
+            self.stream.write("\r\x1b[K" + text)
+        else:
+            self.stream.write(text + "\n")
+        self.stream.flush()
+        self.phase, self.last = fb.phase, now
+
+    def end(self) -> None:
+        if self.tty and self.phase is not None:
+            self.stream.write("\r\x1b[K")
+            self.stream.flush()
+
+
 def wait_for_model(node: Node, topic: str, timeout: float = 10.0) -> dict | None:
     """The latest model document on a latched ``~/model`` topic, or None."""
     got: list[dict] = []
@@ -89,8 +189,13 @@ def wait_for_model(node: Node, topic: str, timeout: float = 10.0) -> dict | None
 
 
 def main(action: str, node_name: str = "/spm_sysid", timeout: float = 300.0,
-         show_model: bool = False) -> int:
-    """Entry of ``spm-sysid call``; prints the answer, returns an exit status."""
+         show_model: bool = False, overrides: dict[str, str] | None = None,
+         bag_path: str = "", trigger: bool = False, quiet: bool = False) -> int:
+    """Entry of ``spm-sysid call``; prints the answer, returns an exit status.
+
+    0: identified (or cleared); 1: the node refused or the search failed; 2: no
+    node or no answer; 130: canceled with Ctrl-C.
+    """
     from rclpy.exceptions import NameValidationException
     from rclpy.validate_full_topic_name import validate_full_topic_name
 
@@ -102,17 +207,27 @@ def main(action: str, node_name: str = "/spm_sysid", timeout: float = 300.0,
         print(f"error: --node {node_name!r} is not a valid ROS node name ({reason})",
               file=sys.stderr)
         return 2
+    if (overrides or bag_path) and (trigger or action != "identify"):
+        print("error: --set and --bag need the action (call identify without --trigger)",
+              file=sys.stderr)
+        return 2
     node_name = name
-    rclpy.init()
+    from rclpy.signals import SignalHandlerOptions
+
+    # Ctrl-C must reach us as KeyboardInterrupt (to cancel the goal), not shut ROS down
+    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
     node = Node("spm_sysid_call")
     try:
-        ok, message = call_trigger(node, f"{node_name.rstrip('/')}/{action}", timeout)
+        if action == "identify" and not trigger:
+            return _identify(node, f"{node_name}/identify", timeout, show_model,
+                             overrides or {}, bag_path, quiet)
+        ok, message = call_trigger(node, f"{node_name}/{action}", timeout)
         if ok:
             print("success: " + message)
         else:
             print("refused: " + message, file=sys.stderr)
         if ok and action == "identify" and show_model:
-            doc = wait_for_model(node, f"{node_name.rstrip('/')}/model")
+            doc = wait_for_model(node, f"{node_name}/model")
             if doc is not None:
                 print(json.dumps(doc, indent=2))
         return 0 if ok else 1
@@ -122,3 +237,28 @@ def main(action: str, node_name: str = "/spm_sysid", timeout: float = 300.0,
     finally:
         node.destroy_node()
         rclpy.shutdown()
+
+
+def _identify(node: Node, action: str, timeout: float, show_model: bool,
+              overrides: dict[str, str], bag_path: str, quiet: bool) -> int:
+    from spm_sysid_interfaces.action import Identify
+
+    line = None if quiet else FeedbackLine()
+    try:
+        out = identify_goal(node, action, overrides, bag_path, timeout, on_feedback=line)
+    finally:
+        if line is not None:
+            line.end()
+    r = out.result
+    code = next((k for k, v in vars(Identify.Result).items()
+                 if k.isupper() and v == r.error_code), str(r.error_code))
+    if r.error_code in (Identify.Result.NONE, Identify.Result.DIVERGED):
+        print("success: " + r.message)
+        if show_model:
+            print(json.dumps(json.loads(r.document), indent=2))
+        return 0
+    if r.error_code == Identify.Result.CANCELED:
+        print(f"canceled: {r.message}", file=sys.stderr)
+        return 130 if out.interrupted else 1
+    print(f"refused ({code}): {r.message}", file=sys.stderr)
+    return 1

@@ -20,20 +20,36 @@ def _cmd_call(args) -> int:
         from .call import main as call_main
     except ImportError as exc:
         raise UserError(f"`call` needs ROS 2 (rclpy): {exc}") from None
+    overrides = {}
+    for item in args.set or []:
+        name, sep, value = item.partition("=")
+        if not sep or not name.strip():
+            raise UserError(f"--set {item!r}: write NAME=VALUE, e.g. --set criterion=bic")
+        overrides[name.strip()] = value
     return call_main(args.action, node_name=args.node, timeout=args.timeout,
-                     show_model=args.show_model)
+                     show_model=args.show_model, overrides=overrides, bag_path=args.bag or "",
+                     trigger=args.trigger, quiet=args.quiet)
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``spm-sysid``."""
     parser = build_parser()
     sub = next(a for a in parser._actions if a.dest == "command")  # argparse's subparsers
-    p = sub.add_parser("call", help="call the sysid node's identify or clear service")
+    p = sub.add_parser("call", help="ask a running sysid node to identify (its action: "
+                       "progress, Ctrl-C cancels) or to clear its buffer")
     p.add_argument("action", choices=("identify", "clear"))
     p.add_argument("--node", default="/spm_sysid", help="node name (default /spm_sysid)")
     p.add_argument("--timeout", type=float, default=300.0, help="seconds to wait")
     p.add_argument("--show-model", action="store_true",
-                   help="print the published model document after identify")
+                   help="print the model document after identify")
+    p.add_argument("--set", action="append", metavar="NAME=VALUE",
+                   help="override a setting for this identification only (repeatable), "
+                   "e.g. --set criterion=bic --set generations=100")
+    p.add_argument("--bag", help="identify on this bag (read by the node with its topics) "
+                   "instead of the node's buffer")
+    p.add_argument("--trigger", action="store_true",
+                   help="use the std_srvs/Trigger service ~/identify instead of the action")
+    p.add_argument("--quiet", action="store_true", help="no progress line")
     p.set_defaults(func=_cmd_call)
     from ..bench.commands import add_parsers as add_bench_parsers
 
