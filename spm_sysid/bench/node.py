@@ -7,6 +7,8 @@
    round trip and the search's own time.
 3. Memory: the node's resident memory empty and with a full buffer of
    ``--capacity`` pairs.
+4. The Identify action: goal-to-result round trip at the paper's settings, and
+   cancel latency (cancel request sent to the CANCELED result) of a long search.
 
 Prints figures; asserts nothing. ROS traffic stays on this machine.
 """
@@ -104,11 +106,55 @@ def run(args) -> None:
               f"AIC): median service round trip {statistics.median(rounds):.3f} s, median "
               f"identify+validate in the worker {statistics.median(searches):.3f} s "
               f"({args.repeats} calls)")
+        # 4. the action: round trip, and cancel latency during a long search
+        from ..apps.call import identify_goal
+
+        goals = []
+        for _ in range(args.repeats):
+            t0 = time.perf_counter()
+            out = identify_goal(client, "/spm_sysid/identify", timeout=300)
+            goals.append(time.perf_counter() - t0)
+            if out.result.error_code != 0:
+                raise RuntimeError(out.result.message)
+        cancels = [_cancel_latency(client) for _ in range(args.repeats)]
+        print(f"identify action: median goal-to-result {statistics.median(goals):.3f} s; "
+              f"cancel during a search: median {statistics.median(cancels):.3f} s, max "
+              f"{max(cancels):.3f} s from the cancel request to the CANCELED result "
+              f"({args.repeats} goals each)")
     finally:
         node.send_signal(2)
         node.wait(20)
         client.destroy_node()
         rclpy.shutdown()
+
+
+def _cancel_latency(client) -> float:
+    """Seconds from a cancel request to the CANCELED result of a running search."""
+    import rclpy
+    from rclpy.action import ActionClient
+    from spm_sysid_interfaces.action import Identify
+
+    action = ActionClient(client, Identify, "/spm_sysid/identify")
+    try:
+        action.wait_for_server(timeout_sec=30)
+        searching = []
+        sent = action.send_goal_async(
+            Identify.Goal(setting_names=["generations"], setting_values=["100000"]),
+            feedback_callback=lambda m: searching.append(m.feedback.phase == "search"
+                                                         and m.feedback.step >= 25))
+        rclpy.spin_until_future_complete(client, sent, timeout_sec=30)
+        handle = sent.result()
+        while not any(searching):
+            rclpy.spin_once(client, timeout_sec=0.1)
+        result = handle.get_result_async()
+        t0 = time.perf_counter()
+        handle.cancel_goal_async()
+        rclpy.spin_until_future_complete(client, result, timeout_sec=30)
+        if result.result().result.error_code != Identify.Result.CANCELED:
+            raise RuntimeError("the goal was not canceled: " + result.result().result.message)
+        return time.perf_counter() - t0
+    finally:
+        action.destroy()
 
 
 def main(argv: list[str] | None = None) -> int:
