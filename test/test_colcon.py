@@ -25,19 +25,18 @@ def workspace(tmp_path_factory):
     # the README's workspace command: both packages (colcon does not look for packages
     # inside the spm_sysid package's folder, so both are named); the ROS wheels of the
     # environment are the underlay, as /opt/ros/jazzy would be
-    env = dict(os.environ)
-    for var in ("AMENT_PREFIX_PATH", "CMAKE_PREFIX_PATH"):
-        env[var] = os.pathsep.join(p for p in (sys.prefix, env.get(var, "")) if p)
+    # (the README's lines for the wheels: the environment activated, both prefixes set)
+    env = dict(os.environ, VIRTUAL_ENV=sys.prefix, AMENT_PREFIX_PATH=sys.prefix,
+               CMAKE_PREFIX_PATH=sys.prefix)
+    env["PATH"] = os.pathsep.join([os.path.join(sys.prefix, "bin"), env.get("PATH", "")])
     r = subprocess.run([colcon, "build", "--base-paths", "src/spm_sysid",
-                        "src/spm_sysid/interfaces", "--build-base", str(ws / "build"),
-                        "--install-base", str(ws / "install"), "--cmake-args",
-                        f"-DPython3_EXECUTABLE={sys.executable}", "-DBUILD_TESTING=OFF"],
+                        "src/spm_sysid/interfaces"],
                        cwd=ws, capture_output=True, text=True, timeout=900, env=env)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     return ws
 
 
-def test_both_packages_are_built_and_the_interfaces_import_from_the_workspace(workspace):
+def _interfaces_import_from_the_workspace(workspace):
     pkg = workspace / "install" / "spm_sysid_interfaces"
     site = next((pkg / "lib").glob("python3*/site-packages"))
     assert (site / "spm_sysid_interfaces" / "action" / "_identify.py").exists()
@@ -54,7 +53,7 @@ def test_both_packages_are_built_and_the_interfaces_import_from_the_workspace(wo
                                              "__init__.py"), "1"]
 
 
-def test_install_tree(workspace):
+def _install_tree(workspace):
     pkg = workspace / "install" / "spm_sysid"
     for exe in ("sysid_node", "bag_player"):
         path = pkg / "lib" / "spm_sysid" / exe
@@ -66,7 +65,7 @@ def test_install_tree(workspace):
     assert site.exists()
 
 
-def test_installed_node_offers_its_service(workspace, ros_env):
+def _installed_node_offers_its_service(workspace, ros_env):
     pkg = workspace / "install" / "spm_sysid"
     site = next((pkg / "lib").glob("python3*/site-packages"))
     env = dict(ros_env)
@@ -87,3 +86,11 @@ def test_installed_node_offers_its_service(workspace, ros_env):
     finally:
         harness.close()
         stop(node)
+
+
+def test_the_readme_workspace_build_installs_both_packages_and_the_node_runs(workspace,
+                                                                           ros_env):
+    """One test, so the workspace (about a minute of CMake) is built once per suite."""
+    _interfaces_import_from_the_workspace(workspace)
+    _install_tree(workspace)
+    _installed_node_offers_its_service(workspace, ros_env)
