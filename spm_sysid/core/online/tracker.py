@@ -1,0 +1,121 @@
+"""Recursive least squares on a model's structure: coefficients that follow the robot.
+
+:class:`RecursiveTracker` starts from the identified coefficients and their
+covariance and updates both with each sample (exponential forgetting, factor
+``forgetting``; memory about 1 / (1 - forgetting) samples). Safeguards:
+
+* **No wind-up when the input is quiet.** Forgetting inflates the covariance
+  in every direction, also those the data do not excite; with a constant input
+  that grows without bound and the next excitation throws the coefficients
+  about. The tracker therefore updates only while the input excites: the
+  input's standard deviation over the last ``quiet_window`` samples must be
+  at least ``quiet_fraction`` of the identification's. Otherwise it is frozen
+  (coefficients and covariance kept; counted in ``frozen``).
+* **Bounded covariance.** Its trace is kept at most ``max_trace_factor``
+  times the identification's; it is symmetrised after every update, and an
+  update that would make it lose positive definiteness (a non-positive
+  denominator) is skipped.
+
+The coefficients' covariance is ``sigma2 * P`` with ``sigma2`` the
+forgetting-weighted mean of the squared prediction errors.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+import numpy as np
+
+__all__ = ["RecursiveTracker"]
+
+
+class RecursiveTracker:
+    """Exponentially weighted recursive least squares on a fixed structure.
+
+    Parameters
+    ----------
+    coefficients : ndarray, shape (k,)
+        The identified coefficients (the start).
+    covariance : ndarray, shape (k, k), optional
+        Their covariance (``sigma2 * (X'X)^-1``); without it a diffuse start.
+    sigma2 : float
+        The identification's residual variance.
+    input_std : float
+        The identification input's standard deviation (for the quiet check).
+    forgetting : float
+        Forgetting factor in (0, 1].
+    rows : int
+        Regression rows of the identification: its information is discounted
+        to the tracker's memory (P scaled by ``rows * (1 - forgetting)`` when
+        that exceeds 1), so tracking starts at its steady-state pace instead
+        of trusting 2 000 old rows as if they were recent.
+    """
+
+    def __init__(self, coefficients: np.ndarray, covariance: np.ndarray | None, sigma2: float,
+                 input_std: float, forgetting: float = 0.995, quiet_window: int = 50,
+                 quiet_fraction: float = 0.05, max_trace_factor: float = 1e4,
+                 rows: int = 0) -> None:
+        if not 0.0 < forgetting <= 1.0:
+            raise ValueError(f"forgetting must be in (0, 1], got {forgetting}")
+        self.theta = np.asarray(coefficients, dtype=float).copy()
+        k = len(self.theta)
+        self.sigma2 = float(sigma2) if sigma2 > 0 else 1.0
+        if covariance is not None:
+            P = np.asarray(covariance, dtype=float) / self.sigma2
+            P = P * max(1.0, rows * (1.0 - forgetting))
+        else:
+            P = np.eye(k) * 1e3
+        self.P = 0.5 * (P + P.T)
+        self.max_trace = max_trace_factor * float(np.trace(self.P))
+        self.lam = float(forgetting)
+        self.input_std = float(input_std)
+        self.quiet_fraction = quiet_fraction
+        self._u = deque(maxlen=int(quiet_window))
+        self.updates = self.frozen = self.skipped = 0
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """Covariance of the tracked coefficients (``sigma2 * P``)."""
+        return self.sigma2 * self.P
+
+    @property
+    def standard_errors(self) -> np.ndarray:
+        return np.sqrt(np.maximum(np.diag(self.covariance), 0.0))
+
+    def quiet(self) -> bool:
+        """The input has barely moved over the last ``quiet_window`` samples."""
+        if len(self._u) < self._u.maxlen:
+            return False
+        u = np.asarray(self._u)
+        spread = float(np.max(np.std(u, axis=0))) if u.ndim > 1 else float(np.std(u))
+        return spread < self.quiet_fraction * self.input_std
+
+    def update(self, phi: np.ndarray, y: float, u=None) -> bool:
+        """One sample: regressors ``phi`` (the model's terms), output ``y``, input ``u``.
+
+        Returns True when the coefficients were updated (False: frozen or skipped).
+        """
+        if u is not None:
+            self._u.append(u)
+        if self.quiet():
+            self.frozen += 1
+            return False
+        e = y - float(phi @ self.theta)
+        Pphi = self.P @ phi
+        denom = self.lam + float(phi @ Pphi)
+        if not denom > 0 or not np.isfinite(denom) or not np.isfinite(e):
+            self.skipped += 1
+            return False
+        gain = Pphi / denom
+        self.theta += gain * e
+        P = (self.P - np.outer(gain, Pphi)) / self.lam
+        P = 0.5 * (P + P.T)
+        trace = float(np.trace(P))
+        if trace > self.max_trace:
+            P *= self.max_trace / trace
+        self.P = P
+        # forgetting-weighted error variance (a posteriori error of this sample)
+        post = y - float(phi @ self.theta)
+        self.sigma2 = self.lam * self.sigma2 + (1 - self.lam) * e * post
+        self.updates += 1
+        return True
