@@ -209,6 +209,35 @@ _LIST = [
        "stopped (0: no limit)", "node", low=0.0, high=1e6, cli=False),
     _s("model_path", str, "", "save each model's JSON document here and publish it again "
        "at start-up (empty: don't)", "node", cli=False),
+    # -- online: prediction, validity monitor, tracking, re-identification ----------------
+    _s("monitor", bool, True, "with a current model, predict each paired sample one step "
+       "ahead (~/prediction) and monitor the model's validity (~/validity)", "online",
+       cli=False),
+    _s("monitor_window", int, 200, "samples of the monitor's residual RMS and whiteness "
+       "window", "online", low=20, high=100_000, cli=False),
+    _s("prediction_every", int, 1, "publish every n-th prediction on ~/prediction (all are "
+       "monitored)", "online", low=1, high=100_000, cli=False),
+    _s("tracking", bool, False, "track the coefficients by recursive least squares and "
+       "publish them on ~/tracked_model (never replacing the identified model)", "online",
+       cli=False),
+    _s("forgetting", float, 0.995, "forgetting factor of the tracking (memory about "
+       "1/(1-forgetting) samples)", "online", low=0.9, high=1.0, cli=False),
+    _s("tracking_period", float, 1.0, "seconds between ~/tracked_model messages", "online",
+       low=0.05, high=3600.0, cli=False, read_only=True),
+    _s("reidentify", str, "off", "automatic re-identification: off, when_invalid (on the "
+       "data since the detected change) or periodic (every reidentify_interval on recent "
+       "data); a new model replaces the current one only when it predicts the held-out "
+       "recent samples better", "online", choices=("off", "when_invalid", "periodic"),
+       cli=False),
+    _s("reidentify_interval", float, 60.0, "fewest seconds between automatic "
+       "identifications (the period with reidentify periodic)", "online", low=1.0,
+       high=1e7, cli=False),
+    _s("reidentify_samples", int, 500, "fewest new samples (since the change, or the last "
+       "model) for an automatic identification", "online", low=50, high=10_000_000,
+       cli=False),
+    _s("reidentify_holdout", float, 0.25, "share of those samples (the most recent) held "
+       "out to compare the new model with the current one", "online", low=0.05, high=0.5,
+       cli=False),
 ]
 
 #: Every setting by name, in documentation order.

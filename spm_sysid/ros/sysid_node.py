@@ -12,6 +12,7 @@ docs/ros_interface.md.
 from __future__ import annotations
 
 import json
+import math
 import os
 import sys
 import threading
@@ -34,6 +35,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.task import Future
 from spm_sysid_interfaces.action import Identify
 from spm_sysid_interfaces.msg import NarxModel as NarxModelMsg
+from spm_sysid_interfaces.msg import Prediction, Validity
 from spm_sysid_interfaces.msg import ValidationReport as ValidationReportMsg
 from spm_sysid_interfaces.srv import GetModel
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
@@ -45,13 +47,21 @@ from ..core.io.channels import parse_channels, stream_order, topic_streams
 from ..core.io.fields import UnsetStamps, default_field, extract, parse_path
 from ..core.job import JobSettings
 from ..core.narx.model import NarxModel
+from ..core.online.session import OnlineSession
 from ..core.progress import Progress
 from ..core.record import BAG_OPTIONS, DataSpec, Record, load_record
 from ..core.settings import SETTINGS, Setting, check, node_settings, parse_text
 from ..core.stream.buffer import SampleBuffer
-from ..core.stream.diagnostics import diagnostic_statuses
+from ..core.stream.diagnostics import diagnostic_statuses, online_status
 from .common import LATCHED, RELIABLE_KEEP_ALL, message_class, run_node
-from .typed import feedback_message, model_message, report_message
+from .typed import (
+    feedback_message,
+    model_message,
+    prediction_message,
+    report_message,
+    tracked_message,
+    validity_message,
+)
 from .worker import JobCancelledError, JobError, JobWorker
 
 __all__ = ["LATCHED", "SysidNode", "main", "parameter_descriptor"]
@@ -135,6 +145,15 @@ class SysidNode(Node):
         self.resid_pub = self.create_publisher(Float64MultiArray, "~/residuals", LATCHED)
         self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.narx_pub = self.create_publisher(NarxModelMsg, "~/narx_model", LATCHED)
+        # online: each paired sample predicted and monitored with the current model
+        self.pred_pub = self.create_publisher(Prediction, "~/prediction", QoSProfile(
+            history=HistoryPolicy.KEEP_LAST, depth=100,
+            reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE))
+        self.validity_pub = self.create_publisher(Validity, "~/validity", LATCHED)
+        self.tracked_pub = self.create_publisher(NarxModelMsg, "~/tracked_model", LATCHED)
+        self.buffer.on_pair = self._on_pair
+        self.create_timer(p["tracking_period"], self._publish_tracked)
+        self.create_timer(1.0, self._online_tick)
         self.report_pub = self.create_publisher(ValidationReportMsg, "~/validation", LATCHED)
         self.create_service(Trigger, "~/identify", self._on_identify, callback_group=services)
         self.create_service(GetModel, "~/get_model", self._on_get_model,
@@ -158,6 +177,14 @@ class SysidNode(Node):
         self._goal = None  # the action goal being executed
         self._feedback = None  # its feedback sender
         self._cancel_requested = False
+        self._online: OnlineSession | None = None
+        self._online_errors = 0
+        self._predictions = 0
+        self._auto = {"runs": 0, "replaced": 0, "kept": 0, "failed": 0, "last": ""}
+        self._auto_running = False
+        self._auto_last = -math.inf  # monotonic time of the last automatic start
+        self._model_time = time.monotonic()
+        self._last_stamp: int | None = None
         self._restored_from: str | None = None
         self._last_error: str | None = None
         self._field_errors = 0
@@ -191,7 +218,7 @@ class SysidNode(Node):
 
     def _check(self, values: dict) -> JobSettings:
         for s in node_settings():  # the job's own settings are checked by JobSettings
-            if s.group == "node":
+            if s.group in ("node", "online"):
                 check(s.name, values[s.name])
         if values["model_path"]:
             check_writable_file(values["model_path"], "model_path")
@@ -409,8 +436,18 @@ class SysidNode(Node):
             input_names=tuple(c.name for c in self.channels), unset_stamps=self._unset.count)
 
     async def _identify(self, names=(), texts=(), bag_path: str = "", *, feedback=None,
-                        goal=None) -> Outcome:
-        """One identification for the Trigger and the action: an outcome with its code."""
+                        goal=None, record: Record | None = None,
+                        auto: bool = False) -> Outcome:
+        """One identification for the Trigger, the action and the automatic runs.
+
+        An outcome with its code. ``record`` (automatic runs): these samples
+        instead of the buffer; ``auto``: the result is returned, not published
+        (the caller compares it with the current model). A manual request
+        preempts a running automatic one.
+        """
+        if not auto and self._auto_running:
+            self.worker.cancel("preempted by a manual identification")
+            await self._until(lambda: not self._busy.locked(), 10.0)
         if not self._busy.acquire(blocking=False):
             return Outcome(Code.BUSY, (
                 f"an identification is already running (started "
@@ -424,7 +461,7 @@ class SysidNode(Node):
             except (ValueError, TypeError) as exc:
                 return Outcome(Code.INVALID_SETTINGS, f"invalid settings: {exc}")
             try:
-                record = self._load(values, bag_path)
+                record = record if record is not None else self._load(values, bag_path)
             except TooFewSamplesError as exc:
                 return Outcome(Code.TOO_FEW_SAMPLES, str(exc))
             except (ValueError, OSError) as exc:
@@ -452,6 +489,8 @@ class SysidNode(Node):
                 if code == Code.BAD_DATA and str(exc).startswith("too few samples"):
                     code = Code.TOO_FEW_SAMPLES
                 return self._failed(code, exc)
+            if auto:
+                return Outcome(Code.NONE, result.summary("line"), result)
             try:
                 self._publish_result(result, values["model_path"])
             except SaveFailedError as exc:
@@ -471,6 +510,20 @@ class SysidNode(Node):
         message = f"identification failed: {exc}"
         self.get_logger().error(message)
         return Outcome(code, message)
+
+    def _until(self, predicate, timeout: float) -> Future:
+        """An awaitable: ``predicate()`` became true (or ``timeout`` seconds passed)."""
+        done = Future()
+
+        def wait() -> None:
+            end = time.monotonic() + timeout
+            while not predicate() and time.monotonic() < end:
+                time.sleep(0.02)
+            done.set_result(predicate())
+            self._wake.trigger()
+
+        threading.Thread(target=wait, daemon=True).start()
+        return done
 
     def _worker_ready(self, timeout: float) -> Future:
         """An awaitable: the worker process is ready (it restarts after a cancel)."""
@@ -548,6 +601,7 @@ class SysidNode(Node):
         self.narx_pub.publish(model_msg)
         self.report_pub.publish(report_msg)
         self._model, self._model_msg, self._report_msg = doc, model_msg, report_msg
+        self._start_online(doc, residuals)
 
     def _republish_saved(self, path: str) -> None:
         """At start-up: publish the model saved by an earlier run again, latched.
@@ -568,6 +622,144 @@ class SysidNode(Node):
         self.get_logger().info(f"published the model saved in {path} "
                                f"({len(doc['terms'])} terms) again")
 
+    # -- online: prediction, validity, tracking, re-identification -----------------------
+    def _start_online(self, doc: dict, residuals=None) -> None:
+        """A new current model: a fresh session (its monitor starts VALID)."""
+        v = self._values
+        self._model_time = time.monotonic()
+        if not v["monitor"]:
+            self._online = None
+            return
+        try:
+            model = NarxModel.from_dict(doc)
+            self._online = OnlineSession(
+                model, residuals, monitor_window=v["monitor_window"], tracking=v["tracking"],
+                forgetting=v["forgetting"], sample_period=v["sample_period"],
+                gap_factor=v["gap_factor"], input_std=None)
+        except (ValueError, TypeError) as exc:  # e.g. a restored model without uncertainty
+            self._online = None
+            self.get_logger().warning(f"the model cannot be monitored online ({exc})")
+            return
+        self.validity_pub.publish(validity_message(self._online, self._last_stamp))
+
+    def _on_pair(self, stamp: int, u: np.ndarray, y: float) -> None:
+        """Each new aligned sample (the buffer calls this): predict, monitor, track."""
+        self._last_stamp = stamp
+        session = self._online
+        if session is None:
+            return
+        u = u[self._order] if len(u) > 1 else u[0]
+        try:
+            sample = session.feed(stamp, u, y)
+        except Exception as exc:  # noqa: BLE001 - counted and reported, recording goes on
+            self._online_errors += 1
+            if self._online_errors == 1:
+                self.get_logger().error(f"online prediction failed ({exc}); counted in "
+                                        "/diagnostics (online_errors)")
+            return
+        if sample is None:
+            return
+        self._predictions += 1
+        if self._predictions % self._values["prediction_every"] == 0:
+            self.pred_pub.publish(prediction_message(sample))
+        if sample.changed:
+            st = sample.state
+            log = self.get_logger().info if st.state == "VALID" else \
+                self.get_logger().warning
+            log(f"model validity: {st.state}" + (f" ({st.reason})" if st.reason else ""))
+            self.validity_pub.publish(validity_message(session, stamp))
+            if st.state == "INVALID":
+                self._maybe_reidentify()
+
+    def _publish_tracked(self) -> None:
+        session = self._online
+        if session is None or session.tracker is None or self._model is None:
+            return
+        stamp = self.get_clock().now().to_msg()
+        self.tracked_pub.publish(tracked_message(self._model, session.tracker, stamp))
+
+    def _online_tick(self) -> None:
+        """Every second: validity statistics, and the re-identification policy."""
+        self.validity_pub.publish(validity_message(self._online, self._last_stamp))
+        self._maybe_reidentify()
+
+    def _maybe_reidentify(self) -> None:
+        """Start an automatic identification when the policy says so (and it can run)."""
+        v, session = self._values, self._online
+        policy = v["reidentify"]
+        if policy == "off" or session is None or self._busy.locked() or self._auto_running:
+            return
+        now = time.monotonic()
+        if now - max(self._auto_last, self._model_time if policy == "periodic"
+                     else -math.inf) < v["reidentify_interval"]:
+            return
+        if policy == "when_invalid":
+            if session.state.state != "INVALID":
+                return
+            since = session.change_stamp()
+            why = "the model became INVALID"
+        else:
+            since, why = None, "periodic"
+        stamps, u, y = self.buffer.snapshot()
+        if u.ndim == 2:
+            u = u[:, self._order]
+        keep = np.ones(len(y), bool) if since is None else stamps >= since
+        if policy == "periodic":  # the recent samples: the last reidentify_samples * 4
+            keep[:max(len(y) - 4 * v["reidentify_samples"], 0)] = False
+        if int(keep.sum()) < v["reidentify_samples"]:
+            return  # not enough new samples yet; checked again every second
+        self._auto_last, self._auto_running = now, True
+        self.executor.create_task(self._auto_identify, stamps[keep], u[keep], y[keep], why)
+
+    async def _auto_identify(self, stamps, u, y, why: str) -> None:
+        """An automatic identification, compared with the current model.
+
+        The new model replaces the current one only when it predicts the held-out
+        recent samples better (one-step MSE).
+        """
+        v = self._values
+        hold = max(int(round(len(y) * v["reidentify_holdout"])), 20)
+        fit = slice(0, len(y) - hold)
+        self._auto["runs"] += 1
+        self.get_logger().info(f"automatic identification {self._auto['runs']} ({why}) on "
+                               f"{len(y) - hold} samples, {hold} held out")
+        try:
+            record = Record.from_samples(
+                u[fit], y[fit], source=f"buffer of {self.get_fully_qualified_name()} "
+                f"(automatic: {why})", stamps_ns=stamps[fit],
+                input_names=tuple(c.name for c in self.channels))
+            out = await self._identify(record=record, auto=True)
+        finally:
+            self._auto_running = False
+        current = None if self._online is None else self._online.model
+        if out.result is None or current is None:
+            self._auto["failed"] += 1
+            self._auto["last"] = f"failed: {out.message}"
+            self.get_logger().warning(f"automatic identification failed: {out.message}")
+            return
+        new_mse = held_out_mse(out.result.model, u[-hold:], y[-hold:])
+        old_mse = held_out_mse(current, u[-hold:], y[-hold:])
+        if new_mse < old_mse:
+            try:
+                self._publish_result(out.result, v["model_path"])
+            except SaveFailedError as exc:
+                self._auto["failed"] += 1
+                self._auto["last"] = f"failed: {exc}"
+                self.get_logger().error(str(exc))
+                return
+            self._auto["replaced"] += 1
+            self._auto["last"] = (f"replaced: held-out one-step MSE {new_mse:.4g} < "
+                                  f"{old_mse:.4g}")
+            self.get_logger().warning(f"automatic identification replaced the model "
+                                      f"(held-out one-step MSE {new_mse:.4g} vs {old_mse:.4g}"
+                                      f"): {out.message}")
+        else:
+            self._auto["kept"] += 1
+            self._auto["last"] = f"kept: held-out one-step MSE {new_mse:.4g} >= {old_mse:.4g}"
+            self.get_logger().info(f"automatic identification kept the current model (held-"
+                                   f"out one-step MSE {new_mse:.4g} vs {old_mse:.4g})")
+        self._publish_diagnostics()
+
     # -- progress and diagnostics ------------------------------------------------------------
     def _on_progress(self, progress: Progress) -> None:  # the worker's reader thread
         self._progress = progress
@@ -587,6 +779,8 @@ class SysidNode(Node):
                 self._progress or Progress("checking data"), time.monotonic() - self._started),
             last_error=self._last_error, model=self._model,
             restored_from=self._restored_from)
+        statuses.append(online_status(self.get_fully_qualified_name(), self._online,
+                                      {**self._auto, "online_errors": self._online_errors}))
         msg = DiagnosticArray(status=[DiagnosticStatus(
             level=bytes([s.level]), name=s.name, message=s.message, hardware_id="spm_sysid",
             values=[KeyValue(key=k, value=v) for k, v in s.values.items()])
@@ -597,6 +791,15 @@ class SysidNode(Node):
     def close(self) -> None:
         """Stop the worker process (a running search is killed)."""
         self.worker.close()
+
+
+def held_out_mse(model: NarxModel, u: np.ndarray, y: np.ndarray) -> float:
+    """One-step MSE of ``model`` on held-out samples (inf when it cannot predict them)."""
+    try:
+        e = model.residuals(u, y)
+    except (ValueError, IndexError):
+        return math.inf
+    return float(np.mean(e * e)) if len(e) and np.all(np.isfinite(e)) else math.inf
 
 
 def main(args: list[str] | None = None) -> int:

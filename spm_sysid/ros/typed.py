@@ -21,14 +21,17 @@ from spm_sysid_interfaces.msg import (
     FitMetrics,
     NarxModel,
     NarxTerm,
+    Prediction,
     TermFactor,
     ValidationReport,
+    Validity,
 )
 
 from ..core.narx.terms import TermSpace
 from ..core.progress import Progress
 
-__all__ = ["feedback_message", "model_message", "report_message"]
+__all__ = ["feedback_message", "model_message", "prediction_message", "report_message",
+           "tracked_message", "validity_message"]
 
 NAN = math.nan
 _CERTIFICATION = {"optimal": NarxModel.CERTIFICATION_OPTIMAL,
@@ -173,3 +176,53 @@ def feedback_message(progress: Progress, elapsed: float) -> Identify.Feedback:
         total=max(int(progress.total), 0), best_value=float(progress.best),
         structures_evaluated=max(int(progress.evaluations), 0),
         lower_bound=float(progress.bound), gap=float(progress.gap), elapsed=float(elapsed))
+
+
+def _time(stamp_ns: int):
+    from builtin_interfaces.msg import Time
+
+    return Time(sec=int(stamp_ns // 1_000_000_000), nanosec=int(stamp_ns % 1_000_000_000))
+
+
+def prediction_message(sample, tracked: bool = False) -> Prediction:
+    """``Prediction`` of one :class:`~spm_sysid.core.online.session.OnlineSample`."""
+    msg = Prediction(measured=sample.measured, predicted=sample.predicted,
+                     residual=sample.residual, normalized_residual=sample.normalized,
+                     tracked=tracked)
+    msg.header.stamp = _time(sample.stamp_ns)
+    return msg
+
+
+def validity_message(session, stamp_ns: int | None = None) -> Validity:
+    """``Validity`` of the node's online session (NO_MODEL when there is none)."""
+    msg = Validity(rms_ratio=NAN, whiteness_p=NAN, cusum_mean=NAN, cusum_variance=NAN)
+    if stamp_ns is not None:
+        msg.header.stamp = _time(stamp_ns)
+    if session is None:
+        msg.state, msg.state_name, msg.reason = Validity.NO_MODEL, "NO_MODEL", "no model"
+        return msg
+    st = session.state
+    msg.state = getattr(Validity, st.state)
+    msg.state_name, msg.reason, msg.samples = st.state, st.reason, st.samples
+    msg.rms_ratio, msg.whiteness_p = st.rms_ratio, st.whiteness_p
+    msg.cusum_mean, msg.cusum_variance = st.cusum_mean, st.cusum_variance
+    change = session.change_stamp()
+    msg.change_detected = change is not None
+    if change is not None:
+        msg.change_stamp = _time(change)
+    msg.gaps, msg.transitions = session.gaps, len(session.transitions)
+    return msg
+
+
+def tracked_message(doc: Mapping, tracker, stamp=None) -> NarxModel:
+    """The identified model with the tracker's coefficients and covariance, marked tracked."""
+    msg = model_message(doc, stamp)
+    msg.coefficients = [float(c) for c in tracker.theta]
+    se = tracker.standard_errors
+    msg.uncertainty_method = "recursive least squares"
+    msg.confidence_level = 0.95
+    msg.standard_errors = [float(v) for v in se]
+    msg.interval_lower = [float(c - 1.96 * e) for c, e in zip(tracker.theta, se)]
+    msg.interval_upper = [float(c + 1.96 * e) for c, e in zip(tracker.theta, se)]
+    msg.tracked, msg.tracked_updates = True, int(tracker.updates)
+    return msg

@@ -26,7 +26,10 @@ from collections import deque
 
 import numpy as np
 
-__all__ = ["RecursiveTracker"]
+__all__ = ["LEARN_INPUT", "RecursiveTracker"]
+
+#: Inputs whose spread sets the quiet threshold when the identification's is not given.
+LEARN_INPUT = 500
 
 
 class RecursiveTracker:
@@ -40,8 +43,10 @@ class RecursiveTracker:
         Their covariance (``sigma2 * (X'X)^-1``); without it a diffuse start.
     sigma2 : float
         The identification's residual variance.
-    input_std : float
-        The identification input's standard deviation (for the quiet check).
+    input_std : float or None
+        The identification input's standard deviation (for the quiet check);
+        None: the standard deviation of the first :data:`LEARN_INPUT` inputs the
+        tracker sees (never quiet before).
     forgetting : float
         Forgetting factor in (0, 1].
     rows : int
@@ -52,7 +57,7 @@ class RecursiveTracker:
     """
 
     def __init__(self, coefficients: np.ndarray, covariance: np.ndarray | None, sigma2: float,
-                 input_std: float, forgetting: float = 0.995, quiet_window: int = 50,
+                 input_std: float | None, forgetting: float = 0.995, quiet_window: int = 50,
                  quiet_fraction: float = 0.05, max_trace_factor: float = 1e4,
                  rows: int = 0) -> None:
         if not 0.0 < forgetting <= 1.0:
@@ -68,7 +73,8 @@ class RecursiveTracker:
         self.P = 0.5 * (P + P.T)
         self.max_trace = max_trace_factor * float(np.trace(self.P))
         self.lam = float(forgetting)
-        self.input_std = float(input_std)
+        self.input_std = None if input_std is None or not input_std > 0 else float(input_std)
+        self._first: list = []
         self.quiet_fraction = quiet_fraction
         self._u = deque(maxlen=int(quiet_window))
         self.updates = self.frozen = self.skipped = 0
@@ -84,7 +90,7 @@ class RecursiveTracker:
 
     def quiet(self) -> bool:
         """The input has barely moved over the last ``quiet_window`` samples."""
-        if len(self._u) < self._u.maxlen:
+        if self.input_std is None or len(self._u) < self._u.maxlen:
             return False
         u = np.asarray(self._u)
         spread = float(np.max(np.std(u, axis=0))) if u.ndim > 1 else float(np.std(u))
@@ -97,6 +103,12 @@ class RecursiveTracker:
         """
         if u is not None:
             self._u.append(u)
+            if self.input_std is None:
+                self._first.append(u)
+                if len(self._first) >= LEARN_INPUT:
+                    first = np.asarray(self._first, dtype=float)
+                    self.input_std = float(np.max(np.std(first, axis=0))) or 1.0
+                    self._first = []
         if self.quiet():
             self.frozen += 1
             return False

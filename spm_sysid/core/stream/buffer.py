@@ -132,6 +132,10 @@ class SampleBuffer:
         self._pending: list[deque] = [deque() for _ in range(n)]
         self._last: list[int | None] = [None] * n
         self.stats = BufferStats(capacity=self.capacity)
+        #: called as ``on_pair(stamp_ns, u, y)`` for each new aligned sample (``u`` in
+        #: stream order), after the buffer's lock is released (online prediction)
+        self.on_pair = None
+        self._paired: list[tuple[int, np.ndarray, float]] = []
 
     def __len__(self) -> int:
         return self._size
@@ -151,6 +155,14 @@ class SampleBuffer:
         return self._add(0, int(stamp_ns), value)
 
     def _add(self, stream: int, stamp: int, value) -> bool:
+        accepted = self._add_locked(stream, stamp, value)
+        if self._paired:  # outside the lock: the callback may take its time
+            pairs, self._paired = self._paired, []
+            for pair in pairs:
+                self.on_pair(*pair)
+        return accepted
+
+    def _add_locked(self, stream: int, stamp: int, value) -> bool:
         values = ((float(value),) if isinstance(value, (int, float))
                   else tuple(float(v) for v in np.ravel(value)))
         if len(values) != self._widths[stream]:
@@ -247,6 +259,8 @@ class SampleBuffer:
             self.stats.dropped_oldest += 1
         i = (self._start + self._size) % self.capacity
         self._stamps[i], self._u[i], self._y[i] = stamp, u, y
+        if self.on_pair is not None:
+            self._paired.append((int(stamp), self._u[i].copy(), float(y)))
         self._size += 1
         self.stats.paired += 1
         self.stats.samples = self._size

@@ -143,3 +143,26 @@ def diagnostic_statuses(name: str, stats: dict, *, field_errors: int = 0,
                 ("inside the 95 % band" if t["passed"] else "outside the 95 % band")
                 + f" ({t['fraction_inside']:.0%} of lags inside)", _values(t)))
     return statuses
+
+
+def online_status(name: str, session, auto: dict) -> Status:
+    """The ``model validity`` status: the monitor's state, its statistics, the counts.
+
+    ``session`` is the node's :class:`~spm_sysid.core.online.session.OnlineSession`
+    (None without a model, or with ``monitor`` off); ``auto`` counts the
+    automatic re-identifications (``runs``, ``replaced``, ``kept``, ``failed``,
+    ``last``).
+    """
+    values = {f"reidentify_{k}": v for k, v in auto.items()}
+    if session is None:
+        return Status(0, f"{name}: model validity", "no model monitored", _values(values))
+    st = session.state
+    level = {"VALID": 0, "DEGRADED": 1, "INVALID": 2}[st.state]
+    change = session.change_stamp()
+    values.update(session.stats())
+    values.update({"state": st.state, "rms_ratio": st.rms_ratio,
+                   "whiteness_p": st.whiteness_p, "cusum_mean": st.cusum_mean,
+                   "cusum_variance": st.cusum_variance,
+                   "change_stamp_ns": "" if change is None else change})
+    message = st.state if not st.reason else f"{st.state}: {st.reason}"
+    return Status(level, f"{name}: model validity", message, _values(values))

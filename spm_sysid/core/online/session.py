@@ -1,0 +1,157 @@
+"""One model on a live stream: prediction, monitor and tracker fed sample by sample.
+
+:class:`OnlineSession` is what the node holds for its current model. Each
+paired sample (stamp, inputs, output) goes to :meth:`OnlineSession.feed`,
+which returns the one-step prediction, the residual and the monitor's state.
+Gaps are found from the stamps as offline (a stamp that goes back, or a step
+longer than ``gap_factor`` sample periods): prediction restarts after
+``max_lag`` samples and the monitor's whitening filter restarts, so no
+prediction uses samples across a gap. Everything is counted
+(:meth:`OnlineSession.stats`).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..narx.model import NarxModel
+from .monitor import MonitorState, ValidityMonitor
+from .predictor import OnlinePredictor
+from .tracker import RecursiveTracker
+
+__all__ = ["OnlineSample", "OnlineSession"]
+
+#: Stamps kept to date a detected change (older changes get the oldest kept).
+STAMP_MEMORY = 100_000
+
+
+@dataclass(frozen=True)
+class OnlineSample:
+    """The result of one sample: prediction, residual, the monitor's state."""
+
+    stamp_ns: int
+    measured: float
+    predicted: float
+    residual: float
+    normalized: float  # residual over the identification's residual RMS
+    state: MonitorState | None
+    changed: bool  # the state differs from the previous sample's
+
+
+class OnlineSession:
+    """Prediction, monitoring and (optionally) tracking of one model.
+
+    Parameters
+    ----------
+    model : NarxModel
+    residuals : ndarray or None
+        The identification's one-step residuals (monitor reference). Without
+        them (a model restored from a file) the document's one-step RMS is
+        used and the residuals are taken as white.
+    monitor_window : int
+    tracking : bool
+        Run the recursive tracker (needs the model's coefficient covariance).
+    forgetting : float
+    sample_period : float
+        Seconds; 0: estimated from the stamps (median step of the first 50).
+    gap_factor : float
+    """
+
+    def __init__(self, model: NarxModel, residuals: np.ndarray | None = None, *,
+                 monitor_window: int = 200, tracking: bool = False,
+                 forgetting: float = 0.995, sample_period: float = 0.0,
+                 gap_factor: float = 1.5, input_std: float = 1.0) -> None:
+        self.model = model
+        self.predictor = OnlinePredictor(model)
+        if residuals is None or len(residuals) < 2:
+            rms = math.sqrt(model.mse) if model.mse else 1.0
+            residuals = np.array([rms, -rms])  # RMS only; no whitening
+        residuals = np.asarray(residuals, dtype=float)
+        self.sigma = float(np.sqrt(np.mean(residuals ** 2))) or 1.0
+        self.monitor = ValidityMonitor(residuals, window=monitor_window)
+        self.tracker = None
+        if tracking:
+            unc = model.uncertainty
+            rows = max((model.n_samples or 0) - model.term_space.max_lag, 0)
+            self.tracker = RecursiveTracker(
+                model.coefficients, None if unc is None else unc.covariance,
+                unc.sigma2 if unc is not None else self.sigma ** 2, input_std,
+                forgetting=forgetting, rows=rows)
+        self.period_ns = int(sample_period * 1e9)
+        self.gap_factor = gap_factor
+        self._steps: list[int] = []
+        self._last: int | None = None
+        self._stamps: deque[int] = deque(maxlen=STAMP_MEMORY)  # of monitor updates
+        self._state = "VALID"
+        self.transitions: list[tuple[int, str, str]] = []  # (stamp, from, to)
+        self.samples = self.predictions = self.gaps = 0
+        self.seconds = 0.0  # time spent in feed
+
+    # -- the stream ------------------------------------------------------------------
+    def _gap(self, stamp: int) -> bool:
+        last, self._last = self._last, stamp
+        if last is None:
+            return False
+        step = stamp - last
+        if step <= 0:
+            return True
+        if not self.period_ns:
+            self._steps.append(step)
+            if len(self._steps) < 50:
+                return False
+            self.period_ns = int(np.median(self._steps))
+        return step > self.gap_factor * self.period_ns
+
+    def feed(self, stamp_ns: int, u, y: float) -> OnlineSample | None:
+        """One paired sample; None while the history is too short for a prediction."""
+        t0 = time.perf_counter()
+        self.samples += 1
+        if self._gap(stamp_ns):
+            self.gaps += 1
+            self.predictor.reset()
+            self.monitor.gap()
+        out = self.predictor.step(u, y)
+        if out is None:
+            self.seconds += time.perf_counter() - t0
+            return None
+        yhat, phi = out
+        e = y - yhat
+        state = self.monitor.update(e)
+        self._stamps.append(stamp_ns)
+        if self.tracker is not None:
+            self.tracker.update(phi, y, u)
+        changed = state.state != self._state
+        if changed:
+            self.transitions.append((stamp_ns, self._state, state.state))
+            self._state = state.state
+        self.predictions += 1
+        self.seconds += time.perf_counter() - t0
+        return OnlineSample(stamp_ns, float(y), yhat, e, e / self.sigma, state, changed)
+
+    # -- what it knows ---------------------------------------------------------------
+    @property
+    def state(self) -> MonitorState:
+        return self.monitor.state()
+
+    def change_stamp(self) -> int | None:
+        """Stamp where the detected change began (None without one)."""
+        at = self.monitor.state().change_index
+        if at < 0 or not self._stamps:
+            return None
+        offset = self.monitor.n - len(self._stamps)  # monitor updates before the kept stamps
+        return self._stamps[max(at - offset, 0)] if at - offset < len(self._stamps) else \
+            self._stamps[-1]
+
+    def stats(self) -> dict:
+        """Counters for diagnostics."""
+        return {"samples": self.samples, "predictions": self.predictions, "gaps": self.gaps,
+                "transitions": len(self.transitions),
+                "microseconds_per_sample": (1e6 * self.seconds / self.samples
+                                            if self.samples else math.nan),
+                "tracker_updates": self.tracker.updates if self.tracker else 0,
+                "tracker_frozen": self.tracker.frozen if self.tracker else 0}

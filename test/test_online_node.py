@@ -1,0 +1,153 @@
+"""The node online, over real DDS: live prediction, validity, tracking, re-identification.
+
+A real sysid_node; samples come from the signal publisher (a stand-in for a
+robot driver) at a fixed rate with index stamps that continue from pass to
+pass, like a robot that keeps running.
+"""
+
+import json
+
+import numpy as np
+import pytest
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: F401 - the harness subscribes
+from spm_sysid_interfaces.msg import NarxModel as NarxModelMsg
+from spm_sysid_interfaces.msg import Prediction, Validity
+from std_msgs.msg import String
+
+from .conftest import EQ1
+from .ros_harness import Harness, finish_publisher, publisher, start_node, stop
+from .test_online import system
+
+RATE = 1000.0
+
+
+@pytest.fixture
+def harness(ros_env):
+    h = Harness(ros_env)
+    yield h
+    h.close()
+
+
+def write(path, u, y):
+    np.savetxt(path, np.column_stack([u, y]))
+    return path
+
+
+class Stream:
+    """Passes of samples with stamps that continue (index stamps at RATE)."""
+
+    def __init__(self, env):
+        self.env, self.start = env, 0
+
+    def send(self, path, n):
+        finish_publisher(publisher(self.env, RATE, n, "--data", path, "--stamps", "index",
+                                   "--start-ns", self.start))
+        self.start += int(n * 1e9 / RATE)
+
+
+def latest(harness, msg_type, topic, predicate, timeout=30.0):
+    got = []
+    sub = harness.node.create_subscription(msg_type, topic, got.append, 10)
+    try:
+        harness.spin_until(lambda: any(predicate(m) for m in got), timeout)
+        return next((m for m in reversed(got) if predicate(m)), None), got
+    finally:
+        harness.node.destroy_subscription(sub)
+
+
+def test_prediction_and_validity_on_the_robot_arm_again_and_scaled(
+        ros_env, harness, robot_arm, tmp_path):
+    u, y = robot_arm
+    arm = write(tmp_path / "arm.dat", u, y)
+    scaled = write(tmp_path / "scaled.dat", 1.5 * u, 1.5 * y)
+    node = start_node(ros_env, "seed:=1")
+    try:
+        harness.wait_ready()
+        stream = Stream(ros_env)
+        stream.send(arm, len(y))
+        harness.wait_buffer(lambda kv: int(kv["samples"]) >= len(y))
+        res = harness.call("/spm_sysid/identify")
+        assert res.success and "8 terms" in res.message
+        v = harness.latched(Validity, "/spm_sysid/validity")
+        assert v.state == Validity.VALID and v.samples == 0
+
+        # the same data again: predictions equal the model's, the model stays valid
+        predictions = []
+        sub = harness.node.create_subscription(Prediction, "/spm_sysid/prediction",
+                                               predictions.append, 2000)
+        stream.send(arm, len(y))
+        harness.spin_until(lambda: len(predictions) >= len(y) - 4, 30)
+        harness.node.destroy_subscription(sub)
+        assert len(predictions) == len(y) - 4  # the first 4 only fill the lags
+        doc = json.loads(harness.latched(String, "/spm_sysid/model").data)
+        assert doc["terms"] == EQ1
+        from spm_sysid.core.narx.model import NarxModel
+
+        expected = NarxModel.from_dict(doc).predict(u, y)
+        got = np.array([p.predicted for p in predictions])
+        assert np.allclose(got, expected, rtol=1e-9, atol=1e-12)
+        assert all(p.residual == pytest.approx(p.measured - p.predicted) for p in predictions)
+        assert predictions[0].header.stamp.sec == 1  # stamped with the sample (t = 1.004 s)
+        v, _ = latest(harness, Validity, "/spm_sysid/validity",
+                      lambda m: m.samples >= len(y) - 4)
+        assert v is not None and v.state != Validity.INVALID, v.reason
+
+        # scaled by 1.5: a change, INVALID within the pass, in /diagnostics too
+        stream.send(scaled, len(y))
+        v, _ = latest(harness, Validity, "/spm_sysid/validity",
+                      lambda m: m.state == Validity.INVALID)
+        assert v is not None and v.change_detected and "change detected" in v.reason
+        change = v.change_stamp.sec + v.change_stamp.nanosec * 1e-9
+        assert 2.0 <= change <= 2.0 + 0.2 + len(y) / RATE  # in the scaled pass (from 2.048 s)
+        assert harness.spin_until(lambda: harness.statuses().get(
+            "model validity", (0,))[0] == 2, 10)
+        assert harness.statuses()["model validity"][2]["state"] == "INVALID"
+    finally:
+        stop(node)
+
+
+def test_a_change_is_reidentified_and_a_worse_model_never_replaces_the_current_one(
+        ros_env, harness, tmp_path):
+    u0, y0 = system(2000, seed=1)
+    u1, y1 = system(3000, seed=2, change_at=0, kind="term")  # the changed system
+    before = write(tmp_path / "before.dat", u0, y0)
+    after = write(tmp_path / "after.dat", u1[100:], y1[100:])
+    node = start_node(ros_env, "seed:=0", "ny:=2", "nu:=2", "criterion:=bic",
+                      "reidentify:=when_invalid", "reidentify_interval:=1.0",
+                      "reidentify_samples:=1000", "tracking:=true", "tracking_period:=0.2")
+    try:
+        harness.wait_ready()
+        stream = Stream(ros_env)
+        stream.send(before, len(y0))
+        harness.wait_buffer(lambda kv: int(kv["samples"]) >= len(y0))
+        res = harness.call("/spm_sysid/identify")
+        assert res.success, res.message
+        first = json.loads(harness.latched(String, "/spm_sysid/model").data)
+        assert "u(t-1)^2" not in first["terms"]
+        tracked = harness.latched(NarxModelMsg, "/spm_sysid/tracked_model")
+        assert tracked.tracked and [t.name for t in tracked.terms] == first["terms"]
+
+        stream.send(after, len(y1) - 100)
+        # INVALID, then an automatic identification on the data since the change
+        assert harness.spin_until(lambda: harness.statuses().get("model validity", (0, "", {}))
+                                  [2].get("reidentify_replaced") == "1", 60), \
+            harness.statuses().get("model validity")
+        model = json.loads(harness.latched(String, "/spm_sysid/model").data)
+        assert "u(t-1)^2" in model["terms"]  # the new structure
+        assert "automatic" in model["metadata"]["data"].get("source", "") or \
+            "automatic" in json.dumps(model["metadata"])
+        v, _ = latest(harness, Validity, "/spm_sysid/validity", lambda m: True, 5)
+        assert v.state != Validity.INVALID  # a new model: monitored afresh
+
+        # periodic with a crippled space: the new model is worse and is not taken
+        results = harness.set_parameters("/spm_sysid", reidentify="periodic", ny=1, nu=1,
+                                         degree=1, reidentify_samples=500)
+        assert all(r.successful for r in results)
+        stream.send(after, 1000)
+        assert harness.spin_until(lambda: harness.statuses().get("model validity", (0, "", {}))
+                                  [2].get("reidentify_kept", "0") != "0", 60)
+        kept = json.loads(harness.latched(String, "/spm_sysid/model").data)
+        assert kept["terms"] == model["terms"] and kept["coefficients"] == \
+            model["coefficients"]
+    finally:
+        stop(node)
