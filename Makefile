@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 # ROS traffic stays on this machine; each target picks its own domain.
 export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
 
-.PHONY: setup run identify test lint bench bench-sizes bench-node bench-dask bench-certify bench-generalise bench-speed bag experiment report clean
+.PHONY: setup run identify test lint bench bench-sizes bench-node bench-dask bench-certify bench-generalise bench-speed bench-online bag experiment report clean
 
 INTERFACES := $(wildcard interfaces/spm_sysid_interfaces/*.* interfaces/spm_sysid_interfaces/*/*)
 
@@ -71,6 +71,10 @@ bench-speed: $(STAMP)
 ## Models on data they were not fitted on: two-tank cascade, robot-arm halves, coverage.
 bench-generalise: $(STAMP)
 	$(BIN)/python -m spm_sysid.bench.generalise
+
+## Online monitor and tracker: detection delay, false alarms, drift tracking, cost per sample.
+bench-online: $(STAMP)
+	$(BIN)/python -m spm_sysid.bench.online
 
 ## Study on the local pool vs a 2-worker Dask cluster (the paper's 180 runs).
 bench-dask: $(STAMP)

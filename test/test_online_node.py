@@ -14,9 +14,10 @@ from spm_sysid_interfaces.msg import NarxModel as NarxModelMsg
 from spm_sysid_interfaces.msg import Prediction, Validity
 from std_msgs.msg import String
 
+from spm_sysid.bench.online import system
+
 from .conftest import EQ1
 from .ros_harness import Harness, finish_publisher, publisher, start_node, stop
-from .test_online import system
 
 RATE = 1000.0
 

@@ -45,8 +45,8 @@ def stop_process(proc: subprocess.Popen | None, timeout: float = 10.0) -> None:
         proc.wait()
 
 
-def wait_for_buffer(node, done, timeout: float) -> dict:
-    """Watch the sysid node's buffer status on /diagnostics until ``done(values)``.
+def wait_for_buffer(node, done, timeout: float, status: str = "buffer") -> dict:
+    """Watch a sysid node status on /diagnostics (``buffer``) until ``done(values)``.
 
     Returns the last key/value pairs seen (empty if none arrived).
     """
@@ -57,7 +57,7 @@ def wait_for_buffer(node, done, timeout: float) -> dict:
 
     def on_diag(msg):
         for st in msg.status:
-            if st.name.endswith(": buffer"):
+            if st.name.endswith(": " + status):
                 seen.clear()
                 seen.update({k.key: k.value for k in st.values})
 

@@ -9,6 +9,9 @@
    ``--capacity`` pairs.
 4. The Identify action: goal-to-result round trip at the paper's settings, and
    cancel latency (cancel request sent to the CANCELED result) of a long search.
+5. Online: with the model identified and monitoring and tracking on, ingest
+   at ``--rate`` Hz for ``--seconds`` s again: samples lost and the node's
+   per-sample cost of prediction, monitor and tracker (from /diagnostics).
 
 Prints figures; asserts nothing. ROS traffic stays on this machine.
 """
@@ -45,7 +48,8 @@ def run(args) -> None:
                ROS_DOMAIN_ID=str(args.domain), PYTHONUNBUFFERED="1")
     os.environ.update({k: env[k] for k in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_DOMAIN_ID")})
     node = subprocess.Popen([sys.executable, "-m", "spm_sysid.ros.sysid_node", "--ros-args",
-                             "-p", f"buffer_capacity:={args.capacity}", "-p", "seed:=1"],
+                             "-p", f"buffer_capacity:={args.capacity}", "-p", "seed:=1",
+                             "-p", "tracking:=true"],
                             env=env, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
     rclpy.init()
     client = Node("bench_client")
@@ -121,6 +125,20 @@ def run(args) -> None:
               f"cancel during a search: median {statistics.median(cancels):.3f} s, max "
               f"{max(cancels):.3f} s from the cancel request to the CANCELED result "
               f"({args.repeats} goals each)")
+        # 5. online: ingest again with the model monitored and tracked
+        before = wait_for_buffer(client, lambda kv: True, 10)
+        base = int(before["received_outputs"])
+        online0 = wait_for_buffer(client, lambda kv: True, 10, status="model validity")
+        sent = pub(args.rate, count, "ramp")
+        kv = wait_for_buffer(client, lambda kv: int(kv["received_outputs"]) >= base + count, 30)
+        online = wait_for_buffer(client, lambda kv: int(kv["samples"]) >= int(
+            online0.get("samples", 0)) + count, 30, status="model validity")
+        print(f"online (monitor and tracker on): {count} messages per topic at {args.rate:g} "
+              f"Hz; node received {int(kv['received_inputs']) - base} inputs, "
+              f"{int(kv['received_outputs']) - base} outputs; lost "
+              f"{base + count - int(kv['received_outputs'])}; per-sample cost (prediction, "
+              f"monitor, tracker) {float(online['microseconds_per_sample']):.1f} us mean; "
+              f"tracker updates {online['tracker_updates']}")
     finally:
         node.send_signal(2)
         node.wait(20)

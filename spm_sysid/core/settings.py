@@ -220,7 +220,7 @@ _LIST = [
     _s("tracking", bool, False, "track the coefficients by recursive least squares and "
        "publish them on ~/tracked_model (never replacing the identified model)", "online",
        cli=False),
-    _s("forgetting", float, 0.995, "forgetting factor of the tracking (memory about "
+    _s("forgetting", float, 0.99, "forgetting factor of the tracking (memory about "
        "1/(1-forgetting) samples)", "online", low=0.9, high=1.0, cli=False),
     _s("tracking_period", float, 1.0, "seconds between ~/tracked_model messages", "online",
        low=0.05, high=3600.0, cli=False, read_only=True),

@@ -137,6 +137,8 @@ class ValidityMonitor:
         self._alarm: tuple[str, int] | None = None
         self._p = math.nan
         self._filled = 0
+        self._e[:] = 0.0
+        self._sumsq = 0.0
 
     def gap(self) -> None:
         """A gap in the stream: the whitening filter's memory restarts (CUSUMs kept)."""
@@ -146,11 +148,14 @@ class ValidityMonitor:
     def update(self, e: float) -> MonitorState:
         """Add one residual; the state after it."""
         n = self.n
-        w = e - float(self.ar @ self._past) if len(self.ar) else e
-        if len(self._past):
+        p = len(self.ar)
+        if p:
+            w = e - float(np.dot(self.ar, self._past))
             self._past[1:] = self._past[:-1]
             self._past[0] = e
-        if self._warm < len(self.ar):  # the filter needs p residuals before it whitens
+        else:
+            w = e
+        if self._warm < p:  # the filter needs p residuals before it whitens
             self._warm += 1
             self.n = n + 1
             return self.state()
@@ -168,6 +173,7 @@ class ValidityMonitor:
             elif self._gv > H_VARIANCE:
                 self._alarm = ("variance", self._zero["variance"])
         col = n % self.window
+        self._sumsq += e * e - self._e[col] * self._e[col]
         self._e[col], self._z[col] = e, z
         self._filled = min(self._filled + 1, self.window)
         self.n = n + 1
@@ -177,7 +183,7 @@ class ValidityMonitor:
 
     def state(self) -> MonitorState:
         """The current state (see :class:`MonitorState`)."""
-        rms = (float(np.sqrt(np.mean(self._e * self._e))) / self.sigma
+        rms = (math.sqrt(max(self._sumsq, 0.0) / self.window) / self.sigma
                if self._filled == self.window else math.nan)
         if self._alarm is not None:
             kind, at = self._alarm

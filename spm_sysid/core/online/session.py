@@ -64,7 +64,7 @@ class OnlineSession:
 
     def __init__(self, model: NarxModel, residuals: np.ndarray | None = None, *,
                  monitor_window: int = 200, tracking: bool = False,
-                 forgetting: float = 0.995, sample_period: float = 0.0,
+                 forgetting: float = 0.99, sample_period: float = 0.0,
                  gap_factor: float = 1.5, input_std: float = 1.0) -> None:
         self.model = model
         self.predictor = OnlinePredictor(model)

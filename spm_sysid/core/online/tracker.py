@@ -30,6 +30,8 @@ __all__ = ["LEARN_INPUT", "RecursiveTracker"]
 
 #: Inputs whose spread sets the quiet threshold when the identification's is not given.
 LEARN_INPUT = 500
+#: Samples between two checks of the input's spread.
+QUIET_EVERY = 5
 
 
 class RecursiveTracker:
@@ -57,7 +59,7 @@ class RecursiveTracker:
     """
 
     def __init__(self, coefficients: np.ndarray, covariance: np.ndarray | None, sigma2: float,
-                 input_std: float | None, forgetting: float = 0.995, quiet_window: int = 50,
+                 input_std: float | None, forgetting: float = 0.99, quiet_window: int = 50,
                  quiet_fraction: float = 0.05, max_trace_factor: float = 1e4,
                  rows: int = 0) -> None:
         if not 0.0 < forgetting <= 1.0:
@@ -75,6 +77,8 @@ class RecursiveTracker:
         self.lam = float(forgetting)
         self.input_std = None if input_std is None or not input_std > 0 else float(input_std)
         self._first: list = []
+        self._quiet: bool | None = None
+        self._since_quiet = 0
         self.quiet_fraction = quiet_fraction
         self._u = deque(maxlen=int(quiet_window))
         self.updates = self.frozen = self.skipped = 0
@@ -89,12 +93,18 @@ class RecursiveTracker:
         return np.sqrt(np.maximum(np.diag(self.covariance), 0.0))
 
     def quiet(self) -> bool:
-        """The input has barely moved over the last ``quiet_window`` samples."""
+        """The input has barely moved over the last ``quiet_window`` samples.
+
+        Computed every :data:`QUIET_EVERY` samples (it costs more than an update).
+        """
         if self.input_std is None or len(self._u) < self._u.maxlen:
             return False
-        u = np.asarray(self._u)
-        spread = float(np.max(np.std(u, axis=0))) if u.ndim > 1 else float(np.std(u))
-        return spread < self.quiet_fraction * self.input_std
+        self._since_quiet += 1
+        if self._quiet is None or self._since_quiet >= QUIET_EVERY:
+            u = np.asarray(self._u)
+            spread = float(np.max(np.std(u, axis=0))) if u.ndim > 1 else float(np.std(u))
+            self._quiet, self._since_quiet = spread < self.quiet_fraction * self.input_std, 0
+        return self._quiet
 
     def update(self, phi: np.ndarray, y: float, u=None) -> bool:
         """One sample: regressors ``phi`` (the model's terms), output ``y``, input ``u``.
