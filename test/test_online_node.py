@@ -6,6 +6,8 @@ pass, like a robot that keeps running.
 """
 
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -15,8 +17,10 @@ from spm_sysid_interfaces.msg import Prediction, Validity
 from std_msgs.msg import String
 
 from spm_sysid.bench.online import system
+from spm_sysid.core.io.bagio import read_bag_signals, write_io_bag
+from spm_sysid.core.narx.model import NarxModel
 
-from .conftest import EQ1
+from .conftest import EQ1, ROOT
 from .ros_harness import Harness, finish_publisher, publisher, start_node, stop
 
 RATE = 1000.0
@@ -46,6 +50,11 @@ class Stream:
         self.start += int(n * 1e9 / RATE)
 
 
+def read_bag_stamps(bag) -> list[int]:
+    """The output stamps of a bag, read independently of the node."""
+    return [int(t) for t in read_bag_signals(bag).stamps_ns]
+
+
 def latest(harness, msg_type, topic, predicate, timeout=30.0):
     got = []
     sub = harness.node.create_subscription(msg_type, topic, got.append, 10)
@@ -56,50 +65,60 @@ def latest(harness, msg_type, topic, predicate, timeout=30.0):
         harness.node.destroy_subscription(sub)
 
 
-def test_prediction_and_validity_on_the_robot_arm_again_and_scaled(
+def play(env, bag):
+    r = subprocess.run([sys.executable, "-m", "spm_sysid.ros.bag_player", "--ros-args",
+                        "-p", f"bag:={bag}", "-p", "rate:=10.0"],
+                       capture_output=True, text=True, env=env, timeout=120, cwd=ROOT)
+    assert r.returncode == 0, r.stderr
+
+
+def test_the_robot_arm_bag_replayed_again_stays_valid_and_scaled_by_one_and_a_half_is_not(
         ros_env, harness, robot_arm, tmp_path):
     u, y = robot_arm
-    arm = write(tmp_path / "arm.dat", u, y)
-    scaled = write(tmp_path / "scaled.dat", 1.5 * u, 1.5 * y)
+    arm = write_io_bag(tmp_path / "arm", u, y)
+    scaled = write_io_bag(tmp_path / "scaled", 1.5 * u, 1.5 * y)
     node = start_node(ros_env, "seed:=1")
     try:
         harness.wait_ready()
-        stream = Stream(ros_env)
-        stream.send(arm, len(y))
+        play(ros_env, arm)
         harness.wait_buffer(lambda kv: int(kv["samples"]) >= len(y))
         res = harness.call("/spm_sysid/identify")
         assert res.success and "8 terms" in res.message
         v = harness.latched(Validity, "/spm_sysid/validity")
         assert v.state == Validity.VALID and v.samples == 0
 
-        # the same data again: predictions equal the model's, the model stays valid
+        # the same bag again (its stamps go back: a new segment): predictions equal the
+        # model's, the model stays valid
         predictions = []
         sub = harness.node.create_subscription(Prediction, "/spm_sysid/prediction",
                                                predictions.append, 2000)
-        stream.send(arm, len(y))
+        play(ros_env, arm)
         harness.spin_until(lambda: len(predictions) >= len(y) - 4, 30)
         harness.node.destroy_subscription(sub)
-        assert len(predictions) == len(y) - 4  # the first 4 only fill the lags
+        assert len(predictions) == len(y) - 4  # the first 4 of the pass only fill the lags
         doc = json.loads(harness.latched(String, "/spm_sysid/model").data)
         assert doc["terms"] == EQ1
-        from spm_sysid.core.narx.model import NarxModel
-
         expected = NarxModel.from_dict(doc).predict(u, y)
         got = np.array([p.predicted for p in predictions])
         assert np.allclose(got, expected, rtol=1e-9, atol=1e-12)
         assert all(p.residual == pytest.approx(p.measured - p.predicted) for p in predictions)
-        assert predictions[0].header.stamp.sec == 1  # stamped with the sample (t = 1.004 s)
+        stamps = read_bag_stamps(arm)
+        assert [p.header.stamp.sec * 10**9 + p.header.stamp.nanosec
+                for p in predictions[:3]] == stamps[4:7]  # stamped with the sample
         v, _ = latest(harness, Validity, "/spm_sysid/validity",
                       lambda m: m.samples >= len(y) - 4)
         assert v is not None and v.state != Validity.INVALID, v.reason
 
         # scaled by 1.5: a change, INVALID within the pass, in /diagnostics too
-        stream.send(scaled, len(y))
+        play(ros_env, scaled)
         v, _ = latest(harness, Validity, "/spm_sysid/validity",
                       lambda m: m.state == Validity.INVALID)
         assert v is not None and v.change_detected and "change detected" in v.reason
-        change = v.change_stamp.sec + v.change_stamp.nanosec * 1e-9
-        assert 2.0 <= change <= 2.0 + 0.2 + len(y) / RATE  # in the scaled pass (from 2.048 s)
+        change = v.change_stamp.sec * 10**9 + v.change_stamp.nanosec
+        # where the scaled pass began: its first 200 samples, or (the estimate is the last
+        # time the statistic was zero) the last samples of the pass before -- each pass
+        # replays the same stamps
+        assert change <= stamps[200] or change >= stamps[-20], change
         assert harness.spin_until(lambda: harness.statuses().get(
             "model validity", (0,))[0] == 2, 10)
         assert harness.statuses()["model validity"][2]["state"] == "INVALID"
