@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 # ROS traffic stays on this machine; each target picks its own domain.
 export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
 
-.PHONY: setup run identify test lint bench bench-sizes bench-node bench-dask bench-certify bench-generalise bench-speed bench-online bag experiment report clean
+.PHONY: setup run identify test lint bench bench-sizes bench-node bench-dask bench-certify bench-generalise bench-speed bench-online bench-mimo bag experiment report clean
 
 INTERFACES := $(wildcard interfaces/spm_sysid_interfaces/*.* interfaces/spm_sysid_interfaces/*/*)
 
@@ -75,6 +75,10 @@ bench-generalise: $(STAMP)
 ## Online monitor and tracker: detection delay, false alarms, drift tracking, cost per sample.
 bench-online: $(STAMP)
 	$(BIN)/python -m spm_sysid.bench.online
+
+## Several outputs: a two-link arm identified as one coupled model, against two single-output runs.
+bench-mimo: $(STAMP)
+	$(BIN)/python -m spm_sysid.bench.mimo
 
 ## Study on the local pool vs a 2-worker Dask cluster (the paper's 180 runs).
 bench-dask: $(STAMP)

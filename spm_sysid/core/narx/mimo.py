@@ -1,0 +1,249 @@
+"""Several outputs: one coupled NARX model of a multi-joint robot (MIMO).
+
+Each output gets its own structure, selected over a shared kind of candidate
+set: the lags of **every** output and every input and their products up to the
+degree. It is built on the single-output path: output i's term space has its
+own lags ``y_i(t-1..t-ny)`` as the output, and the other outputs as extra
+"inputs" with delay 1 and ``ny`` lags (``y_j(t-1..t-ny)``: an output's present
+value never enters another output's model, so the model stays causal and can
+be simulated). So every output is identified by :func:`identify` -- GA with
+SPM, polish, certification, validated selection, uncertainty -- with its own
+criterion value; the joint summary is the sum of the outputs' criterion
+values (each a log-likelihood-type score of its own residuals).
+
+The **coupled free-run simulation** (:meth:`MimoModel.simulate`) feeds every
+output's prediction back into every term that uses it, all outputs stepping
+together; a run that leaves an output's measured range is marked diverged
+(per output, from that sample on NaN).
+
+The document (``spm_sysid/narx-mimo-model``, version 1) holds one
+single-output model document (docs/model_format.md) per output; the
+single-output document is unchanged and still what one output gives.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import ModelFormatError
+from ..files import atomic_write_text, read_bytes
+from .identify import identify
+from .model import NarxModel
+from .simulation import divergence_bounds
+from .terms import TermSpace
+
+__all__ = ["MIMO_SCHEMA", "MimoModel", "MimoResult", "identify_mimo", "output_space"]
+
+MIMO_SCHEMA = "spm_sysid/narx-mimo-model"
+MIMO_SCHEMA_VERSION = 1
+
+
+def output_space(space: TermSpace, outputs: tuple[str, ...], i: int) -> TermSpace:
+    """Output ``i``'s term space: its own lags, the inputs', and the other outputs' lags.
+
+    ``space`` gives ny, the inputs (names, nu, delay), degree and constant.
+    """
+    others = [o for j, o in enumerate(outputs) if j != i]
+    nus = tuple(space.nus) + (space.ny,) * len(others)
+    delays = tuple(space.delays) + (1,) * len(others)
+    return replace(space, output=outputs[i], inputs=tuple(space.inputs) + tuple(others),
+                   nu=nus, delay=delays)
+
+
+def augmented_inputs(u: np.ndarray, Y: np.ndarray, i: int) -> np.ndarray:
+    """The inputs of output ``i``'s model: u's columns, then the other outputs'."""
+    u = np.asarray(u, dtype=float)
+    u = u[:, None] if u.ndim == 1 else u
+    others = [j for j in range(Y.shape[1]) if j != i]
+    return np.column_stack([u] + [Y[:, j] for j in others])
+
+
+@dataclass
+class MimoModel:
+    """One NARX model per output, coupled through the other outputs' lags.
+
+    Attributes
+    ----------
+    outputs, inputs : tuple of str
+    models : list of NarxModel
+        Output i's model; its term space's inputs are ``inputs`` then the other
+        outputs (:func:`output_space`).
+    metadata : dict
+    """
+
+    outputs: tuple[str, ...]
+    inputs: tuple[str, ...]
+    models: list[NarxModel]
+    metadata: dict = field(default_factory=dict)
+
+    @property
+    def max_lag(self) -> int:
+        return max(m.term_space.max_lag for m in self.models)
+
+    def equations(self) -> list[str]:
+        """One equation per output."""
+        return [m.equation() for m in self.models]
+
+    # -- running it --------------------------------------------------------------------
+    def predict(self, u: np.ndarray, Y: np.ndarray) -> np.ndarray:
+        """One-step predictions, shape (n - max_lag, outputs), from measured u and Y."""
+        Y = np.asarray(Y, dtype=float)
+        lag = self.max_lag
+        cols = []
+        for i, m in enumerate(self.models):
+            p = m.predict(augmented_inputs(u, Y, i), Y[:, i])
+            cols.append(p[len(p) - (len(Y) - lag):])
+        return np.column_stack(cols)
+
+    def simulate(self, u: np.ndarray, Y: np.ndarray) -> tuple[np.ndarray, list[int | None]]:
+        """Coupled free-run simulation from the first ``max_lag`` measured samples.
+
+        Returns the simulated outputs for t = max_lag..n-1, shape (n - max_lag,
+        outputs), and per output the sample where it left its measured range
+        (None when it did not; NaN from there on, and in the outputs that use it).
+        """
+        from ..online.predictor import OnlinePredictor
+
+        Y = np.asarray(Y, dtype=float)
+        u = np.asarray(u, dtype=float)
+        u = u[:, None] if u.ndim == 1 else u
+        n, q = Y.shape
+        lag = self.max_lag
+        sim = Y.copy()
+        preds = [OnlinePredictor(m) for m in self.models]
+        bounds = [divergence_bounds(Y[:, i]) for i in range(q)]
+        diverged: list[int | None] = [None] * q
+        for t in range(n):
+            if t < lag:  # the measured start
+                for i, p in enumerate(preds):
+                    p.push(_aug_row(u[t], sim[t], i), sim[t, i])
+                continue
+            yhat = np.empty(q)
+            for i, p in enumerate(preds):
+                phi = p.regressors(_aug_row(u[t], sim[t], i))  # uses lags >= 1 only
+                yhat[i] = float(phi @ p.coefficients)
+            for i in range(q):
+                lo, hi = bounds[i]
+                if diverged[i] is None and not lo <= yhat[i] <= hi:
+                    diverged[i] = t
+                if diverged[i] is not None:
+                    yhat[i] = np.nan
+            sim[t] = yhat
+            for i, p in enumerate(preds):
+                p.push(_aug_row(u[t], sim[t], i), sim[t, i])
+        return sim[lag:], diverged
+
+    def fits(self, u: np.ndarray, Y: np.ndarray) -> dict:
+        """Per output: one-step and coupled free-run fit (%), and where it diverged."""
+        Y = np.asarray(Y, dtype=float)
+        lag = self.max_lag
+        one = self.predict(u, Y)
+        free, div = self.simulate(u, Y)
+        out = {}
+        for i, name in enumerate(self.outputs):
+            y = Y[lag:, i]
+            out[name] = {"one_step_fit_percent": fit_percent(y, one[:, i]),
+                         "free_run_fit_percent": fit_percent(y, free[:, i]),
+                         "diverged_at": div[i]}
+        return out
+
+    # -- the document ------------------------------------------------------------------
+    def to_dict(self) -> dict:
+        return {"schema": MIMO_SCHEMA, "schema_version": MIMO_SCHEMA_VERSION,
+                "outputs": list(self.outputs), "inputs": list(self.inputs),
+                "models": [m.to_dict() for m in self.models], "metadata": self.metadata}
+
+    @classmethod
+    def from_dict(cls, doc: dict) -> MimoModel:
+        if not isinstance(doc, dict) or doc.get("schema") != MIMO_SCHEMA:
+            raise ModelFormatError(f"not a several-output model (schema {MIMO_SCHEMA!r})")
+        if doc.get("schema_version") != MIMO_SCHEMA_VERSION:
+            raise ModelFormatError(f"several-output model version "
+                                   f"{doc.get('schema_version')!r} is not supported")
+        outputs, inputs = tuple(doc["outputs"]), tuple(doc["inputs"])
+        models = [NarxModel.from_dict(d) for d in doc["models"]]
+        if len(models) != len(outputs) or len(outputs) < 2:
+            raise ModelFormatError("a several-output model needs one model per output (>= 2)")
+        for i, m in enumerate(models):
+            others = tuple(o for j, o in enumerate(outputs) if j != i)
+            if m.term_space.output != outputs[i] or m.term_space.inputs != inputs + others:
+                raise ModelFormatError(f"model {i} does not belong to output {outputs[i]!r}")
+        return cls(outputs, inputs, models, dict(doc.get("metadata") or {}))
+
+    def save(self, path: str | Path) -> Path:
+        atomic_write_text(path, json.dumps(self.to_dict(), indent=2, allow_nan=False) + "\n")
+        return Path(path)
+
+    @classmethod
+    def load(cls, path: str | Path) -> MimoModel:
+        return cls.from_dict(json.loads(read_bytes(path)))
+
+
+def _aug_row(u_row: np.ndarray, y_row: np.ndarray, i: int) -> np.ndarray:
+    return np.concatenate([u_row, np.delete(y_row, i)])
+
+
+def fit_percent(y: np.ndarray, yhat: np.ndarray) -> float | None:
+    """100 (1 - ||y - yhat|| / ||y - mean y||); None when yhat has NaN (diverged)."""
+    if not np.all(np.isfinite(yhat)):
+        return None
+    return float(100.0 * (1.0 - np.linalg.norm(y - yhat) / np.linalg.norm(y - np.mean(y))))
+
+
+@dataclass
+class MimoResult:
+    """The several-output model and each output's identification."""
+
+    model: MimoModel
+    results: list  # IdentificationResult per output
+    seconds: float
+
+    @property
+    def criterion_value(self) -> float:
+        """The joint summary: the sum of the outputs' criterion values."""
+        return float(sum(r.model.criterion_value for r in self.results))
+
+
+def identify_mimo(*, u: np.ndarray, Y: np.ndarray, outputs: tuple[str, ...],
+                  term_space: TermSpace, **kwargs) -> MimoResult:
+    """Identify a model of several outputs (see the module doc).
+
+    Parameters
+    ----------
+    u : ndarray, shape (n,) or (n, m)
+        Inputs; their names, lags and delays are ``term_space``'s.
+    Y : ndarray, shape (n, q)
+        Outputs, q >= 2.
+    outputs : tuple of str
+        Their names (distinct identifiers, none an input's name).
+    term_space : TermSpace
+        ny (every output's lags), inputs, degree, constant.
+    **kwargs
+        Passed to :func:`identify` for every output (criterion, seed, focus ...).
+    """
+    Y = np.asarray(Y, dtype=float)
+    if Y.ndim != 2 or Y.shape[1] < 2:
+        raise ValueError("several outputs need Y of shape (n, outputs) with 2 or more columns")
+    if len(outputs) != Y.shape[1] or len(set(outputs)) != len(outputs):
+        raise ValueError(f"give one distinct name per output ({Y.shape[1]}), got {outputs}")
+    clash = set(outputs) & set(term_space.inputs)
+    if clash:
+        raise ValueError(f"an output and an input share a name: {', '.join(sorted(clash))}")
+    t0 = time.perf_counter()
+    results = []
+    for i in range(Y.shape[1]):
+        space = output_space(term_space, tuple(outputs), i)
+        results.append(identify(u=augmented_inputs(u, Y, i), y=Y[:, i], term_space=space,
+                                **kwargs))
+    model = MimoModel(tuple(outputs), tuple(term_space.inputs),
+                      [r.model for r in results],
+                      {"joint_criterion": {"name": results[0].model.criterion,
+                                           "value": float(sum(r.model.criterion_value
+                                                              for r in results)),
+                                           "meaning": "sum of the outputs' values"}})
+    return MimoResult(model, results, time.perf_counter() - t0)
