@@ -234,6 +234,12 @@ def test_invalid_startup_parameters_exit_with_a_clear_error(ros_env):
                         "-p", "criterion:=xyz"],
                        capture_output=True, text=True, env=ros_env, timeout=60, cwd=ROOT)
     assert r.returncode == 1 and "unknown criterion" in r.stderr
+    r = subprocess.run([sys.executable, "-m", "spm_sysid.ros.sysid_node", "--ros-args",
+                        "-p", "criterion:=1"],  # a number where text is expected
+                       capture_output=True, text=True, env=ros_env, timeout=60, cwd=ROOT)
+    assert r.returncode == 1 and "Traceback" not in r.stderr
+    assert r.stderr.startswith("error: Trying to set parameter 'criterion' to '1' of type "
+                               "'INTEGER', expecting type 'STRING'")
 
 
 def test_two_joint_efforts_recorded_from_one_jointstate_topic(ros_env, harness, tmp_path):

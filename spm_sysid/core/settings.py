@@ -224,10 +224,10 @@ _LIST = [
        "1/(1-forgetting) samples)", "online", low=0.9, high=1.0, cli=False),
     _s("tracking_period", float, 1.0, "seconds between ~/tracked_model messages", "online",
        low=0.05, high=3600.0, cli=False, read_only=True),
-    _s("reidentify", str, "off", "automatic re-identification: off, when_invalid (on the "
+    _s("reidentify", str, "never", "automatic re-identification: never, when_invalid (on the "
        "data since the detected change) or periodic (every reidentify_interval on recent "
        "data); a new model replaces the current one only when it predicts the held-out "
-       "recent samples better", "online", choices=("off", "when_invalid", "periodic"),
+       "recent samples better", "online", choices=("never", "when_invalid", "periodic"),
        cli=False),
     _s("reidentify_interval", float, 60.0, "fewest seconds between automatic "
        "identifications (the period with reidentify periodic)", "online", low=1.0,
@@ -336,7 +336,12 @@ def _yaml_value(value: Any) -> str:
     if isinstance(value, bool):
         return "true" if value else "false"
     if isinstance(value, str):
-        return '""' if value == "" else value
+        import json
+
+        import yaml
+
+        # quoted when YAML would read it as something else ("off" is false in YAML 1.1)
+        return value if value and yaml.safe_load(value) == value else json.dumps(value)
     return repr(value)
 
 

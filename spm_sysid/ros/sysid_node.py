@@ -687,7 +687,7 @@ class SysidNode(Node):
         """Start an automatic identification when the policy says so (and it can run)."""
         v, session = self._values, self._online
         policy = v["reidentify"]
-        if policy == "off" or session is None or self._busy.locked() or self._auto_running:
+        if policy == "never" or session is None or self._busy.locked() or self._auto_running:
             return
         now = time.monotonic()
         if now - max(self._auto_last, self._model_time if policy == "periodic"
@@ -804,7 +804,10 @@ def held_out_mse(model: NarxModel, u: np.ndarray, y: np.ndarray) -> float:
 
 def main(args: list[str] | None = None) -> int:
     """Run the node until interrupted (SIGINT or SIGTERM end it within a second or two)."""
-    return run_node(SysidNode, errors=(ValueError, TypeError), args=args,
+    from rclpy.exceptions import ParameterException
+
+    # a start-up parameter of the wrong type (-p criterion:=1) is one error line too
+    return run_node(SysidNode, errors=(ValueError, TypeError, ParameterException), args=args,
                     finish=lambda node, interrupted: 0)
 
 
