@@ -96,7 +96,7 @@ def test_the_robot_arm_bag_replayed_again_stays_valid_and_scaled_by_one_and_a_ha
         harness.spin_until(lambda: len(predictions) >= len(y) - 4, 30)
         harness.node.destroy_subscription(sub)
         assert len(predictions) == len(y) - 4  # the first 4 of the pass only fill the lags
-        doc = json.loads(harness.latched(String, "/spm_sysid/model").data)
+        doc = json.loads(harness.latched(String, "/spm_sysid/model", 30).data)
         assert doc["terms"] == EQ1
         expected = NarxModel.from_dict(doc).predict(u, y)
         got = np.array([p.predicted for p in predictions])
@@ -142,7 +142,7 @@ def test_a_change_is_reidentified_and_a_worse_model_never_replaces_the_current_o
         harness.wait_buffer(lambda kv: int(kv["samples"]) >= len(y0))
         res = harness.call("/spm_sysid/identify")
         assert res.success, res.message
-        first = json.loads(harness.latched(String, "/spm_sysid/model").data)
+        first = json.loads(harness.latched(String, "/spm_sysid/model", 30).data)
         assert "u(t-1)^2" not in first["terms"]
         tracked = harness.latched(NarxModelMsg, "/spm_sysid/tracked_model")
         assert tracked.tracked and [t.name for t in tracked.terms] == first["terms"]
@@ -152,7 +152,7 @@ def test_a_change_is_reidentified_and_a_worse_model_never_replaces_the_current_o
         assert harness.spin_until(lambda: harness.statuses().get("model validity", (0, "", {}))
                                   [2].get("reidentify_replaced") == "1", 60), \
             harness.statuses().get("model validity")
-        model = json.loads(harness.latched(String, "/spm_sysid/model").data)
+        model = json.loads(harness.latched(String, "/spm_sysid/model", 30).data)
         assert "u(t-1)^2" in model["terms"]  # the new structure
         assert "automatic" in model["metadata"]["data"].get("source", "") or \
             "automatic" in json.dumps(model["metadata"])
@@ -166,7 +166,7 @@ def test_a_change_is_reidentified_and_a_worse_model_never_replaces_the_current_o
         stream.send(after, 1000)
         assert harness.spin_until(lambda: harness.statuses().get("model validity", (0, "", {}))
                                   [2].get("reidentify_kept", "0") != "0", 60)
-        kept = json.loads(harness.latched(String, "/spm_sysid/model").data)
+        kept = json.loads(harness.latched(String, "/spm_sysid/model", 30).data)
         assert kept["terms"] == model["terms"] and kept["coefficients"] == \
             model["coefficients"]
     finally:
