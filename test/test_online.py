@@ -178,3 +178,18 @@ def test_tracking_is_frozen_while_the_input_is_constant_and_does_not_wind_up():
     assert tr.frozen >= 2000 - 50 - 5  # frozen once the quiet window (50) is full (checked every 5)
     assert np.abs(tr.theta - theta).max() < 0.05
     assert traces[-1] == traces[99]  # no wind-up: the covariance stops growing
+
+
+def test_the_k_step_prediction_online_equals_the_models(robot_arm):
+    from spm_sysid.core.online.session import OnlineSession
+
+    u, y = robot_arm
+    model = identify(u=u, y=y, criterion="aic", seed=1).model
+    s = OnlineSession(model, model.residuals(u, y), horizon=5, sample_period=0.01)
+    out = [s.feed(int(t * 1e7), u[t], y[t]) for t in range(len(y))]
+    k_online = np.array([o.predicted_k for o in out if o is not None])
+    k_batch = model.predict(u, y, horizon=5)
+    lag = model.term_space.max_lag
+    assert np.all(np.isnan(k_online[:5 - 1]))  # the window fills first (k - 1 more samples)
+    np.testing.assert_allclose(k_online[4:], k_batch[4:], rtol=1e-10, atol=1e-12)
+    assert len(k_online) == len(y) - lag

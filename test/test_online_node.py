@@ -77,7 +77,7 @@ def test_the_robot_arm_bag_replayed_again_stays_valid_and_scaled_by_one_and_a_ha
     u, y = robot_arm
     arm = write_io_bag(tmp_path / "arm", u, y)
     scaled = write_io_bag(tmp_path / "scaled", 1.5 * u, 1.5 * y)
-    node = start_node(ros_env, "seed:=1")
+    node = start_node(ros_env, "seed:=1", "prediction_horizon:=5")
     try:
         harness.wait_ready()
         play(ros_env, arm)
@@ -102,6 +102,11 @@ def test_the_robot_arm_bag_replayed_again_stays_valid_and_scaled_by_one_and_a_ha
         got = np.array([p.predicted for p in predictions])
         assert np.allclose(got, expected, rtol=1e-9, atol=1e-12)
         assert all(p.residual == pytest.approx(p.measured - p.predicted) for p in predictions)
+        # and 5 steps ahead (the first 4 while the window fills: NaN)
+        k_step = np.array([p.predicted_k for p in predictions])
+        assert all(p.horizon == 5 for p in predictions) and np.all(np.isnan(k_step[:4]))
+        assert np.allclose(k_step[4:], NarxModel.from_dict(doc).predict(u, y, horizon=5)[4:],
+                           rtol=1e-9, atol=1e-12)
         stamps = read_bag_stamps(arm)
         assert [p.header.stamp.sec * 10**9 + p.header.stamp.nanosec
                 for p in predictions[:3]] == stamps[4:7]  # stamped with the sample

@@ -215,6 +215,9 @@ _LIST = [
        cli=False),
     _s("monitor_window", int, 200, "samples of the monitor's residual RMS and whiteness "
        "window", "online", low=20, high=100_000, cli=False),
+    _s("prediction_horizon", int, 1, "also predict k steps ahead on ~/prediction "
+       "(predicted_k: y(t) from the samples up to t-k; 1: one-step only)", "online", low=1,
+       high=1000, cli=False),
     _s("prediction_every", int, 1, "publish every n-th prediction on ~/prediction (all are "
        "monitored)", "online", low=1, high=100_000, cli=False),
     _s("tracking", bool, False, "track the coefficients by recursive least squares and "

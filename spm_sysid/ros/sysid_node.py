@@ -635,7 +635,7 @@ class SysidNode(Node):
             self._online = OnlineSession(
                 model, residuals, monitor_window=v["monitor_window"], tracking=v["tracking"],
                 forgetting=v["forgetting"], sample_period=v["sample_period"],
-                gap_factor=v["gap_factor"], input_std=None)
+                gap_factor=v["gap_factor"], input_std=None, horizon=v["prediction_horizon"])
         except (ValueError, TypeError) as exc:  # e.g. a restored model without uncertainty
             self._online = None
             self.get_logger().warning(f"the model cannot be monitored online ({exc})")
@@ -661,7 +661,7 @@ class SysidNode(Node):
             return
         self._predictions += 1
         if self._predictions % self._values["prediction_every"] == 0:
-            self.pred_pub.publish(prediction_message(sample))
+            self.pred_pub.publish(prediction_message(sample, session.horizon))
         if sample.changed:
             st = sample.state
             log = self.get_logger().info if st.state == "VALID" else \

@@ -184,11 +184,12 @@ def _time(stamp_ns: int):
     return Time(sec=int(stamp_ns // 1_000_000_000), nanosec=int(stamp_ns % 1_000_000_000))
 
 
-def prediction_message(sample, tracked: bool = False) -> Prediction:
+def prediction_message(sample, horizon: int = 1, tracked: bool = False) -> Prediction:
     """``Prediction`` of one :class:`~spm_sysid.core.online.session.OnlineSample`."""
     msg = Prediction(measured=sample.measured, predicted=sample.predicted,
                      residual=sample.residual, normalized_residual=sample.normalized,
-                     tracked=tracked)
+                     tracked=tracked, predicted_k=sample.predicted_k)
+    msg.horizon = int(horizon)
     msg.header.stamp = _time(sample.stamp_ns)
     return msg
 

@@ -41,6 +41,7 @@ class OnlineSample:
     normalized: float  # residual over the identification's residual RMS
     state: MonitorState | None
     changed: bool  # the state differs from the previous sample's
+    predicted_k: float = math.nan  # the k-step prediction (horizon > 1), NaN until ready
 
 
 class OnlineSession:
@@ -60,14 +61,19 @@ class OnlineSession:
     sample_period : float
         Seconds; 0: estimated from the stamps (median step of the first 50).
     gap_factor : float
+    horizon : int
+        Also predict k = ``horizon`` steps ahead: y(t) from the measured samples
+        up to t - k and the model's own outputs in between (1: one-step only).
     """
 
     def __init__(self, model: NarxModel, residuals: np.ndarray | None = None, *,
                  monitor_window: int = 200, tracking: bool = False,
                  forgetting: float = 0.99, sample_period: float = 0.0,
-                 gap_factor: float = 1.5, input_std: float = 1.0) -> None:
+                 gap_factor: float = 1.5, input_std: float | None = None,
+                 horizon: int = 1) -> None:
         self.model = model
         self.predictor = OnlinePredictor(model)
+        self._compiled = model.compiled
         if residuals is None or len(residuals) < 2:
             rms = math.sqrt(model.mse) if model.mse else 1.0
             residuals = np.array([rms, -rms])  # RMS only; no whitening
@@ -82,6 +88,12 @@ class OnlineSession:
                 model.coefficients, None if unc is None else unc.covariance,
                 unc.sigma2 if unc is not None else self.sigma ** 2, input_std,
                 forgetting=forgetting, rows=rows)
+        self.horizon = int(horizon)
+        if self.horizon < 1:
+            raise ValueError(f"horizon must be >= 1, got {horizon}")
+        window = model.term_space.max_lag + self.horizon
+        self._win_u: deque = deque(maxlen=window)
+        self._win_y: deque = deque(maxlen=window)
         self.period_ns = int(sample_period * 1e9)
         self.gap_factor = gap_factor
         self._steps: list[int] = []
@@ -115,6 +127,11 @@ class OnlineSession:
             self.gaps += 1
             self.predictor.reset()
             self.monitor.gap()
+            self._win_u.clear()
+            self._win_y.clear()
+        if self.horizon > 1:
+            self._win_u.append(u)
+            self._win_y.append(y)
         out = self.predictor.step(u, y)
         if out is None:
             self.seconds += time.perf_counter() - t0
@@ -130,8 +147,24 @@ class OnlineSession:
             self.transitions.append((stamp_ns, self._state, state.state))
             self._state = state.state
         self.predictions += 1
+        k_step = self._k_step() if self.horizon > 1 else math.nan
         self.seconds += time.perf_counter() - t0
-        return OnlineSample(stamp_ns, float(y), yhat, e, e / self.sigma, state, changed)
+        return OnlineSample(stamp_ns, float(y), yhat, e, e / self.sigma, state, changed,
+                            k_step)
+
+    def _k_step(self) -> float:
+        """The k-step prediction of the newest sample (NaN until the window is full)."""
+        if len(self._win_y) < self._win_y.maxlen:
+            return math.nan
+        from ..narx.simulation import run_model
+
+        u = np.asarray(self._win_u, dtype=float).reshape(len(self._win_y), -1)
+        y = np.asarray(self._win_y, dtype=float)
+        # a window of max_lag + k samples run free from its first max_lag: its last row is
+        # y(t) predicted from the samples up to t - k
+        yhat, _ = run_model(self._compiled, self.predictor.coefficients, u, y, None,
+                            (-math.inf, math.inf))
+        return float(yhat[-1])
 
     # -- what it knows ---------------------------------------------------------------
     @property
