@@ -200,3 +200,11 @@ class IdentifyClient:
             return future.result()
         finally:
             self.harness.node.destroy_client(client)
+
+
+def play_bag(env, bag, rate=10.0):
+    """Replay a bag with bag_player (waits for the node to subscribe); asserts it worked."""
+    r = subprocess.run([sys.executable, "-m", "spm_sysid.ros.bag_player", "--ros-args",
+                        "-p", f"bag:={bag}", "-p", f"rate:={rate}"],
+                       capture_output=True, text=True, env=env, timeout=120, cwd=ROOT)
+    assert r.returncode == 0, r.stderr

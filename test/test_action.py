@@ -23,7 +23,7 @@ from spm_sysid.core.io.bagio import write_io_bag
 from spm_sysid.core.progress import PHASES
 
 from .conftest import EQ1, ROOT
-from .ros_harness import Harness, IdentifyClient, start_node, stop
+from .ros_harness import Harness, IdentifyClient, play_bag, start_node, stop
 
 Code = Identify.Result
 FACTOR = re.compile(r"^(\w+)\(t(?:-(\d+))?\)(?:\^(\d+))?$")
@@ -205,7 +205,9 @@ def test_call_identify_uses_the_action_and_ctrl_c_cancels_the_goal(ros_env, harn
     call = [sys.executable, "-m", "spm_sysid.apps.main", "call", "identify"]
     try:
         harness.wait_ready()
-        r = subprocess.run(call + ["--bag", str(arm_bag), "--show-model"], capture_output=True,
+        play_bag(ros_env, arm_bag)  # the README: replay, then call identify --show-model
+        harness.wait_buffer(lambda kv: int(kv["samples"]) >= 1024)
+        r = subprocess.run(call + ["--show-model"], capture_output=True,
                            text=True, env=ros_env, timeout=120, cwd=ROOT)
         assert r.returncode == 0, r.stderr
         assert r.stdout.startswith("success: y(t) = 3.158y(t-1) - 4.439y(t-2)")

@@ -145,16 +145,19 @@ def test_identify_with_two_output_columns_on_the_command_line(tmp_path):
     csv = tmp_path / "arm.csv"
     np.savetxt(csv, np.column_stack([tau, q]), delimiter=",", header="tau1,tau2,q1,q2",
                comments="")
-    r = subprocess.run([sys.executable, "-m", "spm_sysid.apps.main", "identify", "--data",
-                        str(csv), "--inputs", "tau1,tau2", "--output", "q1,q2", "--ny", "2",
-                        "--nu", "2", "--criterion", "bic", "--seed", "0", "--json",
-                        str(tmp_path / "m.json")], capture_output=True, text=True, cwd=ROOT,
-                       timeout=300)
+    readme = ["identify", "--data", str(csv), "--inputs", "tau1,tau2", "--output", "q1,q2",
+              "--ny", "2", "--nu", "2", "--criterion", "bic"]  # the README's line
+    r = subprocess.run([sys.executable, "-m", "spm_sysid.apps.main", *readme],
+                       capture_output=True, text=True, cwd=ROOT, timeout=300)
     assert r.returncode == 0, r.stderr
     lines = r.stdout.splitlines()
     assert sum(line.startswith(("q1(t) =", "q2(t) =")) for line in lines) == 2
     assert sum("coupled free-run fit" in line for line in lines) == 2
     assert any(line.startswith("joint BIC (sum over the outputs) =") for line in lines)
+    r = subprocess.run([sys.executable, "-m", "spm_sysid.apps.main", *readme, "--json",
+                        str(tmp_path / "m.json")], capture_output=True, text=True, cwd=ROOT,
+                       timeout=300)
+    assert r.returncode == 0, r.stderr
     model = MimoModel.load(tmp_path / "m.json")
     assert model.outputs == ("q1", "q2") and model.inputs == ("tau1", "tau2")
     r = subprocess.run([sys.executable, "-m", "spm_sysid.apps.main", "identify", "--data",

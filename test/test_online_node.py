@@ -6,8 +6,6 @@ pass, like a robot that keeps running.
 """
 
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -20,8 +18,8 @@ from spm_sysid.bench.online import system
 from spm_sysid.core.io.bagio import read_bag_signals, write_io_bag
 from spm_sysid.core.narx.model import NarxModel
 
-from .conftest import EQ1, ROOT
-from .ros_harness import Harness, finish_publisher, publisher, start_node, stop
+from .conftest import EQ1
+from .ros_harness import Harness, finish_publisher, play_bag, publisher, start_node, stop
 
 RATE = 1000.0
 
@@ -65,13 +63,6 @@ def latest(harness, msg_type, topic, predicate, timeout=30.0):
         harness.node.destroy_subscription(sub)
 
 
-def play(env, bag):
-    r = subprocess.run([sys.executable, "-m", "spm_sysid.ros.bag_player", "--ros-args",
-                        "-p", f"bag:={bag}", "-p", "rate:=10.0"],
-                       capture_output=True, text=True, env=env, timeout=120, cwd=ROOT)
-    assert r.returncode == 0, r.stderr
-
-
 def test_the_robot_arm_bag_replayed_again_stays_valid_and_scaled_by_one_and_a_half_is_not(
         ros_env, harness, robot_arm, tmp_path):
     u, y = robot_arm
@@ -80,7 +71,7 @@ def test_the_robot_arm_bag_replayed_again_stays_valid_and_scaled_by_one_and_a_ha
     node = start_node(ros_env, "seed:=1", "prediction_horizon:=5")
     try:
         harness.wait_ready()
-        play(ros_env, arm)
+        play_bag(ros_env, arm)
         harness.wait_buffer(lambda kv: int(kv["samples"]) >= len(y))
         res = harness.call("/spm_sysid/identify")
         assert res.success and "8 terms" in res.message
@@ -92,7 +83,7 @@ def test_the_robot_arm_bag_replayed_again_stays_valid_and_scaled_by_one_and_a_ha
         predictions = []
         sub = harness.node.create_subscription(Prediction, "/spm_sysid/prediction",
                                                predictions.append, 2000)
-        play(ros_env, arm)
+        play_bag(ros_env, arm)
         harness.spin_until(lambda: len(predictions) >= len(y) - 4, 30)
         harness.node.destroy_subscription(sub)
         assert len(predictions) == len(y) - 4  # the first 4 of the pass only fill the lags
@@ -115,7 +106,7 @@ def test_the_robot_arm_bag_replayed_again_stays_valid_and_scaled_by_one_and_a_ha
         assert v is not None and v.state != Validity.INVALID, v.reason
 
         # scaled by 1.5: a change, INVALID within the pass, in /diagnostics too
-        play(ros_env, scaled)
+        play_bag(ros_env, scaled)
         v, _ = latest(harness, Validity, "/spm_sysid/validity",
                       lambda m: m.state == Validity.INVALID)
         assert v is not None and v.change_detected and "change detected" in v.reason
