@@ -120,10 +120,11 @@ def identify(
         Structures of more terms are not selected (0: no limit).
     polish : bool
         After the GA, a local search from its best structure (one term added,
-        removed or swapped while that improves the criterion; at most
-        :data:`POLISH_STRUCTURES` structures scored, so the result does not
-        depend on the machine's speed). ``model.metadata["polish"]`` says what
-        it changed.
+        removed or swapped while that improves the criterion), then up to
+        :data:`POLISH_KICKS` kicks (a few terms flipped, the same search again);
+        at most :data:`POLISH_STRUCTURES` structures scored, so the result does
+        not depend on the machine's speed. ``model.metadata["polish"]`` says
+        what it changed.
     auto_certify_time_limit : float
         When the structure is the criterion's choice (focus prediction,
         selection ``criterion``), the criterion is AIC, AICc or BIC and the space
