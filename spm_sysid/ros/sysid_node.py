@@ -47,7 +47,7 @@ from ..core.io.channels import parse_channels, stream_order, topic_streams
 from ..core.io.fields import UnsetStamps, default_field, extract, parse_path
 from ..core.job import JobSettings
 from ..core.narx.model import NarxModel
-from ..core.online.session import OnlineSession
+from ..core.online.session import OnlineSession, held_out_mse
 from ..core.progress import Progress
 from ..core.record import BAG_OPTIONS, DataSpec, Record, load_record
 from ..core.settings import SETTINGS, Setting, check, node_settings, parse_text
@@ -791,15 +791,6 @@ class SysidNode(Node):
     def close(self) -> None:
         """Stop the worker process (a running search is killed)."""
         self.worker.close()
-
-
-def held_out_mse(model: NarxModel, u: np.ndarray, y: np.ndarray) -> float:
-    """One-step MSE of ``model`` on held-out samples (inf when it cannot predict them)."""
-    try:
-        e = model.residuals(u, y)
-    except (ValueError, IndexError):
-        return math.inf
-    return float(np.mean(e * e)) if len(e) and np.all(np.isfinite(e)) else math.inf
 
 
 def main(args: list[str] | None = None) -> int:

@@ -24,7 +24,7 @@ from .monitor import MonitorState, ValidityMonitor
 from .predictor import OnlinePredictor
 from .tracker import RecursiveTracker
 
-__all__ = ["OnlineSample", "OnlineSession"]
+__all__ = ["OnlineSample", "OnlineSession", "held_out_mse"]
 
 #: Stamps kept to date a detected change (older changes get the oldest kept).
 STAMP_MEMORY = 100_000
@@ -188,3 +188,15 @@ class OnlineSession:
                                             if self.samples else math.nan),
                 "tracker_updates": self.tracker.updates if self.tracker else 0,
                 "tracker_frozen": self.tracker.frozen if self.tracker else 0}
+
+
+def held_out_mse(model: NarxModel, u: np.ndarray, y: np.ndarray) -> float:
+    """One-step MSE of ``model`` on held-out samples (inf when it cannot predict them).
+
+    How an automatic re-identification is compared with the current model.
+    """
+    try:
+        e = model.residuals(u, y)
+    except (ValueError, IndexError):
+        return math.inf
+    return float(np.mean(e * e)) if len(e) and np.all(np.isfinite(e)) else math.inf
