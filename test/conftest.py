@@ -70,3 +70,22 @@ def ros_env():
 
 EQ1 = ["y(t-1)", "y(t-2)", "y(t-3)", "y(t-4)", "u(t-1)", "u(t-2)", "u(t-3)", "u(t-4)"]
 EQ2 = ["y(t-1)", "y(t-2)", "y(t-3)", "y(t-4)", "u(t-1)", "u(t-3)", "u(t-4)"]
+
+
+@pytest.fixture
+def harness(ros_env):
+    """An rclpy node of the test's own on its domain (:class:`test.ros_harness.Harness`)."""
+    from .ros_harness import Harness
+
+    h = Harness(ros_env)
+    yield h
+    h.close()
+
+
+@pytest.fixture(scope="module")
+def arm_bag(robot_arm, tmp_path_factory):
+    """The robot-arm data as an MCAP bag (in a temporary folder, never in git)."""
+    from spm_sysid.core.io.bagio import write_io_bag
+
+    u, y = robot_arm
+    return write_io_bag(tmp_path_factory.mktemp("bags") / "robot_arm", u, y)

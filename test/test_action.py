@@ -19,27 +19,13 @@ from spm_sysid_interfaces.msg import NarxModel as NarxModelMsg
 from spm_sysid_interfaces.msg import ValidationReport
 from std_msgs.msg import String
 
-from spm_sysid.core.io.bagio import write_io_bag
 from spm_sysid.core.progress import PHASES
 
 from .conftest import EQ1, ROOT
-from .ros_harness import Harness, IdentifyClient, play_bag, start_node, stop
+from .ros_harness import IdentifyClient, play_bag, start_node, stop
 
 Code = Identify.Result
 FACTOR = re.compile(r"^(\w+)\(t(?:-(\d+))?\)(?:\^(\d+))?$")
-
-
-@pytest.fixture
-def harness(ros_env):
-    h = Harness(ros_env)
-    yield h
-    h.close()
-
-
-@pytest.fixture(scope="module")
-def arm_bag(robot_arm, tmp_path_factory):
-    u, y = robot_arm
-    return write_io_bag(tmp_path_factory.mktemp("bags") / "robot_arm", u, y)
 
 
 def factors_from_name(name: str) -> list[tuple[str, int, int]]:

@@ -21,12 +21,6 @@ def player_cmd(*params):
     return args
 
 
-@pytest.fixture(scope="module")
-def arm_bag(robot_arm, tmp_path_factory):
-    u, y = robot_arm
-    return write_io_bag(tmp_path_factory.mktemp("bags") / "robot_arm", u, y)
-
-
 def _record(env, expected, timeout, *topics):
     rec = subprocess.Popen([sys.executable, HELPER, str(expected), str(timeout), *topics],
                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)

@@ -14,12 +14,6 @@ from spm_sysid.core.stream.buffer import pair_streams
 from .conftest import ROOT
 
 
-@pytest.fixture(scope="module")
-def arm_bag(robot_arm, tmp_path_factory):
-    u, y = robot_arm
-    return write_io_bag(tmp_path_factory.mktemp("bags") / "robot_arm", u, y)
-
-
 def test_metadata_declares_version_9_mcap_and_both_topics(arm_bag):
     meta = yaml.safe_load((arm_bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
     assert meta["version"] == 9 and meta["storage_identifier"] == "mcap"

@@ -13,14 +13,8 @@ from spm_sysid.core.narx.model import NarxModel
 from spm_sysid.core.narx.terms import TermSpace
 
 from .conftest import ROOT
-from .ros_harness import Harness, start_node, stop
-
-
-@pytest.fixture
-def harness(ros_env):
-    h = Harness(ros_env)
-    yield h
-    h.close()
+from .ros_harness import start_node, stop
+from .test_generalisation import sine_record
 
 
 def _model_doc() -> dict:
@@ -128,12 +122,7 @@ def test_the_publisher_waits_out_back_pressure_and_never_crashes(ros_env, tmp_pa
 
 def test_the_answer_and_diagnostics_carry_the_data_checks_warnings(ros_env, harness, tmp_path):
     """A sine input excites two lags of the four in the space: the node says so."""
-    t = np.arange(400)
-    u = np.sin(2 * np.pi * t / 37)
-    y = np.zeros(400)
-    for k in range(2, 400):
-        y[k] = 1.5 * y[k - 1] - 0.7 * y[k - 2] + 0.5 * u[k - 1]
-    y += 1e-3 * np.random.default_rng(0).standard_normal(400)
+    u, y = sine_record()
     data = tmp_path / "sine.dat"
     np.savetxt(data, np.column_stack([u, y]))
     node = start_node(ros_env, "generations:=20")

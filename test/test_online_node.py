@@ -19,16 +19,9 @@ from spm_sysid.core.io.bagio import read_bag_signals, write_io_bag
 from spm_sysid.core.narx.model import NarxModel
 
 from .conftest import EQ1
-from .ros_harness import Harness, finish_publisher, play_bag, publisher, start_node, stop
+from .ros_harness import finish_publisher, play_bag, publisher, start_node, stop
 
 RATE = 1000.0
-
-
-@pytest.fixture
-def harness(ros_env):
-    h = Harness(ros_env)
-    yield h
-    h.close()
 
 
 def write(path, u, y):

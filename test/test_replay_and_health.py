@@ -42,13 +42,6 @@ def readme_bag():
     return README_BAG
 
 
-@pytest.fixture
-def harness(ros_env):
-    h = Harness(ros_env)
-    yield h
-    h.close()
-
-
 def readme_node(env, *extra):
     """`sysid_node --ros-args --params-file config/sysid_node.yaml`, as the README says."""
     args = [_script("sysid_node"), "--ros-args", "--params-file", "config/sysid_node.yaml"]

@@ -12,28 +12,8 @@ from spm_sysid.core.io.bagio import write_io_bag
 from spm_sysid.core.narx.model import NarxModel
 
 from .conftest import EQ1, ROOT
-from .ros_harness import Harness, finish_publisher, publisher, start_node, stop
-
-
-@pytest.fixture
-def harness(ros_env):
-    h = Harness(ros_env)
-    yield h
-    h.close()
-
-
-@pytest.fixture(scope="module")
-def arm_bag(robot_arm, tmp_path_factory):
-    u, y = robot_arm
-    return write_io_bag(tmp_path_factory.mktemp("bags") / "robot_arm", u, y)
-
-
-def play(env, bag, rate=10.0):
-    r = subprocess.run([sys.executable, "-m", "spm_sysid.ros.bag_player", "--ros-args",
-                        "-p", f"bag:={bag}", "-p", f"rate:={rate}",
-                        "-p", "wait_for_subscribers:=1"],
-                       capture_output=True, text=True, env=env, timeout=120, cwd=ROOT)
-    assert r.returncode == 0, r.stderr
+from .ros_harness import finish_publisher, publisher, start_node, stop
+from .ros_harness import play_bag as play
 
 
 def test_replay_identify_and_latched_results(ros_env, harness, arm_bag, robot_arm, tmp_path):
