@@ -664,9 +664,12 @@ class SysidNode(Node):
             self.pred_pub.publish(prediction_message(sample, session.horizon))
         if sample.changed:
             st = sample.state
-            log = self.get_logger().info if st.state == "VALID" else \
-                self.get_logger().warning
-            log(f"model validity: {st.state}" + (f" ({st.reason})" if st.reason else ""))
+            text = f"model validity: {st.state}" + (f" ({st.reason})" if st.reason else "")
+            # one call site per severity: rclpy refuses a site whose severity changes
+            if st.state == "VALID":
+                self.get_logger().info(text)
+            else:
+                self.get_logger().warning(text)
             self.validity_pub.publish(validity_message(session, stamp))
             if st.state == "INVALID":
                 self._maybe_reidentify()
