@@ -41,7 +41,8 @@ from .progress import Progress, ProgressFn
 from .record import Record
 from .settings import JOB_GROUPS, check, defaults
 
-__all__ = ["JobResult", "JobSettings", "describe_selection", "run_job", "warm_up"]
+__all__ = ["JobResult", "JobSettings", "describe_selection", "run_job", "validation_segments",
+           "warm_up"]
 
 
 def warm_up() -> None:
@@ -271,6 +272,36 @@ def describe_selection(doc: dict | None) -> str:
     return f"selected by the criterion on the estimation data ({doc.get('note', '')})"
 
 
+def validation_segments(record: Record, settings: JobSettings
+                        ) -> tuple[list[tuple[int, int]], list[tuple[int, int]], dict]:
+    """The estimation and validation segments of a record, and its data account.
+
+    Raises
+    ------
+    DataError
+        No segment longer than the largest lag.
+    SettingsError
+        Correlation lags the validation rows cannot carry.
+    """
+    space = settings.term_space
+    period = int(round(settings.sample_period * 1e9)) or None
+    segments = record.segment_info(period, settings.gap_factor)
+    bounds, data = segment_report(segments, space.max_lag, record.rejected, record.unpaired)
+    if not bounds:
+        raise DataError(
+            f"no contiguous segment is longer than the largest lag ({space.max_lag}): "
+            f"{len(record)} samples in {len(segments.bounds)} segment(s) with "
+            f"{segments.gaps} gap(s)")
+    est = val = bounds
+    if settings.validation == "holdout":
+        est, val = split_segments(bounds, len(record), settings.validation_split,
+                                  space.max_lag)
+    if settings.validation != "none":
+        check_correlation_lags(settings.correlation_lags,
+                               sum(b - a - space.max_lag for a, b in val))
+    return est, val, data
+
+
 def run_job(
     record: Record,
     settings: JobSettings,
@@ -301,6 +332,12 @@ def run_job(
     metadata : mapping, optional
         Extra entries for the model document's metadata.
 
+    Returns
+    -------
+    JobResult
+        Or, for a record of several outputs, a
+        :class:`~spm_sysid.core.mimo_job.MimoJobResult` (one coupled model).
+
     Raises
     ------
     DataError
@@ -308,25 +345,18 @@ def run_job(
     SettingsError
         Settings that do not fit the data (per-input lags, correlation lags).
     """
+    if record.n_outputs > 1:  # one coupled model of several outputs
+        from .mimo_job import run_mimo_job
+
+        return run_mimo_job(record, settings, progress=progress,
+                            progress_every=progress_every, metadata=metadata)
     t0 = time.perf_counter()
     report = progress or (lambda p: None)
     report(Progress("checking data", elapsed=0.0))
     settings = settings.for_signals(record.input_names, record.output_name)
     space = settings.term_space
     u, y = record.u, record.y
-    period = int(round(settings.sample_period * 1e9)) or None
-    segments = record.segment_info(period, settings.gap_factor)
-    bounds, data = segment_report(segments, space.max_lag, record.rejected, record.unpaired)
-    if not bounds:
-        raise DataError(
-            f"no contiguous segment is longer than the largest lag ({space.max_lag}): "
-            f"{len(y)} samples in {len(segments.bounds)} segment(s) with {segments.gaps} gap(s)")
-    est = val = bounds
-    if settings.validation == "holdout":
-        est, val = split_segments(bounds, len(y), settings.validation_split, space.max_lag)
-    if settings.validation != "none":
-        check_correlation_lags(settings.correlation_lags,
-                               sum(b - a - space.max_lag for a, b in val))
+    est, val, data = validation_segments(record, settings)
 
     def throttled(p: Progress) -> None:
         if p.phase != "search" or p.step % progress_every == 0 or p.step == p.total:

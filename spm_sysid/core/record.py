@@ -32,6 +32,7 @@ import numpy as np
 
 from .errors import DataError
 from .narx.segments import SegmentInfo, find_segments
+from .settings import BAG_OPTIONS
 
 __all__ = ["DataSpec", "Record", "combine", "load_record"]
 
@@ -49,13 +50,17 @@ class Record:
     ----------
     u : ndarray, shape (n,) or (n, m)
         Inputs, oldest first (one column per input, in the user's order).
-    y : ndarray, shape (n,)
-        The output.
+    y : ndarray, shape (n,) or (n, q)
+        The output (one column per output when there are several: a coupled
+        model of several joints, :mod:`spm_sysid.core.narx.mimo`).
     source : str
         Where the samples came from, for people.
     input_names : tuple of str
         One name per input (default ``u``, or ``u1, u2, ...``).
     output_name : str
+        The output's name (several outputs: their names joined by commas).
+    output_names : tuple of str
+        One name per output (default: ``(output_name,)`` for one output).
     stamps_ns : ndarray of int, or None
         Sample stamps (bags, the node, CSV time columns); gaps and restarts in
         them split the record into segments.
@@ -83,25 +88,54 @@ class Record:
     unset_stamps: int = 0
     parts: list[dict] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    output_names: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         self.u = np.asarray(self.u, dtype=float)
         self.y = np.asarray(self.y, dtype=float)
         if not self.input_names:
             self.input_names = default_input_names(self.n_inputs)
+        if self.y.ndim == 2 and self.y.shape[1] == 1:
+            self.y = self.y[:, 0]
+        q = 1 if self.y.ndim == 1 else self.y.shape[1]
+        if not self.output_names:
+            self.output_names = ((self.output_name,) if q == 1 else
+                                 tuple(f"y{i + 1}" for i in range(q)))
+        self.output_names = tuple(self.output_names)
+        if len(self.output_names) != q:
+            raise DataError(f"{q} output column(s) but {len(self.output_names)} output "
+                            f"name(s) ({', '.join(self.output_names)})")
+        if q > 1:
+            self.output_name = ",".join(self.output_names)
 
     @classmethod
     def from_samples(cls, u, y, *, source: str, stamps_ns=None, input_names=(),
                      output_name: str = "y", rejected: int = 0, unpaired: int = 0,
-                     unset_stamps: int = 0) -> Record:
-        """A record of samples already in memory (the node's buffer, a Python caller)."""
+                     unset_stamps: int = 0, output_names=()) -> Record:
+        """A record of samples already in memory (the node's buffer, a Python caller).
+
+        ``y`` of shape (n, q) with ``output_names`` is a record of several outputs.
+        """
         return cls(u, y, source, tuple(input_names), output_name,
                    None if stamps_ns is None else np.asarray(stamps_ns, dtype=np.int64),
-                   rejected=rejected, unpaired=unpaired, unset_stamps=unset_stamps)
+                   rejected=rejected, unpaired=unpaired, unset_stamps=unset_stamps,
+                   output_names=tuple(output_names))
 
     @property
     def n_inputs(self) -> int:
         return 1 if self.u.ndim == 1 else self.u.shape[1]
+
+    @property
+    def n_outputs(self) -> int:
+        return 1 if self.y.ndim == 1 else self.y.shape[1]
+
+    def require_one_output(self, what: str) -> Record:
+        """The record itself, or a DataError when it has several outputs ``what`` cannot take."""
+        if self.n_outputs > 1:
+            raise DataError(f"{what} takes one output; the data has {self.n_outputs} "
+                            f"({', '.join(self.output_names)}): give one output, or identify "
+                            "them together with 'spm-sysid identify'")
+        return self
 
     def __len__(self) -> int:
         return len(self.y)
@@ -142,7 +176,7 @@ def combine(records: Sequence[Record]) -> Record:
     """
     if len(records) == 1:
         return records[0]
-    if len({(r.input_names, r.output_name, r.u.ndim) for r in records}) > 1:
+    if len({(r.input_names, r.output_names, r.u.ndim) for r in records}) > 1:
         raise DataError("the records differ in their signals (columns); give files of the "
                         "same layout")
     bounds, gaps, missing, restarts, start = [], 0, 0, 0, 0
@@ -164,13 +198,11 @@ def combine(records: Sequence[Record]) -> Record:
         rejected=sum(r.rejected for r in records), unpaired=sum(r.unpaired for r in records),
         unset_stamps=sum(r.unset_stamps for r in records),
         parts=[p for r in records for p in r.parts],
-        notes=[n for r in records for n in r.notes])
+        notes=[n for r in records for n in r.notes], output_names=first.output_names)
 
 
 # -- where data come from ---------------------------------------------------------------
 
-#: The data options of a spec, by their settings names.
-BAG_OPTIONS = ("input_topic", "input_field", "input_names", "output_topic", "output_field")
 
 
 @dataclass(frozen=True)
@@ -186,10 +218,11 @@ class DataSpec:
     inputs : tuple of str or None
         Input columns of data files, by header name or 0-based index.
     output : str or None
-        Output column of data files.
+        Output column of data files; a comma list (``q1,q2``) for several outputs.
     bag_options : mapping
         ``input_topic``, ``input_field``, ``input_names``, ``output_topic``,
-        ``output_field`` for bags (None: the defaults).
+        ``output_field``, ``output_names`` for bags (None: the defaults; comma
+        lists for several inputs or outputs).
     """
 
     data: tuple[str, ...] = ()
@@ -247,13 +280,16 @@ def load_record(spec: DataSpec | None = None) -> Record:
 
 
 def _load_file(path: str, spec: DataSpec) -> Record:
+    from .io.channels import split_list
     from .io.data import load_data
 
     inputs = list(spec.inputs) if spec.inputs else None
-    d = load_data(path, inputs, spec.output)
+    outputs = split_list(spec.output)
+    d = load_data(path, inputs, outputs if len(outputs) > 1 else spec.output)
     stamps = None if d.t is None else np.round(d.t * 1e9).astype(np.int64)
     return Record(d.u, d.y, path, tuple(d.input_names), d.output_name or "y", stamps,
-                  rejected=d.rejected, parts=[{"source": path, "samples": int(len(d.y))}])
+                  rejected=d.rejected, parts=[{"source": path, "samples": int(len(d.y))}],
+                  output_names=d.output_names)
 
 
 def _load_bag(spec: DataSpec) -> Record:
@@ -265,6 +301,8 @@ def _load_bag(spec: DataSpec) -> Record:
     if sig.unset_stamps:
         notes.append(f"{sig.unset_stamps} message(s) in {spec.bag} repeat header.stamp 0 (the "
                      "recording driver did not fill it in?); their log times were used")
-    return Record(sig.u, sig.y, f"bag {spec.bag}", tuple(sig.input_names), "y", sig.stamps_ns,
+    return Record(sig.u, sig.y, f"bag {spec.bag}", tuple(sig.input_names),
+                  sig.output_names[0] if len(sig.output_names) == 1 else "y", sig.stamps_ns,
                   rejected=sig.rejected_nonfinite, unpaired=sig.unpaired,
-                  unset_stamps=sig.unset_stamps, notes=notes)
+                  unset_stamps=sig.unset_stamps, notes=notes,
+                  output_names=sig.output_names if len(sig.output_names) > 1 else ())

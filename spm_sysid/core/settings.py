@@ -93,6 +93,10 @@ class Setting:
         return ""
 
 
+#: The data options of a bag (and of a DataSpec), by their settings names.
+BAG_OPTIONS = ("input_topic", "input_field", "input_names", "output_topic", "output_field",
+               "output_names")
+
 def _s(name, kind, default, help, group, **kw) -> Setting:  # noqa: A002 - a field name
     return Setting(name, kind, default, help, group, **kw)
 
@@ -184,12 +188,16 @@ _LIST = [
        "empty: the type's default)", "node", read_only=True),
     _s("input_names", str, "", "names of the inputs in the model, a comma list (empty: u, "
        "or u1, u2, ... for several)", "node", read_only=True),
-    _s("output_topic", str, "/robot_arm/acceleration", "output signal topic", "node",
-       read_only=True),
-    _s("output_type", str, "geometry_msgs/msg/AccelStamped", "output message type", "node",
+    _s("output_topic", str, "/robot_arm/acceleration", "output signal topic(s): one, or a "
+       "comma list, one per output (several outputs: one coupled model of several joints)",
+       "node", read_only=True),
+    _s("output_type", str, "geometry_msgs/msg/AccelStamped", "output message type(s): one "
+       "for all output topics, or a comma list, one per output", "node",
        cli=False, read_only=True),
-    _s("output_field", str, "", "field path of y (empty: the type's default)", "node",
-       read_only=True),
+    _s("output_field", str, "", "field path(s) of the outputs (e.g. "
+       "velocity[0],velocity[1]; empty: the type's default)", "node", read_only=True),
+    _s("output_names", str, "", "names of the outputs in the model, a comma list (empty: y, "
+       "or y1, y2, ... for several)", "node", read_only=True),
     _s("best_effort", bool, False, "subscribe best-effort, keep-last qos_depth (for "
        "best-effort sensors); default: reliable, keep-all", "node", cli=False,
        read_only=True),

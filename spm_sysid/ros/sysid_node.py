@@ -35,7 +35,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.task import Future
 from spm_sysid_interfaces.action import Identify
 from spm_sysid_interfaces.msg import NarxModel as NarxModelMsg
-from spm_sysid_interfaces.msg import Prediction, Validity
+from spm_sysid_interfaces.msg import NarxModelSet, Prediction, Validity
 from spm_sysid_interfaces.msg import ValidationReport as ValidationReportMsg
 from spm_sysid_interfaces.srv import GetModel
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
@@ -46,7 +46,9 @@ from ..core.files import atomic_write_text, check_writable_file
 from ..core.io.channels import parse_channels, stream_order, topic_streams
 from ..core.io.fields import UnsetStamps, default_field, extract, parse_path
 from ..core.job import JobSettings
+from ..core.narx.mimo import MIMO_SCHEMA, MimoModel, read_model_document
 from ..core.narx.model import NarxModel
+from ..core.online.coupled import CoupledSession, coupled_held_out_mse
 from ..core.online.session import OnlineSession, held_out_mse
 from ..core.progress import Progress
 from ..core.record import BAG_OPTIONS, DataSpec, Record, load_record
@@ -57,6 +59,7 @@ from .common import LATCHED, RELIABLE_KEEP_ALL, message_class, run_node
 from .typed import (
     feedback_message,
     model_message,
+    model_set_message,
     prediction_message,
     report_message,
     tracked_message,
@@ -117,18 +120,22 @@ class SysidNode(Node):
         p = self._params()
         self._values, self._job = p, self._check(p)
 
-        self.channels = parse_channels(p["input_topic"], p["input_field"], p["input_type"],
-                                       p["input_names"])
+        self.channels, self.out_channels = self._channels(p)
         streams = topic_streams(self.channels)
+        out_streams = topic_streams(self.out_channels)
         self._order = np.argsort(stream_order(self.channels))  # buffer -> given order
+        self._out_order = np.argsort(stream_order(self.out_channels))
         self.buffer = SampleBuffer(p["buffer_capacity"], int(round(p["stamp_tolerance"] * 1e9)),
                                    resync_samples=p["resync_samples"],
-                                   input_widths=[len(idx) for _, _, idx in streams])
+                                   input_widths=[len(idx) for _, _, idx in streams],
+                                   output_widths=[len(idx) for _, _, idx in out_streams])
         self._in = [(topic, self._signal(msgtype, [self.channels[i].field for i in idx]))
                     for topic, msgtype, idx in streams]
-        self._out = self._signal(p["output_type"], [p["output_field"]])
+        self._out = [(topic, self._signal(msgtype, [self.out_channels[i].field for i in idx]))
+                     for topic, msgtype, idx in out_streams]
         self._topics = {f"input {topic}": (topic, msgtype) for topic, msgtype, _ in streams}
-        self._topics["output"] = (p["output_topic"], p["output_type"])
+        self._topics.update({f"output {topic}": (topic, msgtype)
+                             for topic, msgtype, _ in out_streams})
         qos = RELIABLE_KEEP_ALL if not p["best_effort"] else QoSProfile(
             history=HistoryPolicy.KEEP_LAST, depth=p["qos_depth"],
             reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE)
@@ -139,12 +146,14 @@ class SysidNode(Node):
         services = ReentrantCallbackGroup()
         for stream, (topic, (cls, steps)) in enumerate(self._in):
             self.create_subscription(cls, topic, self._input_callback(stream, steps), qos)
-        self.create_subscription(self._out[0], p["output_topic"], self._on_output, qos)
+        for stream, (topic, (cls, steps)) in enumerate(self._out):
+            self.create_subscription(cls, topic, self._output_callback(stream, steps), qos)
         self.model_pub = self.create_publisher(String, "~/model", LATCHED)
         self.coef_pub = self.create_publisher(Float64MultiArray, "~/coefficients", LATCHED)
         self.resid_pub = self.create_publisher(Float64MultiArray, "~/residuals", LATCHED)
         self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.narx_pub = self.create_publisher(NarxModelMsg, "~/narx_model", LATCHED)
+        self.models_pub = self.create_publisher(NarxModelSet, "~/narx_models", LATCHED)
         # online: each paired sample predicted and monitored with the current model
         self.pred_pub = self.create_publisher(Prediction, "~/prediction", QoSProfile(
             history=HistoryPolicy.KEEP_LAST, depth=100,
@@ -174,6 +183,7 @@ class SysidNode(Node):
         self._model: dict | None = None  # the last model document published
         self._model_msg: NarxModelMsg | None = None
         self._report_msg: ValidationReportMsg | None = None
+        self._models_msg: NarxModelSet | None = None
         self._goal = None  # the action goal being executed
         self._feedback = None  # its feedback sender
         self._cancel_requested = False
@@ -196,8 +206,8 @@ class SysidNode(Node):
         self.worker = JobWorker("spm_sysid.core.job:run_job", on_progress=self._on_progress,
                                 on_event=self.get_logger().info)
         self.get_logger().info(
-            f"recording {self._describe_inputs()} and {p['output_topic']} "
-            f"({p['output_type']}); buffer of {p['buffer_capacity']} samples")
+            f"recording inputs {self._describe(self.channels)} and outputs "
+            f"{self._describe(self.out_channels)}; buffer of {p['buffer_capacity']} samples")
         if p["model_path"]:
             self._republish_saved(p["model_path"])
 
@@ -212,9 +222,30 @@ class SysidNode(Node):
         except (FieldPathError, ValueError) as exc:
             raise ValueError(str(exc)) from None
 
-    def _describe_inputs(self) -> str:
+    @staticmethod
+    def _describe(channels) -> str:
         return ", ".join(f"{c.name} = {c.topic} {c.field or default_field(c.msgtype)} "
-                         f"({c.msgtype})" for c in self.channels)
+                         f"({c.msgtype})" for c in channels)
+
+    @staticmethod
+    def _channels(values: dict) -> tuple[list, list]:
+        """The input and output channels the parameters name (ValueError when they clash)."""
+        inputs = parse_channels(values["input_topic"], values["input_field"],
+                                values["input_type"], values["input_names"])
+        outputs = parse_channels(values["output_topic"], values["output_field"],
+                                 values["output_type"], values["output_names"], role="output")
+        clash = {c.name for c in inputs} & {c.name for c in outputs}
+        if clash:
+            raise ValueError(f"an input and an output share the name {', '.join(sorted(clash))}"
+                             " (set input_names or output_names)")
+        for c in outputs:
+            if any(d.topic == c.topic and d.field == c.field for d in inputs):
+                raise ValueError(f"output {c.name} reads the same field of {c.topic} as an "
+                                 "input")
+            if any(d.topic == c.topic and d.msgtype != c.msgtype for d in inputs):
+                raise ValueError(f"topic {c.topic} is given two types (input_type and "
+                                 "output_type)")
+        return inputs, outputs
 
     def _check(self, values: dict) -> JobSettings:
         for s in node_settings():  # the job's own settings are checked by JobSettings
@@ -222,12 +253,11 @@ class SysidNode(Node):
                 check(s.name, values[s.name])
         if values["model_path"]:
             check_writable_file(values["model_path"], "model_path")
-        channels = parse_channels(values["input_topic"], values["input_field"],
-                                  values["input_type"], values["input_names"])
+        channels, out_channels = self._channels(values)
         for name, topic in [("input_topic", c.topic) for c in channels] + [
-                ("output_topic", values["output_topic"])]:
+                ("output_topic", c.topic) for c in out_channels]:
             self._check_topic(name, topic)
-        return self._settings(values, channels)
+        return self._settings(values, channels, out_channels)
 
     def _check_topic(self, parameter: str, topic: str) -> None:
         """A topic name ROS accepts, or a ValueError naming the parameter."""
@@ -245,8 +275,9 @@ class SysidNode(Node):
                 from None
 
     @staticmethod
-    def _settings(values: dict, channels) -> JobSettings:
-        return JobSettings.from_values(values).for_signals(tuple(c.name for c in channels), "y")
+    def _settings(values: dict, channels, out_channels) -> JobSettings:
+        return JobSettings.from_values(values).for_signals(tuple(c.name for c in channels),
+                                                           out_channels[0].name)
 
     def _check_parameters(self, changes) -> SetParametersResult:
         """Reject a parameter change that would make an identification impossible."""
@@ -268,8 +299,11 @@ class SysidNode(Node):
             self._record(msg, stream, steps, lambda t, v: self.buffer.add_input(t, v, stream))
         return on_input
 
-    def _on_output(self, msg) -> None:
-        self._record(msg, "y", self._out[1], lambda t, v: self.buffer.add_output(t, v[0]))
+    def _output_callback(self, stream: int, steps: list):
+        def on_output(msg) -> None:
+            self._record(msg, ("y", stream), steps,
+                         lambda t, v: self.buffer.add_output(t, v, stream))
+        return on_output
 
     def _record(self, msg, stream, steps, add) -> None:
         try:
@@ -319,7 +353,7 @@ class SysidNode(Node):
         for stream, old, new_t in self.buffer.jumps[self._logged["time_jumps"]:]:
             self._logged["time_jumps"] += 1
             self.get_logger().warning(
-                f"{'input' if stream == 'u' else 'output'} stamps jumped back by "
+                f"{'input' if stream.startswith('u') else 'output'} stamps jumped back by "
                 f"{(old - new_t) / 1e9:.3f} s (a replayed bag or a restarted clock?): the "
                 "samples after the jump are a new segment; identification never fits "
                 "across it")
@@ -380,8 +414,7 @@ class SysidNode(Node):
                                    goal.bag_path, feedback=feedback, goal=goal_handle)
         result = Identify.Result(error_code=out.code, message=out.message)
         if out.result is not None:
-            result.model, result.report = self._model_msg, self._report_msg
-            result.document = json.dumps(self._model, allow_nan=False)
+            self._fill(result)
         if out.code == Code.CANCELED and goal_handle.is_cancel_requested:
             goal_handle.canceled()
         elif out.code in (Code.NONE, Code.DIVERGED):
@@ -397,12 +430,26 @@ class SysidNode(Node):
             response.message = "no model yet: call ~/identify (or set model_path)"
             return response
         response.available = True
-        response.model, response.report = self._model_msg, self._report_msg
-        response.document = json.dumps(self._model, allow_nan=False)
-        response.message = (f"{len(self._model['terms'])} terms"
+        self._fill(response)
+        response.message = (self._size(self._model)
                             + (f", restored from {self._restored_from}"
                                if self._restored_from else ""))
         return response
+
+    def _fill(self, answer) -> None:
+        """The current model's messages and document into an action result or response."""
+        if self._model_msg is not None:  # one output
+            answer.model, answer.report = self._model_msg, self._report_msg
+        answer.models = self._models_msg
+        answer.document = json.dumps(self._model, allow_nan=False)
+
+    @staticmethod
+    def _size(doc: dict) -> str:
+        """A model's size in words (one output, or several)."""
+        if doc.get("schema") == MIMO_SCHEMA:
+            return ", ".join(f"{o}: {len(m['terms'])} terms"
+                             for o, m in zip(doc["outputs"], doc["models"]))
+        return f"{len(doc['terms'])} terms"
 
     def _override(self, names: list[str], texts: list[str]) -> tuple[dict, JobSettings]:
         """The held values with a goal's overrides, checked by the parameters' schema."""
@@ -425,15 +472,28 @@ class SysidNode(Node):
             spec = DataSpec(bag=bag_path, bag_options={k: values[k] for k in BAG_OPTIONS
                                                         if values.get(k)})
             return load_record(spec)
-        stamps, u, y = self.buffer.snapshot()
-        if u.ndim == 2:
-            u = u[:, self._order]
+        stamps, u, y = self._snapshot()
         if len(y) < values["min_samples"]:
             raise TooFewSamplesError(f"too few samples: {len(y)} paired samples in the buffer, "
                                 f"at least {values['min_samples']} needed (min_samples)")
+        return self._record_of(u, y, stamps, f"buffer of {self.get_fully_qualified_name()}",
+                               unset_stamps=self._unset.count)
+
+    def _snapshot(self):
+        """The buffer's samples with inputs and outputs in the order the parameters give."""
+        stamps, u, y = self.buffer.snapshot()
+        if u.ndim == 2:
+            u = u[:, self._order]
+        if y.ndim == 2:
+            y = y[:, self._out_order]
+        return stamps, u, y
+
+    def _record_of(self, u, y, stamps, source: str, **counts) -> Record:
+        names = tuple(c.name for c in self.out_channels)
         return Record.from_samples(
-            u, y, source=f"buffer of {self.get_fully_qualified_name()}", stamps_ns=stamps,
-            input_names=tuple(c.name for c in self.channels), unset_stamps=self._unset.count)
+            u, y, source=source, stamps_ns=stamps,
+            input_names=tuple(c.name for c in self.channels), output_name=names[0],
+            output_names=names if len(names) > 1 else (), **counts)
 
     async def _identify(self, names=(), texts=(), bag_path: str = "", *, feedback=None,
                         goal=None, record: Record | None = None,
@@ -497,13 +557,20 @@ class SysidNode(Node):
                 return self._failed(Code.SAVE_FAILED, exc)
             message = result.summary("line")
             self.get_logger().info(f"identified: {message}")
-            diverged = result.report is not None and result.report.diverged_at is not None
-            return Outcome(Code.DIVERGED if diverged else Code.NONE, message, result)
+            return Outcome(Code.DIVERGED if self._diverged(result) else Code.NONE, message,
+                           result)
         except Exception as exc:  # noqa: BLE001 - any failure of the search is a refusal
             return self._failed(Code.FAILED, exc)
         finally:
             self._started = self._goal = self._feedback = None
             self._busy.release()
+
+    @staticmethod
+    def _diverged(result) -> bool:
+        """The free-run simulation (of any output, coupled) left the measured range."""
+        if hasattr(result, "diverged"):  # several outputs
+            return bool(result.diverged)
+        return result.report is not None and result.report.diverged_at is not None
 
     def _failed(self, code: int, exc: BaseException) -> Outcome:
         self._last_error = str(exc)
@@ -547,6 +614,8 @@ class SysidNode(Node):
         done = Future()
         extra = {"node": self.get_fully_qualified_name(),
                  "input_topic": values["input_topic"], "output_topic": values["output_topic"]}
+        if values.get("output_field"):
+            extra["output_field"] = values["output_field"]
         job = self.worker.submit(record, settings, metadata=extra)
         timeout = values["job_timeout"]
         timer = threading.Timer(timeout, self.worker.cancel,
@@ -579,10 +648,19 @@ class SysidNode(Node):
                 raise SaveFailedError(f"the model could not be saved to {model_path} ({exc}); "
                                  "nothing was published") from None
             self.get_logger().info(f"model saved to {model_path}")
-        self._publish_model(doc, result.residuals)
-        resid = Float64MultiArray(data=[float(e) for e in result.residuals])
-        resid.layout.dim = [MultiArrayDimension(label="one_step_residuals",
-                                                size=len(resid.data), stride=len(resid.data))]
+        residuals = np.asarray(result.residuals, dtype=float)
+        self._publish_model(doc, residuals)
+        resid = Float64MultiArray(data=[float(e) for e in residuals.ravel()])
+        if residuals.ndim == 2:  # several outputs: rows of samples, a column per output
+            rows, cols = residuals.shape
+            resid.layout.dim = [
+                MultiArrayDimension(label="one_step_residuals", size=rows, stride=rows * cols),
+                MultiArrayDimension(label="outputs: " + ",".join(doc["outputs"]), size=cols,
+                                    stride=cols)]
+        else:
+            resid.layout.dim = [MultiArrayDimension(label="one_step_residuals",
+                                                    size=len(resid.data),
+                                                    stride=len(resid.data))]
         self.resid_pub.publish(resid)
         self._restored_from = self._last_error = None
         self._publish_diagnostics()
@@ -590,17 +668,25 @@ class SysidNode(Node):
     def _publish_model(self, doc: dict, residuals=None) -> None:
         """The model on every latched topic: JSON, coefficients, typed model and report."""
         stamp = self.get_clock().now().to_msg()
-        model_msg = model_message(doc, stamp)  # before publishing anything: all or nothing
-        report_msg = report_message(doc, residuals, stamp)
+        several = doc.get("schema") == MIMO_SCHEMA
+        # every message before publishing anything: all or nothing
+        models_msg = model_set_message(doc, residuals, stamp)
+        model_msg = None if several else model_message(doc, stamp)
+        report_msg = None if several else report_message(doc, residuals, stamp)
         self.model_pub.publish(String(data=json.dumps(doc, allow_nan=False)))
-        coefs = Float64MultiArray(data=[float(c) for c in doc["coefficients"]])
-        coefs.layout.dim = [MultiArrayDimension(
-            label="terms: " + "; ".join(doc["terms"]), size=len(doc["terms"]),
-            stride=len(doc["terms"]))]
+        parts = ([(f"{o}: ", m) for o, m in zip(doc["outputs"], doc["models"])] if several
+                 else [("", doc)])
+        terms = [f"{prefix}{t}" for prefix, m in parts for t in m["terms"]]
+        coefs = Float64MultiArray(data=[float(c) for _, m in parts for c in m["coefficients"]])
+        coefs.layout.dim = [MultiArrayDimension(label="terms: " + "; ".join(terms),
+                                                size=len(terms), stride=len(terms))]
         self.coef_pub.publish(coefs)
-        self.narx_pub.publish(model_msg)
-        self.report_pub.publish(report_msg)
+        if not several:  # ~/narx_model and ~/validation carry one output's model
+            self.narx_pub.publish(model_msg)
+            self.report_pub.publish(report_msg)
+        self.models_pub.publish(models_msg)
         self._model, self._model_msg, self._report_msg = doc, model_msg, report_msg
+        self._models_msg = models_msg
         self._start_online(doc, residuals)
 
     def _republish_saved(self, path: str) -> None:
@@ -612,7 +698,7 @@ class SysidNode(Node):
         if not os.path.lexists(path):
             return
         try:
-            _, doc = NarxModel.read_document(path)  # as saved, with its 'created' stamp
+            _, doc = read_model_document(path)  # as saved, with its 'created' stamp
             self._publish_model(doc)
         except Exception as exc:  # noqa: BLE001 - whatever is in the file, the node starts
             self.get_logger().warning(f"model_path {path} holds no readable model ({exc}); "
@@ -620,7 +706,7 @@ class SysidNode(Node):
             return
         self._restored_from = path
         self.get_logger().info(f"published the model saved in {path} "
-                               f"({len(doc['terms'])} terms) again")
+                               f"({self._size(doc)}) again")
 
     # -- online: prediction, validity, tracking, re-identification -----------------------
     def _start_online(self, doc: dict, residuals=None) -> None:
@@ -630,19 +716,22 @@ class SysidNode(Node):
         if not v["monitor"]:
             self._online = None
             return
+        options = dict(monitor_window=v["monitor_window"], tracking=v["tracking"],
+                       forgetting=v["forgetting"], sample_period=v["sample_period"],
+                       gap_factor=v["gap_factor"], horizon=v["prediction_horizon"])
         try:
-            model = NarxModel.from_dict(doc)
-            self._online = OnlineSession(
-                model, residuals, monitor_window=v["monitor_window"], tracking=v["tracking"],
-                forgetting=v["forgetting"], sample_period=v["sample_period"],
-                gap_factor=v["gap_factor"], input_std=None, horizon=v["prediction_horizon"])
+            if doc.get("schema") == MIMO_SCHEMA:  # one session per output
+                self._online = CoupledSession(MimoModel.from_dict(doc), residuals, **options)
+            else:
+                self._online = OnlineSession(NarxModel.from_dict(doc), residuals,
+                                             input_std=None, **options)
         except (ValueError, TypeError) as exc:  # e.g. a restored model without uncertainty
             self._online = None
             self.get_logger().warning(f"the model cannot be monitored online ({exc})")
             return
         self.validity_pub.publish(validity_message(self._online, self._last_stamp))
 
-    def _on_pair(self, stamp: int, u: np.ndarray, y: float) -> None:
+    def _on_pair(self, stamp: int, u: np.ndarray, y) -> None:
         """Each new aligned sample (the buffer calls this): predict, monitor, track."""
         self._last_stamp = stamp
         session = self._online
@@ -650,20 +739,29 @@ class SysidNode(Node):
             return
         u = u[self._order] if len(u) > 1 else u[0]
         try:
-            sample = session.feed(stamp, u, y)
+            if isinstance(session, CoupledSession):
+                samples, changed = session.feed(stamp, u, np.asarray(y)[self._out_order])
+                names = session.outputs
+            else:
+                sample = session.feed(stamp, u, y)
+                samples, changed = [sample], sample is not None and sample.changed
+                names = (session.model.term_space.output,)
         except Exception as exc:  # noqa: BLE001 - counted and reported, recording goes on
             self._online_errors += 1
             if self._online_errors == 1:
                 self.get_logger().error(f"online prediction failed ({exc}); counted in "
                                         "/diagnostics (online_errors)")
             return
-        if sample is None:
+        if all(s is None for s in samples):
             return
         self._predictions += 1
         if self._predictions % self._values["prediction_every"] == 0:
-            self.pred_pub.publish(prediction_message(sample, session.horizon))
-        if sample.changed:
-            st = sample.state
+            for name, sample in zip(names, samples):
+                if sample is not None:
+                    self.pred_pub.publish(prediction_message(sample, session.horizon,
+                                                             output_name=name))
+        if changed:
+            st = session.state
             text = f"model validity: {st.state}" + (f" ({st.reason})" if st.reason else "")
             # one call site per severity: rclpy refuses a site whose severity changes
             if st.state == "VALID":
@@ -703,9 +801,7 @@ class SysidNode(Node):
             why = "the model became INVALID"
         else:
             since, why = None, "periodic"
-        stamps, u, y = self.buffer.snapshot()
-        if u.ndim == 2:
-            u = u[:, self._order]
+        stamps, u, y = self._snapshot()
         keep = np.ones(len(y), bool) if since is None else stamps >= since
         if policy == "periodic":  # the recent samples: the last reidentify_samples * 4
             keep[:max(len(y) - 4 * v["reidentify_samples"], 0)] = False
@@ -727,10 +823,9 @@ class SysidNode(Node):
         self.get_logger().info(f"automatic identification {self._auto['runs']} ({why}) on "
                                f"{len(y) - hold} samples, {hold} held out")
         try:
-            record = Record.from_samples(
-                u[fit], y[fit], source=f"buffer of {self.get_fully_qualified_name()} "
-                f"(automatic: {why})", stamps_ns=stamps[fit],
-                input_names=tuple(c.name for c in self.channels))
+            record = self._record_of(u[fit], y[fit], stamps[fit],
+                                     f"buffer of {self.get_fully_qualified_name()} "
+                                     f"(automatic: {why})")
             out = await self._identify(record=record, auto=True)
         finally:
             self._auto_running = False
@@ -740,8 +835,9 @@ class SysidNode(Node):
             self._auto["last"] = f"failed: {out.message}"
             self.get_logger().warning(f"automatic identification failed: {out.message}")
             return
-        new_mse = held_out_mse(out.result.model, u[-hold:], y[-hold:])
-        old_mse = held_out_mse(current, u[-hold:], y[-hold:])
+        score = coupled_held_out_mse if isinstance(current, MimoModel) else held_out_mse
+        new_mse = score(out.result.model, u[-hold:], y[-hold:])
+        old_mse = score(current, u[-hold:], y[-hold:])
         if new_mse < old_mse:
             try:
                 self._publish_result(out.result, v["model_path"])

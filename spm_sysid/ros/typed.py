@@ -20,6 +20,7 @@ from spm_sysid_interfaces.msg import (
     CorrelationTest,
     FitMetrics,
     NarxModel,
+    NarxModelSet,
     NarxTerm,
     Prediction,
     TermFactor,
@@ -30,8 +31,8 @@ from spm_sysid_interfaces.msg import (
 from ..core.narx.terms import TermSpace
 from ..core.progress import Progress
 
-__all__ = ["feedback_message", "model_message", "prediction_message", "report_message",
-           "tracked_message", "validity_message"]
+__all__ = ["feedback_message", "model_message", "model_set_message", "prediction_message",
+           "report_message", "tracked_message", "validity_message"]
 
 NAN = math.nan
 _CERTIFICATION = {"optimal": NarxModel.CERTIFICATION_OPTIMAL,
@@ -147,10 +148,7 @@ def report_message(doc: Mapping, residuals: np.ndarray | None = None,
     msg.k_step = _fit(val.get("k_step"))
     msg.k_step_horizon = _uint((val.get("k_step") or {}).get("horizon"))
     msg.free_run = _fit(val.get("free_run"))
-    msg.correlation_tests = [CorrelationTest(
-        name=str(t["name"]), band=float(t["band"]), fraction_inside=float(t["fraction_inside"]),
-        max_abs=_num(t.get("max_abs")), worst_lag=int(t.get("worst_lag") or 0),
-        passed=bool(t["passed"])) for t in val.get("correlation_tests") or []]
+    msg.correlation_tests = _tests(val.get("correlation_tests"))
     msg.correlation_tests_skipped = str(val.get("correlation_tests_skipped") or
                                         ("" if val else "no validation in this model"))
     msg.correlation_tests_passed = bool(msg.correlation_tests) and all(
@@ -169,6 +167,43 @@ def report_message(doc: Mapping, residuals: np.ndarray | None = None,
     return msg
 
 
+def _tests(docs) -> list[CorrelationTest]:
+    return [CorrelationTest(
+        name=str(t["name"]), band=float(t["band"]), fraction_inside=float(t["fraction_inside"]),
+        max_abs=_num(t.get("max_abs")), worst_lag=int(t.get("worst_lag") or 0),
+        passed=bool(t["passed"])) for t in docs or []]
+
+
+def model_set_message(doc: Mapping, residuals: np.ndarray | None = None,
+                      stamp=None) -> NarxModelSet:
+    """``NarxModelSet`` from a model document of one output or several.
+
+    ``residuals``: one column per output (several), or the one output's.
+    """
+    msg = NarxModelSet()
+    if stamp is not None:
+        msg.header.stamp = stamp
+    if doc.get("schema") == "spm_sysid/narx-mimo-model":
+        docs = list(doc["models"])
+        msg.output_names, msg.input_names = list(doc["outputs"]), list(doc["inputs"])
+        res = None if residuals is None else np.asarray(residuals, dtype=float)
+        cols = [None if res is None or res.ndim != 2 else res[:, i] for i in range(len(docs))]
+        meta = doc.get("metadata") or {}
+        msg.cross_correlation_tests = _tests(meta.get("cross_correlation_tests"))
+        joint = meta.get("joint_criterion") or {}
+        msg.joint_criterion_value = _num(joint.get("value"))
+    else:
+        docs, cols = [doc], [residuals]
+        space = doc["term_space"]
+        msg.output_names, msg.input_names = [str(space["output"])], list(space["inputs"])
+        msg.joint_criterion_value = _num(doc.get("criterion_value"))
+    msg.models = [model_message(d, stamp) for d in docs]
+    msg.reports = [report_message(d, c, stamp) for d, c in zip(docs, cols)]
+    msg.criterion = msg.models[0].criterion
+    msg.cross_correlation_passed = all(t.passed for t in msg.cross_correlation_tests)
+    return msg
+
+
 def feedback_message(progress: Progress, elapsed: float) -> Identify.Feedback:
     """The action's feedback from a job's progress record."""
     return Identify.Feedback(
@@ -184,11 +219,13 @@ def _time(stamp_ns: int):
     return Time(sec=int(stamp_ns // 1_000_000_000), nanosec=int(stamp_ns % 1_000_000_000))
 
 
-def prediction_message(sample, horizon: int = 1, tracked: bool = False) -> Prediction:
+def prediction_message(sample, horizon: int = 1, tracked: bool = False,
+                       output_name: str = "") -> Prediction:
     """``Prediction`` of one :class:`~spm_sysid.core.online.session.OnlineSample`."""
     msg = Prediction(measured=sample.measured, predicted=sample.predicted,
                      residual=sample.residual, normalized_residual=sample.normalized,
-                     tracked=tracked, predicted_k=sample.predicted_k)
+                     tracked=tracked, predicted_k=sample.predicted_k,
+                     output_name=output_name)
     msg.horizon = int(horizon)
     msg.header.stamp = _time(sample.stamp_ns)
     return msg
@@ -212,6 +249,12 @@ def validity_message(session, stamp_ns: int | None = None) -> Validity:
     if change is not None:
         msg.change_stamp = _time(change)
     msg.gaps, msg.transitions = session.gaps, len(session.transitions)
+    sessions = getattr(session, "sessions", None)  # several outputs: each one's state
+    if sessions is not None:
+        msg.output_names = list(session.outputs)
+        states = [s.state for s in sessions]
+        msg.output_states = [int(getattr(Validity, s.state)) for s in states]
+        msg.output_reasons = [s.reason for s in states]
     return msg
 
 

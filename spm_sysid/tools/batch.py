@@ -125,6 +125,8 @@ def _identify_one(task: tuple, shared) -> tuple[dict, dict]:
     t0 = time.perf_counter()
     record = load_record(DataSpec.for_path(path, values))
     result = run_job(record, JobSettings.from_values(values))
+    if record.n_outputs > 1:
+        return _several_row(path, record, result, t0, model_path)
     model = result.model
     report = result.report
     one = free = None
@@ -141,6 +143,27 @@ def _identify_one(task: tuple, shared) -> tuple[dict, dict]:
            "status": status, "seconds": round(time.perf_counter() - t0, 3),
            "model": model_path}
     return row, model.to_dict()
+
+
+def _several_row(path: str, record, result, t0: float, model_path) -> tuple[dict, dict]:
+    """The summary row of a coupled model of several outputs: totals, worst fits."""
+    reports = [r.report for r in result.outputs]
+    one = free = None
+    if all(r is not None for r in reports):
+        one = min(r.one_step_metrics["fit_percent"] for r in reports)
+        frees = [r.free_run_metrics["fit_percent"] for r in reports]
+        free = None if result.diverged else min(frees)
+    status = (f"ok ({record.n_outputs} outputs {', '.join(record.output_names)}; fits are "
+              "the worst output's, free run coupled)")
+    if result.diverged:
+        status += f"; coupled free run diverged for {', '.join(result.diverged)}"
+    row = {"input": path, "samples": int(result.data.get("used_samples", len(record))),
+           "terms": sum(len(r.model.terms) for r in result.outputs),
+           "criterion": result.outputs[0].model.criterion,
+           "value": result.criterion_value, "one_step_fit": one, "free_run_fit": free,
+           "status": status, "seconds": round(time.perf_counter() - t0, 3),
+           "model": model_path}
+    return row, result.model.to_dict()
 
 
 def run_batch(inputs: Sequence[str], out: str | Path, values: dict, *,

@@ -5,7 +5,10 @@
 * :func:`plot_prediction` -- predicted and measured output superimposed, the
   error beneath (Figs. 6-7), for one-step or free-run;
 * :func:`plot_convergence` -- mean best criterion per generation over runs, one
-  line per SPM fraction (Figs. 3-4).
+  line per SPM fraction (Figs. 3-4);
+* :func:`plot_outputs` and :func:`write_mimo_figures` -- several outputs: one
+  panel per output (coupled free run, one-step), the residuals'
+  cross-correlation between outputs.
 
 Every function writes ``<stem>.png`` and ``<stem>.svg`` and returns both paths.
 """
@@ -24,8 +27,8 @@ from matplotlib.ticker import MaxNLocator  # noqa: E402
 
 from ..core.narx.validation import ValidationReport  # noqa: E402
 
-__all__ = ["model_label", "plot_convergence", "plot_correlation_tests", "plot_prediction",
-           "write_model_figures"]
+__all__ = ["model_label", "plot_convergence", "plot_correlation_tests", "plot_outputs",
+           "plot_prediction", "write_mimo_figures", "write_model_figures"]
 
 #: The correlation tests' symbols, as matplotlib mathtext (the core's labels are plain text).
 MATH_LABELS = {
@@ -60,8 +63,12 @@ def _save(fig, stem: Path) -> list[Path]:
 
 
 def plot_correlation_tests(report: ValidationReport, stem: Path, title: str = "") -> list[Path]:
-    """Stem plots of the five correlation tests with the ±1.96/√N band."""
-    tests = report.tests
+    """Stem plots of the five correlation tests with the ±1.96/√N band.
+
+    ``report`` may also be a list of tests (the cross-correlation of several
+    outputs' residuals).
+    """
+    tests = report if isinstance(report, list) else report.tests
     fig, axes = plt.subplots(len(tests), 1, figsize=(7, 2.0 * len(tests)), sharex=False)
     for ax, t in zip(np.atleast_1d(axes), tests):
         ax.vlines(t.lags, 0, t.values, color="tab:blue", lw=1.2)
@@ -204,4 +211,64 @@ def write_model_figures(
     if report.k_step is not None:
         paths += plot_prediction(report, directory / f"{name}_k_step", "k_step", which)
     paths += plot_prediction(report, directory / f"{name}_free_run", "free_run", which)
+    return paths
+
+
+def plot_outputs(reports: Sequence[ValidationReport], names: Sequence[str], stem: Path,
+                 kind: str = "free_run", title: str = "") -> list[Path]:
+    """Several outputs: measured and predicted, one panel per output (error beneath each).
+
+    ``kind``: ``free_run`` (for a coupled model: the coupled simulation) or
+    ``one_step``.
+    """
+    if kind not in ("one_step", "free_run"):
+        raise ValueError(f"kind must be 'one_step' or 'free_run', got {kind!r}")
+    label = "one-step prediction" if kind == "one_step" else "coupled free-run simulation"
+    fig, axes = plt.subplots(2 * len(reports), 1, figsize=(8, 3.2 * len(reports)),
+                             gridspec_kw={"height_ratios": [2, 1] * len(reports)})
+    for k, (rep, name) in enumerate(zip(reports, names)):
+        ax, axe = axes[2 * k], axes[2 * k + 1]
+        pred = rep.one_step if kind == "one_step" else rep.free_run
+        m = rep.one_step_metrics if kind == "one_step" else rep.free_run_metrics
+        t = np.arange(len(rep.measured))
+        ax.plot(t, rep.measured, color="k", lw=0.8, label="measured")
+        ax.plot(t, pred, color="tab:red", lw=0.7, ls="--", label=label)
+        ax.set_ylabel(name)
+        state = (f"DIVERGED at sample {m['diverged_at']}" if m.get("diverged_at") is not None
+                 else f"fit {m['fit_percent']:.1f} %, max |e| {m['max_abs']:.4g}")
+        ax.set_title(f"output {name}: {label}, {state}", fontsize=9)
+        ax.legend(loc="upper right", fontsize=7)
+        axe.plot(t, rep.measured - pred, color="tab:blue", lw=0.7)
+        axe.set_ylabel("error")
+        axe.sharex(ax)
+    axes[-1].set_xlabel("sample")
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    return _save(fig, stem)
+
+
+def write_mimo_figures(result, directory: Path, name: str = "model") -> list[Path]:
+    """The figures of a several-output job (:class:`~spm_sysid.core.mimo_job.MimoJobResult`).
+
+    ``<name>_free_run`` and ``<name>_one_step`` (a panel per output), each
+    output's correlation tests (``<name>_<output>_correlation``) and the
+    residuals' cross-correlation between outputs (``<name>_cross_correlation``).
+    """
+    directory = Path(directory)
+    reports = [r.report for r in result.outputs]
+    names = list(result.output_names)
+    paths = plot_outputs(reports, names, directory / f"{name}_free_run", "free_run",
+                         "coupled model — every output's simulation fed back into all")
+    paths += plot_outputs(reports, names, directory / f"{name}_one_step", "one_step")
+    for out, rep, r in zip(names, reports, result.outputs):
+        if rep.tests:
+            paths += plot_correlation_tests(
+                rep, directory / f"{name}_{out}_correlation",
+                title=f"output {out} ({model_label(r.model)}) — correlation tests "
+                      f"({rep.segment} data)")
+    if result.cross_tests:
+        paths += plot_correlation_tests(result.cross_tests, directory / f"{name}_cross_correlation",
+                                        title="cross-correlation of the outputs' one-step "
+                                              "residuals (lag 0 not checked)")
     return paths

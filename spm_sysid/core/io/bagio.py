@@ -188,18 +188,23 @@ def write_io_bag(
     rate_hz: float = DEFAULT_RATE_HZ,
     start_ns: int = 0,
     input_topic: str = DEFAULT_INPUT_TOPIC,
-    output_topic: str = DEFAULT_OUTPUT_TOPIC,
+    output_topic: str | Sequence[str] = DEFAULT_OUTPUT_TOPIC,
     input_frame: str = "robot_arm_base",
     output_frame: str = "robot_arm_tip",
     input_names: Sequence[str] | None = None,
     overwrite: bool = False,
+    output_names: Sequence[str] | None = None,
 ) -> Path:
     """Write u and y as a rosbag2 MCAP bag (format version 9) at directory ``path``.
 
     One input (``u`` of shape (n,)) is written as ``geometry_msgs/msg/WrenchStamped``
     (torque.z), several (shape (n, m)) as ``sensor_msgs/msg/JointState`` with
     ``effort[i]`` = input i and joint names ``input_names`` (default u1, u2, ...);
-    the output as ``geometry_msgs/msg/AccelStamped`` (linear.x).
+    the output as ``geometry_msgs/msg/AccelStamped`` (linear.x). Several outputs
+    (``y`` of shape (n, q)): one ``AccelStamped`` topic per output when
+    ``output_topic`` lists q topics (comma list or sequence), else one
+    ``JointState`` topic with ``velocity[i]`` = output i (joint names
+    ``output_names``, default y1, y2, ...).
 
     Everything is checked before anything is touched; the bag is written into a
     temporary directory beside ``path`` and moved into place when complete, so
@@ -222,8 +227,24 @@ def write_io_bag(
         raise BagError(f"start must be >= 0 seconds (a ROS time), got {start_ns / 1e9:g} s")
     if u.ndim == 2 and u.shape[1] == 1:
         u = u[:, 0]
-    if len(u) != len(y) or u.ndim not in (1, 2) or y.ndim != 1:
-        raise BagError(f"u must be (n,) or (n, inputs) and y (n,), got {u.shape} and {y.shape}")
+    if y.ndim == 2 and y.shape[1] == 1:
+        y = y[:, 0]
+    if len(u) != len(y) or u.ndim not in (1, 2) or y.ndim not in (1, 2):
+        raise BagError(f"u must be (n,) or (n, inputs) and y (n,) or (n, outputs), got "
+                       f"{u.shape} and {y.shape}")
+    out_topics = ([t.strip() for t in output_topic.split(",") if t.strip()]
+                  if isinstance(output_topic, str) else list(output_topic))
+    out_joints = None
+    if y.ndim == 2 and len(out_topics) == 1:  # several outputs on one JointState topic
+        out_joints = list(output_names or [f"y{i + 1}" for i in range(y.shape[1])])
+        if len(out_joints) != y.shape[1]:
+            raise BagError(f"{len(out_joints)} output names for {y.shape[1]} outputs")
+    elif len(out_topics) != (1 if y.ndim == 1 else y.shape[1]):
+        raise BagError(f"{len(out_topics)} output topics for "
+                       f"{1 if y.ndim == 1 else y.shape[1]} outputs (give one topic, or one "
+                       "per output)")
+    if len(set(out_topics)) != len(out_topics):
+        raise BagError("the output topics must differ")
     joints = None
     if u.ndim == 2:
         joints = list(input_names or [f"u{i + 1}" for i in range(u.shape[1])])
@@ -233,7 +254,7 @@ def write_io_bag(
         raise BagError("no samples to write")
     if not (np.all(np.isfinite(u)) and np.all(np.isfinite(y))):
         raise BagError("u and y must be finite (NaN or inf found)")
-    if input_topic == output_topic:
+    if input_topic in out_topics:
         raise BagError("input and output topics must differ")
     if path.exists() or path.is_symlink():
         if not overwrite:
@@ -276,8 +297,10 @@ def write_io_bag(
             qos = [default_qos()]
             c_in = writer.add_connection(input_topic, in_type, typestore=store,
                                          offered_qos_profiles=qos)
-            c_out = writer.add_connection(output_topic, OUTPUT_TYPE, typestore=store,
-                                          offered_qos_profiles=qos)
+            out_type = OUTPUT_TYPE if out_joints is None else JOINT_TYPE
+            c_outs = [writer.add_connection(t, out_type, typestore=store,
+                                            offered_qos_profiles=qos) for t in out_topics]
+            ys = y[:, None] if y.ndim == 1 else y
             for k in range(len(u)):
                 t_ns = start_ns + int(round(k * period_ns))
                 stamp = Time(sec=t_ns // 1_000_000_000, nanosec=t_ns % 1_000_000_000)
@@ -290,12 +313,20 @@ def write_io_bag(
                     w = JointState(header=Header(stamp=stamp, frame_id=input_frame),
                                    name=joints, position=empty, velocity=empty,
                                    effort=np.ascontiguousarray(u[k]))
-                a = AccelStamped(
-                    header=Header(stamp=stamp, frame_id=output_frame),
-                    accel=Accel(linear=Vector3(x=float(y[k]), y=0.0, z=0.0), angular=zero),
-                )
                 writer.write(c_in, t_ns, store.serialize_cdr(w, in_type))
-                writer.write(c_out, t_ns, store.serialize_cdr(a, OUTPUT_TYPE))
+                if out_joints is not None:
+                    a = JointState(header=Header(stamp=stamp, frame_id=output_frame),
+                                   name=out_joints, position=empty,
+                                   velocity=np.ascontiguousarray(ys[k]), effort=empty)
+                    writer.write(c_outs[0], t_ns, store.serialize_cdr(a, JOINT_TYPE))
+                    continue
+                for c_out, value in zip(c_outs, ys[k]):
+                    a = AccelStamped(
+                        header=Header(stamp=stamp, frame_id=output_frame),
+                        accel=Accel(linear=Vector3(x=float(value), y=0.0, z=0.0),
+                                    angular=zero),
+                    )
+                    writer.write(c_out, t_ns, store.serialize_cdr(a, OUTPUT_TYPE))
     except BaseException as exc:
         shutil.rmtree(stage, ignore_errors=True)
         if isinstance(exc, (OSError, ValueError)) and not isinstance(exc, BagError):
@@ -326,12 +357,14 @@ class BagSignals:
     crc_checked: bool = False
     input_names: tuple[str, ...] = ("u",)
     unset_stamps: int = 0  # messages whose header.stamp was zero: their log time was used
+    output_names: tuple[str, ...] = ("y",)  # several: y has one column per output
+    streams: int = 0  # aligned streams (a topic read for inputs and outputs counts twice)
 
     @property
     def unpaired(self) -> int:
-        """Finite messages on any topic that are not part of an aligned sample."""
+        """Finite messages on any stream that are not part of an aligned sample."""
         return (self.input_count + self.output_count - self.rejected_nonfinite
-                - len(self.topics) * len(self.u))
+                - (self.streams or len(self.topics)) * len(self.u))
 
 
 _MAGIC = b"\x89MCAP0\r\n"
@@ -415,18 +448,22 @@ def read_bag_signals(
     path: str | Path,
     *,
     input_topic: str | Sequence[str] = DEFAULT_INPUT_TOPIC,
-    output_topic: str = DEFAULT_OUTPUT_TOPIC,
+    output_topic: str | Sequence[str] = DEFAULT_OUTPUT_TOPIC,
     input_field: str | Sequence[str] | None = None,
-    output_field: str | None = None,
+    output_field: str | Sequence[str] | None = None,
     input_names: str | Sequence[str] | None = None,
     tolerance_ns: int | None = None,
+    output_names: str | Sequence[str] | None = None,
 ) -> BagSignals:
-    """Read the inputs and y from topics of a bag, aligned by header stamp as the node does.
+    """Read the inputs and outputs from topics of a bag, aligned by header stamp as the node does.
 
     Several inputs: ``input_topic``, ``input_field`` and ``input_names`` are
     comma-separated lists (one entry for all inputs, or one per input; see
     :func:`spm_sysid.core.io.channels.parse_channels`), e.g. one
     ``sensor_msgs/msg/JointState`` topic with fields ``effort[0],effort[1]``.
+    Several outputs likewise (``output_topic``, ``output_field``,
+    ``output_names``): two topics, or ``velocity[0],velocity[1]`` of one
+    ``JointState`` topic; ``y`` then has one column per output.
     Messages without a header are stamped with their log time. Fields default by
     message type (see :data:`spm_sysid.core.io.fields.DEFAULT_FIELDS`). Messages
     go through the node's alignment rule in log-time order
@@ -448,30 +485,35 @@ def read_bag_signals(
         tolerance_ns = int(round(SETTINGS["stamp_tolerance"].default * 1e9))
     try:
         channels = parse_channels(input_topic, input_field, None, input_names)
+        out_channels = parse_channels(output_topic, output_field, None, output_names,
+                                      role="output")
     except ValueError as exc:
         raise BagError(str(exc)) from None
     groups = topic_streams(channels)
+    out_groups = topic_streams(out_channels)
     path = Path(path)
     reader = open_bag(path)
     crc_checked = reader.crc_checked
     try:
         conns = {c.topic: c for c in reader.connections}
-        for topic in [g[0] for g in groups] + [output_topic]:
+        for topic in [g[0] for g in groups] + [g[0] for g in out_groups]:
             if topic not in conns:
                 raise BagError(
                     f"{path} has no topic {topic}; it has: {', '.join(sorted(conns)) or 'none'}"
                 )
-        if output_topic in {g[0] for g in groups}:
-            raise BagError(f"{output_topic} is given as both an input and the output topic")
-        # stream: "y", or the index of the input topic; steps: one field path per value
-        streams: dict[str, tuple[str | int, list]] = {}
+        for c in out_channels:  # one topic may carry both (JointState: effort in, velocity out)
+            if any(d.topic == c.topic and (d.field or None) == (c.field or None)
+                   for d in channels):
+                raise BagError(f"output {c.name} reads the same field of {c.topic} as an input")
+        # per topic its streams: ("y", k) for output stream k, or the index of the input
+        # stream; steps: one field path per value
+        streams: dict[str, list[tuple[tuple | int, list]]] = {}
         try:
-            for i, (topic, _, idx) in enumerate(groups):
-                msgtype = conns[topic].msgtype
-                streams[topic] = (i, [parse_path(channels[j].field or default_field(msgtype))
-                                      for j in idx])
-            streams[output_topic] = ("y", [parse_path(
-                output_field or default_field(conns[output_topic].msgtype))])
+            for role, gs, chans in ((0, groups, channels), (1, out_groups, out_channels)):
+                for i, (topic, _, idx) in enumerate(gs):
+                    msgtype = conns[topic].msgtype
+                    streams.setdefault(topic, []).append((("y", i) if role else i, [
+                        parse_path(chans[j].field or default_field(msgtype)) for j in idx]))
         except FieldPathError as exc:
             raise BagError(f"topic {topic} ({conns[topic].msgtype}): {exc}") from None
         events = []
@@ -480,10 +522,9 @@ def read_bag_signals(
             for c, log_ns, raw in reader.messages(connections=[conns[t] for t in streams]):
                 msg = reader.deserialize(raw, c.msgtype)
                 st = unset.stamp(c.topic, msg)
-                stream, steps = streams[c.topic]
-                values = [extract(msg, s) for s in steps]
-                events.append((stream, log_ns if st is None else st,
-                               values[0] if stream == "y" else values))
+                for stream, steps in streams[c.topic]:
+                    events.append((stream, log_ns if st is None else st,
+                                   [extract(msg, s) for s in steps]))
         except FieldPathError as exc:
             raise BagError(f"topic {c.topic} has type {c.msgtype}: {exc}") from None
         except Exception as exc:
@@ -491,16 +532,21 @@ def read_bag_signals(
     finally:
         reader.close()
     stamps, u, y, stats = pair_streams(events, tolerance_ns,
-                                       input_widths=[len(g[2]) for g in groups])
+                                       input_widths=[len(g[2]) for g in groups],
+                                       output_widths=[len(g[2]) for g in out_groups])
     if len(u) == 0:
         raise BagError(f"{path}: no input and output messages with matching stamps "
                        f"(tolerance {tolerance_ns} ns)")
     if u.ndim == 2:  # the buffer numbers inputs topic by topic: back to the given order
         u = u[:, np.argsort(stream_order(channels))]
+    if y.ndim == 2:
+        y = y[:, np.argsort(stream_order(out_channels))]
     return BagSignals(
         u=u, y=y, stamps_ns=stamps, input_count=stats.received_inputs,
         output_count=stats.received_outputs,
         topics={t: conns[t].msgtype for t in streams},
+        streams=sum(len(v) for v in streams.values()),
         rejected_nonfinite=stats.rejected_nonfinite, crc_checked=crc_checked,
         input_names=tuple(c.name for c in channels), unset_stamps=unset.count,
+        output_names=tuple(c.name for c in out_channels),
     )

@@ -1,6 +1,6 @@
-"""Input channels: which topic, message type and field each model input is read from.
+"""Channels: which topic, message type and field each model input and output is read from.
 
-A model has one output and one or several inputs. Each input is a *channel*:
+A model has one or several outputs and one or several inputs. Each signal is a *channel*:
 a topic, its message type, a field path in the message, and a signal name. The
 same topic may carry several inputs (``sensor_msgs/msg/JointState`` with fields
 ``effort[0]`` and ``effort[1]``); inputs on one topic share a stamp, so they are
@@ -12,6 +12,10 @@ one per input::
 
     input_topic: /joint_states            input_field: effort[0],effort[1]
     input_type:  sensor_msgs/msg/JointState   input_names: tau1,tau2
+
+Outputs are given the same way (``output_topic``, ``output_type``,
+``output_field``, ``output_names``); several outputs make a coupled model of
+several joints (:mod:`spm_sysid.core.narx.mimo`).
 """
 
 from __future__ import annotations
@@ -27,7 +31,7 @@ __all__ = ["Channel", "parse_channels", "split_list", "stream_order", "topic_str
 
 @dataclass(frozen=True)
 class Channel:
-    """One model input: where it is read from and what it is called."""
+    """One model input or output: where it is read from and what it is called."""
 
     topic: str
     msgtype: str | None
@@ -43,15 +47,19 @@ def split_list(value: str | Sequence[str] | None) -> list[str]:
     return [str(v).strip() for v in items if str(v).strip()]
 
 
-def parse_channels(topics, fields=None, types=None, names=None) -> list[Channel]:
-    """The input channels from per-input lists (each of length 1 or n).
+def parse_channels(topics, fields=None, types=None, names=None, role: str = "input"
+                   ) -> list[Channel]:
+    """The input (or output) channels from per-signal lists (each of length 1 or n).
 
     Parameters
     ----------
     topics, fields, types, names : str (comma-separated) or sequence of str
         Topics; field paths (empty: the type's default, resolved when the type is
         known); message types (None: unknown yet, e.g. read from a bag); signal
-        names (default ``u`` for one input, ``u1, u2, ...`` for several).
+        names (default ``u`` for one input, ``u1, u2, ...`` for several;
+        ``y``, ``y1, y2, ...`` for outputs).
+    role : {"input", "output"}
+        Which signals: names the settings in messages and the default names.
 
     Raises
     ------
@@ -59,36 +67,39 @@ def parse_channels(topics, fields=None, types=None, names=None) -> list[Channel]
         Lists of different lengths (other than 1), no topic, a bad field path,
         names that are not distinct identifiers.
     """
-    lists = {"input_topic": split_list(topics), "input_field": split_list(fields),
-             "input_type": split_list(types), "input_names": split_list(names)}
-    if not lists["input_topic"]:
-        raise ValueError("input_topic: give at least one topic")
+    r = role
+    lists = {f"{r}_topic": split_list(topics), f"{r}_field": split_list(fields),
+             f"{r}_type": split_list(types), f"{r}_names": split_list(names)}
+    if not lists[f"{r}_topic"]:
+        raise ValueError(f"{r}_topic: give at least one topic")
     n = max(len(v) for v in lists.values())
     for label, values in lists.items():
         if len(values) not in (0, 1, n):
-            raise ValueError(f"{label} lists {len(values)} entries for {n} inputs (give one "
-                             f"entry for all inputs, or one per input)")
+            raise ValueError(f"{label} lists {len(values)} entries for {n} {r}s (give one "
+                             f"entry for all {r}s, or one per {r})")
 
     def pick(label: str, i: int) -> str | None:
-        values = lists[label]
+        values = lists[f"{r}_{label}"]
         return values[0] if len(values) == 1 else (values[i] if values else None)
 
-    names_ = lists["input_names"] or (["u"] if n == 1 else [f"u{i + 1}" for i in range(n)])
+    letter = "u" if r == "input" else "y"
+    names_ = lists[f"{r}_names"] or ([letter] if n == 1 else
+                                     [f"{letter}{i + 1}" for i in range(n)])
     if len(names_) == 1 and n > 1:
-        raise ValueError(f"input_names gives one name for {n} inputs")
+        raise ValueError(f"{r}_names gives one name for {n} {r}s")
     if len(set(names_)) != n or not all(nm.isidentifier() for nm in names_):
-        raise ValueError(f"input_names must be distinct identifiers, got {', '.join(names_)}")
+        raise ValueError(f"{r}_names must be distinct identifiers, got {', '.join(names_)}")
     channels = []
     for i in range(n):
-        msgtype, field = pick("input_type", i), pick("input_field", i) or ""
+        msgtype, field = pick("type", i), pick("field", i) or ""
         try:
             if field:  # an empty field is the type's default, resolved with the type
                 parse_path(field)
         except FieldPathError as exc:
-            raise ValueError(f"input {names_[i]}: {exc}") from None
-        channels.append(Channel(pick("input_topic", i), msgtype, field, names_[i]))
+            raise ValueError(f"{r} {names_[i]}: {exc}") from None
+        channels.append(Channel(pick("topic", i), msgtype, field, names_[i]))
     if len({(c.topic, c.field) for c in channels}) != n:
-        raise ValueError("two inputs read the same field of the same topic")
+        raise ValueError(f"two {r}s read the same field of the same topic")
     for c in channels:
         same = {d.msgtype for d in channels if d.topic == c.topic}
         if len(same) > 1:

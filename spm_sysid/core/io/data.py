@@ -256,6 +256,8 @@ class IOData:
     source : str
     input_names, output_name : str
         Signal names from the file's header (empty: unnamed).
+    output_names : tuple of str
+        Several outputs (``y`` of shape (n, q)): their names; empty for one.
     """
 
     u: np.ndarray
@@ -265,25 +267,31 @@ class IOData:
     source: str = ""
     input_names: tuple[str, ...] = ()
     output_name: str = "y"
+    output_names: tuple[str, ...] = ()
 
 
 def parse_data_text(text: str, source: str = "<text>", inputs: list[str] | None = None,
-                    output: str | None = None) -> IOData:
-    """Parse data text into :class:`IOData`; see :func:`load_data` for the columns."""
+                    output: str | list[str] | None = None) -> IOData:
+    """Parse data text into :class:`IOData`; see :func:`load_data` for the columns.
+
+    ``output`` a list of several columns: ``y`` has one column per output (rows
+    with any value missing are dropped together, with a time column).
+    """
     table = parse_table(text, source)
     names, width = table.names, table.width
     it = next((k for k, n in enumerate(names or []) if n in TIME_COLUMNS), None)
-    chosen = inputs is not None or output is not None
+    outputs = [output] if isinstance(output, str) else list(output or [])
+    chosen = inputs is not None or bool(outputs)
     if chosen:
-        iy = (_column(table, output) if output is not None
-              else names.index("y") if names and "y" in names else width - 1)
+        iys = ([_column(table, c) for c in outputs] if outputs
+               else [names.index("y") if names and "y" in names else width - 1])
         iu = ([_column(table, c) for c in inputs] if inputs
-              else [k for k in range(width) if k not in (iy, it)])
-        if not iu or iy in iu or len(set(iu)) != len(iu) or (
-                it is not None and (it in iu or it == iy)):
+              else [k for k in range(width) if k not in iys and k != it])
+        if not iu or set(iys) & set(iu) or len(set(iu)) != len(iu) or len(set(iys)) != len(
+                iys) or (it is not None and (it in iu or it in iys)):
             raise DataError(f"{source}: choose distinct input and output columns")
     elif names and "u" in names and "y" in names:
-        iu, iy = [names.index("u")], names.index("y")
+        iu, iys = [names.index("u")], [names.index("y")]
     else:
         others = [k for k in range(width) if k != it]
         if len(others) != 2:
@@ -296,9 +304,10 @@ def parse_data_text(text: str, source: str = "<text>", inputs: list[str] | None 
                                 f"'u' and 'y' or exactly two more columns, found {names}")
             raise DataError(f"{where}: CSV header {table.header_names} needs columns named "
                             f"'u' and 'y' or exactly 2 columns, found {width}")
-        iu, iy = [others[0]], others[1]
+        iu, iys = [others[0]], [others[1]]
     values = table.values
-    signals = values[:, iu + [iy]]
+    cols = iu + iys
+    signals = values[:, cols]
     t = None
     rejected = 0
     if it is not None:  # rows with missing values are dropped and counted (gaps by time)
@@ -321,7 +330,6 @@ def parse_data_text(text: str, source: str = "<text>", inputs: list[str] | None 
         if bad.size:
             row = int(bad[0])
             cells = table.tokens(row)
-            cols = iu + [iy]
             token = next((cells[j] for j in cols if j < len(cells)
                           and not (cells[j] and math.isfinite(float(cells[j])))), "")
             where = f"{source}, line {table.lines[row]}"
@@ -332,14 +340,19 @@ def parse_data_text(text: str, source: str = "<text>", inputs: list[str] | None 
                             "rows dropped as gaps)")
     if len(signals) == 0:
         raise DataError(f"{source}: no rows with all values present")
-    u = signals[:, :-1] if len(iu) > 1 else signals[:, 0]
+    m = len(iu)
+    u = signals[:, :m] if m > 1 else signals[:, 0]
+    y = signals[:, m:] if len(iys) > 1 else signals[:, m]
 
     def label(j: int, default: str) -> str:
         return names[j] if chosen and names and names[j].isidentifier() else default
 
-    in_names = tuple(label(j, f"u{k + 1}" if len(iu) > 1 else "u") for k, j in enumerate(iu))
-    return IOData(np.ascontiguousarray(u), np.ascontiguousarray(signals[:, -1]), t, rejected,
-                  source, in_names if chosen else (), label(iy, "y"))
+    in_names = tuple(label(j, f"u{k + 1}" if m > 1 else "u") for k, j in enumerate(iu))
+    out_names = tuple(label(j, f"y{k + 1}" if len(iys) > 1 else "y")
+                      for k, j in enumerate(iys))
+    return IOData(np.ascontiguousarray(u), np.ascontiguousarray(y), t, rejected,
+                  source, in_names if chosen else (), ",".join(out_names),
+                  out_names if len(iys) > 1 else ())
 
 
 def _column(table: Table, sel) -> int:
@@ -358,11 +371,12 @@ def _column(table: Table, sel) -> int:
 
 
 def load_data(path: str | os.PathLike, inputs: list[str] | None = None,
-              output: str | None = None) -> IOData:
+              output: str | list[str] | None = None) -> IOData:
     """Read a data file into :class:`IOData` (u, y and, with a time column, t).
 
     ``inputs`` and ``output`` choose columns by header name (CSV) or by 0-based
-    index (any layout); with them a file may have any number of columns. Without
+    index (any layout); with them a file may have any number of columns. Several
+    ``output`` columns (a list) give ``y`` one column per output. Without
     them the two-column layouts of the module docstring apply. Default output
     with ``inputs`` given: the column named ``y``, else the last one.
 

@@ -33,11 +33,12 @@ import numpy as np
 from ..errors import ModelFormatError
 from ..files import atomic_write_text, read_bytes
 from .identify import identify
-from .model import NarxModel
+from .model import NarxModel, read_json_document
 from .simulation import divergence_bounds
 from .terms import TermSpace
 
-__all__ = ["MIMO_SCHEMA", "MimoModel", "MimoResult", "identify_mimo", "output_space"]
+__all__ = ["MIMO_SCHEMA", "MimoModel", "MimoResult", "identify_mimo", "output_space",
+           "read_model_document"]
 
 MIMO_SCHEMA = "spm_sysid/narx-mimo-model"
 MIMO_SCHEMA_VERSION = 1
@@ -247,3 +248,20 @@ def identify_mimo(*, u: np.ndarray, Y: np.ndarray, outputs: tuple[str, ...],
                                                               for r in results)),
                                            "meaning": "sum of the outputs' values"}})
     return MimoResult(model, results, time.perf_counter() - t0)
+
+
+def read_model_document(path: str | Path) -> tuple[NarxModel | MimoModel, dict]:
+    """The model in a file, of one output or several, and the document as saved.
+
+    Raises
+    ------
+    ModelFormatError
+        Not a readable model document of either kind (the message says why).
+    """
+    doc = read_json_document(path)
+    try:
+        if isinstance(doc, dict) and doc.get("schema") == MIMO_SCHEMA:
+            return MimoModel.from_dict(doc), doc
+        return NarxModel.from_dict(doc), doc
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ModelFormatError(f"{path}: {exc}") from None

@@ -395,20 +395,32 @@ class NarxModel:
             Missing, unreadable or not a model document; the message says why.
         """
         path = Path(path)
-        raw = read_bytes(path, "model file", factor=20, error=ModelFormatError)
-        try:
-            doc = json.loads(raw.decode("utf-8-sig"), parse_constant=_reject_constant)
-        except UnicodeDecodeError:
-            raise ModelFormatError(f"{path} is not a text (JSON) file") from None
-        except RecursionError:
-            raise ModelFormatError(f"{path} is not a model document (JSON nested too "
-                                   "deeply)") from None
-        except (json.JSONDecodeError, ValueError) as exc:
-            raise ModelFormatError(f"{path} is not valid JSON: {exc}") from None
+        doc = read_json_document(path)
         try:
             return cls.from_dict(doc), doc
         except ModelFormatError as exc:
             raise ModelFormatError(f"{path}: {exc}") from None
+
+
+def read_json_document(path: str | Path) -> dict:
+    """The strict JSON of a model file (no NaN or Infinity), read within the memory bound.
+
+    Raises
+    ------
+    ModelFormatError
+        Missing, unreadable, not text or not valid JSON.
+    """
+    path = Path(path)
+    raw = read_bytes(path, "model file", factor=20, error=ModelFormatError)
+    try:
+        return json.loads(raw.decode("utf-8-sig"), parse_constant=_reject_constant)
+    except UnicodeDecodeError:
+        raise ModelFormatError(f"{path} is not a text (JSON) file") from None
+    except RecursionError:
+        raise ModelFormatError(f"{path} is not a model document (JSON nested too "
+                               "deeply)") from None
+    except (json.JSONDecodeError, ValueError) as exc:
+        raise ModelFormatError(f"{path} is not valid JSON: {exc}") from None
 
 
 def _reject_constant(name: str):

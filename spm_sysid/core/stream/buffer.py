@@ -1,7 +1,8 @@
-"""A bounded, time-aligned buffer of (inputs, output) samples.
+"""A bounded, time-aligned buffer of (inputs, outputs) samples.
 
-Input and output samples arrive separately (one output topic, one or several
-input topics, each carrying one or several inputs); the buffer aligns them by
+Input and output samples arrive separately (one or several output topics and
+one or several input topics, each carrying one or several signals: two joint
+velocities of one ``JointState``); the buffer aligns them by
 stamp, keeps at most ``capacity`` aligned samples ("pairs"; the oldest are
 dropped first) and counts everything it does not keep, so nothing is lost
 silently:
@@ -93,10 +94,13 @@ class SampleBuffer:
         One entry per input stream (topic): how many input values each of its
         samples carries (e.g. two joint efforts of one ``JointState``). The
         default, ``(1,)``, is one input; the inputs are numbered stream by stream.
+    output_widths : sequence of int
+        The same for the output streams (default one output); several outputs
+        make ``y`` of :meth:`snapshot` one column per output.
     """
 
     def __init__(self, capacity: int, tolerance_ns: int = 0, max_pending: int = 10_000,
-                 resync_samples: int = 10, input_widths=(1,)) -> None:
+                 resync_samples: int = 10, input_widths=(1,), output_widths=(1,)) -> None:
         if capacity < 1:
             raise ValueError(f"capacity must be >= 1, got {capacity}")
         if tolerance_ns < 0:
@@ -106,15 +110,22 @@ class SampleBuffer:
         widths = [int(w) for w in input_widths]
         if not widths or min(widths) < 1:
             raise ValueError(f"input_widths must be one or more positive counts, got {widths}")
+        out_widths = [int(w) for w in output_widths]
+        if not out_widths or min(out_widths) < 1:
+            raise ValueError(f"output_widths must be one or more positive counts, got "
+                             f"{out_widths}")
         self.capacity = int(capacity)
         self.tolerance_ns = int(tolerance_ns)
         self.max_pending = int(max_pending)
         self.resync_samples = int(resync_samples)
-        # stream 0 is the output, streams 1.. the input topics
-        self.names = ["y"] + (["u"] if len(widths) == 1 else
-                              [f"u{i + 1}" for i in range(len(widths))])
-        self._widths = [1] + widths
+        # streams 0..k-1 are the output topics, streams k.. the input topics
+        self._n_out = len(out_widths)
+        self.names = ((["y"] if self._n_out == 1 else [f"y{i + 1}" for i in range(self._n_out)])
+                      + (["u"] if len(widths) == 1 else
+                         [f"u{i + 1}" for i in range(len(widths))]))
+        self._widths = out_widths + widths
         self.n_inputs = sum(widths)
+        self.n_outputs = sum(out_widths)
         self._slices = []
         at = 0
         for w in widths:
@@ -126,16 +137,17 @@ class SampleBuffer:
         self._lock = threading.Lock()
         self._stamps = np.zeros(self.capacity, dtype=np.int64)
         self._u = np.zeros((self.capacity, self.n_inputs))
-        self._y = np.zeros(self.capacity)
+        self._y = np.zeros((self.capacity, self.n_outputs))
         self._start = 0
         self._size = 0
         self._pending: list[deque] = [deque() for _ in range(n)]
         self._last: list[int | None] = [None] * n
         self.stats = BufferStats(capacity=self.capacity)
         #: called as ``on_pair(stamp_ns, u, y)`` for each new aligned sample (``u`` in
-        #: stream order), after the buffer's lock is released (online prediction)
+        #: stream order; ``y`` a number, or an array in stream order for several
+        #: outputs), after the buffer's lock is released (online prediction)
         self.on_pair = None
-        self._paired: list[tuple[int, np.ndarray, float]] = []
+        self._paired: list[tuple] = []
 
     def __len__(self) -> int:
         return self._size
@@ -148,11 +160,11 @@ class SampleBuffer:
         or is held as out of order (see the module docstring: held samples are
         accepted later if their stream jumped back).
         """
-        return self._add(1 + int(stream), int(stamp_ns), value)
+        return self._add(self._n_out + int(stream), int(stamp_ns), value)
 
-    def add_output(self, stamp_ns: int, value: float) -> bool:
-        """Add an output sample; True when it was accepted (aligned or waiting)."""
-        return self._add(0, int(stamp_ns), value)
+    def add_output(self, stamp_ns: int, value, stream: int = 0) -> bool:
+        """Add a sample of output stream ``stream``; True when it was accepted."""
+        return self._add(int(stream), int(stamp_ns), value)
 
     def _add(self, stream: int, stamp: int, value) -> bool:
         accepted = self._add_locked(stream, stamp, value)
@@ -170,7 +182,7 @@ class SampleBuffer:
                              f"value(s) per sample, got {len(values)}")
         with self._lock:
             st = self.stats
-            if stream:
+            if stream >= self._n_out:
                 st.received_inputs += 1
             else:
                 st.received_outputs += 1
@@ -237,22 +249,24 @@ class SampleBuffer:
             if max(heads) - min(heads) > tol:
                 break
             items = [q.popleft() for q in queues]
-            u = [v for _, vals in items[1:] for v in vals]
-            self._append(max(heads), u, items[0][1][0])
+            k = self._n_out
+            self._append(max(heads), [v for _, vals in items[k:] for v in vals],
+                         [v for _, vals in items[:k] for v in vals])
         self._update_pending()
 
     def _count_unpaired(self, stream: int, n: int) -> None:
-        if stream:
+        if stream >= self._n_out:
             self.stats.unpaired_inputs += n
         else:
             self.stats.unpaired_outputs += n
 
     def _update_pending(self) -> None:
-        self.stats.pending_inputs = sum(len(q) for q in self._pending[1:])
-        self.stats.pending_outputs = len(self._pending[0])
+        k = self._n_out
+        self.stats.pending_inputs = sum(len(q) for q in self._pending[k:])
+        self.stats.pending_outputs = sum(len(q) for q in self._pending[:k])
         self.stats.held_out_of_order = sum(len(h) for h in self._held)
 
-    def _append(self, stamp: int, u, y: float) -> None:
+    def _append(self, stamp: int, u, y) -> None:
         if self._size == self.capacity:
             self._start = (self._start + 1) % self.capacity
             self._size -= 1
@@ -260,7 +274,8 @@ class SampleBuffer:
         i = (self._start + self._size) % self.capacity
         self._stamps[i], self._u[i], self._y[i] = stamp, u, y
         if self.on_pair is not None:
-            self._paired.append((int(stamp), self._u[i].copy(), float(y)))
+            self._paired.append((int(stamp), self._u[i].copy(), float(self._y[i, 0])
+                                 if self.n_outputs == 1 else self._y[i].copy()))
         self._size += 1
         self.stats.paired += 1
         self.stats.samples = self._size
@@ -269,13 +284,14 @@ class SampleBuffer:
     def snapshot(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Copies of ``(stamps_ns, u, y)``, oldest first; recording goes on meanwhile.
 
-        ``u`` has shape (n,) for one input and (n, n_inputs) for several.
+        ``u`` has shape (n,) for one input and (n, n_inputs) for several; ``y``
+        likewise (n,) or (n, n_outputs).
         """
         with self._lock:
             idx = (self._start + np.arange(self._size)) % self.capacity
-            u = self._u[idx].copy()
+            u, y = self._u[idx].copy(), self._y[idx].copy()
             return (self._stamps[idx].copy(), u[:, 0] if self.n_inputs == 1 else u,
-                    self._y[idx].copy())
+                    y[:, 0] if self.n_outputs == 1 else y)
 
     def stats_dict(self) -> dict[str, int]:
         """A consistent copy of the counters."""
@@ -297,20 +313,22 @@ class SampleBuffer:
             return removed
 
 
-def pair_streams(events, tolerance_ns: int, resync_samples: int = 10, input_widths=(1,)
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, BufferStats]:
+def pair_streams(events, tolerance_ns: int, resync_samples: int = 10, input_widths=(1,),
+                 output_widths=(1,)) -> tuple[np.ndarray, np.ndarray, np.ndarray, BufferStats]:
     """Align recorded samples offline exactly as the node aligns them live.
 
     Parameters
     ----------
     events : iterable of (stream, stamp_ns, value)
-        ``stream`` is ``"y"`` for the output, ``"u"`` (the first input stream) or
-        the index of an input stream; events in arrival (log) order.
+        ``stream`` is ``"y"`` for the (first) output stream, ``("y", k)`` for
+        output stream k, ``"u"`` (the first input stream) or the index of an
+        input stream; events in arrival (log) order.
     tolerance_ns, resync_samples : int
         As for :class:`SampleBuffer` (the node's ``stamp_tolerance`` and
         ``resync_samples``).
-    input_widths : sequence of int
-        Values per sample of each input stream, as for :class:`SampleBuffer`.
+    input_widths, output_widths : sequence of int
+        Values per sample of each input and output stream, as for
+        :class:`SampleBuffer`.
 
     Returns
     -------
@@ -321,10 +339,13 @@ def pair_streams(events, tolerance_ns: int, resync_samples: int = 10, input_widt
     """
     events = list(events)
     buf = SampleBuffer(max(1, len(events)), tolerance_ns, max_pending=max(1, len(events)),
-                       resync_samples=resync_samples, input_widths=input_widths)
+                       resync_samples=resync_samples, input_widths=input_widths,
+                       output_widths=output_widths)
     for stream, stamp, value in events:
         if stream == "y":
             buf.add_output(stamp, value)
+        elif isinstance(stream, tuple):
+            buf.add_output(stamp, value, stream[1])
         else:
             buf.add_input(stamp, value, 0 if stream == "u" else int(stream))
     stamps, u, y = buf.snapshot()

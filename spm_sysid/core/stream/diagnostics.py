@@ -101,47 +101,65 @@ def diagnostic_statuses(name: str, stats: dict, *, field_errors: int = 0,
     elif last_error:
         statuses.append(Status(ERROR, ident, last_error))
     elif model is not None:
-        meta = model.get("metadata") or {}
-        data = meta.get("data") or {}
-        incomplete = bool(data.get("gaps") or data.get("skipped_segments"))
-        crit = model.get("criterion") or {}
-        message = f"model with {len(model['terms'])} terms"
-        if incomplete:
-            message += f", fitted around {data['gaps']} gap(s) in the data"
-        if restored_from:
-            message += f", restored from {restored_from}"
-        validation = meta.get("validation") or {}
-        diverged = validation.get("diverged_at")
-        level = WARN if incomplete else OK
-        if diverged is not None:
-            message += f"; its free-run simulation DIVERGED at sample {diverged}"
-            level = ERROR
-        cert = meta.get("certificate") or {}
-        if cert.get("status") == "optimal":
-            message += ", certified optimal"
-        elif cert.get("status") == "limit":
-            message += f", not certified (gap {cert.get('gap', float('nan')):.2f})"
-        free = validation.get("free_run") or {}
-        statuses.append(Status(level, ident, message, _values(
-            {"criterion": crit.get("name"), "value": crit.get("value"),
-             "mse": model.get("mse"), "focus": meta.get("focus", "prediction"),
-             "free_run_fit_percent": free.get("fit_percent"), "diverged_at": diverged,
-             "certificate": cert.get("status", "none"), "certificate_gap": cert.get("gap"),
-             **{f"data_{k}": v for k, v in data.items()}})))
-        warnings = meta.get("warnings") or []
-        if warnings:
-            statuses.append(Status(WARN, f"{name}: warnings",
-                                   f"{len(warnings)} warning(s): {warnings[0]}",
-                                   _values({f"warning_{i + 1}": w
-                                            for i, w in enumerate(warnings)})))
-        if validation.get("correlation_tests_skipped"):
-            statuses.append(Status(WARN, f"{name}: correlation tests",
-                                   "not computed: " + validation["correlation_tests_skipped"]))
-        for t in validation.get("correlation_tests", []):
-            statuses.append(Status(
-                OK if t["passed"] else WARN, f"{name}: correlation {t['name']}",
-                ("inside the 95 % band" if t["passed"] else "outside the 95 % band")
-                + f" ({t['fraction_inside']:.0%} of lags inside)", _values(t)))
+        if model.get("schema") == "spm_sysid/narx-mimo-model":  # several outputs
+            for out, doc in zip(model["outputs"], model["models"]):
+                statuses += _model_statuses(f"{name} ({out})", f"{ident} ({out})", doc,
+                                            restored_from)
+            for t in (model.get("metadata") or {}).get("cross_correlation_tests", []):
+                statuses.append(Status(
+                    OK if t["passed"] else WARN, f"{name}: residual {t['name']}",
+                    ("inside the 95 % band" if t["passed"] else "outside the 95 % band")
+                    + f" ({t['fraction_inside']:.0%} of lags inside)", _values(t)))
+        else:
+            statuses += _model_statuses(name, ident, model, restored_from)
+    return statuses
+
+
+def _model_statuses(name: str, ident: str, model: dict, restored_from: str | None
+                    ) -> list[Status]:
+    """The statuses of one (single-output) model document."""
+    statuses: list[Status] = []
+    meta = model.get("metadata") or {}
+    data = meta.get("data") or {}
+    incomplete = bool(data.get("gaps") or data.get("skipped_segments"))
+    crit = model.get("criterion") or {}
+    message = f"model with {len(model['terms'])} terms"
+    if incomplete:
+        message += f", fitted around {data['gaps']} gap(s) in the data"
+    if restored_from:
+        message += f", restored from {restored_from}"
+    validation = meta.get("validation") or {}
+    diverged = validation.get("diverged_at")
+    level = WARN if incomplete else OK
+    if diverged is not None:
+        message += f"; its free-run simulation DIVERGED at sample {diverged}"
+        level = ERROR
+    cert = meta.get("certificate") or {}
+    if cert.get("status") == "optimal":
+        message += ", certified optimal"
+    elif cert.get("status") == "limit":
+        message += f", not certified (gap {cert.get('gap', float('nan')):.2f})"
+    free = validation.get("free_run") or {}
+    statuses.append(Status(level, ident, message, _values(
+        {"criterion": crit.get("name"), "value": crit.get("value"),
+         "mse": model.get("mse"), "focus": meta.get("focus", "prediction"),
+         "free_run_fit_percent": free.get("fit_percent"), "diverged_at": diverged,
+         "certificate": cert.get("status", "none"), "certificate_gap": cert.get("gap"),
+         **{f"data_{k}": v for k, v in data.items()}})))
+    warnings = meta.get("warnings") or []
+    if warnings:
+        statuses.append(Status(WARN, f"{name}: warnings",
+                               f"{len(warnings)} warning(s): {warnings[0]}",
+                               _values({f"warning_{i + 1}": w
+                                        for i, w in enumerate(warnings)})))
+    if validation.get("correlation_tests_skipped"):
+        statuses.append(Status(WARN, f"{name}: correlation tests",
+                               "not computed: " + validation["correlation_tests_skipped"]))
+    for t in validation.get("correlation_tests", []):
+        statuses.append(Status(
+            OK if t["passed"] else WARN, f"{name}: correlation {t['name']}",
+            ("inside the 95 % band" if t["passed"] else "outside the 95 % band")
+            + f" ({t['fraction_inside']:.0%} of lags inside)", _values(t)))
     return statuses
 
 

@@ -13,7 +13,7 @@ import argparse
 
 from ...core.errors import SettingsError
 from ...core.files import check_writable_dir, check_writable_file
-from ...core.settings import SETTINGS, check
+from ...core.settings import BAG_OPTIONS, SETTINGS, check
 
 __all__ = ["JOB_TITLES", "PER_INPUT", "Parser", "UserError", "add_data_options",
            "add_schema_options", "announce_compile", "check_correlation_lags_option",
@@ -95,7 +95,6 @@ JOB_TITLES = {
 }
 
 #: The bag options (settings names) every data-reading command offers.
-BAG_OPTIONS = ("input_topic", "input_field", "input_names", "output_topic", "output_field")
 
 
 def add_schema_options(p: argparse.ArgumentParser, groups: tuple[str, ...],
@@ -178,11 +177,16 @@ def data_spec(args):
     return DataSpec.from_values(values, data=data, bag=getattr(args, "bag", None))
 
 
-def load(args):
-    """The command's data as a :class:`~spm_sysid.core.record.Record`; its notes printed."""
+def load(args, several: bool = False):
+    """The command's data as a :class:`~spm_sysid.core.record.Record`; its notes printed.
+
+    ``several``: the command takes several outputs (else one clear error).
+    """
     from ...core.record import load_record
 
     record = load_record(data_spec(args))
+    if not several:
+        record.require_one_output(f"spm-sysid {getattr(args, 'command', '')}".strip())
     for note in record.notes:
         print(f"note: {note}")
     return record

@@ -30,14 +30,26 @@ def cmd_make_bag(args) -> int:
                         "clean the file first")
     u, y = record.u, record.y
     names = record.input_names if record.n_inputs > 1 else None
+    outs = record.output_names if record.n_outputs > 1 else None
+    out_topics = [t for t in args.output_topic.split(",") if t.strip()]
     path = write_io_bag(args.output, u, y, rate_hz=args.rate, start_ns=int(args.start * 1e9),
                         input_topic=args.input_topic, output_topic=args.output_topic,
                         input_frame=args.input_frame, output_frame=args.output_frame,
-                        input_names=names, overwrite=args.force)
-    kind = (f"{u.shape[1]} inputs as sensor_msgs/msg/JointState effort[0..{u.shape[1] - 1}]"
-            f" ({', '.join(names or [])})" if np.ndim(u) == 2 else "")
+                        input_names=names, overwrite=args.force, output_names=outs)
+    kinds = []
+    if np.ndim(u) == 2:
+        kinds.append(f"{u.shape[1]} inputs as sensor_msgs/msg/JointState effort[0.."
+                     f"{u.shape[1] - 1}] ({', '.join(names or [])})")
+    if outs and len(out_topics) == 1:
+        kinds.append(f"{len(outs)} outputs as sensor_msgs/msg/JointState velocity[0.."
+                     f"{len(outs) - 1}] ({', '.join(outs)}); read them with --output-field "
+                     + ",".join(f"velocity[{i}]" for i in range(len(outs)))
+                     + f" --output-names {','.join(outs)}")
+    elif outs:
+        kinds.append(f"{len(outs)} outputs, one geometry_msgs/msg/AccelStamped topic each; "
+                     f"read them with --output-names {','.join(outs)}")
     print(f"wrote {len(u)} samples per topic at {args.rate:g} Hz to {path} "
-          f"({args.input_topic}, {args.output_topic}){'; ' + kind if kind else ''}")
+          f"({args.input_topic}, {args.output_topic}){'; ' + '; '.join(kinds) if kinds else ''}")
     return 0
 
 

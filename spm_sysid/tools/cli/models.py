@@ -48,11 +48,7 @@ def cmd_identify(args) -> int:
         raise UserError("--validation-split (--split) applies to --validation holdout only "
                         "(the estimation fraction of the data)")
     check_outputs(args)
-    outputs = [c.strip() for c in (getattr(args, "output_column", None) or "").split(",")
-               if c.strip()]
-    if len(outputs) > 1:
-        return identify_several(args, settings, outputs)
-    record = load(args)
+    record = load(args, several=True)
     announce_compile()
     bars = PhaseBars(not args.quiet)
     try:
@@ -61,6 +57,8 @@ def cmd_identify(args) -> int:
         raise UserError(as_option(exc)) from None
     finally:
         bars.close()
+    if record.n_outputs > 1:
+        return report_several(args, record, result)
     from ...core.narx.excitation import describe_check
 
     model = result.model
@@ -82,59 +80,29 @@ def cmd_identify(args) -> int:
     return 0
 
 
-def identify_several(args, settings, outputs: list[str]) -> int:
-    """``identify --output a,b``: one coupled model of several outputs (CSV columns)."""
-    import copy
-    from dataclasses import replace
+def report_several(args, record, result) -> int:
+    """``identify`` of several outputs (``--output a,b``, ``--output-topic a,b``).
 
-    import numpy as np
+    One coupled model: each output's block, the joint summary, figures per output.
+    """
+    from ...core.narx.excitation import describe_check
 
-    from ...core.narx.mimo import identify_mimo
+    print(f"data: {record.source}, {len(record)} samples, outputs "
+          f"{', '.join(record.output_names)} (one coupled model: each output's terms may "
+          "use the other outputs' past)")
+    check = describe_check(result.outputs[0].model.metadata.get("data_check"))
+    if check:
+        print(check)
+    for note in data_notes(result.data, result.outputs[0].model.metadata):
+        print(f"note: {note}")
+    print(result.summary("lines"))
+    if args.plots:
+        from ..plots import write_mimo_figures
 
-    if getattr(args, "bag", None) or args.plots or settings.validation == "holdout":
-        raise UserError("several outputs (--output a,b) are read from data file columns, "
-                        "without --bag, --plots or --validation holdout (not supported yet)")
-    records = []
-    for name in outputs:
-        one = copy.copy(args)
-        one.output_column = name
-        records.append(load(one))
-    first = records[0]
-    for name, r in zip(outputs[1:], records[1:]):
-        if len(r.y) != len(first.y) or (first.stamps_ns is not None and not np.array_equal(
-                r.stamps_ns, first.stamps_ns)):
-            raise UserError(f"output {name} has other rows than {outputs[0]} (missing values "
-                            "in one column?): several outputs need the same samples")
-    if any(r.segments is not None and r.segments.gaps for r in records):
-        raise UserError("several outputs: data with gaps are not supported yet")
-    space = replace(settings.term_space, inputs=first.input_names, output="output_")
-    Y = np.column_stack([r.y for r in records])
-    announce_compile()
-    try:
-        res = identify_mimo(
-            u=first.u, Y=Y, outputs=tuple(outputs),
-            term_space=space, criterion=settings.criterion, ga=settings.ga,
-            seed=settings.seed, focus=settings.focus, selection=settings.selection,
-            max_terms=settings.max_terms, polish=settings.polish,
-            auto_certify_time_limit=settings.auto_certify_time_limit)
-    except ValueError as exc:
-        raise UserError(str(exc)) from None
-    model = res.model
-    fits = model.fits(first.u, Y)
-    print(f"data: {first.source}, {len(first.y)} samples, outputs {', '.join(outputs)}")
-    for name, r in zip(outputs, res.results):
-        m, f = r.model, fits[name]
-        free = ("DIVERGED at sample " + str(f["diverged_at"]) if f["diverged_at"] is not None
-                else f"{f['free_run_fit_percent']:.1f} %")
-        print(m.equation())
-        print(f"  {m.criterion.upper()} = {m.criterion_value:.2f}, {len(m.terms)} terms, "
-              f"one-step fit {f['one_step_fit_percent']:.1f} %, coupled free-run fit {free}")
-        for w in m.metadata.get("warnings") or []:
-            print(f"  warning: {w}")
-    print(f"joint {settings.criterion.upper()} (sum over the outputs) = "
-          f"{res.criterion_value:.2f}, {res.seconds:.2f} s")
+        paths = write_mimo_figures(result, args.plots)
+        print(f"figures written to {args.plots}: {', '.join(p.name for p in paths)}")
     if args.json:
-        path = model.save(args.json)
+        path = result.model.save(args.json)
         print(f"model written to {path}")
     return 0
 

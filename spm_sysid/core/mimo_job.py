@@ -1,0 +1,221 @@
+"""The job of a record with several outputs: one coupled model, validated per output.
+
+:func:`spm_sysid.core.job.run_job` hands a record of several outputs here. Each
+output is one single-output job (:func:`run_job`) on the record seen from that
+output -- the inputs, then the other outputs as extra signals with delay 1
+(:func:`spm_sysid.core.narx.mimo.output_space`) -- so every output gets the whole
+single-output path: segments, GA with SPM, polish, certification, validated
+selection, uncertainty, warnings and the correlation tests of its residuals.
+Then the outputs are put together (:class:`~spm_sysid.core.narx.mimo.MimoModel`)
+and validated jointly:
+
+* the free-run simulation in each output's report is replaced by the **coupled**
+  one (every output's simulated value fed back into every term that uses it),
+  segment by segment; the single-output free-run band (other outputs measured)
+  is left out, since it would not describe the coupled run;
+* the one-step residuals of every pair of outputs are cross-correlated
+  (``cross_<a>_<b>``, lags -L..L without lag 0: correlated noise at the same
+  instant is not a model error, a correlation at another lag is a missed
+  coupling).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from .narx.correlation import CorrelationTest, ccf
+from .narx.mimo import MimoModel, augmented_inputs, output_space
+from .narx.validation import metrics
+from .progress import Progress, ProgressFn
+from .record import Record
+
+__all__ = ["MimoJobResult", "cross_correlation_tests", "run_mimo_job"]
+
+
+@dataclass
+class MimoJobResult:
+    """What a job on several outputs produced.
+
+    Attributes
+    ----------
+    model : MimoModel
+        The coupled model; its metadata has the data account, the validation
+        per output and the cross-correlation tests.
+    outputs : list of JobResult
+        Each output's own job (its model is ``model.models[i]``; its report's
+        free run is the coupled one).
+    cross_tests : list of CorrelationTest
+        The residuals' cross-correlation between every pair of outputs.
+    data : dict
+        The data account (as a single-output job gives it).
+    seconds : dict
+        ``total`` and per output.
+    """
+
+    model: MimoModel
+    outputs: list
+    cross_tests: list[CorrelationTest]
+    data: dict
+    seconds: dict = field(default_factory=dict)
+
+    @property
+    def output_names(self) -> tuple[str, ...]:
+        return self.model.outputs
+
+    @property
+    def report(self):
+        """None: each output has its report (``outputs[i].report``)."""
+        return None
+
+    @property
+    def diverged(self) -> list[str]:
+        """Outputs whose coupled free-run simulation left their measured range."""
+        return [name for name, r in zip(self.output_names, self.outputs)
+                if r.report is not None and r.report.diverged_at is not None]
+
+    @property
+    def residuals(self) -> np.ndarray:
+        """One-step residuals, one column per output (rows of the validation data)."""
+        cols = [r.residuals for r in self.outputs]
+        n = min(len(c) for c in cols)
+        return np.column_stack([c[len(c) - n:] for c in cols]) if n else np.empty((0, 0))
+
+    @property
+    def criterion_value(self) -> float:
+        """The joint summary: the sum of the outputs' criterion values."""
+        return float(sum(r.model.criterion_value for r in self.outputs))
+
+    def summary(self, style: str = "lines") -> str:
+        """``"line"``: one paragraph per output joined; ``"lines"``: a block per output."""
+        crit = self.outputs[0].model.criterion.upper()
+        joint = (f"joint {crit} (sum over the outputs) = {self.criterion_value:.2f}, "
+                 f"{self.seconds.get('total', 0.0):.2f} s")
+        failed = [t.name for t in self.cross_tests if not t.passed]
+        cross = ("" if not self.cross_tests else
+                 "residual cross-correlation between outputs: " + (
+                     "inside the band" if not failed else "outside the band: "
+                     + ", ".join(failed)))
+        if style == "line":
+            parts = [f"{name}: {r.summary('line')}" for name, r in
+                     zip(self.output_names, self.outputs)]
+            return " || ".join(parts) + f" || {joint}" + (f", {cross}" if cross else "")
+        blocks = []
+        for name, r in zip(self.output_names, self.outputs):
+            blocks.append(f"== output {name} ==\n{r.summary('lines')}")
+        blocks.append(joint + ("\n" + cross if cross else ""))
+        if self.cross_tests:
+            lines = [f"  cross-correlation of residuals (95 % band "
+                     f"±{self.cross_tests[0].band:.4f}, lag 0 not checked):"]
+            for t in self.cross_tests:
+                state = "OK  " if t.passed else "WARN"
+                lines.append(f"    {state} {t.name:<16} {t.fraction_inside:6.1%} of lags "
+                             f"inside, worst at lag {t.worst_lag}")
+            blocks.append("\n".join(lines))
+        return "\n".join(blocks)
+
+
+def cross_correlation_tests(residuals: np.ndarray, names: tuple[str, ...],
+                            max_lag: int = 20) -> list[CorrelationTest]:
+    """``corr(e_a(t), e_b(t - tau))`` for every pair a < b of outputs, tau = -L..L.
+
+    Lag 0 is shown but not checked (see the module docstring).
+    """
+    e = np.asarray(residuals, dtype=float)
+    if e.ndim != 2 or len(e) <= max_lag or not np.all(np.isfinite(e)):
+        return []
+    e = e / np.where(np.max(np.abs(e), axis=0) > 0, np.max(np.abs(e), axis=0), 1.0)
+    band = 1.96 / np.sqrt(len(e))
+    sym = np.arange(-max_lag, max_lag + 1)
+    out = []
+    for a in range(e.shape[1]):
+        for b in range(a + 1, e.shape[1]):
+            out.append(CorrelationTest(f"cross_{names[a]}_{names[b]}", sym,
+                                       ccf(e[:, a], e[:, b], sym), band))
+    return out
+
+
+def _coupled_free_run(model: MimoModel, u: np.ndarray, Y: np.ndarray,
+                      segments: list[tuple[int, int]]) -> tuple[np.ndarray, list[int | None]]:
+    """The coupled simulation of every segment from its own start (rows after max_lag)."""
+    lag = model.max_lag
+    runs, diverged = [], [None] * Y.shape[1]
+    for a, b in segments:
+        if b - a <= lag:
+            continue
+        sim, div = model.simulate(u[a:b], Y[a:b])
+        runs.append(sim)
+        for i, d in enumerate(div):
+            if d is not None and diverged[i] is None:
+                diverged[i] = a + d
+    return np.concatenate(runs), diverged
+
+
+def run_mimo_job(record: Record, settings, *, progress: ProgressFn | None = None,
+                 progress_every: int = 25, metadata: Mapping[str, Any] | None = None
+                 ) -> MimoJobResult:
+    """Identify and validate a record of several outputs (see the module doc).
+
+    Parameters and errors as for :func:`spm_sysid.core.job.run_job`.
+    """
+    from .job import run_job, validation_segments
+
+    t0 = time.perf_counter()
+    names = tuple(record.output_names)
+    clash = set(names) & set(record.input_names)
+    if clash:
+        from .errors import DataError
+        raise DataError(f"an output and an input share a name: {', '.join(sorted(clash))} "
+                        "(set output_names or input_names)")
+    Y, u = record.y, record.u
+    base = settings.for_signals(record.input_names, names[0])
+    outputs, seconds = [], {}
+    for i, name in enumerate(names):
+        space = output_space(base.term_space, names, i)
+        one = replace(record, u=augmented_inputs(u, Y, i), y=Y[:, i], output_name=name,
+                      output_names=(name,), input_names=space.inputs)
+
+        def relay(p: Progress, name=name) -> None:
+            if progress is not None:
+                progress(replace(p, phase=p.phase, elapsed=time.perf_counter() - t0))
+        res = run_job(one, replace(base, term_space=space), progress=relay,
+                      progress_every=progress_every, metadata=metadata)
+        outputs.append(res)
+        seconds[name] = res.seconds.get("total", 0.0)
+    model = MimoModel(names, tuple(record.input_names), [r.model for r in outputs],
+                      {"joint_criterion": {"name": outputs[0].model.criterion,
+                                           "value": float(sum(r.model.criterion_value
+                                                              for r in outputs)),
+                                           "meaning": "sum of the outputs' values"}})
+    cross = []
+    if settings.validation != "none":
+        val = validation_segments(record, base)[1]
+        free, diverged = _coupled_free_run(model, u, Y, val)
+        for i, r in enumerate(outputs):
+            rep = r.report
+            if rep is None or len(rep.measured) != len(free):
+                continue
+            m = metrics(rep.measured, free[:, i], diverged[i])
+            rep.free_run, rep.free_run_metrics, rep.free_run_band = free[:, i], m, None
+            if m["diverged_at"] is not None:
+                rep.tests_skipped = (f"the coupled free-run simulation diverged at sample "
+                                     f"{m['diverged_at']}: the model does not describe the "
+                                     "system")
+                rep.tests = []
+            r.model.metadata["validation"] = {**rep.to_dict(), "free_run_coupled": True}
+        resid = np.column_stack([r.residuals for r in outputs]) if all(
+            r.report is not None for r in outputs) else None
+        if resid is not None:
+            cross = cross_correlation_tests(resid, names, settings.correlation_lags)
+        model.metadata["cross_correlation_tests"] = [t.to_dict() for t in cross]
+    data = outputs[0].data
+    model.metadata["data"] = data
+    model.metadata.update(record.metadata())
+    seconds["total"] = time.perf_counter() - t0
+    model.metadata["identify_seconds"] = round(seconds["total"], 4)
+    model.metadata.update(metadata or {})
+    return MimoJobResult(model, outputs, cross, data, seconds)

@@ -1,0 +1,167 @@
+"""Several outputs wherever a signal enters: CSV columns, bags, the buffer, the job, the CLI.
+
+No ROS here (the node over DDS: test_mimo_node.py). Bags are written with
+rosbags and read back by the package's reader; the coupled free run of each
+output's report is checked against the plain-Python reference of test_mimo.
+"""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from spm_sysid.core.errors import DataError
+from spm_sysid.core.io.bagio import read_bag_signals, typestore, write_io_bag
+from spm_sysid.core.job import JobSettings, run_job
+from spm_sysid.core.mimo_job import MimoJobResult
+from spm_sysid.core.narx.mimo import MimoModel, read_model_document
+from spm_sysid.core.record import DataSpec, Record, load_record
+from spm_sysid.core.stream.buffer import SampleBuffer, pair_streams
+
+from .test_mimo import TRUE, reference_simulation, two_output_system
+
+SETTINGS = {"ny": 1, "nu": 1, "degree": 2, "criterion": "bic", "seed": 0}
+
+
+def write_joint_state_bag(path, u, Y, rate_hz=100.0, topic="/joint_states"):
+    """One JointState topic: effort = the inputs, velocity = the outputs (rosbags Writer)."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    store = typestore()
+    T = store.types
+    JointState, Header, Time = (T["sensor_msgs/msg/JointState"], T["std_msgs/msg/Header"],
+                                T["builtin_interfaces/msg/Time"])
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        c = w.add_connection(topic, "sensor_msgs/msg/JointState", typestore=store)
+        for k in range(len(Y)):
+            t = int(round(k * 1e9 / rate_hz)) + 1_000_000_000
+            msg = JointState(header=Header(stamp=Time(sec=t // 10**9, nanosec=t % 10**9),
+                                           frame_id="base"),
+                             name=["j1", "j2"], position=np.zeros(2),
+                             velocity=np.ascontiguousarray(Y[k]),
+                             effort=np.ascontiguousarray(u[k]))
+            w.write(c, t, store.serialize_cdr(msg, "sensor_msgs/msg/JointState"))
+    return path
+
+
+def test_the_buffer_aligns_two_output_streams_and_counts_them():
+    buf = SampleBuffer(100, input_widths=(2,), output_widths=(1, 1))
+    pairs = []
+    buf.on_pair = lambda t, u, y: pairs.append((t, u.copy(), np.array(y)))
+    for k in range(5):
+        buf.add_output(k, 10.0 + k, 1)   # the second output arrives first
+        buf.add_input(k, [k, -k])
+        assert buf.add_output(k, 20.0 + k, 0)
+    buf.add_output(5, float("nan"), 1)  # rejected, counted
+    stamps, u, y = buf.snapshot()
+    assert y.shape == (5, 2) and u.shape == (5, 2)
+    np.testing.assert_array_equal(y[:, 0], 20.0 + np.arange(5))
+    np.testing.assert_array_equal(y[:, 1], 10.0 + np.arange(5))
+    st = buf.stats_dict()
+    assert st["received_outputs"] == 11 and st["rejected_nonfinite"] == 1
+    assert len(pairs) == 5 and pairs[2][2].tolist() == [22.0, 12.0]
+    # offline, the same rule
+    events = [(("y", 1), k, 10.0 + k) for k in range(3)] + [("u", k, [k, k]) for k in range(3)] \
+        + [("y", k, 20.0 + k) for k in range(3)]
+    _, _, y2, stats = pair_streams(events, 0, input_widths=(2,), output_widths=(1, 1))
+    assert y2.tolist() == [[20.0, 10.0], [21.0, 11.0], [22.0, 12.0]]
+
+
+def test_csv_with_two_output_columns_is_one_record_and_a_missing_value_drops_the_row(tmp_path):
+    u, Y = two_output_system(50, seed=0)
+    rows = np.column_stack([np.arange(50) * 0.01, u, Y])
+    rows[10, 4] = np.nan  # y2 missing at one row: the row goes for both outputs
+    path = tmp_path / "joints.csv"
+    np.savetxt(path, rows, delimiter=",", header="t,u1,u2,y1,y2", comments="")
+    rec = load_record(DataSpec(data=(str(path),), inputs=("u1", "u2"), output="y1,y2"))
+    assert rec.n_outputs == 2 and rec.output_names == ("y1", "y2")
+    assert rec.y.shape == (49, 2) and rec.rejected == 1
+    np.testing.assert_array_equal(rec.y[:10], Y[:10])
+    assert rec.segment_info().gaps == 1
+    with pytest.raises(DataError, match="takes one output"):
+        rec.require_one_output("spm-sysid certify")
+    with pytest.raises(DataError, match="distinct input and output columns"):
+        load_record(DataSpec(data=(str(path),), inputs=("u1", "u2"), output="y1,y1"))
+
+
+def test_bags_with_two_output_topics_or_one_joint_state_topic(tmp_path):
+    u, Y = two_output_system(300, seed=1)
+    two = write_io_bag(tmp_path / "two", u, Y, input_topic="/tau", output_topic="/q1,/q2")
+    sig = read_bag_signals(two, input_topic="/tau", input_field="effort[0],effort[1]",
+                           output_topic="/q1,/q2", output_names="q1,q2")
+    np.testing.assert_array_equal(sig.y, Y)
+    np.testing.assert_array_equal(sig.u, u)
+    assert sig.output_names == ("q1", "q2") and sig.unpaired == 0
+    # outputs given in the other order come back in that order
+    sig = read_bag_signals(two, input_topic="/tau", input_field="effort[0],effort[1]",
+                           output_topic="/q2,/q1")
+    np.testing.assert_array_equal(sig.y, Y[:, ::-1])
+    # one JointState topic carrying both: effort in, velocity out
+    joints = write_joint_state_bag(tmp_path / "joints", u, Y)
+    rec = load_record(DataSpec(bag=str(joints), bag_options={
+        "input_topic": "/joint_states", "input_field": "effort[0],effort[1]",
+        "input_names": "tau1,tau2", "output_topic": "/joint_states",
+        "output_field": "velocity[0],velocity[1]", "output_names": "q1,q2"}))
+    assert rec.output_names == ("q1", "q2") and rec.input_names == ("tau1", "tau2")
+    np.testing.assert_array_equal(rec.y, Y)
+    assert rec.unpaired == 0
+    with pytest.raises(Exception, match="same field"):
+        read_bag_signals(joints, input_topic="/joint_states", output_topic="/joint_states")
+    with pytest.raises(Exception, match="output topics for 2 outputs"):
+        write_io_bag(tmp_path / "bad", u, Y, output_topic="/a,/b,/c")
+
+
+def test_a_job_on_two_outputs_validates_each_with_the_coupled_free_run():
+    u, Y = two_output_system(600, seed=2, noise=0.002)
+    rec = Record.from_samples(u, Y, source="test", input_names=("u1", "u2"),
+                              output_names=("y1", "y2"))
+    result = run_job(rec, JobSettings.from_values(SETTINGS))
+    assert isinstance(result, MimoJobResult)
+    assert result.output_names == ("y1", "y2")
+    for name, r in zip(("y1", "y2"), result.outputs):
+        assert set(TRUE[name]) <= set(r.model.terms)
+        assert r.model.metadata["validation"]["free_run_coupled"] is True
+    # each report's free run is the coupled one: both outputs from their own predictions
+    lag = result.model.max_lag
+    coupled, _ = result.model.simulate(u, Y)
+    for i, r in enumerate(result.outputs):
+        np.testing.assert_allclose(r.report.free_run, coupled[:, i], rtol=1e-12)
+    # the fitted model's coupled run against the plain-Python reference
+    coefs = {n: dict(zip(r.model.terms, r.model.coefficients))
+             for n, r in zip(("y1", "y2"), result.outputs)}
+    np.testing.assert_allclose(coupled, reference_simulation(coefs, u, Y, lag), rtol=1e-9,
+                               atol=1e-12)
+    assert [t.name for t in result.cross_tests] == ["cross_y1_y2"]
+    assert result.cross_tests[0].checked[len(result.cross_tests[0].lags) // 2] == False  # noqa: E712
+    assert result.residuals.shape == (len(Y) - lag, 2)
+    assert "joint BIC" in result.summary("lines") and "y2:" in result.summary("line")
+
+
+def test_identify_with_two_output_columns_writes_a_coupled_model_and_figures(tmp_path):
+    u, Y = two_output_system(400, seed=5, noise=0.001)
+    path = tmp_path / "joints.csv"
+    np.savetxt(path, np.column_stack([u, Y]), delimiter=",", header="u1,u2,y1,y2",
+               comments="")
+    out = tmp_path / "model.json"
+    r = subprocess.run([sys.executable, "-m", "spm_sysid.apps.main", "identify", "--data",
+                        str(path), "--inputs", "u1,u2", "--output", "y1,y2", "--ny", "1",
+                        "--nu", "1", "--criterion", "bic", "--seed", "0", "--quiet",
+                        "--json", str(out), "--plots", str(tmp_path / "figs")],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "== output y1 ==" in r.stdout and "== output y2 ==" in r.stdout
+    assert "cross_y1_y2" in r.stdout
+    model, doc = read_model_document(out)
+    assert isinstance(model, MimoModel) and doc["outputs"] == ["y1", "y2"]
+    assert len(doc["metadata"]["cross_correlation_tests"]) == 1
+    names = {p.name for p in (tmp_path / "figs").iterdir()}
+    assert {"model_free_run.png", "model_one_step.png", "model_y1_correlation.png",
+            "model_y2_correlation.png", "model_cross_correlation.png"} <= names
+    # a command that takes one output says so
+    r = subprocess.run([sys.executable, "-m", "spm_sysid.apps.main", "certify", "--data",
+                        str(path), "--inputs", "u1,u2", "--output", "y1,y2"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode != 0 and "takes one output" in r.stderr
+    assert json.loads(out.read_text())["schema"] == "spm_sysid/narx-mimo-model"

@@ -1,0 +1,98 @@
+"""Several outputs through the node, over real DDS: a JointState topic in, one coupled model out.
+
+A robot driver publishes one ``sensor_msgs/msg/JointState`` topic with the
+joint efforts (inputs) and velocities (outputs). Here that topic is an MCAP
+bag written with rosbags and replayed by ``bag_player``; the node reads
+``effort[0],effort[1]`` as inputs and ``velocity[0],velocity[1]`` as outputs
+of the same topic.
+"""
+
+import json
+
+import numpy as np
+from spm_sysid_interfaces.msg import NarxModelSet, Prediction, Validity
+
+from spm_sysid.core.io.bagio import read_bag_signals
+
+from .ros_harness import IdentifyClient, play_bag, start_node, stop
+from .test_mimo import TRUE, two_output_system
+from .test_mimo_io import write_joint_state_bag
+
+PARAMS = ("input_topic:=/joint_states", "input_type:=sensor_msgs/msg/JointState",
+          "input_field:=effort[0],effort[1]", "input_names:=u1,u2",
+          "output_topic:=/joint_states", "output_type:=sensor_msgs/msg/JointState",
+          "output_field:=velocity[0],velocity[1]", "output_names:=y1,y2",
+          "ny:=1", "nu:=1", "degree:=2", "criterion:=bic", "seed:=1")
+
+
+def test_the_node_identifies_two_joints_from_a_joint_state_topic(ros_env, harness, tmp_path):
+    u, Y = two_output_system(1200, seed=3)
+    bag = write_joint_state_bag(tmp_path / "joints", u, Y)
+    node = start_node(ros_env, *PARAMS)
+    try:
+        harness.wait_ready()
+        play_bag(ros_env, bag)
+        harness.wait_buffer(lambda kv: int(kv["samples"]) >= len(Y))
+        client = IdentifyClient(harness)
+        status, result = client.result(client.send())
+        assert result.error_code == result.NONE, result.message
+        models = result.models
+        assert list(models.output_names) == ["y1", "y2"]
+        assert list(models.input_names) == ["u1", "u2"]
+        for name, m in zip(("y1", "y2"), models.models):
+            # noise-free: exactly the true structure, cross terms included
+            got = dict(zip([t.name for t in m.terms], m.coefficients))
+            assert set(got) == set(TRUE[name]), (name, sorted(got))
+            for term, c in TRUE[name].items():
+                assert abs(got[term] - c) < 1e-6
+            assert m.output_name == name
+            assert list(m.input_names) == ["u1", "u2", "y2" if name == "y1" else "y1"]
+        assert len(models.reports) == 2
+        assert all(r.free_run.fit_percent > 99.0 for r in models.reports)
+        assert [t.name for t in models.cross_correlation_tests] == ["cross_y1_y2"]
+        assert models.joint_criterion_value == sum(m.criterion_value for m in models.models)
+        doc = json.loads(result.document)
+        assert doc["schema"] == "spm_sysid/narx-mimo-model" and doc["outputs"] == ["y1", "y2"]
+        latched = harness.latched(NarxModelSet, "/spm_sysid/narx_models")
+        assert [len(m.terms) for m in latched.models] == [len(m.terms) for m in models.models]
+        got_model = client.get_model()
+        assert got_model.available and len(got_model.models.models) == 2
+
+        # online: the same motion again, each output predicted and monitored
+        predictions = []
+        sub = harness.node.create_subscription(Prediction, "/spm_sysid/prediction",
+                                               predictions.append, 5000)
+        play_bag(ros_env, bag)
+        harness.spin_until(lambda: len(predictions) >= 2 * (len(Y) - 20), 30)
+        harness.node.destroy_subscription(sub)
+        by_output = {n: [p for p in predictions if p.output_name == n] for n in ("y1", "y2")}
+        assert all(len(v) >= len(Y) - 20 for v in by_output.values())
+        for name in ("y1", "y2"):
+            res = np.array([p.residual for p in by_output[name]])
+            assert np.max(np.abs(res)) < 1e-6, name  # the exact model predicts exactly
+        v = harness.latched(Validity, "/spm_sysid/validity")
+        assert list(v.output_names) == ["y1", "y2"]
+        assert len(v.output_states) == 2 and v.state != Validity.NO_MODEL
+    finally:
+        stop(node)
+
+
+def test_a_goal_reads_two_outputs_from_a_bag_with_the_node_topics(ros_env, harness, tmp_path):
+    u, Y = two_output_system(800, seed=4)
+    bag = write_joint_state_bag(tmp_path / "joints", u, Y)
+    sig = read_bag_signals(bag, input_topic="/joint_states", input_field="effort[0],effort[1]",
+                           output_topic="/joint_states",
+                           output_field="velocity[0],velocity[1]")
+    np.testing.assert_array_equal(sig.y, Y)
+    node = start_node(ros_env, *PARAMS)
+    try:
+        harness.wait_ready()
+        client = IdentifyClient(harness)
+        status, result = client.result(client.send(bag_path=str(bag)))
+        assert result.error_code == result.NONE, result.message
+        assert [m.output_name for m in result.models.models] == ["y1", "y2"]
+        assert "y1:" in result.message and "y2:" in result.message
+        # the single-output fields stay empty for a coupled model
+        assert len(result.model.terms) == 0
+    finally:
+        stop(node)
