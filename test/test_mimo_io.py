@@ -159,6 +159,20 @@ def test_identify_with_two_output_columns_writes_a_coupled_model_and_figures(tmp
     names = {p.name for p in (tmp_path / "figs").iterdir()}
     assert {"model_free_run.png", "model_one_step.png", "model_y1_correlation.png",
             "model_y2_correlation.png", "model_cross_correlation.png"} <= names
+    # validate the written model on a second record: each output, coupled, cross tests
+    u2, Y2 = two_output_system(400, seed=6, noise=0.001)
+    other = tmp_path / "other.csv"
+    np.savetxt(other, np.column_stack([u2, Y2]), delimiter=",", header="u1,u2,y1,y2",
+               comments="")
+    r = subprocess.run([sys.executable, "-m", "spm_sysid.apps.main", "validate", str(out),
+                        "--data", str(other), "--inputs", "u1,u2", "--output", "y1,y2"],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.count("coupled free-run:") == 2 and "cross_y1_y2" in r.stdout
+    r = subprocess.run([sys.executable, "-m", "spm_sysid.apps.main", "validate", str(out),
+                        "--data", str(other), "--inputs", "u1,u2", "--output", "y2,y1"],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode != 0 and "the model has outputs y1, y2" in r.stderr
     # a command that takes one output says so
     r = subprocess.run([sys.executable, "-m", "spm_sysid.apps.main", "certify", "--data",
                         str(path), "--inputs", "u1,u2", "--output", "y1,y2"],

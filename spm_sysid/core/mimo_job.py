@@ -34,7 +34,8 @@ from .narx.validation import metrics
 from .progress import Progress, ProgressFn
 from .record import Record
 
-__all__ = ["MimoJobResult", "cross_correlation_tests", "run_mimo_job"]
+__all__ = ["MimoJobResult", "couple_reports", "cross_correlation_tests", "cross_summary",
+           "run_mimo_job"]
 
 
 @dataclass
@@ -107,15 +108,9 @@ class MimoJobResult:
         blocks = []
         for name, r in zip(self.output_names, self.outputs):
             blocks.append(f"== output {name} ==\n{r.summary('lines')}")
-        blocks.append(joint + ("\n" + cross if cross else ""))
+        blocks.append(joint)
         if self.cross_tests:
-            lines = [f"  cross-correlation of residuals (95 % band "
-                     f"±{self.cross_tests[0].band:.4f}, lag 0 not checked):"]
-            for t in self.cross_tests:
-                state = "OK  " if t.passed else "WARN"
-                lines.append(f"    {state} {t.name:<16} {t.fraction_inside:6.1%} of lags "
-                             f"inside, worst at lag {t.worst_lag}")
-            blocks.append("\n".join(lines))
+            blocks.append(cross_summary(self.cross_tests))
         return "\n".join(blocks)
 
 
@@ -153,6 +148,45 @@ def _coupled_free_run(model: MimoModel, u: np.ndarray, Y: np.ndarray,
             if d is not None and diverged[i] is None:
                 diverged[i] = a + d
     return np.concatenate(runs), diverged
+
+
+def couple_reports(model: MimoModel, u: np.ndarray, Y: np.ndarray,
+                   segments: list[tuple[int, int]], reports: list,
+                   correlation_lags: int = 20) -> list[CorrelationTest]:
+    """Make each output's validation report the coupled model's; the cross tests.
+
+    ``reports`` (one per output, each validated on ``segments`` with the other
+    outputs measured) get the coupled free run instead of their own (and no
+    single-output free-run band); the residuals' cross-correlation tests are
+    returned.
+    """
+    free, diverged = _coupled_free_run(model, u, Y, segments)
+    for i, rep in enumerate(reports):
+        if rep is None or len(rep.measured) != len(free):
+            continue
+        m = metrics(rep.measured, free[:, i], diverged[i])
+        rep.free_run, rep.free_run_metrics, rep.free_run_band = free[:, i], m, None
+        if m["diverged_at"] is not None:
+            rep.tests_skipped = (f"the coupled free-run simulation diverged at sample "
+                                 f"{m['diverged_at']}: the model does not describe the system")
+            rep.tests = []
+    if any(r is None for r in reports):
+        return []
+    resid = np.column_stack([r.residuals for r in reports])
+    return cross_correlation_tests(resid, tuple(model.outputs), correlation_lags)
+
+
+def cross_summary(tests: list[CorrelationTest]) -> str:
+    """The cross-correlation tests in a few lines ('' when there are none)."""
+    if not tests:
+        return ""
+    lines = [f"cross-correlation of the outputs' residuals (95 % band ±{tests[0].band:.4f}, "
+             "lag 0 not checked):"]
+    for t in tests:
+        state = "OK  " if t.passed else "WARN"
+        lines.append(f"    {state} {t.name:<16} {t.fraction_inside:6.1%} of lags inside, "
+                     f"worst at lag {t.worst_lag}")
+    return "\n".join(lines)
 
 
 def run_mimo_job(record: Record, settings, *, progress: ProgressFn | None = None,
@@ -194,23 +228,11 @@ def run_mimo_job(record: Record, settings, *, progress: ProgressFn | None = None
     cross = []
     if settings.validation != "none":
         val = validation_segments(record, base)[1]
-        free, diverged = _coupled_free_run(model, u, Y, val)
-        for i, r in enumerate(outputs):
-            rep = r.report
-            if rep is None or len(rep.measured) != len(free):
-                continue
-            m = metrics(rep.measured, free[:, i], diverged[i])
-            rep.free_run, rep.free_run_metrics, rep.free_run_band = free[:, i], m, None
-            if m["diverged_at"] is not None:
-                rep.tests_skipped = (f"the coupled free-run simulation diverged at sample "
-                                     f"{m['diverged_at']}: the model does not describe the "
-                                     "system")
-                rep.tests = []
-            r.model.metadata["validation"] = {**rep.to_dict(), "free_run_coupled": True}
-        resid = np.column_stack([r.residuals for r in outputs]) if all(
-            r.report is not None for r in outputs) else None
-        if resid is not None:
-            cross = cross_correlation_tests(resid, names, settings.correlation_lags)
+        reports = [r.report for r in outputs]
+        cross = couple_reports(model, u, Y, val, reports, settings.correlation_lags)
+        for r in outputs:
+            if r.report is not None:
+                r.model.metadata["validation"] = {**r.report.to_dict(), "free_run_coupled": True}
         model.metadata["cross_correlation_tests"] = [t.to_dict() for t in cross]
     data = outputs[0].data
     model.metadata["data"] = data

@@ -248,27 +248,27 @@ def plot_outputs(reports: Sequence[ValidationReport], names: Sequence[str], stem
     return _save(fig, stem)
 
 
-def write_mimo_figures(result, directory: Path, name: str = "model") -> list[Path]:
-    """The figures of a several-output job (:class:`~spm_sysid.core.mimo_job.MimoJobResult`).
+def write_mimo_figures(reports: Sequence[ValidationReport], models: Sequence, names: Sequence[str],
+                       cross_tests: list, directory: Path, name: str = "model") -> list[Path]:
+    """The figures of a coupled model of several outputs, one report and model per output.
 
     ``<name>_free_run`` and ``<name>_one_step`` (a panel per output), each
     output's correlation tests (``<name>_<output>_correlation``) and the
     residuals' cross-correlation between outputs (``<name>_cross_correlation``).
     """
     directory = Path(directory)
-    reports = [r.report for r in result.outputs]
-    names = list(result.output_names)
     paths = plot_outputs(reports, names, directory / f"{name}_free_run", "free_run",
                          "coupled model — every output's simulation fed back into all")
     paths += plot_outputs(reports, names, directory / f"{name}_one_step", "one_step")
-    for out, rep, r in zip(names, reports, result.outputs):
+    for out, rep, model in zip(names, reports, models):
         if rep.tests:
             paths += plot_correlation_tests(
                 rep, directory / f"{name}_{out}_correlation",
-                title=f"output {out} ({model_label(r.model)}) — correlation tests "
+                title=f"output {out} ({model_label(model)}) — correlation tests "
                       f"({rep.segment} data)")
-    if result.cross_tests:
-        paths += plot_correlation_tests(result.cross_tests, directory / f"{name}_cross_correlation",
+    if cross_tests:
+        paths += plot_correlation_tests(list(cross_tests),
+                                        directory / f"{name}_cross_correlation",
                                         title="cross-correlation of the outputs' one-step "
                                               "residuals (lag 0 not checked)")
     return paths

@@ -150,7 +150,8 @@ def add_column_options(g) -> None:
                    help="input columns of --data files, by header name or 0-based index "
                         "(comma-separated; several inputs make a MISO model)")
     g.add_argument("--output", dest="output_column", metavar="NAME",
-                   help="output column of --data files (default: 'y', else the last)")
+                   help="output column of --data files (default: 'y', else the last); a comma "
+                        "list for several outputs (identify, validate: one coupled model)")
 
 
 # -- settings, data, destinations --------------------------------------------------------

@@ -99,7 +99,9 @@ def report_several(args, record, result) -> int:
     if args.plots:
         from ..plots import write_mimo_figures
 
-        paths = write_mimo_figures(result, args.plots)
+        paths = write_mimo_figures([r.report for r in result.outputs],
+                                   [r.model for r in result.outputs], result.output_names,
+                                   result.cross_tests, args.plots)
         print(f"figures written to {args.plots}: {', '.join(p.name for p in paths)}")
     if args.json:
         path = result.model.save(args.json)
@@ -220,13 +222,20 @@ def cmd_certify(args) -> int:
 
 
 def cmd_validate(args) -> int:
-    from ...core.narx.model import NarxModel
     from ...core.narx.validation import split_segments, validate_model
 
     if args.tail is not None and not 0 < args.tail < 1:
         raise UserError(f"--tail must be between 0 and 1, got {args.tail}")
     check_outputs(args)
-    model = NarxModel.load(args.model)
+    from ...core.errors import ModelFormatError
+    from ...core.narx.mimo import MimoModel, read_model_document
+
+    try:
+        model, _ = read_model_document(args.model)
+    except ModelFormatError as exc:
+        raise UserError(str(exc)) from None
+    if isinstance(model, MimoModel):
+        return validate_several(args, model)
     record = load(args)
     u, y = record.u, record.y
     lag0 = model.term_space.max_lag
@@ -251,6 +260,53 @@ def cmd_validate(args) -> int:
         from ..plots import write_model_figures
 
         paths = write_model_figures(report, args.plots, model=model)
+        print(f"figures written to {args.plots}: {', '.join(p.name for p in paths)}")
+    return 0
+
+
+def validate_several(args, model) -> int:
+    """``validate`` of a coupled model of several outputs.
+
+    Each output's report with the coupled free run, the residuals'
+    cross-correlation, figures with a panel per output.
+    """
+    from ...core.mimo_job import couple_reports, cross_summary
+    from ...core.narx.mimo import augmented_inputs
+    from ...core.narx.validation import split_segments, validate_model
+
+    record = load(args, several=True)
+    if record.output_names != model.outputs or record.n_inputs != len(model.inputs):
+        raise UserError(f"the model has outputs {', '.join(model.outputs)} and "
+                        f"{len(model.inputs)} input(s); the data has outputs "
+                        f"{', '.join(record.output_names)} and {record.n_inputs} input(s) "
+                        "(give --output " + ",".join(model.outputs) + " and the inputs in "
+                        "the model's order)")
+    u, Y = record.u, record.y
+    lag0 = model.max_lag
+    segments = usable_segments(record, lag0)
+    if args.tail is not None:
+        _, segments = split_segments(segments, len(Y), 1.0 - args.tail, lag0)
+    check_correlation_lags_option(args.correlation_lags,
+                                  sum(b - a - lag0 for a, b in segments))
+    print(f"model: {args.model} (outputs {', '.join(model.outputs)}, coupled)")
+    print(f"data: {record.source}" + (f", last {args.tail:.0%}" if args.tail is not None
+                                      else ""))
+    reports = [validate_model(m, augmented_inputs(u, Y, i), Y[:, i],
+                              correlation_lags=args.correlation_lags,
+                              segment="holdout" if args.tail is not None else "supplied",
+                              segments=segments, horizon=args.horizon or None)
+               for i, m in enumerate(model.models)]
+    cross = couple_reports(model, u, Y, segments, reports, args.correlation_lags)
+    for name, m, rep in zip(model.outputs, model.models, reports):
+        print(f"== output {name} ==")
+        print(m.equation())
+        print(rep.summary().replace("free-run:", "coupled free-run:"))
+    if cross:
+        print(cross_summary(cross))
+    if args.plots:
+        from ..plots import write_mimo_figures
+
+        paths = write_mimo_figures(reports, model.models, model.outputs, cross, args.plots)
         print(f"figures written to {args.plots}: {', '.join(p.name for p in paths)}")
     return 0
 
