@@ -179,3 +179,21 @@ def test_identify_with_two_output_columns_writes_a_coupled_model_and_figures(tmp
                        capture_output=True, text=True, timeout=120)
     assert r.returncode != 0 and "takes one output" in r.stderr
     assert json.loads(out.read_text())["schema"] == "spm_sysid/narx-mimo-model"
+
+
+def test_simulation_focus_refines_the_outputs_jointly_in_the_job():
+    u, Y = two_output_system(500, seed=9)
+    Y = Y + 0.02 * np.random.default_rng(9).standard_normal(Y.shape)
+    rec = Record.from_samples(u, Y, source="test", input_names=("u1", "u2"),
+                              output_names=("y1", "y2"))
+    result = run_job(rec, JobSettings.from_values({**SETTINGS, "focus": "simulation"}))
+    info = result.model.metadata["coupled_refinement"]
+    assert info["after"] <= info["before"]
+    coupled, _ = result.model.simulate(u, Y)
+    for i, r in enumerate(result.outputs):
+        assert r.model is result.model.models[i]
+        np.testing.assert_allclose(r.report.free_run, coupled[:, i], rtol=1e-12)
+        # the one-step report is the refined coefficients' too
+        np.testing.assert_allclose(r.report.one_step, result.model.predict(u, Y)[:, i],
+                                   rtol=1e-12)
+    assert "refined jointly on the coupled free-run error" in result.summary("lines")

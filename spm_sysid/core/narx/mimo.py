@@ -14,7 +14,9 @@ values (each a log-likelihood-type score of its own residuals).
 The **coupled free-run simulation** (:meth:`MimoModel.simulate`) feeds every
 output's prediction back into every term that uses it, all outputs stepping
 together; a run that leaves an output's measured range is marked diverged
-(per output, from that sample on NaN).
+(per output, from that sample on NaN). With simulation focus the outputs'
+coefficients are then refined jointly on that coupled free-run error
+(:mod:`spm_sysid.core.narx.coupled`).
 
 The document (``spm_sysid/narx-mimo-model``, version 1) holds one
 single-output model document (docs/model_format.md) per output; the
@@ -24,6 +26,7 @@ single-output document is unchanged and still what one output gives.
 from __future__ import annotations
 
 import json
+import os
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -34,11 +37,10 @@ from ..errors import ModelFormatError
 from ..files import atomic_write_text, read_bytes
 from .identify import identify
 from .model import NarxModel, read_json_document
-from .simulation import divergence_bounds
 from .terms import TermSpace
 
 __all__ = ["MIMO_SCHEMA", "MimoModel", "MimoResult", "identify_mimo", "output_space",
-           "read_model_document"]
+           "in_threads", "read_model_document"]
 
 MIMO_SCHEMA = "spm_sysid/narx-mimo-model"
 MIMO_SCHEMA_VERSION = 1
@@ -107,37 +109,14 @@ class MimoModel:
         Returns the simulated outputs for t = max_lag..n-1, shape (n - max_lag,
         outputs), and per output the sample where it left its measured range
         (None when it did not; NaN from there on, and in the outputs that use it).
+        Compiled (:func:`spm_sysid.core.narx.coupled.coupled_run`).
         """
-        from ..online.predictor import OnlinePredictor
+        from .coupled import CoupledCompiled, coupled_run
 
-        Y = np.asarray(Y, dtype=float)
         u = np.asarray(u, dtype=float)
         u = u[:, None] if u.ndim == 1 else u
-        n, q = Y.shape
-        lag = self.max_lag
-        sim = Y.copy()
-        preds = [OnlinePredictor(m) for m in self.models]
-        bounds = [divergence_bounds(Y[:, i]) for i in range(q)]
-        diverged: list[int | None] = [None] * q
-        for t in range(n):
-            if t < lag:  # the measured start
-                for i, p in enumerate(preds):
-                    p.push(_aug_row(u[t], sim[t], i), sim[t, i])
-                continue
-            yhat = np.empty(q)
-            for i, p in enumerate(preds):
-                phi = p.regressors(_aug_row(u[t], sim[t], i))  # uses lags >= 1 only
-                yhat[i] = float(phi @ p.coefficients)
-            for i in range(q):
-                lo, hi = bounds[i]
-                if diverged[i] is None and not lo <= yhat[i] <= hi:
-                    diverged[i] = t
-                if diverged[i] is not None:
-                    yhat[i] = np.nan
-            sim[t] = yhat
-            for i, p in enumerate(preds):
-                p.push(_aug_row(u[t], sim[t], i), sim[t, i])
-        return sim[lag:], diverged
+        cc = CoupledCompiled.from_models(self.models, u.shape[1])
+        return coupled_run(cc, [m.coefficients for m in self.models], u, Y)
 
     def fits(self, u: np.ndarray, Y: np.ndarray) -> dict:
         """Per output: one-step and coupled free-run fit (%), and where it diverged."""
@@ -185,10 +164,6 @@ class MimoModel:
         return cls.from_dict(json.loads(read_bytes(path)))
 
 
-def _aug_row(u_row: np.ndarray, y_row: np.ndarray, i: int) -> np.ndarray:
-    return np.concatenate([u_row, np.delete(y_row, i)])
-
-
 def fit_percent(y: np.ndarray, yhat: np.ndarray) -> float | None:
     """100 (1 - ||y - yhat|| / ||y - mean y||); None when yhat has NaN (diverged)."""
     if not np.all(np.isfinite(yhat)):
@@ -208,6 +183,23 @@ class MimoResult:
     def criterion_value(self) -> float:
         """The joint summary: the sum of the outputs' criterion values."""
         return float(sum(r.model.criterion_value for r in self.results))
+
+
+def in_threads(fn, n: int) -> list:
+    """``[fn(0), ..., fn(n-1)]``, on up to as many threads as there are cores.
+
+    The outputs' identifications are independent (each has its own seed), so the
+    results are those of a loop; the compiled kernels release the GIL, so two
+    outputs on two cores take little more than one.
+    """
+    workers = min(n, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
+                  else os.cpu_count() or 1)
+    if workers <= 1:
+        return [fn(i) for i in range(n)]
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(workers) as pool:
+        return list(pool.map(fn, range(n)))
 
 
 def identify_mimo(*, u: np.ndarray, Y: np.ndarray, outputs: tuple[str, ...],
@@ -236,17 +228,23 @@ def identify_mimo(*, u: np.ndarray, Y: np.ndarray, outputs: tuple[str, ...],
     if clash:
         raise ValueError(f"an output and an input share a name: {', '.join(sorted(clash))}")
     t0 = time.perf_counter()
-    results = []
-    for i in range(Y.shape[1]):
+
+    def one(i: int):
         space = output_space(term_space, tuple(outputs), i)
-        results.append(identify(u=augmented_inputs(u, Y, i), y=Y[:, i], term_space=space,
-                                **kwargs))
+        return identify(u=augmented_inputs(u, Y, i), y=Y[:, i], term_space=space, **kwargs)
+
+    results = in_threads(one, Y.shape[1])  # the outputs in parallel (the GIL released)
     model = MimoModel(tuple(outputs), tuple(term_space.inputs),
                       [r.model for r in results],
                       {"joint_criterion": {"name": results[0].model.criterion,
                                            "value": float(sum(r.model.criterion_value
                                                               for r in results)),
                                            "meaning": "sum of the outputs' values"}})
+    if kwargs.get("focus") == "simulation":  # the coefficients refined jointly, coupled
+        from .coupled import refine_coupled
+
+        model, info = refine_coupled(model, u, Y)
+        model.metadata["coupled_refinement"] = info
     return MimoResult(model, results, time.perf_counter() - t0)
 
 

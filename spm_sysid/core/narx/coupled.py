@@ -1,0 +1,218 @@
+"""The coupled free run of several outputs, compiled, and its joint refinement.
+
+Every output's model is a polynomial in lagged values of the inputs, its own
+output and the other outputs (:mod:`spm_sysid.core.narx.mimo`). In the coupled
+free run all outputs step together: at each t every output's value is computed
+from the simulated past of all of them, then written where the next step reads
+it. One compiled loop (:func:`coupled_run`) runs any set of structures: the
+signals are one matrix (inputs, then outputs), each output's linear values are
+(column, lag) pairs into it, and its terms are rows of indices into those
+values, padded with an index that points at a constant 1.
+
+Divergence, as for one output: an output that is not finite or leaves its
+measured range widened by ``DIVERGENCE_FACTOR`` spans is NaN from that sample
+on (and so is every output that uses it).
+
+:func:`refine_coupled` -- simulation focus for several outputs: the structures
+stay those selected per output; their coefficients are refined **jointly**
+(Levenberg-Marquardt over all outputs' coefficients at once) on the coupled
+free-run error, each output's error over its standard deviation so that
+outputs of different units weigh alike. A refinement that does not lower that
+error, or diverges, is not taken.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from .kernels import jit_exact as jit
+from .simulation import divergence_bounds
+from .uncertainty import from_jacobian
+
+__all__ = ["CoupledCompiled", "coupled_run", "refine_coupled"]
+
+
+@dataclass(frozen=True)
+class CoupledCompiled:
+    """Several outputs' structures in the kernel's form."""
+
+    lin_cols: np.ndarray  # (q, n_lin) int64: signal column of each linear value
+    lin_lags: np.ndarray  # (q, n_lin) int64: its lag
+    gather: np.ndarray    # (q, k_max, width) int64: linear-value indices per term
+    n_terms: tuple[int, ...]
+    n_inputs: int
+    max_lag: int
+
+    @classmethod
+    def from_models(cls, models, n_inputs: int) -> CoupledCompiled:
+        """The kernel form of a :class:`~spm_sysid.core.narx.mimo.MimoModel`'s models."""
+        q = len(models)
+        lins = [m.term_space.linear for m in models]
+        n_lin = max(len(lin) for lin in lins)
+        cols = np.zeros((q, n_lin), dtype=np.int64)
+        lags = np.ones((q, n_lin), dtype=np.int64)
+        for i, lin in enumerate(lins):
+            others = [j for j in range(q) if j != i]
+            for j, (src, lag) in enumerate(lin):
+                cols[i, j] = (n_inputs + i if src < 0 else src if src < n_inputs
+                              else n_inputs + others[src - n_inputs])
+                lags[i, j] = lag
+        width = max([len(m.term_space.terms[t]) for m in models for t in m.term_indices]
+                    + [1])
+        k_max = max([len(m.term_indices) for m in models] + [1])
+        gather = np.full((q, k_max, width), n_lin, dtype=np.int64)  # n_lin: the constant 1
+        for i, m in enumerate(models):
+            for row, t in enumerate(m.term_indices):
+                factors = m.term_space.terms[t]
+                gather[i, row, :len(factors)] = factors
+        return cls(cols, lags, gather, tuple(len(m.term_indices) for m in models),
+                   int(n_inputs), max(m.term_space.max_lag for m in models))
+
+    def theta_matrix(self, thetas) -> np.ndarray:
+        """Coefficients per output as one (q, k_max) array, zero-padded."""
+        out = np.zeros(self.gather.shape[:2])
+        for i, th in enumerate(thetas):
+            out[i, :len(th)] = th
+        return out
+
+
+@jit
+def _coupled(lin_cols, lin_lags, gather, theta, S, lag0, n_inputs, lo, hi,
+             diverged):  # pragma: no cover - compiled
+    """Step every output from lag0 on, writing into S's output columns."""
+    q = gather.shape[0]
+    n_lin = lin_cols.shape[1]
+    vals = np.ones(n_lin + 1)
+    new = np.empty(q)
+    for t in range(lag0, S.shape[0]):
+        for i in range(q):
+            for j in range(n_lin):
+                vals[j] = S[t - lin_lags[i, j], lin_cols[i, j]]
+            acc = 0.0
+            for k in range(gather.shape[1]):
+                p = 1.0
+                for w in range(gather.shape[2]):
+                    p *= vals[gather[i, k, w]]
+                acc += theta[i, k] * p
+            new[i] = acc
+        for i in range(q):
+            v = new[i]
+            if diverged[i] < 0 and not (lo[i] <= v <= hi[i]):
+                diverged[i] = t
+            S[t, n_inputs + i] = v if diverged[i] < 0 else np.nan
+
+
+def coupled_run(cc: CoupledCompiled, thetas, u: np.ndarray, Y: np.ndarray,
+                bounds: list[tuple[float, float]] | None = None
+                ) -> tuple[np.ndarray, list[int | None]]:
+    """Coupled free run from the first ``max_lag`` measured samples.
+
+    Returns the simulated outputs for t = max_lag..n-1, shape (n - max_lag, q),
+    and per output the sample where it diverged (None when it did not).
+    """
+    u = np.asarray(u, dtype=float)
+    u = u[:, None] if u.ndim == 1 else u
+    Y = np.asarray(Y, dtype=float)
+    q = Y.shape[1]
+    bounds = bounds or [divergence_bounds(Y[:, i]) for i in range(q)]
+    S = np.ascontiguousarray(np.column_stack([u, Y]))
+    lo = np.array([b[0] for b in bounds])
+    hi = np.array([b[1] for b in bounds])
+    diverged = np.full(q, -1, dtype=np.int64)
+    _coupled(cc.lin_cols, cc.lin_lags, cc.gather, cc.theta_matrix(thetas), S, cc.max_lag,
+             cc.n_inputs, lo, hi, diverged)
+    return (S[cc.max_lag:, cc.n_inputs:].copy(),
+            [None if d < 0 else int(d) for d in diverged])
+
+
+def refine_coupled(model, u: np.ndarray, Y: np.ndarray,
+                   segments: list[tuple[int, int]] | None = None,
+                   max_evaluations: int = 100):
+    """All outputs' coefficients refined together on the coupled free-run error.
+
+    Parameters
+    ----------
+    model : MimoModel
+        The structures and the starting coefficients.
+    u, Y : ndarray
+        The estimation record(s).
+    segments : list of (start, stop), optional
+        Contiguous parts, each simulated from its own start (None: the whole record).
+    max_evaluations : int
+        Most cost evaluations of Levenberg-Marquardt (finite-difference
+        Jacobian: each costs one coupled run per coefficient).
+
+    Returns
+    -------
+    model : MimoModel
+        With the refined coefficients (and their free-run Jacobian uncertainty),
+        or the model given when refinement did not help.
+    info : dict
+        ``before``/``after`` (normalised coupled free-run SSE), ``evaluations``,
+        ``taken`` and a ``message``.
+    """
+    from scipy.optimize import least_squares  # imported when a refinement runs
+
+    u = np.asarray(u, dtype=float)
+    u = u[:, None] if u.ndim == 1 else u
+    Y = np.asarray(Y, dtype=float)
+    q = Y.shape[1]
+    cc = CoupledCompiled.from_models(model.models, u.shape[1])
+    lag = cc.max_lag
+    segs = [(a, b) for a, b in (segments or [(0, len(Y))]) if b - a > lag]
+    bounds = [divergence_bounds(Y[:, i]) for i in range(q)]
+    scale = np.array([float(np.std(Y[:, i])) or 1.0 for i in range(q)])
+    measured = np.concatenate([Y[a + lag:b] for a, b in segs])  # (rows, q)
+    sizes = np.cumsum((0,) + cc.n_terms)
+    theta0 = np.concatenate([np.asarray(m.coefficients, dtype=float) for m in model.models])
+    penalty = 10.0 * np.array([(hi - lo) for lo, hi in bounds]) / scale
+
+    def split(theta):
+        return [theta[sizes[i]:sizes[i + 1]] for i in range(q)]
+
+    def simulate(theta) -> tuple[np.ndarray, bool]:
+        runs, diverged = [], False
+        for a, b in segs:
+            sim, div = coupled_run(cc, split(theta), u[a:b], Y[a:b], bounds)
+            runs.append(sim)
+            diverged |= any(d is not None for d in div)
+        return np.concatenate(runs), diverged
+
+    def residuals(theta) -> np.ndarray:
+        sim, _ = simulate(theta)
+        r = (measured - sim) / scale
+        return np.where(np.isfinite(r), r, penalty).ravel()
+
+    r0 = residuals(theta0)
+    _, div0 = simulate(theta0)
+    before = float(r0 @ r0)
+    info = {"before": before, "after": before, "evaluations": 1, "taken": False}
+    if measured.size <= theta0.size:
+        info["message"] = "too few rows to refine"
+        return model, info
+    try:
+        sol = least_squares(residuals, theta0, method="lm", x_scale="jac",
+                            max_nfev=max_evaluations)
+    except (ValueError, FloatingPointError) as exc:  # pragma: no cover - numerical failure
+        info["message"] = f"refinement failed ({exc})"
+        return model, info
+    sim, div = simulate(sol.x)
+    after = float(sol.fun @ sol.fun)
+    info.update(after=after, evaluations=int(sol.nfev))
+    if div or not after < before:
+        info["message"] = ("the refined coefficients diverge" if div else
+                           "the coefficients given simulate best together; kept")
+        return model, info
+    # each output's uncertainty from its rows and columns of the joint Jacobian
+    jac = sol.jac.reshape(len(measured), q, -1)  # d(r)/d(theta), r = (y - sim) / scale
+    models = []
+    for i, (m, th) in enumerate(zip(model.models, split(sol.x))):
+        J = -jac[:, i, sizes[i]:sizes[i + 1]] * scale[i]  # d(sim_i)/d(theta_i)
+        e = measured[:, i] - sim[:, i]
+        unc = from_jacobian(J, float(e @ e)) if np.all(np.isfinite(J)) else m.uncertainty
+        meta = {**m.metadata, "coupled_refinement": True}
+        models.append(replace(m, coefficients=np.array(th), uncertainty=unc, metadata=meta))
+    info.update(taken=True, message=str(sol.message))
+    return replace(model, models=models), info
