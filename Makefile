@@ -79,6 +79,7 @@ bench-online: $(STAMP)
 ## Several outputs: a two-link arm identified as one coupled model, against two single-output runs.
 bench-mimo: $(STAMP)
 	$(BIN)/python -m spm_sysid.bench.mimo
+	$(BIN)/python -m spm_sysid.bench.mimo --focus simulation --repeats 1
 
 ## Study on the local pool vs a 2-worker Dask cluster (the paper's 180 runs).
 bench-dask: $(STAMP)
