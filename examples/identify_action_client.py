@@ -1,9 +1,10 @@
 """Your own rclpy node asking sysid_node for a model through its Identify action.
 
 It sends a goal (optionally with setting overrides and a bag to identify on),
-prints the feedback as it comes, and reads the typed result: an error code, the
-model as ``spm_sysid_interfaces/msg/NarxModel`` (terms with their factors,
-coefficients with standard errors) and the validation report. Ctrl-C cancels
+prints the feedback as it comes, and reads the typed result: an error code and
+each output's model as ``spm_sysid_interfaces/msg/NarxModel`` (terms with their
+factors, coefficients with standard errors) with its validation report (one
+output, or several joints of one coupled model). Ctrl-C cancels
 the goal; the node then keeps its previous model.
 
 Run sysid_node first (and replay a bag into it, or pass a bag), then:
@@ -62,14 +63,24 @@ def main() -> int:
         if result.error_code not in (Identify.Result.NONE, Identify.Result.DIVERGED):
             print(f"no model (error code {result.error_code}): {result.message}")
             return 1
-        model = result.model
-        print(f"{model.criterion.upper()} {model.criterion_value:.2f}, "
-              f"{len(model.terms)} terms, free-run fit {model.free_run_fit_percent:.1f} %")
-        for term, coef, se in zip(model.terms, model.coefficients, model.standard_errors):
-            factors = " * ".join(f"{f.signal}[t-{f.lag}]^{f.power}" for f in term.factors)
-            print(f"  {coef:+.6f} (+- {se:.1e})  {term.name:<16} = {factors or '1'}")
-        failed = [t.name for t in result.report.correlation_tests if not t.passed]
-        print("correlation tests outside the band: " + (", ".join(failed) or "none"))
+        # result.models: every output's model and report (one output: the same as
+        # result.model and result.report; several joints: one coupled model)
+        models = result.models
+        several = len(models.models) > 1
+        for name, model, report in zip(models.output_names, models.models, models.reports):
+            print(("output " + name + ": " if several else "")
+                  + f"{model.criterion.upper()} {model.criterion_value:.2f}, "
+                  f"{len(model.terms)} terms, free-run fit {model.free_run_fit_percent:.1f} %"
+                  + (" (coupled)" if several else ""))
+            for term, coef, se in zip(model.terms, model.coefficients, model.standard_errors):
+                factors = " * ".join(f"{f.signal}[t-{f.lag}]^{f.power}" for f in term.factors)
+                print(f"  {coef:+.6f} (+- {se:.1e})  {term.name:<16} = {factors or '1'}")
+            failed = [t.name for t in report.correlation_tests if not t.passed]
+            print("correlation tests outside the band: " + (", ".join(failed) or "none"))
+        if several:
+            failed = [t.name for t in models.cross_correlation_tests if not t.passed]
+            print(f"joint {models.criterion.upper()} {models.joint_criterion_value:.2f}; residual "
+                  "cross-correlation outside the band: " + (", ".join(failed) or "none"))
         return 0
     finally:
         node.destroy_node()

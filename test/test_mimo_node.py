@@ -8,12 +8,15 @@ of the same topic.
 """
 
 import json
+import subprocess
+import sys
 
 import numpy as np
 from spm_sysid_interfaces.msg import NarxModelSet, Prediction, Validity
 
 from spm_sysid.core.io.bagio import read_bag_signals
 
+from .conftest import ROOT
 from .ros_harness import IdentifyClient, play_bag, start_node, stop
 from .test_mimo import TRUE, two_output_system
 from .test_mimo_io import write_joint_state_bag
@@ -94,5 +97,13 @@ def test_a_goal_reads_two_outputs_from_a_bag_with_the_node_topics(ros_env, harne
         assert "y1:" in result.message and "y2:" in result.message
         # the single-output fields stay empty for a coupled model
         assert len(result.model.terms) == 0
+        # the example client reads every output
+        r = subprocess.run([sys.executable, "examples/identify_action_client.py", str(bag)],
+                           capture_output=True, text=True, env=ros_env, timeout=120, cwd=ROOT)
+        assert r.returncode == 0, r.stderr
+        heads = [line for line in r.stdout.splitlines() if line.startswith("output ")]
+        assert [h.split(":")[0] for h in heads] == ["output y1", "output y2"]
+        assert all("(coupled)" in h for h in heads)
+        assert "joint BIC" in r.stdout
     finally:
         stop(node)
