@@ -145,3 +145,41 @@ def test_the_answer_and_diagnostics_carry_the_data_checks_warnings(ros_env, harn
     assert level == 1 and message.startswith(f"{len(doc['metadata']['warnings'])} warning(s)")
     assert any("persistently exciting of order 2" in v for v in values.values())
     assert doc["metadata"]["data_check"]["excitation_order"] == {"u": 2}
+
+
+RESILIENT = """
+import sys
+import rclpy
+from rclpy.node import Node
+from spm_sysid.ros.common import run_node
+
+class Faulty(Node):
+    def __init__(self):
+        super().__init__("faulty")
+        self.ticks = 0
+        self.create_timer(0.05, self.tick)
+
+    def tick(self):
+        self.ticks += 1
+        if self.ticks in (2, 4):
+            raise ValueError("a bad sample")
+        if self.ticks >= 8:
+            rclpy.try_shutdown()  # as SIGINT would
+
+def finish(node, interrupted):
+    print(f"ticks {node.ticks} callback_errors {node.callback_errors}")
+    return 0
+
+sys.exit(run_node(Faulty, errors=(ValueError,), finish=finish))
+"""
+
+
+def test_a_callback_that_raises_is_logged_and_counted_and_the_node_goes_on(ros_env):
+    """Before, a ValueError in any callback while spinning was taken for a start-up error
+    and stopped the node (exit 1)."""
+    r = subprocess.run([sys.executable, "-c", RESILIENT], capture_output=True, text=True,
+                       env=ros_env, timeout=60, cwd=ROOT)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == "ticks 8 callback_errors 2"
+    assert r.stderr.count("a callback raised ValueError: a bad sample") == 2
+    assert "the node goes on" in r.stderr

@@ -196,3 +196,21 @@ def test_diagnostics_problems_and_their_levels():
     assert st[1].level == ERROR and st[1].message == "boom" and len(st) == 2
     st = diagnostic_statuses("/n", STATS, model=dict(DOC, metadata={}), restored_from="/m")
     assert st[1].level == OK and st[1].message == "model with 2 terms, restored from /m"
+    st = diagnostic_statuses("/n", STATS, callback_errors=3)
+    assert st[0].level == WARN and st[0].message == ("1024 paired samples, 3 callback error(s) "
+                                                     "(see the log)")
+    assert st[0].values["callback_errors"] == "3"
+
+
+def test_diagnostics_of_a_coupled_model_of_two_outputs():
+    mimo = {"schema": "spm_sysid/narx-mimo-model", "outputs": ["q1", "q2"],
+            "models": [DOC, dict(DOC, metadata={})],
+            "metadata": {"cross_correlation_tests": [{"name": "cross_q1_q2", "passed": False,
+                                                       "fraction_inside": 0.7, "band": 0.04,
+                                                       "max_abs": 0.2, "worst_lag": -1}]}}
+    st = {s.name: s for s in diagnostic_statuses("/n", STATS, model=mimo)}
+    assert st["/n: identification (q1)"].message == ("model with 2 terms, fitted around 2 "
+                                                     "gap(s) in the data")
+    assert st["/n: identification (q2)"].message == "model with 2 terms"
+    assert st["/n: residual cross_q1_q2"].level == WARN
+    assert "/n (q1): correlation ee" in st

@@ -40,6 +40,30 @@ def message_class(msgtype: str):
             from None
 
 
+#: Callback errors logged with their traceback; later ones are counted only.
+LOGGED_CALLBACK_ERRORS = 10
+
+
+def _spin_resilient(executor, node: Node) -> None:
+    """Spin until shut down; a callback that raises is logged and counted, not fatal."""
+    import traceback
+
+    node.callback_errors = 0
+    while rclpy.ok():
+        try:
+            executor.spin_once(timeout_sec=0.5)
+        except (KeyboardInterrupt, ExternalShutdownException):
+            raise
+        except Exception as exc:  # noqa: BLE001 - one bad callback must not stop the node
+            node.callback_errors += 1
+            if node.callback_errors <= LOGGED_CALLBACK_ERRORS:
+                where = traceback.extract_tb(exc.__traceback__)[-1]
+                node.get_logger().error(
+                    f"a callback raised {type(exc).__name__}: {exc} ({where.filename}:"
+                    f"{where.lineno}); the node goes on (callback_errors "
+                    f"{node.callback_errors} in /diagnostics)")
+
+
 def run_node(build: Callable[[], Node], *, until: Callable[[Node], bool] | None = None,
              errors: tuple[type[BaseException], ...] = (ValueError,),
              finish: Callable[[Node, bool], int] | None = None,
@@ -52,7 +76,10 @@ def run_node(build: Callable[[], Node], *, until: Callable[[Node], bool] | None 
         Makes the node; an exception of ``errors`` becomes one ``error:`` line and
         exit status 1.
     until : callable, optional
-        Spin until ``until(node)`` is true (default: until shut down).
+        Spin until ``until(node)`` is true (a tool that ends; an exception of
+        ``errors`` in a callback ends it with one ``error:`` line). Default: spin
+        until shut down (a node that runs next to a robot): a callback that
+        raises is logged, counted in ``node.callback_errors`` and the node goes on.
     errors : tuple of exception types
         What ``build`` may raise for a user's mistake (bad parameters).
     finish : callable, optional
@@ -70,7 +97,8 @@ def run_node(build: Callable[[], Node], *, until: Callable[[Node], bool] | None 
         node = build()
         executor.add_node(node)
         if until is None:
-            executor.spin()
+            _spin_resilient(executor, node)
+            interrupted = not rclpy.ok()
         else:
             while rclpy.ok() and not until(node):
                 executor.spin_once(timeout_sec=0.1)

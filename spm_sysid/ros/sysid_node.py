@@ -877,7 +877,8 @@ class SysidNode(Node):
             running=None if self._started is None else (
                 self._progress or Progress("checking data"), time.monotonic() - self._started),
             last_error=self._last_error, model=self._model,
-            restored_from=self._restored_from)
+            restored_from=self._restored_from,
+            callback_errors=getattr(self, "callback_errors", 0))
         statuses.append(online_status(self.get_fully_qualified_name(), self._online,
                                       {**self._auto, "online_errors": self._online_errors}))
         msg = DiagnosticArray(status=[DiagnosticStatus(

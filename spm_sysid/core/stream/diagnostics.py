@@ -34,7 +34,7 @@ def diagnostic_statuses(name: str, stats: dict, *, field_errors: int = 0,
                         type_mismatches: list[str] | None = None, namesakes: int = 0,
                         running: tuple | None = None, last_error: str | None = None,
                         model: dict | None = None, restored_from: str | None = None,
-                        ) -> list[Status]:
+                        callback_errors: int = 0) -> list[Status]:
     """The node's statuses: buffer, identification, one per correlation test.
 
     Parameters
@@ -58,6 +58,8 @@ def diagnostic_statuses(name: str, stats: dict, *, field_errors: int = 0,
         The last model document (its ``metadata`` has ``data`` and ``validation``).
     restored_from : str, optional
         Where the last model was loaded from at start-up.
+    callback_errors : int
+        Callbacks that raised and were logged (the node went on).
     """
     type_mismatches = type_mismatches or []
     lost = stats["rejected_nonfinite"] + stats["rejected_out_of_order"]
@@ -75,9 +77,11 @@ def diagnostic_statuses(name: str, stats: dict, *, field_errors: int = 0,
                         "used)")
     if not worker_ready:
         problems.append("worker not ready")
+    if callback_errors:
+        problems.append(f"{callback_errors} callback error(s) (see the log)")
     level = OK
     if (lost or field_errors or unset_stamps or namesakes or stats.get("time_jumps")
-            or not worker_ready):
+            or not worker_ready or callback_errors):
         level = WARN
     if type_mismatches:
         level = ERROR
@@ -89,6 +93,7 @@ def diagnostic_statuses(name: str, stats: dict, *, field_errors: int = 0,
                                       "namesakes": namesakes,
                                       "worker_ready": worker_ready,
                                       "worker_restarts": worker_restarts,
+                                      "callback_errors": callback_errors,
                                       "type_mismatch": "; ".join(type_mismatches)})})]
     ident = f"{name}: identification"
     if running is not None:
