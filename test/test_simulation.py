@@ -10,7 +10,11 @@ import pytest
 from spm_sysid.core.narx import simulation
 from spm_sysid.core.narx.identify import identify
 from spm_sysid.core.narx.model import NarxModel
-from spm_sysid.core.narx.refine import linear_radius, refine_simulation
+from spm_sysid.core.narx.refine import (
+    linear_radius,
+    linear_stability_check,
+    refine_simulation,
+)
 from spm_sysid.core.narx.simulation import free_run_sensitivities, run_model
 from spm_sysid.core.narx.terms import TermSpace
 from spm_sysid.core.narx.validation import metrics, validate_model
@@ -215,3 +219,20 @@ def test_simulation_focus_meets_the_free_run_target_on_the_robot_arm(robot_arm):
     sse = _free_run_sse(m, u, y)
     n = len(y) - 4
     assert m.criterion_value == pytest.approx(n * np.log(sse / n) + len(m.terms) * np.log(n))
+
+
+def test_the_fast_stability_check_agrees_with_the_roots():
+    """Schur-Cohn step-down against numpy's roots, on random structures and scales."""
+    ts = TermSpace(ny=4, nu=4, degree=2)
+    rng = np.random.default_rng(0)
+    checked = 0
+    for _ in range(3000):
+        idx = sorted(rng.choice(ts.n_terms, size=int(rng.integers(1, 12)),
+                                replace=False).tolist())
+        theta = rng.normal(0.0, rng.choice([0.3, 1.0, 3.0]), len(idx))
+        radius = linear_radius(ts, idx, theta)
+        if abs(radius - 1.0) < 1e-9:
+            continue  # on the circle: either answer is rounding
+        assert linear_stability_check(ts, idx)(theta) == (radius < 1.0), (idx, theta)
+        checked += 1
+    assert checked > 2900
