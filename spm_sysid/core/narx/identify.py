@@ -123,8 +123,9 @@ def identify(
         removed or swapped while that improves the criterion), then up to
         :data:`POLISH_KICKS` kicks (4 to 11 terms flipped, a cheap add/remove
         descent, and the full search from the promising ones); at most
-        :data:`POLISH_STRUCTURES` structures scored, so the result does not
-        depend on the machine's speed. ``model.metadata["polish"]`` says
+        :data:`POLISH_STRUCTURES` structures scored (fewer for structures of
+        more than :data:`POLISH_TERMS` terms), so the result does not depend on
+        the machine's speed. ``model.metadata["polish"]`` says
         what it changed.
     auto_certify_time_limit : float
         When the structure is the criterion's choice (focus prediction,
@@ -167,6 +168,10 @@ OVERFIT_RATIO = 3.0
 #: Structures the polish after the GA may score (a count, not seconds: the same seed
 #: gives the same result on any machine).
 POLISH_STRUCTURES = 50_000
+#: Structures of more terms than this cost more to fit (about k^2): the polish of a
+#: structure of k terms scores at most POLISH_STRUCTURES * (POLISH_TERMS / k)^2 of them,
+#: so a large model's polish does not take many times its GA's time.
+POLISH_TERMS = 20
 #: Kicks of the iterated local search after the first local optimum (within the budget).
 POLISH_KICKS = 1000
 #: Terms a kick flips: from POLISH_FLIPS[0] to POLISH_FLIPS[1] - 1 (the GA's best and the
@@ -298,12 +303,12 @@ def _polish(problem: Problem, evaluator, result: GAResult) -> dict:
         return {"ga_value": None, "value": None, "steps": 0, "structures": 0}
     n = problem.usable.sum()
     k = int(result.best_mask.sum())
+    budget = min(POLISH_STRUCTURES, int(POLISH_STRUCTURES * (POLISH_TERMS / max(k, 1)) ** 2))
     # swaps are k (n - k) neighbours a step: in large spaces only additions and removals
-    moves = ("remove", "add", "swap") if k * (n - k) <= POLISH_STRUCTURES // 4 else (
-        "remove", "add")
+    moves = ("remove", "add", "swap") if k * (n - k) <= budget // 4 else ("remove", "add")
     allowed = np.ones(evaluator.n_terms, dtype=bool)
     res = local_search(evaluator.score, result.best_mask, allowed, moves=moves,
-                       start_value=ga_value, max_scored=POLISH_STRUCTURES)
+                       start_value=ga_value, max_scored=budget)
     best_mask, best_value, steps, scored = res.mask, float(res.value), res.steps, res.scored
     # Iterated local search: the GA's best is usually a local optimum of single-term moves;
     # kick it (flip several terms), descend cheaply (additions and removals), and search
@@ -315,7 +320,7 @@ def _polish(problem: Problem, evaluator, result: GAResult) -> dict:
     cheap = ("remove", "add")
     low, high = POLISH_FLIPS[0], min(POLISH_FLIPS[1], len(usable) // 2 + 1)
     kicks = 0
-    while kicks < POLISH_KICKS and scored < POLISH_STRUCTURES and high > low:
+    while kicks < POLISH_KICKS and scored < budget and high > low:
         kicks += 1
         start = best_mask.copy()
         flip = rng.choice(usable, size=int(rng.integers(low, high)), replace=False)
@@ -323,11 +328,11 @@ def _polish(problem: Problem, evaluator, result: GAResult) -> dict:
         if not start.any():
             continue
         r = local_search(evaluator.score, start, allowed, moves=cheap,
-                         max_scored=POLISH_STRUCTURES - scored)
+                         max_scored=budget - scored)
         scored += r.scored
         if moves != cheap and r.value < best_value + POLISH_SLACK:
             r = local_search(evaluator.score, r.mask, allowed, moves=moves,
-                             start_value=r.value, max_scored=POLISH_STRUCTURES - scored)
+                             start_value=r.value, max_scored=budget - scored)
             scored += r.scored
         if r.value < best_value - 1e-9:
             best_mask, best_value, steps = r.mask, float(r.value), steps + r.steps
@@ -335,7 +340,7 @@ def _polish(problem: Problem, evaluator, result: GAResult) -> dict:
         result.best_mask, result.best_score = best_mask.copy(), best_value
     return {"ga_value": ga_value, "value": float(result.best_score), "steps": steps,
             "structures": scored, "kicks": kicks, "moves": list(moves),
-            "stopped": "budget" if scored >= POLISH_STRUCTURES else res.stopped}
+            "stopped": "budget" if scored >= budget else res.stopped, "budget": budget}
 
 
 def _selection_mode(selection: str, focus: str, problem: Problem) -> tuple[str, str]:
