@@ -197,3 +197,27 @@ def test_simulation_focus_refines_the_outputs_jointly_in_the_job():
         np.testing.assert_allclose(r.report.one_step, result.model.predict(u, Y)[:, i],
                                    rtol=1e-12)
     assert "refined jointly on the coupled free-run error" in result.summary("lines")
+
+
+def test_batch_of_two_output_records_writes_coupled_models(tmp_path):
+    paths = []
+    for seed in (10, 11):
+        u, Y = two_output_system(300, seed=seed, noise=0.001)
+        paths.append(tmp_path / f"rec{seed}.csv")
+        np.savetxt(paths[-1], np.column_stack([u, Y]), delimiter=",", header="u1,u2,y1,y2",
+                   comments="")
+    out = tmp_path / "out"
+    r = subprocess.run([sys.executable, "-m", "spm_sysid.apps.main", "batch", *map(str, paths),
+                        "--inputs", "u1,u2", "--output", "y1,y2", "--ny", "1", "--nu", "1",
+                        "--criterion", "bic", "--seed", "0", "--out", str(out)],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    import csv
+
+    rows = list(csv.DictReader((out / "summary.csv").open()))
+    assert len(rows) == 2 and all("2 outputs y1, y2" in row["status"] for row in rows)
+    for row in rows:
+        model, doc = read_model_document(row["model"])
+        assert isinstance(model, MimoModel)
+        assert int(row["terms"]) == sum(len(m.terms) for m in model.models)
+        assert float(row["value"]) == pytest.approx(doc["metadata"]["joint_criterion"]["value"])
