@@ -208,3 +208,25 @@ def test_a_diverging_output_is_nan_from_there_on_in_every_output_that_uses_it():
     assert diverged[1] is not None and diverged[0] is not None  # y1 uses y2(t-1)
     assert diverged[0] >= diverged[1]
     assert np.all(np.isnan(sim[diverged[1] - 1:, 1])) and np.all(np.isfinite(sim[:diverged[1] - 1]))
+
+
+def test_the_coupled_k_step_prediction_against_a_plain_python_reference():
+    u, Y = two_output_system(120, seed=12, noise=0.01)
+    models = []
+    for i, name in enumerate(("y1", "y2")):
+        sp = output_space(SPACE, ("y1", "y2"), i)
+        names = sp.term_names()
+        idx = sorted(names.index(t) for t in TRUE[name])
+        models.append(NarxModel(sp, idx, np.array([TRUE[name][names[j]] for j in idx])))
+    model = MimoModel(("y1", "y2"), ("u1", "u2"), models)
+    k = 3
+    pred, div = model.k_step(u, Y, k)
+    assert div == [None, None]
+    for t in range(1, len(Y)):
+        start = max(t - k, 0)  # measured up to t - k, the model's own outputs after
+        ref = reference_simulation(TRUE, u[start:t + 1], Y[start:t + 1], 1)
+        np.testing.assert_allclose(pred[t - 1], ref[-1], rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(model.k_step(u, Y, 1)[0], model.predict(u, Y), rtol=1e-12,
+                               atol=1e-12)
+    np.testing.assert_allclose(model.k_step(u, Y, len(Y))[0], model.simulate(u, Y)[0],
+                               rtol=1e-12, atol=1e-12)

@@ -117,7 +117,7 @@ def test_a_job_on_two_outputs_validates_each_with_the_coupled_free_run():
     u, Y = two_output_system(600, seed=2, noise=0.002)
     rec = Record.from_samples(u, Y, source="test", input_names=("u1", "u2"),
                               output_names=("y1", "y2"))
-    result = run_job(rec, JobSettings.from_values(SETTINGS))
+    result = run_job(rec, JobSettings.from_values({**SETTINGS, "horizon": 3}))
     assert isinstance(result, MimoJobResult)
     assert result.output_names == ("y1", "y2")
     for name, r in zip(("y1", "y2"), result.outputs):
@@ -126,8 +126,10 @@ def test_a_job_on_two_outputs_validates_each_with_the_coupled_free_run():
     # each report's free run is the coupled one: both outputs from their own predictions
     lag = result.model.max_lag
     coupled, _ = result.model.simulate(u, Y)
+    kstep, _ = result.model.k_step(u, Y, 3)
     for i, r in enumerate(result.outputs):
         np.testing.assert_allclose(r.report.free_run, coupled[:, i], rtol=1e-12)
+        np.testing.assert_allclose(r.report.k_step, kstep[:, i], rtol=1e-12)  # coupled too
     # the fitted model's coupled run against the plain-Python reference
     coefs = {n: dict(zip(r.model.terms, r.model.coefficients))
              for n, r in zip(("y1", "y2"), result.outputs)}

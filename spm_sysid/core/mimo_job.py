@@ -11,8 +11,9 @@ and validated jointly:
 
 * the free-run simulation in each output's report is replaced by the **coupled**
   one (every output's simulated value fed back into every term that uses it),
-  segment by segment; the single-output free-run band (other outputs measured)
-  is left out, since it would not describe the coupled run;
+  segment by segment, and so is the k-step prediction (with a horizon); the
+  single-output free-run band (other outputs measured) is left out, since it
+  would not describe the coupled run;
 * with simulation focus, the coefficients of all outputs are refined jointly on
   the coupled free-run error (:func:`spm_sysid.core.narx.coupled.refine_coupled`)
   and each output validated again with them;
@@ -163,6 +164,23 @@ def _coupled_free_run(model: MimoModel, u: np.ndarray, Y: np.ndarray,
     return np.concatenate(runs), diverged
 
 
+def _coupled_k_step(model: MimoModel, u: np.ndarray, Y: np.ndarray,
+                    segments: list[tuple[int, int]], horizon: int
+                    ) -> tuple[np.ndarray, list[int | None]]:
+    """The coupled k-step prediction of every segment (rows after max_lag)."""
+    lag = model.max_lag
+    runs, diverged = [], [None] * Y.shape[1]
+    for a, b in segments:
+        if b - a <= lag:
+            continue
+        pred, div = model.k_step(u[a:b], Y[a:b], horizon)
+        runs.append(pred)
+        for i, d in enumerate(div):
+            if d is not None and diverged[i] is None:
+                diverged[i] = a + d
+    return np.concatenate(runs), diverged
+
+
 def couple_reports(model: MimoModel, u: np.ndarray, Y: np.ndarray,
                    segments: list[tuple[int, int]], reports: list,
                    correlation_lags: int = 20) -> list[CorrelationTest]:
@@ -174,11 +192,16 @@ def couple_reports(model: MimoModel, u: np.ndarray, Y: np.ndarray,
     returned.
     """
     free, diverged = _coupled_free_run(model, u, Y, segments)
+    horizon = next((r.horizon for r in reports if r is not None and r.horizon), None)
+    kstep = _coupled_k_step(model, u, Y, segments, horizon) if horizon else None
     for i, rep in enumerate(reports):
         if rep is None or len(rep.measured) != len(free):
             continue
         m = metrics(rep.measured, free[:, i], diverged[i])
         rep.free_run, rep.free_run_metrics, rep.free_run_band = free[:, i], m, None
+        if kstep is not None and rep.k_step is not None:
+            rep.k_step = kstep[0][:, i]
+            rep.k_step_metrics = metrics(rep.measured, rep.k_step, kstep[1][i])
         if m["diverged_at"] is not None:
             rep.tests_skipped = (f"the coupled free-run simulation diverged at sample "
                                  f"{m['diverged_at']}: the model does not describe the system")

@@ -118,6 +118,38 @@ class MimoModel:
         cc = CoupledCompiled.from_models(self.models, u.shape[1])
         return coupled_run(cc, [m.coefficients for m in self.models], u, Y)
 
+    def k_step(self, u: np.ndarray, Y: np.ndarray, horizon: int
+               ) -> tuple[np.ndarray, list[int | None]]:
+        """Coupled k-step-ahead predictions, shape (n - max_lag, outputs).
+
+        Row t is every output at t predicted from the measured samples up to
+        ``t - horizon`` and the model's own (coupled) outputs in between; the
+        first rows, with fewer than ``horizon`` steps of history after the
+        start, are predicted from the start (as the free run). Per output, the
+        first sample whose prediction left its measured range (None: none).
+        """
+        from .coupled import CoupledCompiled, coupled_run
+        from .simulation import divergence_bounds
+
+        u = np.asarray(u, dtype=float)
+        u = u[:, None] if u.ndim == 1 else u
+        Y = np.asarray(Y, dtype=float)
+        horizon = max(int(horizon), 1)
+        cc = CoupledCompiled.from_models(self.models, u.shape[1])
+        thetas = [m.coefficients for m in self.models]
+        lag, n, q = cc.max_lag, len(Y), Y.shape[1]
+        bounds = [divergence_bounds(Y[:, i]) for i in range(q)]
+        out = np.empty((n - lag, q))
+        diverged: list[int | None] = [None] * q
+        for t in range(lag, n):
+            start = max(t - horizon + 1 - lag, 0)  # the window's measured start
+            sim, _ = coupled_run(cc, thetas, u[start:t + 1], Y[start:t + 1], bounds)
+            out[t - lag] = sim[-1]
+            for i in range(q):
+                if diverged[i] is None and not np.isfinite(sim[-1, i]):
+                    diverged[i] = t
+        return out, diverged
+
     def fits(self, u: np.ndarray, Y: np.ndarray) -> dict:
         """Per output: one-step and coupled free-run fit (%), and where it diverged."""
         Y = np.asarray(Y, dtype=float)
