@@ -12,6 +12,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 from spm_sysid_interfaces.msg import NarxModelSet, Prediction, Validity
 
 from spm_sysid.core.io.bagio import read_bag_signals
@@ -107,3 +108,20 @@ def test_a_goal_reads_two_outputs_from_a_bag_with_the_node_topics(ros_env, harne
         assert "joint BIC" in r.stdout
     finally:
         stop(node)
+
+
+@pytest.mark.parametrize("extra, message", [
+    (("output_names:=u1,y2",), "an input and an output share the name u1"),
+    (("output_field:=effort[0],velocity[1]",), "output y1 reads the same field of "
+                                               "/joint_states as an input"),
+    (("output_field:=velocity[0]",), "two outputs read the same field of the same topic"),
+])
+def test_outputs_that_clash_with_the_inputs_are_one_error_line(ros_env, extra, message):
+    params = [p for p in PARAMS if not p.startswith(tuple(e.split(":=")[0] + ":="
+                                                          for e in extra))] + list(extra)
+    args = [sys.executable, "-m", "spm_sysid.ros.sysid_node", "--ros-args"]
+    for p in params:
+        args += ["-p", p]
+    r = subprocess.run(args, capture_output=True, text=True, env=ros_env, timeout=60, cwd=ROOT)
+    assert r.returncode == 1
+    assert message in r.stderr, r.stderr

@@ -238,8 +238,11 @@ class SysidNode(Node):
         if clash:
             raise ValueError(f"an input and an output share the name {', '.join(sorted(clash))}"
                              " (set input_names or output_names)")
+        def field(c) -> str:
+            return c.field or (default_field(c.msgtype) if c.msgtype else "")
+
         for c in outputs:
-            if any(d.topic == c.topic and d.field == c.field for d in inputs):
+            if any(d.topic == c.topic and field(d) == field(c) for d in inputs):
                 raise ValueError(f"output {c.name} reads the same field of {c.topic} as an "
                                  "input")
             if any(d.topic == c.topic and d.msgtype != c.msgtype for d in inputs):
