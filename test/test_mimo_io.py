@@ -107,6 +107,8 @@ def test_bags_with_two_output_topics_or_one_joint_state_topic(tmp_path):
     assert rec.output_names == ("q1", "q2") and rec.input_names == ("tau1", "tau2")
     np.testing.assert_array_equal(rec.y, Y)
     assert rec.unpaired == 0
+    with pytest.raises(DataError, match="name columns of --data files"):
+        load_record(DataSpec(bag=str(two), output="q1,q2"))  # not silently one output
     with pytest.raises(Exception, match="same field"):
         read_bag_signals(joints, input_topic="/joint_states", output_topic="/joint_states")
     with pytest.raises(Exception, match="output topics for 2 outputs"):

@@ -252,6 +252,8 @@ class DataSpec:
 
         p = Path(path)
         is_bag = p.suffix == ".mcap" or (p.is_dir() and is_rosbag2_dir(p))
+        if is_bag:  # the column options are for the data files among the paths
+            values = {k: v for k, v in values.items() if k not in ("inputs", "output")}
         return cls.from_values(values, data=None if is_bag else path,
                                bag=path if is_bag else None)
 
@@ -269,6 +271,10 @@ def load_record(spec: DataSpec | None = None) -> Record:
     if spec.bag and spec.data:
         raise DataError("give either --data or --bag (data files or a bag), not both")
     if spec.bag:
+        if spec.inputs or spec.output:
+            raise DataError("--inputs and --output name columns of --data files; a bag's "
+                            "signals are chosen with --input-topic/--input-field/"
+                            "--input-names and --output-topic/--output-field/--output-names")
         return _load_bag(spec)
     if spec.data:
         return combine([_load_file(p, spec) for p in spec.data])
