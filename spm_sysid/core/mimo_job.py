@@ -148,33 +148,19 @@ def cross_correlation_tests(residuals: np.ndarray, names: tuple[str, ...],
     return out
 
 
-def _coupled_free_run(model: MimoModel, u: np.ndarray, Y: np.ndarray,
-                      segments: list[tuple[int, int]]) -> tuple[np.ndarray, list[int | None]]:
-    """The coupled simulation of every segment from its own start (rows after max_lag)."""
-    lag = model.max_lag
+def _per_segment(run, lag: int, u: np.ndarray, Y: np.ndarray,
+                 segments: list[tuple[int, int]]) -> tuple[np.ndarray, list[int | None]]:
+    """``run(u, Y) -> (rows, diverged)`` on every segment from its own start, joined.
+
+    Rows after each segment's first ``lag`` samples; per output the first sample
+    (record index) where a run diverged, or None.
+    """
     runs, diverged = [], [None] * Y.shape[1]
     for a, b in segments:
         if b - a <= lag:
             continue
-        sim, div = model.simulate(u[a:b], Y[a:b])
-        runs.append(sim)
-        for i, d in enumerate(div):
-            if d is not None and diverged[i] is None:
-                diverged[i] = a + d
-    return np.concatenate(runs), diverged
-
-
-def _coupled_k_step(model: MimoModel, u: np.ndarray, Y: np.ndarray,
-                    segments: list[tuple[int, int]], horizon: int
-                    ) -> tuple[np.ndarray, list[int | None]]:
-    """The coupled k-step prediction of every segment (rows after max_lag)."""
-    lag = model.max_lag
-    runs, diverged = [], [None] * Y.shape[1]
-    for a, b in segments:
-        if b - a <= lag:
-            continue
-        pred, div = model.k_step(u[a:b], Y[a:b], horizon)
-        runs.append(pred)
+        rows, div = run(u[a:b], Y[a:b])
+        runs.append(rows)
         for i, d in enumerate(div):
             if d is not None and diverged[i] is None:
                 diverged[i] = a + d
@@ -191,9 +177,10 @@ def couple_reports(model: MimoModel, u: np.ndarray, Y: np.ndarray,
     single-output free-run band); the residuals' cross-correlation tests are
     returned.
     """
-    free, diverged = _coupled_free_run(model, u, Y, segments)
+    free, diverged = _per_segment(model.simulate, model.max_lag, u, Y, segments)
     horizon = next((r.horizon for r in reports if r is not None and r.horizon), None)
-    kstep = _coupled_k_step(model, u, Y, segments, horizon) if horizon else None
+    kstep = (_per_segment(lambda u_, Y_: model.k_step(u_, Y_, horizon), model.max_lag, u, Y,
+                          segments) if horizon else None)
     for i, rep in enumerate(reports):
         if rep is None or len(rep.measured) != len(free):
             continue
