@@ -43,7 +43,7 @@ from std_srvs.srv import Trigger
 
 from ..core.errors import FieldPathError
 from ..core.files import atomic_write_text, check_writable_file
-from ..core.io.channels import parse_channels, stream_order, topic_streams
+from ..core.io.channels import check_roles, parse_channels, stream_order, topic_streams
 from ..core.io.fields import UnsetStamps, default_field, extract, parse_path
 from ..core.job import JobSettings
 from ..core.narx.mimo import MIMO_SCHEMA, MimoModel, read_model_document
@@ -234,20 +234,7 @@ class SysidNode(Node):
                                 values["input_type"], values["input_names"])
         outputs = parse_channels(values["output_topic"], values["output_field"],
                                  values["output_type"], values["output_names"], role="output")
-        clash = {c.name for c in inputs} & {c.name for c in outputs}
-        if clash:
-            raise ValueError(f"an input and an output share the name {', '.join(sorted(clash))}"
-                             " (set input_names or output_names)")
-        def field(c) -> str:
-            return c.field or (default_field(c.msgtype) if c.msgtype else "")
-
-        for c in outputs:
-            if any(d.topic == c.topic and field(d) == field(c) for d in inputs):
-                raise ValueError(f"output {c.name} reads the same field of {c.topic} as an "
-                                 "input")
-            if any(d.topic == c.topic and d.msgtype != c.msgtype for d in inputs):
-                raise ValueError(f"topic {c.topic} is given two types (input_type and "
-                                 "output_type)")
+        check_roles(inputs, outputs)
         return inputs, outputs
 
     def _check(self, values: dict) -> JobSettings:

@@ -47,7 +47,7 @@ import numpy as np
 from ..errors import BagError, FieldPathError
 from ..settings import SETTINGS
 from ..stream.buffer import pair_streams
-from .channels import parse_channels, stream_order, topic_streams
+from .channels import check_roles, parse_channels, stream_order, topic_streams
 from .fields import UnsetStamps, default_field, extract, parse_path
 
 __all__ = [
@@ -501,10 +501,10 @@ def read_bag_signals(
                 raise BagError(
                     f"{path} has no topic {topic}; it has: {', '.join(sorted(conns)) or 'none'}"
                 )
-        for c in out_channels:  # one topic may carry both (JointState: effort in, velocity out)
-            if any(d.topic == c.topic and (d.field or None) == (c.field or None)
-                   for d in channels):
-                raise BagError(f"output {c.name} reads the same field of {c.topic} as an input")
+        try:  # one topic may carry both (JointState: effort in, velocity out)
+            check_roles(channels, out_channels, {t: c.msgtype for t, c in conns.items()})
+        except ValueError as exc:
+            raise BagError(str(exc)) from None
         # per topic its streams: ("y", k) for output stream k, or the index of the input
         # stream; steps: one field path per value
         streams: dict[str, list[tuple[tuple | int, list]]] = {}

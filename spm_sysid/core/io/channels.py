@@ -20,13 +20,14 @@ several joints (:mod:`spm_sysid.core.narx.mimo`).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 from ..errors import FieldPathError
-from .fields import parse_path
+from .fields import default_field, parse_path
 
-__all__ = ["Channel", "parse_channels", "split_list", "stream_order", "topic_streams"]
+__all__ = ["Channel", "check_roles", "parse_channels", "split_list", "stream_order",
+           "topic_streams"]
 
 
 @dataclass(frozen=True)
@@ -123,3 +124,32 @@ def topic_streams(channels: Sequence[Channel]) -> list[tuple[str, str | None, li
 def stream_order(channels: Sequence[Channel]) -> list[int]:
     """Channel indices in the buffer's input order (stream by stream)."""
     return [i for _, _, idx in topic_streams(channels) for i in idx]
+
+
+def check_roles(inputs: Sequence[Channel], outputs: Sequence[Channel],
+                msgtypes: Mapping[str, str] | None = None) -> None:
+    """Inputs and outputs that can be read together, or a ValueError saying why.
+
+    Their names differ; an output may share a topic with inputs (a
+    ``JointState``: efforts in, velocities out) but not a field (a type's
+    default field counts as that field), and a topic has one type.
+    ``msgtypes`` (topic -> type) gives the types when the channels do not (a
+    bag's connections).
+    """
+    clash = {c.name for c in inputs} & {c.name for c in outputs}
+    if clash:
+        raise ValueError(f"an input and an output share the name {', '.join(sorted(clash))} "
+                         "(set input_names or output_names)")
+
+    def msgtype(c: Channel) -> str | None:
+        return c.msgtype or (msgtypes or {}).get(c.topic)
+
+    def field(c: Channel) -> str:
+        return c.field or (default_field(msgtype(c)) if msgtype(c) else "")
+
+    for c in outputs:
+        if any(d.topic == c.topic and field(d) == field(c) for d in inputs):
+            raise ValueError(f"output {c.name} reads the same field of {c.topic} as an input")
+        if any(d.topic == c.topic and msgtype(d) != msgtype(c) for d in inputs):
+            raise ValueError(f"topic {c.topic} is given two types (input_type and "
+                             "output_type)")
