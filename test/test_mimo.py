@@ -47,6 +47,17 @@ def two_output_system(n: int, seed: int, noise: float = 0.0):
     return u, Y + noise * rng.standard_normal(Y.shape)
 
 
+def known_model(coefs: dict = TRUE) -> MimoModel:
+    """The coupled model with the given terms and coefficients per output."""
+    models = []
+    for i, name in enumerate(("y1", "y2")):
+        sp = output_space(SPACE, ("y1", "y2"), i)
+        names = sp.term_names()
+        idx = sorted(names.index(t) for t in coefs[name])
+        models.append(NarxModel(sp, idx, np.array([coefs[name][names[j]] for j in idx])))
+    return MimoModel(("y1", "y2"), ("u1", "u2"), models)
+
+
 def test_the_cross_terms_are_recovered_exactly_without_noise():
     u, Y = two_output_system(500, seed=0)
     res = identify_mimo(u=u, Y=Y, outputs=("y1", "y2"), term_space=SPACE, criterion="bic",
@@ -77,14 +88,7 @@ def test_with_noise_the_structure_and_coefficients_within_tolerance():
 
 def test_the_coupled_simulation_equals_a_plain_python_reference():
     u, Y = two_output_system(300, seed=2, noise=0.01)
-    space = SPACE
-    models = []
-    for i, name in enumerate(("y1", "y2")):
-        sp = output_space(space, ("y1", "y2"), i)
-        names = sp.term_names()
-        idx = sorted(names.index(t) for t in TRUE[name])
-        models.append(NarxModel(sp, idx, np.array([TRUE[name][names[j]] for j in idx])))
-    model = MimoModel(("y1", "y2"), ("u1", "u2"), models)
+    model = known_model()
     sim, diverged = model.simulate(u, Y)
     assert diverged == [None, None]
     np.testing.assert_allclose(sim, reference_simulation(TRUE, u, Y, 1), rtol=1e-12,
@@ -195,16 +199,8 @@ def test_joint_refinement_lowers_the_coupled_free_run_error_and_reports_it_truly
 
 def test_a_diverging_output_is_nan_from_there_on_in_every_output_that_uses_it():
     u, Y = two_output_system(300, seed=8)
-    models = []
-    for i, name in enumerate(("y1", "y2")):
-        sp = output_space(SPACE, ("y1", "y2"), i)
-        names = sp.term_names()
-        coefs = dict(TRUE[name])
-        if name == "y2":
-            coefs["y2(t-1)"] = 1.5  # unstable: y2 grows without bound
-        idx = sorted(names.index(t) for t in coefs)
-        models.append(NarxModel(sp, idx, np.array([coefs[names[j]] for j in idx])))
-    sim, diverged = MimoModel(("y1", "y2"), ("u1", "u2"), models).simulate(u, Y)
+    unstable = {"y1": TRUE["y1"], "y2": {**TRUE["y2"], "y2(t-1)": 1.5}}  # y2 grows unbounded
+    sim, diverged = known_model(unstable).simulate(u, Y)
     assert diverged[1] is not None and diverged[0] is not None  # y1 uses y2(t-1)
     assert diverged[0] >= diverged[1]
     assert np.all(np.isnan(sim[diverged[1] - 1:, 1])) and np.all(np.isfinite(sim[:diverged[1] - 1]))
@@ -212,13 +208,7 @@ def test_a_diverging_output_is_nan_from_there_on_in_every_output_that_uses_it():
 
 def test_the_coupled_k_step_prediction_against_a_plain_python_reference():
     u, Y = two_output_system(120, seed=12, noise=0.01)
-    models = []
-    for i, name in enumerate(("y1", "y2")):
-        sp = output_space(SPACE, ("y1", "y2"), i)
-        names = sp.term_names()
-        idx = sorted(names.index(t) for t in TRUE[name])
-        models.append(NarxModel(sp, idx, np.array([TRUE[name][names[j]] for j in idx])))
-    model = MimoModel(("y1", "y2"), ("u1", "u2"), models)
+    model = known_model()
     k = 3
     pred, div = model.k_step(u, Y, k)
     assert div == [None, None]

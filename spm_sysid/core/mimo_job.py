@@ -246,11 +246,7 @@ def run_mimo_job(record: Record, settings, *, progress: ProgressFn | None = None
 
     outputs = in_threads(one, len(names))
     seconds = {name: r.seconds.get("total", 0.0) for name, r in zip(names, outputs)}
-    model = MimoModel(names, tuple(record.input_names), [r.model for r in outputs],
-                      {"joint_criterion": {"name": outputs[0].model.criterion,
-                                           "value": float(sum(r.model.criterion_value
-                                                              for r in outputs)),
-                                           "meaning": "sum of the outputs' values"}})
+    model = MimoModel.joined(names, tuple(record.input_names), [r.model for r in outputs])
     est, val, _ = validation_segments(record, base)
     if settings.focus == "simulation":  # the coefficients refined jointly, coupled
         relay(Progress("refinement", elapsed=time.perf_counter() - t0))

@@ -84,6 +84,15 @@ class MimoModel:
     models: list[NarxModel]
     metadata: dict = field(default_factory=dict)
 
+    @classmethod
+    def joined(cls, outputs: tuple[str, ...], inputs: tuple[str, ...],
+               models: list[NarxModel]) -> MimoModel:
+        """The outputs' models as one, with the joint criterion (their values summed)."""
+        return cls(tuple(outputs), tuple(inputs), list(models),
+                   {"joint_criterion": {"name": models[0].criterion,
+                                        "value": float(sum(m.criterion_value for m in models)),
+                                        "meaning": "sum of the outputs' values"}})
+
     @property
     def max_lag(self) -> int:
         return max(m.term_space.max_lag for m in self.models)
@@ -266,12 +275,8 @@ def identify_mimo(*, u: np.ndarray, Y: np.ndarray, outputs: tuple[str, ...],
         return identify(u=augmented_inputs(u, Y, i), y=Y[:, i], term_space=space, **kwargs)
 
     results = in_threads(one, Y.shape[1])  # the outputs in parallel (the GIL released)
-    model = MimoModel(tuple(outputs), tuple(term_space.inputs),
-                      [r.model for r in results],
-                      {"joint_criterion": {"name": results[0].model.criterion,
-                                           "value": float(sum(r.model.criterion_value
-                                                              for r in results)),
-                                           "meaning": "sum of the outputs' values"}})
+    model = MimoModel.joined(tuple(outputs), tuple(term_space.inputs),
+                             [r.model for r in results])
     if kwargs.get("focus") == "simulation":  # the coefficients refined jointly, coupled
         from .coupled import refine_coupled
 

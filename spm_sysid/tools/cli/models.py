@@ -222,7 +222,7 @@ def cmd_certify(args) -> int:
 
 
 def cmd_validate(args) -> int:
-    from ...core.narx.validation import split_segments, validate_model
+    from ...core.narx.validation import validate_model
 
     if args.tail is not None and not 0 < args.tail < 1:
         raise UserError(f"--tail must be between 0 and 1, got {args.tail}")
@@ -238,12 +238,7 @@ def cmd_validate(args) -> int:
         return validate_several(args, model)
     record = load(args)
     u, y = record.u, record.y
-    lag0 = model.term_space.max_lag
-    segments = usable_segments(record, lag0)
-    if args.tail is not None:
-        _, segments = split_segments(segments, len(y), 1.0 - args.tail, lag0)
-    check_correlation_lags_option(args.correlation_lags,
-                                  sum(b - a - lag0 for a, b in segments))
+    segments = validated_segments(args, record, model.term_space.max_lag)
     print(f"model: {args.model}")
     print(model.equation())
     print(model.coefficient_table())
@@ -264,6 +259,18 @@ def cmd_validate(args) -> int:
     return 0
 
 
+def validated_segments(args, record, lag0: int) -> list[tuple[int, int]]:
+    """The segments ``validate`` runs on: the usable ones, their last ``--tail``."""
+    from ...core.narx.validation import split_segments
+
+    segments = usable_segments(record, lag0)
+    if args.tail is not None:
+        _, segments = split_segments(segments, len(record), 1.0 - args.tail, lag0)
+    check_correlation_lags_option(args.correlation_lags,
+                                  sum(b - a - lag0 for a, b in segments))
+    return segments
+
+
 def validate_several(args, model) -> int:
     """``validate`` of a coupled model of several outputs.
 
@@ -272,7 +279,7 @@ def validate_several(args, model) -> int:
     """
     from ...core.mimo_job import couple_reports, cross_summary
     from ...core.narx.mimo import augmented_inputs
-    from ...core.narx.validation import split_segments, validate_model
+    from ...core.narx.validation import validate_model
 
     record = load(args, several=True)
     if record.output_names != model.outputs or record.n_inputs != len(model.inputs):
@@ -282,12 +289,7 @@ def validate_several(args, model) -> int:
                         "(give --output " + ",".join(model.outputs) + " and the inputs in "
                         "the model's order)")
     u, Y = record.u, record.y
-    lag0 = model.max_lag
-    segments = usable_segments(record, lag0)
-    if args.tail is not None:
-        _, segments = split_segments(segments, len(Y), 1.0 - args.tail, lag0)
-    check_correlation_lags_option(args.correlation_lags,
-                                  sum(b - a - lag0 for a, b in segments))
+    segments = validated_segments(args, record, model.max_lag)
     print(f"model: {args.model} (outputs {', '.join(model.outputs)}, coupled)")
     print(f"data: {record.source}" + (f", last {args.tail:.0%}" if args.tail is not None
                                       else ""))
