@@ -17,74 +17,80 @@ $(STAMP): setup.py package.xml interfaces/build_in_venv.py $(INTERFACES)
 	$(BIN)/python -m pip install --quiet -e '.[ros,test,interfaces]'
 	# the messages, service and action (spm_sysid_interfaces), built with colcon into .venv
 	$(BIN)/python interfaces/build_in_venv.py
-	# compile the numeric kernels now (cached on disk), not in the first command
-	$(BIN)/spm-sysid compile
 	touch $(STAMP)
 
-setup: $(STAMP)
+# compile the numeric kernels now (numba's disk cache) and build their ahead-of-time
+# extension, not in the first command; again whenever a kernel module changes
+KERNELS := $(VENV)/.kernels
+KERNEL_SOURCES := $(addprefix spm_sysid/core/narx/,kernels.py simulation.py branch_bound.py coupled.py compiled.py aot.py)
+$(KERNELS): $(STAMP) $(KERNEL_SOURCES)
+	$(BIN)/spm-sysid compile
+	touch $(KERNELS)
+
+setup: $(KERNELS)
 
 ## The main job: the ROS pipeline on the robot-arm data (bag -> node -> identify).
-run: $(STAMP)
+run: $(KERNELS)
 	ROS_DOMAIN_ID=61 $(BIN)/python -m spm_sysid.apps.pipeline --out out/run
 
 ## The offline identification on the robot-arm data.
-identify: $(STAMP)
+identify: $(KERNELS)
 	$(BIN)/spm-sysid identify --criterion aic --seed 1 --json out/model.json --plots out/figures
 
-test: $(STAMP)
+test: $(KERNELS)
 	# three workers on 2 cores (most ROS tests wait on processes); tests spread one by one,
 	# the files with an expensive module fixture (Dask cluster, colcon build) kept together
 	ROS_DOMAIN_ID=62 $(BIN)/python -m pytest -q -n 3 --dist loadgroup test
 
-lint: $(STAMP)
+lint: $(KERNELS)
 	$(BIN)/ruff check .
 
-bench: $(STAMP)
+bench: $(KERNELS)
 	$(BIN)/spm-sysid bench
 
 ## GA time and memory against term-space size and samples, with the FastCan baseline.
-bench-sizes: $(STAMP)
+bench-sizes: $(KERNELS)
 	$(BIN)/python -m pip install --quiet -e '.[bench]'
 	$(BIN)/spm-sysid bench-sizes --fastcan
 
-bag: $(STAMP)
+bag: $(KERNELS)
 	$(BIN)/spm-sysid make-bag --output bags/robot_arm --force
 
-experiment: $(STAMP)
+experiment: $(KERNELS)
 	$(BIN)/spm-sysid experiment --out out/experiment --force
 
-report: $(STAMP)
+report: $(KERNELS)
 	$(BIN)/spm-sysid experiment --out out/experiment --report out/report --force
 
 clean:
 	rm -rf build install log out .pytest_cache
 
 ## Certification: robot-arm data and records made hard on purpose, 60 s each.
-bench-certify: $(STAMP)
+bench-certify: $(KERNELS)
 	$(BIN)/python -m spm_sysid.bench.certify
 
 ## Where a command's time goes; the quick command against a DEAP GA; GA and simulation times.
-bench-speed: $(STAMP)
+bench-speed: $(KERNELS)
 	$(BIN)/python -m pip install --quiet -e '.[bench]'
 	$(BIN)/python -m spm_sysid.bench.speed --large
 
 ## Models on data they were not fitted on: two-tank cascade, robot-arm halves, coverage.
-bench-generalise: $(STAMP)
+bench-generalise: $(KERNELS)
 	$(BIN)/python -m spm_sysid.bench.generalise
 
 ## Online monitor and tracker: detection delay, false alarms, drift tracking, cost per sample.
-bench-online: $(STAMP)
+bench-online: $(KERNELS)
 	$(BIN)/python -m spm_sysid.bench.online
 
 ## Several outputs: a two-link arm identified as one coupled model, against two single-output runs.
-bench-mimo: $(STAMP)
+bench-mimo: $(KERNELS)
 	$(BIN)/python -m spm_sysid.bench.mimo
 	$(BIN)/python -m spm_sysid.bench.mimo --focus simulation --repeats 1
 
 ## Study on the local pool vs a 2-worker Dask cluster (the paper's 180 runs).
-bench-dask: $(STAMP)
+bench-dask: $(KERNELS)
 	$(BIN)/python -m spm_sysid.bench.cluster
 
 ## Node benchmark: ingest at 1 kHz for 60 s, identify latency, memory with 100000 pairs.
-bench-node: $(STAMP)
+bench-node: $(KERNELS)
 	$(BIN)/python -m spm_sysid.bench.node

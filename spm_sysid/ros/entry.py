@@ -1,8 +1,8 @@
 """Console entry points of the ROS executables (``ros2 run spm_sysid sysid_node``).
 
-The node's module loads the compiled kernels as it is imported; when numba is
-missing or broken, that is one clear error line and exit status 1 here, never
-a traceback.
+The node checks at start that its compiled kernels can run (the ahead-of-time
+build, else numba); when they cannot, that is one clear error line and exit
+status 1 here, never a traceback.
 """
 
 from __future__ import annotations
@@ -17,7 +17,10 @@ __all__ = ["sysid_node"]
 def sysid_node(args: list[str] | None = None) -> int:
     """``sysid_node``: :func:`spm_sysid.ros.sysid_node.main`."""
     try:
+        from ..core.narx.compiled import require_kernels
         from .sysid_node import main
+
+        require_kernels()
     except MissingDependencyError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1

@@ -48,7 +48,8 @@ from collections import namedtuple
 
 import numpy as np
 
-from .kernels import cholesky_rows, csne_step, jit
+from .compiled import jit
+from .kernels import cholesky_rows, csne_step
 
 __all__ = ["COUNTERS", "DONE", "Data", "FULL", "Heap", "PAUSED", "Work", "expand",
            "words_for", "workspace"]

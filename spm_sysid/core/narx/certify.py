@@ -44,6 +44,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..memory import check_memory, memory_limit
+from .aot import build_status
 from .branch_bound import (
     COUNTERS,
     DONE,
@@ -57,6 +58,7 @@ from .branch_bound import (
     words_for,
     workspace,
 )
+from .compiled import jit_available
 from .criteria import Criterion, get_criterion
 from .evaluator import NEAR_RANK, StructureEvaluator
 from .lstsq import DEFAULT_RANK_TOL
@@ -213,6 +215,10 @@ ENUMERATION_BUDGET = 3000
 #: ... and up to this many times as many where the next size up is left open.
 DEEP_FACTOR = 4
 
+#: Seconds a search runs on the ahead-of-time build (one thread) before it loads numba's
+#: JIT to run its heaps in parallel: most searches end before, and the JIT costs 0.7 s.
+PARALLEL_AFTER = 1.0
+
 
 def polish(ev: StructureEvaluator, mask: np.ndarray, usable: np.ndarray,
            seconds: float = 5.0, deadline: float | None = None) -> tuple[np.ndarray, float]:
@@ -292,6 +298,10 @@ class _OpenNodes:
     def expand(self, data: Data, pops: int, budget: int) -> int:
         return expand(data, self.heap, self.work, pops, budget, DEEP_FACTOR * budget)
 
+    def expand_in_parallel(self, data: Data, pops: int, budget: int) -> int:
+        """The same on numba's JIT, which releases the GIL (heaps run on threads)."""
+        return expand.jit(data, self.heap, self.work, pops, budget, DEEP_FACTOR * budget)
+
     def settle(self, ev: StructureEvaluator, usable: np.ndarray) -> None:
         """Near rank-deficient candidates: the evaluator decides."""
         if self.counts[PENDING]:
@@ -359,7 +369,7 @@ def search_is_compiled() -> bool:
 
     from . import branch_bound
 
-    if _COMPILED:
+    if _COMPILED or build_status():
         return True
     here = os.path.dirname(branch_bound.__file__)
     places = [os.path.join(here, "__pycache__")]
@@ -518,17 +528,26 @@ def certify(
     status, reason = "optimal", None
     chunk, last_report = 64, t0
     pool = ThreadPoolExecutor(workers) if workers > 1 else None
+    search_start = time.perf_counter()
+    # the ahead-of-time build holds the GIL: short searches run on it one heap after the
+    # other, longer ones switch to numba's JIT (0.7 s to load) and run the heaps in parallel
+    serial_for = PARALLEL_AFTER if build_status() else 0.0
     try:
         while True:
             done_nodes = sum(h.nodes for h in heaps)
             pops = chunk if node_limit is None else min(chunk, node_limit - done_nodes)
             started = time.perf_counter()
             busy = [h for h in heaps if h.size]
-            if pool is None or len(busy) == 1:
+            if (pool is not None and serial_for and started - search_start >= serial_for
+                    and not jit_available()):  # a broken numba: the build, one thread
+                pool.shutdown()
+                pool = None
+            if pool is None or len(busy) == 1 or started - search_start < serial_for:
                 results = [h.expand(data, pops, budget) for h in busy]
             else:
-                results = list(pool.map(_OpenNodes.expand, busy, [data] * len(busy),
-                                        [pops] * len(busy), [budget] * len(busy)))
+                results = list(pool.map(_OpenNodes.expand_in_parallel, busy,
+                                        [data] * len(busy), [pops] * len(busy),
+                                        [budget] * len(busy)))
             for h in busy:
                 h.settle(ev, usable)
             _share_best(heaps)

@@ -27,7 +27,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .kernels import jit_exact as jit
+from .compiled import jit_exact as jit
 from .simulation import divergence_bounds
 from .uncertainty import from_jacobian
 

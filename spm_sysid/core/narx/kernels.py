@@ -10,8 +10,9 @@ structure's Gram sub-matrix with the target last, coefficients by back
 substitution, and, where the Gram path may not be accurate enough, one step of
 corrected semi-normal equations on the triangular factor of ``[P y]``.
 
-``numba`` compiles the kernels (cached on disk after the first use). It is a
-required dependency: there is one numeric path. A missing or broken numba is
+``numba`` compiles the kernels (:mod:`spm_sysid.core.narx.compiled`: the
+ahead-of-time build, else the JIT, cached on disk after the first use). It is
+a required dependency: there is one numeric path. A missing or broken numba is
 one clear error (:class:`~spm_sysid.core.errors.MissingDependencyError`) when
 the kernels are first needed, never a silently slower fallback.
 """
@@ -20,26 +21,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import MissingDependencyError
+from .compiled import jit, jit_exact
 
 __all__ = ["cholesky_rows", "csne_step", "fit_structures", "jit", "jit_exact"]
-
-try:
-    import numba
-except Exception as exc:  # ImportError, or a broken install raising anything
-    raise MissingDependencyError(
-        f"spm_sysid needs numba for its compiled kernels, and it cannot be imported "
-        f"({type(exc).__name__}: {exc}); install it with `pip install numba`") from None
-
-
-def jit(fn):
-    """Compile ``fn`` in nopython mode, cached on disk; sums may be reordered."""
-    return numba.njit(cache=True, nogil=True, fastmath={"reassoc", "contract"})(fn)
-
-
-def jit_exact(fn):
-    """Compile ``fn`` keeping Python's order of operations (the same results)."""
-    return numba.njit(cache=True, nogil=True)(fn)
 
 
 @jit

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .kernels import jit_exact as jit
+from .compiled import jit_exact as jit
 
 __all__ = ["DIVERGENCE_FACTOR", "CompiledModel", "divergence_bounds",
            "free_run_sensitivities", "run_model"]

@@ -6,9 +6,11 @@ later processes load it in a fraction of a second. Without this step the
 first ``identify`` on a machine spends its first seconds compiling, and the
 first ``certify`` about 20 s. :func:`compile_all` runs one small job of each
 kind -- the GA and its polish, the certification, the simulation focus with
-validated selection, validation with bands -- which calls every kernel once.
-``spm-sysid compile`` runs it, and ``make setup`` (so ``make run`` and ``make
-test``) runs that after installing.
+validated selection, validation with bands, two coupled outputs -- which calls
+every kernel once, then builds the ahead-of-time extension
+(:mod:`spm_sysid.core.narx.aot`) from the kernels Python called, which later
+commands load without numba. ``spm-sysid compile`` runs it, and ``make setup``
+(so ``make run`` and ``make test``) runs that after installing.
 """
 
 from __future__ import annotations
@@ -20,6 +22,8 @@ from collections.abc import Callable
 
 import numpy as np
 
+from .aot import BuildStatus, build, build_status, jit_only
+
 __all__ = ["compile_all", "kernels_are_cached"]
 
 #: One cached kernel of each module that has them (checked by kernels_are_cached).
@@ -27,7 +31,9 @@ _MARKERS = ("kernels.fit_structures", "branch_bound.expand", "simulation._run")
 
 
 def kernels_are_cached() -> bool:
-    """True when numba's disk cache holds the kernels (a fast start), as far as can be seen."""
+    """True when the ahead-of-time build or numba's disk cache holds the kernels (a fast start)."""
+    if build_status():
+        return True
     here = os.path.dirname(__file__)
     places = [os.path.join(here, "__pycache__")]
     if os.environ.get("NUMBA_CACHE_DIR"):
@@ -36,14 +42,30 @@ def kernels_are_cached() -> bool:
                    for p in places) for m in _MARKERS)
 
 
-def compile_all(report: Callable[[str], None] | None = None) -> float:
-    """Call every kernel once on small data (compiling what is not cached); seconds taken."""
+def compile_all(report: Callable[[str], None] | None = None) -> tuple[float, BuildStatus]:
+    """Call every kernel once on numba's JIT, then build the ahead-of-time extension.
+
+    The warm-up compiles what numba has not cached; the extension is built from
+    the kernels Python called when there is none for these sources. Returns the
+    seconds taken and the build's status.
+    """
+    say = report or (lambda text: None)
+    t0 = time.perf_counter()
+    with jit_only():
+        _warm_up(say)
+    status = build_status()
+    if not status:
+        say("building the ahead-of-time extension (numba pycc, about 15 s) ...")
+        status = build()
+        say(f"ahead-of-time extension: {status.path or status.reason}")
+    return time.perf_counter() - t0, status
+
+
+def _warm_up(say: Callable[[str], None]) -> None:
     from ..job import JobSettings, run_job
     from ..record import Record
     from .certify import ensure_compiled
 
-    say = report or (lambda text: None)
-    t0 = time.perf_counter()
     rng = np.random.default_rng(0)
     n = 300
     u = rng.uniform(-1, 1, n)
@@ -62,4 +84,12 @@ def compile_all(report: Callable[[str], None] | None = None) -> float:
     run_job(record, JobSettings.from_values({**ga, "ny": 2, "nu": 2, "seed": 0,
                                              "focus": "simulation", "horizon": 3,
                                              "shortlist": 3}))
-    return time.perf_counter() - t0
+    say("compiling the coupled simulation of several outputs ...")
+    y2 = np.zeros(n)
+    for t in range(1, n):
+        y2[t] = 0.5 * y2[t - 1] + 0.3 * y[t - 1]
+    both = Record.from_samples(u, np.column_stack([y, y2]), source="compile_all",
+                               output_names=("a", "b"))
+    run_job(both, JobSettings.from_values({**ga, "ny": 1, "nu": 1, "seed": 0,
+                                           "focus": "simulation", "horizon": 3,
+                                           "shortlist": 2}))

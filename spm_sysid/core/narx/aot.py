@@ -1,0 +1,250 @@
+"""The ahead-of-time build of the kernels: a C extension made with numba's pycc.
+
+Loading numba and its JIT set-up costs a process about 0.7 s before the first
+kernel runs -- more than the identification itself on the robot-arm data. The
+build removes that: ``spm-sysid compile`` (run by ``make setup``) exports every
+kernel that Python calls, with the argument types the warm-up used, into one
+extension module; a command then imports it in a millisecond.
+
+The build is named by a hash of the kernels' sources and of the Python, numpy
+and numba versions, so an edited kernel never runs from an old build: it is
+simply not found (and numba's JIT runs, as without a build). It goes to
+``SPM_SYSID_AOT_DIR`` when set, else next to the sources (``__pycache__``,
+where numba caches too) when writable, else ``~/.cache/spm_sysid/aot``.
+``SPM_SYSID_AOT=0`` turns it off. Without a C compiler the build fails with a
+message and everything still runs on the JIT.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import inspect
+import json
+import os
+import shutil
+import sys
+import sysconfig
+import tempfile
+import threading
+from collections.abc import Callable
+from contextlib import contextmanager
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+from .compiled import as_array_check, kernels
+
+__all__ = ["BuildStatus", "build", "build_status", "exports_for", "jit_only", "source_hash"]
+
+#: The modules that define kernels (a test checks that none is missing).
+KERNEL_MODULES = ("kernels", "simulation", "branch_bound", "coupled")
+_FORMAT = 1
+_HERE = Path(__file__).resolve().parent
+_LOCK = threading.Lock()
+_loaded: dict[str, list] | None = None
+_jit_only = threading.local()
+
+
+@lru_cache(maxsize=1)
+def source_hash() -> str:
+    """Hash of what the build depends on: kernel sources, Python, numpy, numba."""
+    from importlib.metadata import version
+
+    h = hashlib.sha256(f"{_FORMAT} {sys.version} {np.__version__} {version('numba')}".encode())
+    for name in (*KERNEL_MODULES, "compiled", "aot"):
+        h.update((_HERE / f"{name}.py").read_bytes())
+    return h.hexdigest()[:16]
+
+
+def _places() -> list[Path]:
+    if os.environ.get("SPM_SYSID_AOT_DIR"):
+        return [Path(os.environ["SPM_SYSID_AOT_DIR"])]
+    cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+    return [_HERE / "__pycache__", cache / "spm_sysid" / "aot"]
+
+
+def _files(place: Path, name: str) -> tuple[Path, Path]:
+    return place / f"{name}{sysconfig.get_config_var('EXT_SUFFIX')}", place / f"{name}.json"
+
+
+def _enabled() -> bool:
+    return os.environ.get("SPM_SYSID_AOT", "1") != "0" and not getattr(_jit_only, "on", False)
+
+
+@contextmanager
+def jit_only():
+    """Run kernels on numba's JIT in this thread (the warm-up fills numba's cache so)."""
+    before = getattr(_jit_only, "on", False)
+    _jit_only.on = True
+    try:
+        yield
+    finally:
+        _jit_only.on = before
+
+
+# -- loading ----------------------------------------------------------------------------
+
+
+def _accepts(spec) -> Callable[[object], bool]:
+    kind = spec[0]
+    if kind == "array":
+        return as_array_check(*spec[1:])
+    if kind == "float":
+        return lambda v: type(v) is float or type(v) is np.float64
+    if kind == "int":
+        return lambda v: type(v) is int or type(v) is np.int64
+    if kind == "bool":
+        return lambda v: type(v) is bool or type(v) is np.bool_
+    name, fields = spec[1], [_accepts(f) for f in spec[2]]
+    return lambda v: (type(v).__name__ == name and isinstance(v, tuple)
+                      and len(v) == len(fields) and all(c(x) for c, x in zip(fields, v)))
+
+
+def _signature_check(specs) -> Callable[[tuple], bool]:
+    checks = [_accepts(s) for s in specs]
+    n = len(checks)
+    return lambda args: len(args) == n and all(c(a) for c, a in zip(checks, args))
+
+
+def _load() -> dict[str, list]:
+    """{kernel key: [(accepts(args), function)]} of the current build ({} without one)."""
+    import importlib.util
+
+    name = f"_aot_{source_hash()}"
+    for place in _places():
+        lib, meta = _files(place, name)
+        if not (lib.is_file() and meta.is_file()):
+            continue
+        try:
+            spec = importlib.util.spec_from_file_location(name, lib)
+            module = importlib.util.module_from_spec(spec)
+            spec.loader.exec_module(module)
+            table = json.loads(meta.read_text())
+            return {key: [(_signature_check(e["args"]), getattr(module, e["name"]))
+                          for e in entries] for key, entries in table["exports"].items()}
+        except Exception:  # a broken build: the JIT runs (build_status tells why)
+            continue
+    return {}
+
+
+def exports_for(key: str) -> list:
+    """The build's versions of one kernel (none when there is no current build)."""
+    global _loaded
+    if not _enabled():
+        return []
+    if _loaded is None:
+        with _LOCK:
+            if _loaded is None:
+                _loaded = _load()
+    return _loaded.get(key, [])
+
+
+# -- building ---------------------------------------------------------------------------
+
+
+def _spec(t):
+    """The JSON description of a numba argument type the build can check (None: cannot)."""
+    from numba.core import types
+
+    if isinstance(t, types.Array):
+        if t.layout not in "CA":
+            return None
+        return ["array", str(t.dtype), t.ndim, t.layout == "C", bool(t.mutable)]
+    if isinstance(t, types.Boolean):
+        return ["bool"]
+    if t == types.int64:
+        return ["int"]
+    if t == types.float64:
+        return ["float"]
+    if isinstance(t, types.BaseNamedTuple):
+        fields = [_spec(x) for x in t.types]
+        if any(f is None for f in fields):
+            return None
+        return ["namedtuple", t.instance_class.__name__, fields]
+    return None
+
+
+def _entry(kernel, export: str):
+    """A function of the kernel's arguments that calls its dispatcher (its own options)."""
+    params = ", ".join(inspect.signature(kernel.py_func).parameters)
+    namespace = {"_kernel": kernel.jit}
+    exec(f"def {export}({params}):\n    return _kernel({params})\n", namespace)
+    return namespace[export]
+
+
+class BuildStatus:
+    """Where the current build is, or why there is none."""
+
+    def __init__(self, path: Path | None, reason: str) -> None:
+        self.path = path
+        self.reason = reason
+
+    def __bool__(self) -> bool:
+        return self.path is not None
+
+
+def build_status() -> BuildStatus:
+    """The current build (for these sources), if there is one and it loads."""
+    name = f"_aot_{source_hash()}"
+    for place in _places():
+        lib, meta = _files(place, name)
+        if lib.is_file() and meta.is_file():
+            if os.environ.get("SPM_SYSID_AOT", "1") == "0":
+                return BuildStatus(None, "turned off by SPM_SYSID_AOT=0")
+            return BuildStatus(lib, "built")
+    return BuildStatus(None, "not built for these sources (`spm-sysid compile` builds it)")
+
+
+def build() -> BuildStatus:
+    """Build the extension from the kernels Python has called in this process.
+
+    Run after a warm-up that called every kernel (:func:`~spm_sysid.core.narx.
+    warmup.compile_all`). Old builds in the same place are removed. Returns
+    the status; a failure (no C compiler, a numba without pycc) is its reason.
+    """
+    import warnings
+
+    name = f"_aot_{source_hash()}"
+    exports: dict[str, list] = {}
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # pycc's pending deprecation
+            from numba.pycc import CC
+        cc = CC(name)
+        cc.target_cpu = "host"
+        cc.verbose = False
+        for kernel in kernels():
+            if not kernel.called:
+                continue
+            dispatcher = kernel.jit
+            for i, sig in enumerate(dispatcher.signatures):
+                specs = [_spec(t) for t in sig]
+                if any(s is None for s in specs):
+                    continue
+                export = f"{kernel.key.replace('.', '__')}__{i}"
+                ret = dispatcher.overloads[sig].signature.return_type
+                cc.export(export, ret(*sig))(_entry(kernel, export))
+                exports.setdefault(kernel.key, []).append({"name": export, "args": specs})
+        if not exports:
+            return BuildStatus(None, "no kernel was called: nothing to build")
+    except Exception as exc:
+        return BuildStatus(None, f"cannot prepare the build: {type(exc).__name__}: {exc}")
+    errors = []
+    for place in _places():
+        try:
+            place.mkdir(parents=True, exist_ok=True)
+            with tempfile.TemporaryDirectory(dir=place) as tmp:
+                cc.output_dir = tmp
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    cc.compile()
+                lib, meta = _files(place, name)
+                for old in list(place.glob("_aot_*")):
+                    old.unlink()
+                shutil.move(os.path.join(tmp, lib.name), lib)
+                meta.write_text(json.dumps({"format": _FORMAT, "exports": exports}))
+            return BuildStatus(lib, "built")
+        except Exception as exc:  # not writable, no compiler: say so, try the next place
+            errors.append(f"{place}: {type(exc).__name__}: {exc}")
+    return BuildStatus(None, "cannot build: " + "; ".join(errors))

@@ -1,0 +1,145 @@
+"""The ahead-of-time build of the kernels (issue 20): the same numbers as numba's JIT,
+only for the sources it was built from, only for the argument types it holds."""
+
+import importlib
+import json
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from spm_sysid.core.narx import aot
+from spm_sysid.core.narx.aot import build_status, jit_only
+from spm_sysid.core.narx.certify import certify
+from spm_sysid.core.narx.compiled import Kernel, kernels
+from spm_sysid.core.narx.problem import Problem
+from spm_sysid.core.narx.simulation import _run
+
+from .conftest import ROOT
+
+_BUILT = bool(build_status())
+needs_build = pytest.mark.skipif(not _BUILT, reason="no ahead-of-time build: "
+                                 + build_status().reason)
+
+
+def test_make_setup_built_the_extension_where_a_c_compiler_exists():
+    if shutil.which("cc") is None and shutil.which("gcc") is None:
+        pytest.skip("no C compiler: the kernels run on numba's JIT")
+    status = build_status()
+    assert status, status.reason
+    table = json.loads(status.path.with_name(status.path.name.split(".")[0] + ".json")
+                       .read_text())
+    # the entry points the commands call are in it
+    assert {"kernels.fit_structures", "branch_bound.expand", "simulation._run",
+            "simulation._sens", "coupled._coupled"} <= set(table["exports"])
+
+
+def test_every_module_that_defines_kernels_is_in_the_build_hash():
+    for name in aot.KERNEL_MODULES:
+        importlib.import_module(f"spm_sysid.core.narx.{name}")
+    assert kernels()
+    assert {k.key.split(".")[0] for k in kernels()} <= set(aot.KERNEL_MODULES)
+
+
+def _both(fn):
+    """fn() on the build (as commands run) and on numba's JIT."""
+    with jit_only():
+        jit = fn()
+    return fn(), jit
+
+
+@needs_build
+def test_the_build_and_the_jit_fit_score_simulate_and_certify_the_same(robot_arm):
+    u, y = robot_arm
+    problem = Problem.from_signals(u, y)
+    n_terms = problem.evaluator("bic").n_terms
+    rng = np.random.default_rng(5)
+    masks = rng.random((300, n_terms)) < 0.3
+
+    def fits():
+        return problem.evaluator("bic").evaluate(masks)
+
+    built, jitted = _both(fits)
+    assert np.array_equal(built, jitted, equal_nan=True)
+    assert np.isfinite(built).sum() > 250
+
+    mask = np.zeros(problem.evaluator("bic").n_terms, dtype=bool)
+    mask[[0, 1, 2, 3, 7, 8, 9, 10]] = True
+    model = problem.model(problem.expand(mask))
+    built, jitted = _both(lambda: model.simulate(u, y[:4]))
+    assert np.array_equal(built, jitted)
+
+    ev = problem.evaluator("aic")
+    built, jitted = _both(lambda: certify(None, None, "aic", evaluator=ev, threads=1,
+                                          time_limit=60))
+    assert built.status == jitted.status == "optimal"
+    assert np.array_equal(built.mask, jitted.mask) and built.value == jitted.value
+
+
+@needs_build
+def test_a_call_the_build_does_not_hold_runs_on_the_jit_with_the_same_result(robot_arm):
+    u, y = robot_arm
+    problem = Problem.from_signals(u, y)
+    mask = np.zeros(problem.evaluator("bic").n_terms, dtype=bool)
+    mask[[0, 1, 2, 3, 7, 8, 9, 10]] = True
+    model = problem.model(problem.expand(mask))
+    cm = model.compiled
+    wide = np.column_stack([y, y])
+    strided = wide[:, 0]  # not contiguous: the build holds contiguous arrays only
+    assert not strided.flags.c_contiguous
+    u2 = np.ascontiguousarray(u.reshape(len(u), -1), dtype=float)
+    theta = np.ascontiguousarray(model.coefficients, dtype=float)
+    lag = cm.max_lag
+    args = (cm.gather, cm.y_lags, cm.u_lags, cm.u_cols, theta, u2)
+    tail = (len(y), lag, -1e9, 1e9)
+    checks = aot.exports_for("simulation._run")
+    assert checks and not any(ok((*args, strided, *tail, np.empty(len(y) - lag)))
+                              for ok, _ in checks)
+    assert any(ok((*args, np.ascontiguousarray(strided), *tail, np.empty(len(y) - lag)))
+               for ok, _ in checks)
+    out, expect = np.empty(len(y) - lag), np.empty(len(y) - lag)
+    at = _run(*args, strided, *tail, out)
+    at_py = _run.py_func(*args, np.ascontiguousarray(strided), *tail, expect)
+    assert at == at_py
+    assert np.array_equal(out, expect)
+
+
+def test_a_build_for_other_sources_is_never_loaded(tmp_path, monkeypatch):
+    monkeypatch.setenv("SPM_SYSID_AOT_DIR", str(tmp_path))
+    monkeypatch.setattr(aot, "_loaded", None)
+    assert not build_status() and aot.exports_for("kernels.fit_structures") == []
+    if _BUILT:  # the real build, renamed as if made from other sources
+        real = aot._files(aot._HERE / "__pycache__", f"_aot_{aot.source_hash()}")
+        for f in real:
+            shutil.copy(f, tmp_path / f.name.replace(aot.source_hash(), "0" * 16))
+        monkeypatch.setattr(aot, "_loaded", None)
+        assert not build_status() and aot.exports_for("kernels.fit_structures") == []
+    monkeypatch.setattr(aot, "_loaded", None)
+
+
+def test_the_kernels_are_numba_dispatchers_inside_compiled_code():
+    from spm_sysid.core.narx.kernels import cholesky_rows
+
+    assert isinstance(cholesky_rows, Kernel)
+    gram = np.array([[4.0, 2.0], [2.0, 3.0]])
+    L = np.zeros((2, 2))
+    piv = np.zeros(2)
+    first = cholesky_rows.jit(gram, np.array([0, 1]), 0, 2, L, piv, 1e-12, False)
+    assert first == -1
+    assert np.allclose(L @ L.T, gram)
+
+
+@needs_build
+def test_the_quick_command_does_not_import_numba():
+    code = ("import sys, io, contextlib\n"
+            "from spm_sysid.apps.main import main\n"
+            "sys.argv = ['spm-sysid', 'identify', '--quiet']\n"
+            "with contextlib.redirect_stdout(io.StringIO()):\n"
+            "    main()\n"
+            "print('NUMBA', 'numba' in sys.modules, 'llvmlite' in sys.modules)\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       cwd=ROOT, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "NUMBA False False" in r.stdout
