@@ -26,6 +26,7 @@ setup(
         "tqdm>=4.60",
         "pyyaml>=6.0",
         "numba>=0.59",
+        "threadpoolctl>=3.1",
     ],
     extras_require={
         # ROS 2 Jazzy from PyPI for machines without a ROS install (see README).

@@ -143,3 +143,22 @@ def test_the_quick_command_does_not_import_numba():
                        cwd=ROOT, timeout=300)
     assert r.returncode == 0, r.stderr
     assert "NUMBA False False" in r.stdout
+
+
+def test_a_large_batch_fitted_on_two_threads_gives_the_same_numbers(monkeypatch):
+    from spm_sysid.core.narx import evaluator as evaluator_module
+    from spm_sysid.core.narx.evaluator import StructureEvaluator
+
+    rng = np.random.default_rng(3)
+    P = rng.standard_normal((300, 120))
+    P[:, 7] = P[:, 3] + 1e-9 * rng.standard_normal(300)  # near rank: QR arbitration too
+    target = P[:, :30] @ rng.standard_normal(30) + 0.1 * rng.standard_normal(300)
+    masks = rng.random((160, 120)) < rng.uniform(0.05, 0.6, size=(160, 1))
+    out = {}
+    for label, work in (("one thread", np.inf), ("two threads", 0.0)):
+        monkeypatch.setattr(evaluator_module, "PARALLEL_FIT_WORK", work)
+        out[label] = StructureEvaluator(P, target, "aic").evaluate(masks)
+    if evaluator_module._fit_pool() is None:
+        pytest.skip("one core: batches are never split")
+    assert np.array_equal(out["one thread"], out["two threads"], equal_nan=True)
+    assert np.isfinite(out["one thread"]).sum() > 100

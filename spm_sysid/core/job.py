@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from .blas import one_blas_thread
 from .errors import DataError, SettingsError
 from .narx.certify import describe_certificate
 from .narx.criteria import get_criterion
@@ -302,6 +303,7 @@ def validation_segments(record: Record, settings: JobSettings
     return est, val, data
 
 
+@one_blas_thread()
 def run_job(
     record: Record,
     settings: JobSettings,

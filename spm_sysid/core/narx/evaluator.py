@@ -37,6 +37,9 @@ shares them (a :class:`~spm_sysid.core.narx.problem.Problem` computes them once)
 from __future__ import annotations
 
 import copy
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from scipy import linalg
@@ -49,6 +52,13 @@ from .lstsq import DEFAULT_RANK_TOL, sse_floor
 #: NEAR_RANK * rank_tol have their rank (and fit) decided by QR, as the reference fit
 #: decides it: there the Gram matrix's squared condition number makes pivots unreliable.
 NEAR_RANK = 10.0
+
+#: A batch whose fits cost more than this (sum of k^3 over its structures) is split
+#: in two halves fitted on two threads (numba's JIT, which releases the GIL): with
+#: hundreds of candidate terms a generation's fits take tens of milliseconds, and the
+#: halves give the same numbers (each structure is factorised the same way whether
+#: or not its prefix was shared). Small batches (the paper's space: ~4e4) stay on one.
+PARALLEL_FIT_WORK = 5e6
 
 #: Near-threshold structures scoring within this of the best value seen are decided by
 #: QR in :meth:`StructureEvaluator.evaluate` (an Akaike roulette weight of exp(-25)).
@@ -289,9 +299,25 @@ class StructureEvaluator:
         theta = np.zeros(len(cols))
         bad = np.empty(len(masks), dtype=np.bool_)
         minpiv = np.empty(len(masks))
-        fit_structures(self.gram, self.factor, cols.astype(np.int64), offsets,
-                       float(self.rank_tol), self.target_norm, self.n,
-                       self.criterion.needs_coefficients, sse, theta, bad, minpiv)
+        idx = cols.astype(np.int64)
+        args = (float(self.rank_tol), self.target_norm, self.n,
+                self.criterion.needs_coefficients)
+        sizes = np.diff(offsets).astype(float)
+        cum = np.cumsum(sizes ** 3)
+        pool = _fit_pool() if len(masks) > 1 and cum[-1] > PARALLEL_FIT_WORK else None
+        if pool is None:
+            fit_structures(self.gram, self.factor, idx, offsets, *args, sse, theta, bad,
+                           minpiv)
+        else:  # two halves of about equal work, each on a thread
+            cut = int(min(max(np.searchsorted(cum, cum[-1] / 2) + 1, 1), len(masks) - 1))
+            lo, hi = int(offsets[cut]), int(offsets[-1])
+            parts = [(slice(0, cut), slice(0, lo), offsets[:cut + 1]),
+                     (slice(cut, len(masks)), slice(lo, hi), offsets[cut:] - lo)]
+            runs = [pool.submit(fit_structures.jit, self.gram, self.factor, idx[c],
+                                np.ascontiguousarray(o), *args, sse[b], theta[c], bad[b],
+                                minpiv[b]) for b, c, o in parts]
+            for run in runs:
+                run.result()
         # Gram-accepted structures near the threshold: QR has the last word (a structure
         # the Gram matrix rejects stays rejected -- it is never the one selected)
         near = ~bad & (minpiv < NEAR_RANK * self.rank_tol)
@@ -323,3 +349,18 @@ class StructureEvaluator:
             return np.nan, np.zeros(k), True
         th = linalg.solve_triangular(R[:k, :k], R[:k, k], check_finite=False)
         return float(R[k, k] ** 2) if R.shape[0] > k else 0.0, th, False
+
+
+_POOL: ThreadPoolExecutor | None = None
+_POOL_LOCK = threading.Lock()
+
+
+def _fit_pool() -> ThreadPoolExecutor | None:
+    """Two threads for large batches (None on one core)."""
+    global _POOL
+    if len(os.sched_getaffinity(0)) < 2:
+        return None
+    with _POOL_LOCK:
+        if _POOL is None:
+            _POOL = ThreadPoolExecutor(2, thread_name_prefix="spm-fit")
+    return _POOL

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..blas import one_blas_thread
 from ..errors import DataError
 from ..progress import Progress, ProgressFn
 from .criteria import Criterion, get_criterion
@@ -186,6 +187,7 @@ POLISH_SLACK = 2.0
 AUTO_CERTIFY_TERMS = 120
 
 
+@one_blas_thread()
 def identify_problem(
     problem: Problem,
     *,
