@@ -45,7 +45,7 @@ import numpy as np
 from scipy import linalg
 
 from .criteria import Criterion, get_criterion
-from .kernels import fit_structures
+from .kernels import fit_structures, qr_structures
 from .lstsq import DEFAULT_RANK_TOL, sse_floor
 
 #: Structures the Gram path accepts with a smallest squared pivot below
@@ -249,7 +249,7 @@ class StructureEvaluator:
         if not np.isfinite(best):  # nothing settled yet: arbitrate every near one
             redo = near & finite
         if redo.any():
-            sse2, beta2, bad2, _ = self._fit(masks[redo], arbitrate=True)
+            sse2, beta2, bad2, _ = self._fit(masks[redo], arbitrate=True, all_near=True)
             values[redo] = self._values(sse2, k[redo], beta2, bad2)
         settled = np.isfinite(values) & (~near | redo)
         if settled.any():
@@ -278,20 +278,21 @@ class StructureEvaluator:
         """
         return self._fit(np.asarray(masks, dtype=bool), arbitrate=True)[:3]
 
-    def _fit(self, masks: np.ndarray, arbitrate: bool):
+    def _fit(self, masks: np.ndarray, arbitrate: bool, all_near: bool = False):
         """Return ``(sse, beta, bad, near)`` for a batch (see :meth:`_fit_sorted`).
 
         ``near`` marks accepted structures near the rank threshold that were not
-        decided by QR (all False with ``arbitrate``).
+        decided by QR (all False with ``arbitrate``). ``all_near``: the batch is
+        structures a previous call marked ``near``; QR decides them all directly.
         """
         # lexicographic order of the term lists: neighbours share factorised prefixes
         order = np.lexsort(~masks.T[::-1]) if len(masks) > 1 else np.arange(len(masks))
-        sse, beta, bad, near = self._fit_sorted(masks[order], arbitrate)
+        sse, beta, bad, near = self._fit_sorted(masks[order], arbitrate, all_near)
         back = np.empty_like(order)
         back[order] = np.arange(len(order))
         return (sse[back], None if beta is None else beta[back], bad[back], near[back])
 
-    def _fit_sorted(self, masks: np.ndarray, arbitrate: bool):
+    def _fit_sorted(self, masks: np.ndarray, arbitrate: bool, all_near: bool = False):
         rows, cols = np.nonzero(masks)
         offsets = np.zeros(len(masks) + 1, dtype=np.int64)
         np.cumsum(masks.sum(axis=1), out=offsets[1:])
@@ -300,31 +301,28 @@ class StructureEvaluator:
         bad = np.empty(len(masks), dtype=np.bool_)
         minpiv = np.empty(len(masks))
         idx = cols.astype(np.int64)
-        args = (float(self.rank_tol), self.target_norm, self.n,
-                self.criterion.needs_coefficients)
-        sizes = np.diff(offsets).astype(float)
-        cum = np.cumsum(sizes ** 3)
-        pool = _fit_pool() if len(masks) > 1 and cum[-1] > PARALLEL_FIT_WORK else None
-        if pool is None:
-            fit_structures(self.gram, self.factor, idx, offsets, *args, sse, theta, bad,
-                           minpiv)
-        else:  # two halves of about equal work, each on a thread
-            cut = int(min(max(np.searchsorted(cum, cum[-1] / 2) + 1, 1), len(masks) - 1))
-            lo, hi = int(offsets[cut]), int(offsets[-1])
-            parts = [(slice(0, cut), slice(0, lo), offsets[:cut + 1]),
-                     (slice(cut, len(masks)), slice(lo, hi), offsets[cut:] - lo)]
-            runs = [pool.submit(fit_structures.jit, self.gram, self.factor, idx[c],
-                                np.ascontiguousarray(o), *args, sse[b], theta[c], bad[b],
-                                minpiv[b]) for b, c, o in parts]
-            for run in runs:
-                run.result()
-        # Gram-accepted structures near the threshold: QR has the last word (a structure
-        # the Gram matrix rejects stays rejected -- it is never the one selected)
-        near = ~bad & (minpiv < NEAR_RANK * self.rank_tol)
-        if arbitrate:
-            for b in np.flatnonzero(near):
-                sl = slice(offsets[b], offsets[b + 1])
-                sse[b], theta[sl], bad[b] = self._qr_fit(cols[sl])
+        if all_near:  # known near the threshold (and Gram-accepted): QR decides
+            near = np.ones(len(masks), dtype=bool)
+        else:
+            _batched(fit_structures, (self.gram, self.factor), idx, offsets,
+                     (float(self.rank_tol), self.target_norm, self.n,
+                      self.criterion.needs_coefficients),
+                     ((sse, "b"), (theta, "i"), (bad, "b"), (minpiv, "b")))
+            # Gram-accepted structures near the threshold: QR has the last word (a
+            # structure the Gram matrix rejects stays rejected -- never the one selected)
+            near = ~bad & (minpiv < NEAR_RANK * self.rank_tol)
+        if arbitrate and near.any():  # one compiled call (qr_structures), sorted as here
+            which = np.flatnonzero(near)
+            sizes = offsets[which + 1] - offsets[which]
+            sub_offsets = np.zeros(len(which) + 1, dtype=np.int64)
+            np.cumsum(sizes, out=sub_offsets[1:])
+            take = np.concatenate([np.arange(offsets[b], offsets[b + 1]) for b in which])
+            sub_sse, sub_theta = np.empty(len(which)), np.zeros(len(take))
+            sub_bad = np.empty(len(which), dtype=np.bool_)
+            _batched(qr_structures, (self.factor,), idx[take], sub_offsets,
+                     (float(self.rank_tol),),
+                     ((sub_sse, "b"), (sub_theta, "i"), (sub_bad, "b")))
+            sse[which], theta[take], bad[which] = sub_sse, sub_theta, sub_bad
             near[:] = False
         beta = None
         if self.criterion.needs_coefficients:
@@ -349,6 +347,32 @@ class StructureEvaluator:
             return np.nan, np.zeros(k), True
         th = linalg.solve_triangular(R[:k, :k], R[:k, k], check_finite=False)
         return float(R[k, k] ** 2) if R.shape[0] > k else 0.0, th, False
+
+
+def _batched(kernel, leading: tuple, idx: np.ndarray, offsets: np.ndarray, trailing: tuple,
+             outputs: tuple) -> None:
+    """``kernel(*leading, idx, offsets, *trailing, *outputs)`` on a sorted batch.
+
+    ``outputs`` are (array, "b") per structure or (array, "i") per entry of
+    ``idx``. A batch worth more than :data:`PARALLEL_FIT_WORK` runs as two
+    halves of about equal work on two threads (numba's JIT: it releases the
+    GIL); each structure is computed the same way, so the numbers are the same.
+    """
+    n = len(offsets) - 1
+    cum = np.cumsum(np.diff(offsets).astype(float) ** 3)
+    pool = _fit_pool() if n > 1 and cum[-1] > PARALLEL_FIT_WORK else None
+    if pool is None:
+        kernel(*leading, idx, offsets, *trailing, *(a for a, _ in outputs))
+        return
+    cut = int(min(max(np.searchsorted(cum, cum[-1] / 2) + 1, 1), n - 1))
+    lo = int(offsets[cut])
+    halves = [(slice(0, cut), slice(0, lo), offsets[:cut + 1]),
+              (slice(cut, n), slice(lo, int(offsets[-1])), offsets[cut:] - lo)]
+    runs = [pool.submit(kernel.jit, *leading, idx[e], np.ascontiguousarray(o), *trailing,
+                        *(a[b] if kind == "b" else a[e] for a, kind in outputs))
+            for b, e, o in halves]
+    for run in runs:
+        run.result()
 
 
 _POOL: ThreadPoolExecutor | None = None

@@ -23,7 +23,8 @@ import numpy as np
 
 from .compiled import jit, jit_exact
 
-__all__ = ["cholesky_rows", "csne_gathered", "csne_step", "fit_structures", "jit", "jit_exact"]
+__all__ = ["cholesky_rows", "csne_gathered", "csne_step", "fit_structures", "jit", "jit_exact",
+           "qr_structures"]
 
 
 @jit
@@ -248,4 +249,111 @@ def fit_structures(gram, r_ext, idx, offsets, rank_tol, y_norm, n, refine_all,
             ssq = 0.0
             for q in range(rows):
                 ssq += r[q] * r[q]
+        sse[b] = ssq
+
+
+@jit
+def qr_structures(r_ext, idx, offsets, rank_tol, sse, theta, bad):  # pragma: no cover
+    """Fit the structures ``idx[offsets[b]:offsets[b + 1]]`` by Householder QR.
+
+    The arbitration of structures whose Gram pivots come near ``rank_tol``
+    (:meth:`~spm_sysid.core.narx.evaluator.StructureEvaluator._qr_fit` is the
+    same for one structure): the QR factor of the structure's columns of
+    ``r_ext`` (upper-triangular factor of ``[P y]``, target at column m) and
+    of the target. A column c of ``r_ext`` is zero below row c, so each
+    reflector spans only the rows down to the largest column so far, and the
+    reflectors of a prefix shared with the previous structure are reused
+    (structures in lexicographic order of their index lists fit fastest).
+
+    Outputs as :func:`fit_structures`: ``sse`` (NaN where rank-deficient),
+    ``theta`` (coefficients of the unit-norm columns), ``bad`` (a squared
+    diagonal entry of R below ``rank_tol``, or no terms).
+    """
+    m = r_ext.shape[1] - 2
+    rows = r_ext.shape[0]
+    kmax = 0
+    for b in range(len(offsets) - 1):
+        kmax = max(kmax, offsets[b + 1] - offsets[b])
+    V = np.zeros((kmax + 1, rows))  # reflector j on rows j..span[j]-1 (V[j, j] = 1)
+    tau = np.zeros(kmax + 1)
+    span = np.zeros(kmax + 1, dtype=np.int64)
+    Rt = np.zeros((kmax + 1, kmax + 1))  # Rt[j, i] = R[i, j]
+    cols = np.empty(kmax + 1, dtype=np.int64)
+    x = np.zeros(rows)
+    valid = 0  # leading reflectors that belong to the previous structure's prefix
+    for b in range(len(offsets) - 1):
+        s = offsets[b]
+        k = offsets[b + 1] - s
+        bad[b] = k == 0
+        sse[b] = np.nan
+        if k == 0:
+            valid = 0
+            continue
+        same = 0
+        while same < min(k, valid) and cols[same] == idx[s + same]:
+            same += 1
+        for j in range(k):
+            cols[j] = idx[s + j]
+        cols[k] = m
+        ssq = 0.0
+        for j in range(same, k + 1):
+            c = cols[j]
+            top = min(c + 1, rows)
+            for q in range(top):
+                x[q] = r_ext[q, c]
+            for q in range(top, rows):
+                x[q] = 0.0
+            for i in range(j):  # the reflectors of the columns before
+                if i >= top:
+                    break
+                acc = 0.0
+                for q in range(i, span[i]):
+                    acc += V[i, q] * x[q]
+                acc *= tau[i]
+                for q in range(i, span[i]):
+                    x[q] -= acc * V[i, q]
+                top = max(top, span[i])
+            for i in range(min(j, rows)):
+                Rt[j, i] = x[i]
+            if j == k:  # the target: what the reflectors leave below row k is the residual
+                for q in range(k, top):
+                    ssq += x[q] * x[q]
+                break
+            if j >= rows:  # more terms than rows
+                Rt[j, j] = 0.0
+                tau[j] = 0.0
+                span[j] = j
+                continue
+            end = max(top, j + 1)
+            nrm2 = 0.0
+            for q in range(j, end):
+                nrm2 += x[q] * x[q]
+            alpha = x[j]
+            span[j] = end
+            V[j, j] = 1.0
+            if nrm2 == 0.0 or not nrm2 == nrm2:
+                Rt[j, j] = 0.0 if nrm2 == 0.0 else np.nan
+                tau[j] = 0.0
+                for q in range(j + 1, end):
+                    V[j, q] = 0.0
+                continue
+            beta = -np.sqrt(nrm2) if alpha >= 0.0 else np.sqrt(nrm2)
+            tau[j] = (beta - alpha) / beta
+            scale = 1.0 / (alpha - beta)
+            for q in range(j + 1, end):
+                V[j, q] = x[q] * scale
+            Rt[j, j] = beta
+        valid = k
+        for j in range(k):
+            d = Rt[j, j] * Rt[j, j]
+            if not d >= rank_tol:  # small, or NaN
+                bad[b] = True
+                break
+        if bad[b]:
+            continue
+        for j in range(k - 1, -1, -1):  # R[:k, :k] theta = R[:k, k]
+            acc = Rt[k, j]
+            for p in range(j + 1, k):
+                acc -= Rt[p, j] * theta[s + p]
+            theta[s + j] = acc / Rt[j, j]
         sse[b] = ssq
