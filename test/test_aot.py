@@ -33,7 +33,8 @@ def test_make_setup_built_the_extension_where_a_c_compiler_exists():
                        .read_text())
     # the entry points the commands call are in it
     assert {"kernels.fit_structures", "branch_bound.expand", "simulation._run",
-            "simulation._sens", "coupled._coupled"} <= set(table["exports"])
+            "simulation._sens", "coupled._coupled", "kernels.qr_structures"} <= set(
+        table["exports"])
 
 
 def test_every_module_that_defines_kernels_is_in_the_build_hash():

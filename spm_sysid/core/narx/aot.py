@@ -52,7 +52,7 @@ def source_hash() -> str:
     from importlib.metadata import version
 
     h = hashlib.sha256(f"{_FORMAT} {sys.version} {np.__version__} {version('numba')}".encode())
-    for name in (*KERNEL_MODULES, "compiled", "aot"):
+    for name in (*KERNEL_MODULES, "compiled", "aot", "warmup"):  # warmup: what is exported
         h.update((_HERE / f"{name}.py").read_bytes())
     return h.hexdigest()[:16]
 

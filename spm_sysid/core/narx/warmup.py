@@ -78,6 +78,14 @@ def _warm_up(say: Callable[[str], None]) -> None:
     say("compiling the search and its polish ...")
     run_job(record, JobSettings.from_values({**ga, "ny": 2, "nu": 2, "seed": 0,
                                              "auto_certify_time_limit": 0.0}))
+    say("compiling the QR arbitration of near-rank structures ...")
+    from .evaluator import StructureEvaluator
+
+    g = np.random.default_rng(0)
+    P = g.standard_normal((60, 6))
+    P[:, 5] = P[:, 4] + 5e-5 * g.standard_normal(60)  # smallest squared pivot 2.5e-9
+    StructureEvaluator(P, P[:, 0] + g.standard_normal(60), "aic").fit_batch(
+        np.ones((1, 6), dtype=bool))
     say("compiling the certification ...")
     ensure_compiled()
     say("compiling the simulation focus, validation and bands ...")
