@@ -3,7 +3,8 @@
 ``python -m spm_sysid.bench.speed`` (``make bench-speed``) prints
 
 1. **the quick command**: ``spm-sysid identify --quiet`` on the robot-arm data,
-   whole process, median of ``--repeats`` runs, against the DEAP baseline
+   whole process, median of ``--repeats`` runs, against the same command on
+   numba's JIT (``SPM_SYSID_AOT=0``: no ahead-of-time build) and the DEAP baseline
    (:mod:`spm_sysid.bench.deap_ga`, ``--baseline-repeats`` runs, interleaved in
    the same call) and their ratio; then where the time goes: imports by
    package (``python -X importtime``) and each phase of the job in-process;
@@ -34,24 +35,31 @@ __all__ = ["import_breakdown", "main", "phase_breakdown"]
 _CLI = [sys.executable, "-m", "spm_sysid.apps.main"]
 
 
-def _wall(cmd: list[str]) -> float:
+def _wall(cmd: list[str], env: dict | None = None) -> float:
     t0 = time.perf_counter()
-    r = subprocess.run(cmd, capture_output=True, text=True)
+    r = subprocess.run(cmd, capture_output=True, text=True, env=env)
     if r.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed: {r.stderr.strip()[-400:]}")
     return time.perf_counter() - t0
 
 
-def quick_command(repeats: int, baseline_repeats: int) -> tuple[list[float], list[float]]:
-    """Wall seconds of ``identify`` runs and of baseline runs, interleaved."""
-    ours, base = [], []
+def quick_command(repeats: int, baseline_repeats: int
+                  ) -> tuple[list[float], list[float], list[float]]:
+    """Wall seconds of ``identify``, of it on numba's JIT, and of the baseline, interleaved.
+
+    The JIT runs have ``SPM_SYSID_AOT=0`` (no ahead-of-time build).
+    """
+    ours, jit, base = [], [], []
+    no_build = {**os.environ, "SPM_SYSID_AOT": "0"}
     _wall(_CLI + ["identify", "--quiet"])  # warm caches
+    _wall(_CLI + ["identify", "--quiet"], no_build)
     for i in range(max(repeats, baseline_repeats)):
         if i < repeats:
             ours.append(_wall(_CLI + ["identify", "--quiet"]))
+            jit.append(_wall(_CLI + ["identify", "--quiet"], no_build))
         if i < baseline_repeats:
             base.append(_wall([sys.executable, "-m", "spm_sysid.bench.deap_ga"]))
-    return ours, base
+    return ours, jit, base
 
 
 def import_breakdown(top: int = 8) -> list[tuple[str, float]]:
@@ -186,10 +194,16 @@ def main(argv: list[str] | None = None) -> int:
     print(f"speed benchmark ({os.cpu_count()} cores); repeats {a.repeats}, "
           f"baseline repeats {a.baseline_repeats}", flush=True)
 
-    ours, base = quick_command(a.repeats, a.baseline_repeats)
+    from ..core.narx.aot import build_status
+
+    status = build_status()
+    ours, jit, base = quick_command(a.repeats, a.baseline_repeats)
     print("\n1. spm-sysid identify --quiet (robot arm, paper settings, AIC, polish and "
           "certification), whole process")
+    print(f"   kernels' ahead-of-time build: {status.path or status.reason}")
     print(f"   spm-sysid identify   {_med(ours)}")
+    print(f"   the same on the JIT  {_med(jit)}  (SPM_SYSID_AOT=0: imports numba; ratio "
+          f"{statistics.median(jit) / statistics.median(ours):.2f}x)")
     if base:
         print(f"   DEAP + lstsq GA      {_med(base)}")
         print(f"   ratio baseline / identify: "
