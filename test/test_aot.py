@@ -163,3 +163,14 @@ def test_a_large_batch_fitted_on_two_threads_gives_the_same_numbers(monkeypatch)
         pytest.skip("one core: batches are never split")
     assert np.array_equal(out["one thread"], out["two threads"], equal_nan=True)
     assert np.isfinite(out["one thread"]).sum() > 100
+
+
+def test_a_long_running_process_can_prefer_the_jit_which_releases_the_gil(monkeypatch):
+    # the node does (spm_sysid.ros.entry): its subscriptions keep recording while a
+    # kernel runs; the build would hold the GIL for a whole certification round
+    monkeypatch.setattr(aot, "_prefer_jit", False)
+    before = aot.exports_for("kernels.fit_structures")
+    assert aot.prefer_jit() is True
+    assert aot.exports_for("kernels.fit_structures") == []
+    monkeypatch.setattr(aot, "_prefer_jit", False)
+    assert aot.exports_for("kernels.fit_structures") == before

@@ -17,10 +17,12 @@ __all__ = ["sysid_node"]
 def sysid_node(args: list[str] | None = None) -> int:
     """``sysid_node``: :func:`spm_sysid.ros.sysid_node.main`."""
     try:
+        from ..core.narx.aot import prefer_jit
         from ..core.narx.compiled import require_kernels
         from .sysid_node import main
 
         require_kernels()
+        prefer_jit()  # kernels that release the GIL: callbacks go on during a fit
     except MissingDependencyError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1

@@ -35,7 +35,8 @@ import numpy as np
 
 from .compiled import as_array_check, kernels
 
-__all__ = ["BuildStatus", "build", "build_status", "exports_for", "jit_only", "source_hash"]
+__all__ = ["BuildStatus", "build", "build_status", "exports_for", "jit_only", "prefer_jit",
+           "source_hash"]
 
 #: The modules that define kernels (a test checks that none is missing).
 KERNEL_MODULES = ("kernels", "simulation", "branch_bound", "coupled")
@@ -44,6 +45,7 @@ _HERE = Path(__file__).resolve().parent
 _LOCK = threading.Lock()
 _loaded: dict[str, list] | None = None
 _jit_only = threading.local()
+_prefer_jit = False
 
 
 @lru_cache(maxsize=1)
@@ -69,7 +71,23 @@ def _files(place: Path, name: str) -> tuple[Path, Path]:
 
 
 def _enabled() -> bool:
-    return os.environ.get("SPM_SYSID_AOT", "1") != "0" and not getattr(_jit_only, "on", False)
+    return (os.environ.get("SPM_SYSID_AOT", "1") != "0" and not _prefer_jit
+            and not getattr(_jit_only, "on", False))
+
+
+def prefer_jit() -> bool:
+    """Run this process's kernels on numba's JIT, which releases the GIL while a kernel runs.
+
+    For long-running processes with other threads (the node: its subscriptions
+    must keep recording while an identification runs; a certification round
+    holds a kernel for up to 0.4 s). Costs 0.7 s once. Keeps the build when
+    numba cannot be imported. Returns whether the JIT is used.
+    """
+    global _prefer_jit
+    from .compiled import jit_available
+
+    _prefer_jit = jit_available()
+    return _prefer_jit
 
 
 @contextmanager
