@@ -229,3 +229,35 @@ def test_nearly_dependent_structures_are_decided_as_the_reference_decides():
     assert np.all(np.isfinite(ref[close]))
     assert np.max(np.abs(fast[close] - ref[close])) < 1e-6
     assert np.argmin(fast) == np.argmin(ref)
+
+
+def test_the_compiled_qr_arbitration_equals_numpy_qr_structure_by_structure():
+    # sorted batches share prefixes (their reflectors are reused); collinear columns
+    # put pivots on both sides of the rank threshold
+    from spm_sysid.core.narx.kernels import qr_structures
+
+    rng = np.random.default_rng(3)
+    P = rng.standard_normal((300, 120))
+    P[:, 7] = P[:, 3] + 1e-7 * rng.standard_normal(300)
+    P[:, 50] = P[:, 10] * 2
+    P[:, 90] = P[:, 60] + 3e-5 * rng.standard_normal(300)  # a pivot near 1e-9
+    target = P[:, :30] @ rng.standard_normal(30) + 0.1 * rng.standard_normal(300)
+    ev = StructureEvaluator(P, target, "aic")
+    masks = rng.random((300, 120)) < rng.uniform(0.05, 0.9, size=(300, 1))
+    masks = masks[np.lexsort(~masks.T[::-1])]
+    _, cols = np.nonzero(masks)
+    offsets = np.zeros(len(masks) + 1, dtype=np.int64)
+    np.cumsum(masks.sum(axis=1), out=offsets[1:])
+    sse, theta = np.empty(len(masks)), np.zeros(len(cols))
+    bad = np.empty(len(masks), dtype=bool)
+    qr_structures(ev.factor, cols.astype(np.int64), offsets, float(ev.rank_tol), sse, theta,
+                  bad)
+    assert 0 < bad.sum() < len(masks)
+    for b in range(len(masks)):
+        sl = slice(offsets[b], offsets[b + 1])
+        ref_sse, ref_theta, ref_bad = ev._qr_fit(cols[sl])  # numpy's Householder QR
+        assert bad[b] == ref_bad
+        if not ref_bad:
+            assert sse[b] == pytest.approx(ref_sse, rel=1e-10)
+            assert np.allclose(theta[sl], ref_theta, rtol=1e-9, atol=1e-9 * np.abs(
+                ref_theta).max())
