@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from spm_sysid.core.narx import aot
-from spm_sysid.core.narx.aot import build_status, jit_only
+from spm_sysid.core.narx.aot import build_forced, build_status, jit_only
 from spm_sysid.core.narx.certify import certify
 from spm_sysid.core.narx.compiled import Kernel, kernels
 from spm_sysid.core.narx.problem import Problem
@@ -48,7 +48,8 @@ def _both(fn):
     """fn() on the build (as commands run) and on numba's JIT."""
     with jit_only():
         jit = fn()
-    return fn(), jit
+    with build_forced():
+        return fn(), jit
 
 
 @needs_build
@@ -95,13 +96,15 @@ def test_a_call_the_build_does_not_hold_runs_on_the_jit_with_the_same_result(rob
     lag = cm.max_lag
     args = (cm.gather, cm.y_lags, cm.u_lags, cm.u_cols, theta, u2)
     tail = (len(y), lag, -1e9, 1e9)
-    checks = aot.exports_for("simulation._run")
+    with build_forced():
+        checks = aot.exports_for("simulation._run")
     assert checks and not any(ok((*args, strided, *tail, np.empty(len(y) - lag)))
                               for ok, _ in checks)
     assert any(ok((*args, np.ascontiguousarray(strided), *tail, np.empty(len(y) - lag)))
                for ok, _ in checks)
     out, expect = np.empty(len(y) - lag), np.empty(len(y) - lag)
-    at = _run(*args, strided, *tail, out)
+    with build_forced():
+        at = _run(*args, strided, *tail, out)
     at_py = _run.py_func(*args, np.ascontiguousarray(strided), *tail, expect)
     assert at == at_py
     assert np.array_equal(out, expect)
@@ -110,13 +113,15 @@ def test_a_call_the_build_does_not_hold_runs_on_the_jit_with_the_same_result(rob
 def test_a_build_for_other_sources_is_never_loaded(tmp_path, monkeypatch):
     monkeypatch.setenv("SPM_SYSID_AOT_DIR", str(tmp_path))
     monkeypatch.setattr(aot, "_loaded", None)
-    assert not build_status() and aot.exports_for("kernels.fit_structures") == []
+    with build_forced():
+        assert not build_status() and aot.exports_for("kernels.fit_structures") == []
     if _BUILT:  # the real build, renamed as if made from other sources
         real = aot._files(aot._HERE / "__pycache__", f"_aot_{aot.source_hash()}")
         for f in real:
             shutil.copy(f, tmp_path / f.name.replace(aot.source_hash(), "0" * 16))
         monkeypatch.setattr(aot, "_loaded", None)
-        assert not build_status() and aot.exports_for("kernels.fit_structures") == []
+        with build_forced():
+            assert not build_status() and aot.exports_for("kernels.fit_structures") == []
     monkeypatch.setattr(aot, "_loaded", None)
 
 
@@ -169,8 +174,9 @@ def test_a_long_running_process_can_prefer_the_jit_which_releases_the_gil(monkey
     # the node does (spm_sysid.ros.entry): its subscriptions keep recording while a
     # kernel runs; the build would hold the GIL for a whole certification round
     monkeypatch.setattr(aot, "_prefer_jit", False)
-    before = aot.exports_for("kernels.fit_structures")
-    assert aot.prefer_jit() is True
-    assert aot.exports_for("kernels.fit_structures") == []
-    monkeypatch.setattr(aot, "_prefer_jit", False)
-    assert aot.exports_for("kernels.fit_structures") == before
+    with build_forced():
+        before = aot.exports_for("kernels.fit_structures")
+        assert aot.prefer_jit() is True
+        assert aot.exports_for("kernels.fit_structures") == []
+        monkeypatch.setattr(aot, "_prefer_jit", False)
+        assert aot.exports_for("kernels.fit_structures") == before

@@ -33,10 +33,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .compiled import as_array_check, kernels
+from .compiled import as_array_check, jit_loaded, kernels
 
-__all__ = ["BuildStatus", "build", "build_status", "exports_for", "jit_only", "prefer_jit",
-           "source_hash"]
+__all__ = ["BuildStatus", "build", "build_forced", "build_status", "exports_for", "jit_only",
+           "prefer_jit", "source_hash"]
 
 #: The modules that define kernels (a test checks that none is missing).
 KERNEL_MODULES = ("kernels", "simulation", "branch_bound", "coupled")
@@ -45,6 +45,7 @@ _HERE = Path(__file__).resolve().parent
 _LOCK = threading.Lock()
 _loaded: dict[str, list] | None = None
 _jit_only = threading.local()
+_forced = threading.local()
 _prefer_jit = False
 
 
@@ -101,6 +102,17 @@ def jit_only():
         _jit_only.on = before
 
 
+@contextmanager
+def build_forced():
+    """Run kernels on the build in this thread even when numba is loaded (tests compare)."""
+    before = getattr(_forced, "on", False)
+    _forced.on = True
+    try:
+        yield
+    finally:
+        _forced.on = before
+
+
 # -- loading ----------------------------------------------------------------------------
 
 
@@ -147,9 +159,14 @@ def _load() -> dict[str, list]:
 
 
 def exports_for(key: str) -> list:
-    """The build's versions of one kernel (none when there is no current build)."""
+    """The build's versions of one kernel for this call (none: run the JIT).
+
+    None without a current build, and none once this process has imported
+    numba (its JIT then costs nothing more and releases the GIL, which threads
+    need) unless :func:`build_forced` is on.
+    """
     global _loaded
-    if not _enabled():
+    if not _enabled() or (jit_loaded() and not getattr(_forced, "on", False)):
         return []
     if _loaded is None:
         with _LOCK:

@@ -58,7 +58,7 @@ from .branch_bound import (
     words_for,
     workspace,
 )
-from .compiled import jit_available
+from .compiled import jit_available, jit_loaded
 from .criteria import Criterion, get_criterion
 from .evaluator import NEAR_RANK, StructureEvaluator
 from .lstsq import DEFAULT_RANK_TOL
@@ -216,7 +216,8 @@ ENUMERATION_BUDGET = 3000
 DEEP_FACTOR = 4
 
 #: Seconds a search runs on the ahead-of-time build (one thread) before it loads numba's
-#: JIT to run its heaps in parallel: most searches end before, and the JIT costs 0.7 s.
+#: JIT to run its heaps in parallel: most searches end before, and the JIT costs 0.7 s
+#: (none when this process has loaded it already: then the heaps run in parallel at once).
 PARALLEL_AFTER = 1.0
 
 
@@ -531,7 +532,7 @@ def certify(
     search_start = time.perf_counter()
     # the ahead-of-time build holds the GIL: short searches run on it one heap after the
     # other, longer ones switch to numba's JIT (0.7 s to load) and run the heaps in parallel
-    serial_for = PARALLEL_AFTER if build_status() else 0.0
+    serial_for = PARALLEL_AFTER if build_status() and not jit_loaded() else 0.0
     try:
         while True:
             done_nodes = sum(h.nodes for h in heaps)

@@ -6,9 +6,12 @@ A kernel is plain Python decorated with :func:`jit` (sums may be reordered) or
 
 1. the ahead-of-time build (:mod:`spm_sysid.core.narx.aot`, a C extension that
    ``spm-sysid compile`` makes from the same functions with numba's pycc) when
-   it exists for these sources and holds the argument types of the call: no
-   numba import, no JIT set-up -- about 0.7 s less for every command;
-2. else numba's JIT (cached on disk after the first compilation).
+   it exists for these sources, holds the argument types of the call, and the
+   process has not imported numba: no numba import, no JIT set-up -- about
+   0.7 s less for every command;
+2. else numba's JIT (cached on disk after the first compilation). Once a
+   process has loaded it (a long certification, outputs on threads, the
+   node), every kernel runs on it: it releases the GIL, the build does not.
 
 Both run the same compiled code (the build's entry points call the JIT
 functions with their own options), so they give the same numbers. numba
@@ -26,8 +29,8 @@ import numpy as np
 
 from ..errors import MissingDependencyError
 
-__all__ = ["Kernel", "jit", "jit_exact", "jit_available", "kernels", "load_numba",
-           "require_kernels"]
+__all__ = ["Kernel", "jit", "jit_available", "jit_exact", "jit_loaded", "kernels",
+           "load_numba", "require_kernels"]
 
 _KERNELS: list[Kernel] = []
 _LOCK = threading.RLock()
@@ -55,6 +58,11 @@ def load_numba():
 
             _numba = numba
     return _numba
+
+
+def jit_loaded() -> bool:
+    """True when this process has imported numba already (the JIT costs nothing more)."""
+    return _numba is not None
 
 
 def jit_available() -> bool:

@@ -239,6 +239,10 @@ def in_threads(fn, n: int) -> list:
         return [fn(i) for i in range(n)]
     from concurrent.futures import ThreadPoolExecutor
 
+    from .compiled import jit_available
+
+    jit_available()  # kernels on numba's JIT, which releases the GIL (0.7 s once)
+
     with ThreadPoolExecutor(workers) as pool:
         return list(pool.map(fn, range(n)))
 
