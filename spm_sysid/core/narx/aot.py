@@ -71,6 +71,15 @@ def _files(place: Path, name: str) -> tuple[Path, Path]:
     return place / f"{name}{sysconfig.get_config_var('EXT_SUFFIX')}", place / f"{name}.json"
 
 
+def _current_files():
+    """(extension, table) of each place that holds a build for these sources."""
+    name = f"_aot_{source_hash()}"
+    for place in _places():
+        lib, meta = _files(place, name)
+        if lib.is_file() and meta.is_file():
+            yield lib, meta
+
+
 def _enabled() -> bool:
     return (os.environ.get("SPM_SYSID_AOT", "1") != "0" and not _prefer_jit
             and not getattr(_jit_only, "on", False))
@@ -142,10 +151,7 @@ def _load() -> dict[str, list]:
     import importlib.util
 
     name = f"_aot_{source_hash()}"
-    for place in _places():
-        lib, meta = _files(place, name)
-        if not (lib.is_file() and meta.is_file()):
-            continue
+    for lib, meta in _current_files():
         try:
             spec = importlib.util.spec_from_file_location(name, lib)
             module = importlib.util.module_from_spec(spec)
@@ -221,13 +227,10 @@ class BuildStatus:
 
 def build_status() -> BuildStatus:
     """The current build (for these sources), if there is one and it loads."""
-    name = f"_aot_{source_hash()}"
-    for place in _places():
-        lib, meta = _files(place, name)
-        if lib.is_file() and meta.is_file():
-            if os.environ.get("SPM_SYSID_AOT", "1") == "0":
-                return BuildStatus(None, "turned off by SPM_SYSID_AOT=0")
-            return BuildStatus(lib, "built")
+    for lib, _ in _current_files():
+        if os.environ.get("SPM_SYSID_AOT", "1") == "0":
+            return BuildStatus(None, "turned off by SPM_SYSID_AOT=0")
+        return BuildStatus(lib, "built")
     return BuildStatus(None, "not built for these sources (`spm-sysid compile` builds it)")
 
 

@@ -137,18 +137,20 @@ class Kernel:
         return f"<Kernel {self.key}>"
 
 
-def jit(fn: Callable) -> Kernel:
-    """A kernel whose sums may be reordered (faster; last bits may differ from Python)."""
-    kernel = Kernel(fn, fastmath=True)
+def _register(fn: Callable, fastmath: bool) -> Kernel:
+    kernel = Kernel(fn, fastmath)
     _KERNELS.append(kernel)
     return kernel
+
+
+def jit(fn: Callable) -> Kernel:
+    """A kernel whose sums may be reordered (faster; last bits may differ from Python)."""
+    return _register(fn, fastmath=True)
 
 
 def jit_exact(fn: Callable) -> Kernel:
     """A kernel that keeps Python's order of operations (the same results as Python)."""
-    kernel = Kernel(fn, fastmath=False)
-    _KERNELS.append(kernel)
-    return kernel
+    return _register(fn, fastmath=False)
 
 
 def kernels() -> Sequence[Kernel]:

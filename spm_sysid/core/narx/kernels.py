@@ -23,8 +23,8 @@ import numpy as np
 
 from .compiled import jit, jit_exact
 
-__all__ = ["cholesky_rows", "csne_gathered", "csne_step", "fit_structures", "jit", "jit_exact",
-           "qr_structures"]
+__all__ = ["cholesky_rows", "cholesky_solve", "csne_gathered", "csne_step", "fit_structures",
+           "jit", "jit_exact", "qr_structures"]
 
 
 @jit
@@ -62,6 +62,21 @@ def cholesky_rows(gram, cols, start, stop, L, piv, tol, halt):  # pragma: no cov
 
 
 @jit
+def cholesky_solve(L, g, k):  # pragma: no cover - compiled
+    """``g`` <- (L L^T)^-1 g for the leading k x k block of a lower-triangular L."""
+    for j in range(k):  # L w = g
+        acc = g[j]
+        for p in range(j):
+            acc -= L[j, p] * g[p]
+        g[j] = acc / L[j, j]
+    for j in range(k - 1, -1, -1):  # L^T d = w
+        acc = g[j]
+        for p in range(j + 1, k):
+            acc -= L[p, j] * g[p]
+        g[j] = acc / L[j, j]
+
+
+@jit
 def csne_step(L, r_ext, cols, k, yi, theta, r, g):  # pragma: no cover - compiled
     """One corrected semi-normal step for the columns cols[:k] of r_ext.
 
@@ -83,16 +98,7 @@ def csne_step(L, r_ext, cols, k, yi, theta, r, g):  # pragma: no cover - compile
             for q in range(rows):
                 acc += r_ext[q, cols[j]] * r[q]
             g[j] = acc
-        for j in range(k):  # L w = g
-            acc = g[j]
-            for p in range(j):
-                acc -= L[j, p] * g[p]
-            g[j] = acc / L[j, j]
-        for j in range(k - 1, -1, -1):  # L^T d = w
-            acc = g[j]
-            for p in range(j + 1, k):
-                acc -= L[p, j] * g[p]
-            g[j] = acc / L[j, j]
+        cholesky_solve(L, g, k)
         for j in range(k):
             theta[j] += g[j]
 
@@ -123,16 +129,7 @@ def csne_gathered(L, A, ext, target, k, theta, r, g):  # pragma: no cover - comp
             for q in range(ext[j]):
                 acc += A[j, q] * r[q]
             g[j] = acc
-        for j in range(k):  # L w = g
-            acc = g[j]
-            for p in range(j):
-                acc -= L[j, p] * g[p]
-            g[j] = acc / L[j, j]
-        for j in range(k - 1, -1, -1):  # L^T d = w
-            acc = g[j]
-            for p in range(j + 1, k):
-                acc -= L[p, j] * g[p]
-            g[j] = acc / L[j, j]
+        cholesky_solve(L, g, k)
         for j in range(k):
             theta[j] += g[j]
 
