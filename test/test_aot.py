@@ -180,3 +180,16 @@ def test_a_long_running_process_can_prefer_the_jit_which_releases_the_gil(monkey
         assert aot.exports_for("kernels.fit_structures") == []
         monkeypatch.setattr(aot, "_prefer_jit", False)
         assert aot.exports_for("kernels.fit_structures") == before
+
+
+def test_the_build_is_named_for_this_cpu(monkeypatch):
+    # compiled for the host CPU: a copy of the environment on another CPU must not load it
+    here = aot.source_hash()
+    aot.source_hash.cache_clear()
+    monkeypatch.setattr(aot, "_cpu_signature", lambda: "flags : sse2")
+    try:
+        assert aot.source_hash() != here
+    finally:
+        aot.source_hash.cache_clear()
+        monkeypatch.undo()
+    assert aot.source_hash() == here

@@ -6,8 +6,10 @@ build removes that: ``spm-sysid compile`` (run by ``make setup``) exports every
 kernel that Python calls, with the argument types the warm-up used, into one
 extension module; a command then imports it in a millisecond.
 
-The build is named by a hash of the kernels' sources and of the Python, numpy
-and numba versions, so an edited kernel never runs from an old build: it is
+The build is named by a hash of the kernels' sources, of the Python, numpy
+and numba versions and of the CPU's instruction set (it is compiled for the
+machine it is built on), so an edited kernel, or a copy of the environment on
+another CPU, never runs from an old build: it is
 simply not found (and numba's JIT runs, as without a build). It goes to
 ``SPM_SYSID_AOT_DIR`` when set, else next to the sources (``__pycache__``,
 where numba caches too) when writable, else ``~/.cache/spm_sysid/aot``.
@@ -21,6 +23,7 @@ import hashlib
 import inspect
 import json
 import os
+import platform
 import shutil
 import sys
 import sysconfig
@@ -49,12 +52,26 @@ _forced = threading.local()
 _prefer_jit = False
 
 
+def _cpu_signature() -> str:
+    """The CPU's instruction-set flags (part of the build's name).
+
+    The build is compiled for this CPU ("host") and may use instructions another
+    lacks: an environment copied to another machine must not load it.
+    """
+    try:
+        with open("/proc/cpuinfo") as f:
+            return next((line for line in f if line.startswith("flags")), "")
+    except OSError:
+        return f"{platform.machine()} {platform.processor()}"
+
+
 @lru_cache(maxsize=1)
 def source_hash() -> str:
-    """Hash of what the build depends on: kernel sources, Python, numpy, numba."""
+    """Hash of what the build depends on: kernel sources, Python, numpy, numba, the CPU."""
     from importlib.metadata import version
 
-    h = hashlib.sha256(f"{_FORMAT} {sys.version} {np.__version__} {version('numba')}".encode())
+    h = hashlib.sha256(f"{_FORMAT} {sys.version} {np.__version__} {version('numba')} "
+                       f"{_cpu_signature()}".encode())
     for name in (*KERNEL_MODULES, "compiled", "aot", "warmup"):  # warmup: what is exported
         h.update((_HERE / f"{name}.py").read_bytes())
     return h.hexdigest()[:16]
