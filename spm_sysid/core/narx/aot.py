@@ -118,25 +118,24 @@ def prefer_jit() -> bool:
 
 
 @contextmanager
+def _switched_on(flag: threading.local):
+    """Set a per-thread flag inside the block (restored after, so blocks nest)."""
+    before = getattr(flag, "on", False)
+    flag.on = True
+    try:
+        yield
+    finally:
+        flag.on = before
+
+
 def jit_only():
     """Run kernels on numba's JIT in this thread (the warm-up fills numba's cache so)."""
-    before = getattr(_jit_only, "on", False)
-    _jit_only.on = True
-    try:
-        yield
-    finally:
-        _jit_only.on = before
+    return _switched_on(_jit_only)
 
 
-@contextmanager
 def build_forced():
     """Run kernels on the build in this thread even when numba is loaded (tests compare)."""
-    before = getattr(_forced, "on", False)
-    _forced.on = True
-    try:
-        yield
-    finally:
-        _forced.on = before
+    return _switched_on(_forced)
 
 
 # -- loading ----------------------------------------------------------------------------

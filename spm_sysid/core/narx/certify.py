@@ -43,6 +43,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..cores import usable_cores
 from ..memory import check_memory, memory_limit
 from .aot import build_status
 from .branch_bound import (
@@ -491,7 +492,7 @@ def certify(
     rows_r = ev.factor.shape[0]
     mu = len(usable)
     # node_limit asks for an exact count: one worker then; fewer when memory is short
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    cores = usable_cores()
     workers = 1 if node_limit is not None else max(1, min(int(threads or cores or 1), 8))
     limit, _ = memory_limit()
     copies = 8.0 * ((mu + 1) ** 2 + rows_r * (mu + 1))  # the search's gram and factor

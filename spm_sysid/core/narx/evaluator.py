@@ -37,13 +37,13 @@ shares them (a :class:`~spm_sysid.core.narx.problem.Problem` computes them once)
 from __future__ import annotations
 
 import copy
-import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from scipy import linalg
 
+from ..cores import usable_cores
 from .criteria import Criterion, get_criterion
 from .kernels import fit_structures, qr_structures
 from .lstsq import DEFAULT_RANK_TOL, sse_floor
@@ -382,7 +382,7 @@ _POOL_LOCK = threading.Lock()
 def _fit_pool() -> ThreadPoolExecutor | None:
     """Two threads for large batches (None on one core)."""
     global _POOL
-    if len(os.sched_getaffinity(0)) < 2:
+    if usable_cores() < 2:
         return None
     with _POOL_LOCK:
         if _POOL is None:

@@ -26,13 +26,13 @@ single-output document is unchanged and still what one output gives.
 from __future__ import annotations
 
 import json
-import os
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
+from ..cores import usable_cores
 from ..errors import ModelFormatError
 from ..files import atomic_write_text, read_bytes
 from .identify import identify
@@ -233,8 +233,7 @@ def in_threads(fn, n: int) -> list:
     results are those of a loop; the compiled kernels release the GIL, so two
     outputs on two cores take little more than one.
     """
-    workers = min(n, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
-                  else os.cpu_count() or 1)
+    workers = min(n, usable_cores())
     if workers <= 1:
         return [fn(i) for i in range(n)]
     from concurrent.futures import ThreadPoolExecutor
