@@ -170,6 +170,26 @@ def test_a_large_batch_fitted_on_two_threads_gives_the_same_numbers(monkeypatch)
     assert np.isfinite(out["one thread"]).sum() > 100
 
 
+def test_the_work_split_counts_what_neighbours_share():
+    # a sorted batch's kernel skips the prefix a structure shares with the one before:
+    # the split into halves weighs k^3 less that (checked against the index lists)
+    from spm_sysid.core.narx.evaluator import _shared_prefix
+
+    rng = np.random.default_rng(8)
+    masks = rng.random((200, 40)) < 0.7
+    masks[:, :10] = rng.random((200, 1)) < 0.9  # long common runs, and some without
+    masks = masks[np.lexsort(~masks.T[::-1])]
+    expect = [0]
+    for a, b in zip(masks[:-1], masks[1:]):
+        ia, ib = np.flatnonzero(a), np.flatnonzero(b)
+        n = 0
+        while n < min(len(ia), len(ib)) and ia[n] == ib[n]:
+            n += 1
+        expect.append(n)
+    got = _shared_prefix(masks)
+    assert np.array_equal(got, expect) and max(expect) > 10
+
+
 def test_a_long_running_process_can_prefer_the_jit_which_releases_the_gil(monkeypatch):
     # the node does (spm_sysid.ros.entry): its subscriptions keep recording while a
     # kernel runs; the build would hold the GIL for a whole certification round

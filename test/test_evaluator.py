@@ -261,3 +261,48 @@ def test_the_compiled_qr_arbitration_equals_numpy_qr_structure_by_structure():
             assert sse[b] == pytest.approx(ref_sse, rel=1e-10)
             assert np.allclose(theta[sl], ref_theta, rtol=1e-9, atol=1e-9 * np.abs(
                 ref_theta).max())
+
+
+def test_factor_rows_and_qr_columns_do_not_depend_on_their_group():
+    # rows (columns) are computed LANES at a time; a factor extended from any prefix,
+    # and a structure fitted after a neighbour that shares a prefix, give the same bits
+    from spm_sysid.core.narx.kernels import LANES, cholesky_rows, qr_structures
+
+    rng = np.random.default_rng(5)
+    P = rng.standard_normal((200, 60))
+    P[:, 40] = P[:, 2] + 1e-3 * rng.standard_normal(200)  # a squared pivot near 1e-8
+    ev = StructureEvaluator(P, P[:, :4].sum(axis=1) + rng.standard_normal(200), "aic")
+    cols = np.sort(rng.choice(60, 45, replace=False)).astype(np.int64)
+    k = len(cols)
+
+    def factor(splits):
+        L, piv = np.zeros((k, k)), np.zeros(k)
+        for start, stop in zip(splits[:-1], splits[1:]):
+            cholesky_rows(ev.gram, cols, start, stop, L, piv, 0.0, False)
+        return L, piv
+
+    whole, piv = factor([0, k])
+    assert np.allclose(whole @ whole.T, ev.gram[np.ix_(cols, cols)], atol=1e-12)
+    for splits in ([0, 1, k], [0, LANES - 1, LANES + 2, k], [0, 3, 4, 5, 30, k]):
+        L, p = factor(splits)
+        assert np.array_equal(L, whole) and np.array_equal(p, piv)
+
+    def fitted(masks):
+        _, idx = np.nonzero(masks)
+        offsets = np.zeros(len(masks) + 1, dtype=np.int64)
+        np.cumsum(masks.sum(axis=1), out=offsets[1:])
+        sse, theta, bad = np.empty(len(masks)), np.zeros(len(idx)), np.zeros(len(masks), bool)
+        qr_structures(ev.factor, idx.astype(np.int64), offsets, float(ev.rank_tol), sse, theta,
+                      bad)
+        return sse[-1], theta[offsets[-2]:]
+
+    last = np.zeros((1, 60), bool)
+    last[0, cols] = True
+    alone = fitted(last)
+    assert np.isfinite(alone[0])
+    for shared in (1, LANES - 1, LANES + 3, 20):  # a neighbour sharing that many terms
+        first = np.zeros(60, bool)
+        first[cols[:shared]] = True
+        first[59] = True
+        after = fitted(np.vstack([first, last[0]]))
+        assert after[0] == alone[0] and np.array_equal(after[1], alone[1])

@@ -27,6 +27,12 @@ __all__ = ["cholesky_rows", "cholesky_solve", "csne_gathered", "csne_step", "fit
            "jit", "jit_exact", "qr_structures"]
 
 
+#: Rows of the Cholesky factor (columns of the QR) computed together: in their inner
+#: loops each row of the factor (each reflector) read from memory serves this many of
+#: them at once (the loops over the lanes are written out: LANES is 8 below).
+LANES = 8
+
+
 @jit
 def cholesky_rows(gram, cols, start, stop, L, piv, tol, halt):  # pragma: no cover - compiled
     """Rows start..stop-1 of the up-looking Cholesky factor of gram[cols, cols].
@@ -37,27 +43,52 @@ def cholesky_rows(gram, cols, start, stop, L, piv, tol, halt):  # pragma: no cov
     column 0); the first such row is returned (-1: none), and with ``halt`` the
     factorisation stops there. The evaluator's fits and the branch and bound's
     nodes both factorise with this routine.
+
+    Rows go in groups of :data:`LANES`: entry (j, i) is ``gram[cj, ci]`` less the
+    dot product of rows j and i over columns < i, computed by the same loop for
+    every entry, so a row's numbers do not depend on the group it fell in.
     """
     first = -1
-    for j in range(start, stop):
-        cj = cols[j]
-        for i in range(j):
-            acc = gram[cj, cols[i]]
+    W = np.zeros((LANES, stop))  # W[b, p] = L[j0 + b, p]: the group's rows, side by side
+    s = np.zeros(LANES)
+    j0 = start
+    while j0 < stop:
+        nb = min(LANES, stop - j0)
+        for i in range(j0 + nb):
+            if i >= j0:  # row i has all its entries left of the diagonal: its pivot
+                b = i - j0
+                d = gram[cols[i], cols[i]]
+                for p in range(i):
+                    d -= W[b, p] * W[b, p]
+                piv[i] = d
+                if d > tol:
+                    L[i, i] = np.sqrt(d)
+                else:
+                    L[i, i] = 0.0
+                    if first < 0:
+                        first = i
+                    if halt:
+                        return first
+                if i == j0 + nb - 1:
+                    break
+            s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = 0.0
             for p in range(i):
-                acc -= L[j, p] * L[i, p]
-            L[j, i] = acc / L[i, i] if L[i, i] > 0.0 else 0.0
-        d = gram[cj, cj]
-        for p in range(j):
-            d -= L[j, p] * L[j, p]
-        piv[j] = d
-        if d > tol:
-            L[j, j] = np.sqrt(d)
-        else:
-            L[j, j] = 0.0
-            if first < 0:
-                first = j
-            if halt:
-                break
+                v = L[i, p]
+                s0 += v * W[0, p]
+                s1 += v * W[1, p]
+                s2 += v * W[2, p]
+                s3 += v * W[3, p]
+                s4 += v * W[4, p]
+                s5 += v * W[5, p]
+                s6 += v * W[6, p]
+                s7 += v * W[7, p]
+            s[0], s[1], s[2], s[3], s[4], s[5], s[6], s[7] = s0, s1, s2, s3, s4, s5, s6, s7
+            lii = L[i, i]
+            for b in range(max(i - j0 + 1, 0), nb):
+                x = (gram[cols[j0 + b], cols[i]] - s[b]) / lii if lii > 0.0 else 0.0
+                W[b, i] = x
+                L[j0 + b, i] = x
+        j0 += nb
     return first
 
 
@@ -261,6 +292,8 @@ def qr_structures(r_ext, idx, offsets, rank_tol, sse, theta, bad):  # pragma: no
     reflector spans only the rows down to the largest column so far, and the
     reflectors of a prefix shared with the previous structure are reused
     (structures in lexicographic order of their index lists fit fastest).
+    Columns are reduced :data:`LANES` at a time (each reflector read once for
+    them), every column by the same loops.
 
     Outputs as :func:`fit_structures`: ``sse`` (NaN where rank-deficient),
     ``theta`` (coefficients of the unit-norm columns), ``bad`` (a squared
@@ -276,70 +309,103 @@ def qr_structures(r_ext, idx, offsets, rank_tol, sse, theta, bad):  # pragma: no
     span = np.zeros(kmax + 1, dtype=np.int64)
     Rt = np.zeros((kmax + 1, kmax + 1))  # Rt[j, i] = R[i, j]
     cols = np.empty(kmax + 1, dtype=np.int64)
-    x = np.zeros(rows)
+    X = np.zeros((LANES, rows))  # the group's columns, side by side
     valid = 0  # leading reflectors that belong to the previous structure's prefix
     for b in range(len(offsets) - 1):
-        s = offsets[b]
-        k = offsets[b + 1] - s
+        st = offsets[b]
+        k = offsets[b + 1] - st
         bad[b] = k == 0
         sse[b] = np.nan
         if k == 0:
             valid = 0
             continue
         same = 0
-        while same < min(k, valid) and cols[same] == idx[s + same]:
+        while same < min(k, valid) and cols[same] == idx[st + same]:
             same += 1
         for j in range(k):
-            cols[j] = idx[s + j]
+            cols[j] = idx[st + j]
         cols[k] = m
         ssq = 0.0
-        for j in range(same, k + 1):
-            c = cols[j]
-            top = min(c + 1, rows)
-            for q in range(top):
-                x[q] = r_ext[q, c]
-            for q in range(top, rows):
-                x[q] = 0.0
-            for i in range(j):  # the reflectors of the columns before
-                if i >= top:
-                    break
-                acc = 0.0
+        j0 = same
+        while j0 <= k:
+            nb = min(LANES, k + 1 - j0)
+            X[:, :] = 0.0
+            for lane in range(nb):
+                c = cols[j0 + lane]
+                for q in range(min(c + 1, rows)):
+                    X[lane, q] = r_ext[q, c]
+            for i in range(j0 + nb):
+                if i >= j0:  # column i has met every reflector before it
+                    lane = i - j0
+                    j = i
+                    for p in range(min(j, rows)):
+                        Rt[j, p] = X[lane, p]
+                    top = min(cols[j] + 1, rows)
+                    if j > 0:
+                        top = max(top, span[j - 1])
+                    if j == k:  # the target: what is left below row k is the residual
+                        for q in range(k, top):
+                            ssq += X[lane, q] * X[lane, q]
+                        break
+                    if j >= rows:  # more terms than rows
+                        Rt[j, j] = 0.0
+                        tau[j] = 0.0
+                        span[j] = j
+                    else:
+                        end = max(top, j + 1)
+                        nrm2 = 0.0
+                        for q in range(j, end):
+                            nrm2 += X[lane, q] * X[lane, q]
+                        alpha = X[lane, j]
+                        span[j] = end
+                        V[j, j] = 1.0
+                        if nrm2 == 0.0 or not nrm2 == nrm2:
+                            Rt[j, j] = 0.0 if nrm2 == 0.0 else np.nan
+                            tau[j] = 0.0
+                            for q in range(j + 1, end):
+                                V[j, q] = 0.0
+                        else:
+                            beta = -np.sqrt(nrm2) if alpha >= 0.0 else np.sqrt(nrm2)
+                            tau[j] = (beta - alpha) / beta
+                            scale = 1.0 / (alpha - beta)
+                            for q in range(j + 1, end):
+                                V[j, q] = X[lane, q] * scale
+                            Rt[j, j] = beta
+                    if i == j0 + nb - 1:
+                        break
+                if i >= rows:
+                    continue
+                s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = 0.0
                 for q in range(i, span[i]):
-                    acc += V[i, q] * x[q]
-                acc *= tau[i]
+                    v = V[i, q]
+                    s0 += v * X[0, q]
+                    s1 += v * X[1, q]
+                    s2 += v * X[2, q]
+                    s3 += v * X[3, q]
+                    s4 += v * X[4, q]
+                    s5 += v * X[5, q]
+                    s6 += v * X[6, q]
+                    s7 += v * X[7, q]
+                t = tau[i]
+                s0 *= t
+                s1 *= t
+                s2 *= t
+                s3 *= t
+                s4 *= t
+                s5 *= t
+                s6 *= t
+                s7 *= t
                 for q in range(i, span[i]):
-                    x[q] -= acc * V[i, q]
-                top = max(top, span[i])
-            for i in range(min(j, rows)):
-                Rt[j, i] = x[i]
-            if j == k:  # the target: what the reflectors leave below row k is the residual
-                for q in range(k, top):
-                    ssq += x[q] * x[q]
-                break
-            if j >= rows:  # more terms than rows
-                Rt[j, j] = 0.0
-                tau[j] = 0.0
-                span[j] = j
-                continue
-            end = max(top, j + 1)
-            nrm2 = 0.0
-            for q in range(j, end):
-                nrm2 += x[q] * x[q]
-            alpha = x[j]
-            span[j] = end
-            V[j, j] = 1.0
-            if nrm2 == 0.0 or not nrm2 == nrm2:
-                Rt[j, j] = 0.0 if nrm2 == 0.0 else np.nan
-                tau[j] = 0.0
-                for q in range(j + 1, end):
-                    V[j, q] = 0.0
-                continue
-            beta = -np.sqrt(nrm2) if alpha >= 0.0 else np.sqrt(nrm2)
-            tau[j] = (beta - alpha) / beta
-            scale = 1.0 / (alpha - beta)
-            for q in range(j + 1, end):
-                V[j, q] = x[q] * scale
-            Rt[j, j] = beta
+                    v = V[i, q]
+                    X[0, q] -= s0 * v
+                    X[1, q] -= s1 * v
+                    X[2, q] -= s2 * v
+                    X[3, q] -= s3 * v
+                    X[4, q] -= s4 * v
+                    X[5, q] -= s5 * v
+                    X[6, q] -= s6 * v
+                    X[7, q] -= s7 * v
+            j0 += nb
         valid = k
         for j in range(k):
             d = Rt[j, j] * Rt[j, j]
@@ -351,6 +417,6 @@ def qr_structures(r_ext, idx, offsets, rank_tol, sse, theta, bad):  # pragma: no
         for j in range(k - 1, -1, -1):  # R[:k, :k] theta = R[:k, k]
             acc = Rt[k, j]
             for p in range(j + 1, k):
-                acc -= Rt[p, j] * theta[s + p]
-            theta[s + j] = acc / Rt[j, j]
+                acc -= Rt[p, j] * theta[st + p]
+            theta[st + j] = acc / Rt[j, j]
         sse[b] = ssq
