@@ -293,7 +293,10 @@ def qr_structures(r_ext, idx, offsets, rank_tol, sse, theta, bad):  # pragma: no
     reflectors of a prefix shared with the previous structure are reused
     (structures in lexicographic order of their index lists fit fastest).
     Columns are reduced :data:`LANES` at a time (each reflector read once for
-    them), every column by the same loops.
+    them), and a reflector is applied in the same pass over them as the next
+    reflector's dot products. Groups start at multiples of :data:`LANES`, so a
+    column's numbers do not depend on how much its structure shared with the
+    previous one.
 
     Outputs as :func:`fit_structures`: ``sse`` (NaN where rank-deficient),
     ``theta`` (coefficients of the unit-norm columns), ``bad`` (a squared
@@ -326,10 +329,12 @@ def qr_structures(r_ext, idx, offsets, rank_tol, sse, theta, bad):  # pragma: no
             cols[j] = idx[st + j]
         cols[k] = m
         ssq = 0.0
-        j0 = same
+        j0 = same - same % LANES  # groups start at multiples of LANES (see above)
         while j0 <= k:
             nb = min(LANES, k + 1 - j0)
             X[:, :] = 0.0
+            have = False
+            s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = 0.0
             for lane in range(nb):
                 c = cols[j0 + lane]
                 for q in range(min(c + 1, rows)):
@@ -375,17 +380,18 @@ def qr_structures(r_ext, idx, offsets, rank_tol, sse, theta, bad):  # pragma: no
                         break
                 if i >= rows:
                     continue
-                s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = 0.0
-                for q in range(i, span[i]):
-                    v = V[i, q]
-                    s0 += v * X[0, q]
-                    s1 += v * X[1, q]
-                    s2 += v * X[2, q]
-                    s3 += v * X[3, q]
-                    s4 += v * X[4, q]
-                    s5 += v * X[5, q]
-                    s6 += v * X[6, q]
-                    s7 += v * X[7, q]
+                if not have:
+                    s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = 0.0
+                    for q in range(i, span[i]):
+                        v = V[i, q]
+                        s0 += v * X[0, q]
+                        s1 += v * X[1, q]
+                        s2 += v * X[2, q]
+                        s3 += v * X[3, q]
+                        s4 += v * X[4, q]
+                        s5 += v * X[5, q]
+                        s6 += v * X[6, q]
+                        s7 += v * X[7, q]
                 t = tau[i]
                 s0 *= t
                 s1 *= t
@@ -395,16 +401,58 @@ def qr_structures(r_ext, idx, offsets, rank_tol, sse, theta, bad):  # pragma: no
                 s5 *= t
                 s6 *= t
                 s7 *= t
-                for q in range(i, span[i]):
-                    v = V[i, q]
-                    X[0, q] -= s0 * v
-                    X[1, q] -= s1 * v
-                    X[2, q] -= s2 * v
-                    X[3, q] -= s3 * v
-                    X[4, q] -= s4 * v
-                    X[5, q] -= s5 * v
-                    X[6, q] -= s6 * v
-                    X[7, q] -= s7 * v
+                have = i + 1 < j0 and i + 1 < rows
+                if have:
+                    u0 = u1 = u2 = u3 = u4 = u5 = u6 = u7 = 0.0
+                    for q in range(i, span[i]):
+                        v = V[i, q]
+                        w = V[i + 1, q]
+                        x0 = X[0, q] - s0 * v
+                        x1 = X[1, q] - s1 * v
+                        x2 = X[2, q] - s2 * v
+                        x3 = X[3, q] - s3 * v
+                        x4 = X[4, q] - s4 * v
+                        x5 = X[5, q] - s5 * v
+                        x6 = X[6, q] - s6 * v
+                        x7 = X[7, q] - s7 * v
+                        X[0, q] = x0
+                        X[1, q] = x1
+                        X[2, q] = x2
+                        X[3, q] = x3
+                        X[4, q] = x4
+                        X[5, q] = x5
+                        X[6, q] = x6
+                        X[7, q] = x7
+                        u0 += w * x0
+                        u1 += w * x1
+                        u2 += w * x2
+                        u3 += w * x3
+                        u4 += w * x4
+                        u5 += w * x5
+                        u6 += w * x6
+                        u7 += w * x7
+                    for q in range(span[i], span[i + 1]):
+                        w = V[i + 1, q]
+                        u0 += w * X[0, q]
+                        u1 += w * X[1, q]
+                        u2 += w * X[2, q]
+                        u3 += w * X[3, q]
+                        u4 += w * X[4, q]
+                        u5 += w * X[5, q]
+                        u6 += w * X[6, q]
+                        u7 += w * X[7, q]
+                    s0, s1, s2, s3, s4, s5, s6, s7 = u0, u1, u2, u3, u4, u5, u6, u7
+                else:
+                    for q in range(i, span[i]):
+                        v = V[i, q]
+                        X[0, q] -= s0 * v
+                        X[1, q] -= s1 * v
+                        X[2, q] -= s2 * v
+                        X[3, q] -= s3 * v
+                        X[4, q] -= s4 * v
+                        X[5, q] -= s5 * v
+                        X[6, q] -= s6 * v
+                        X[7, q] -= s7 * v
             j0 += nb
         valid = k
         for j in range(k):
