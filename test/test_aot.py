@@ -132,7 +132,7 @@ def test_the_kernels_are_numba_dispatchers_inside_compiled_code():
     gram = np.array([[4.0, 2.0], [2.0, 3.0]])
     L = np.zeros((2, 2))
     piv = np.zeros(2)
-    first = cholesky_rows.jit(gram, np.array([0, 1]), 0, 2, L, piv, 1e-12, False)
+    first = cholesky_rows.jit(gram, np.array([0, 1]), 0, 2, L, piv, 1e-12, False, 2)
     assert first == -1
     assert np.allclose(L @ L.T, gram)
 

@@ -266,7 +266,7 @@ def test_the_compiled_qr_arbitration_equals_numpy_qr_structure_by_structure():
 def test_factor_rows_and_qr_columns_do_not_depend_on_their_group():
     # rows (columns) are computed LANES at a time; a factor extended from any prefix,
     # and a structure fitted after a neighbour that shares a prefix, give the same bits
-    from spm_sysid.core.narx.kernels import LANES, cholesky_rows, qr_structures
+    from spm_sysid.core.narx.kernels import GROUPED_FROM, LANES, cholesky_rows, qr_structures
 
     rng = np.random.default_rng(5)
     P = rng.standard_normal((200, 60))
@@ -278,12 +278,14 @@ def test_factor_rows_and_qr_columns_do_not_depend_on_their_group():
     def factor(splits):
         L, piv = np.zeros((k, k)), np.zeros(k)
         for start, stop in zip(splits[:-1], splits[1:]):
-            cholesky_rows(ev.gram, cols, start, stop, L, piv, 0.0, False)
+            cholesky_rows(ev.gram, cols, start, stop, L, piv, 0.0, False, stop)
         return L, piv
 
     whole, piv = factor([0, k])
     assert np.allclose(whole @ whole.T, ev.gram[np.ix_(cols, cols)], atol=1e-12)
-    for splits in ([0, 1, k], [0, LANES - 1, LANES + 2, k], [0, 3, 4, 5, 30, k]):
+    g = GROUPED_FROM
+    for splits in ([0, 1, k], [0, g + 1, k], [0, g + LANES - 1, g + LANES + 2, k],
+                   [0, 3, 4, 5, 30, g + 3, g + 4, k]):
         L, p = factor(splits)
         assert np.array_equal(L, whole) and np.array_equal(p, piv)
 

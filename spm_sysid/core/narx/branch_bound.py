@@ -511,7 +511,7 @@ def _consider(data, heap, work, kk):  # pragma: no cover - compiled
     cand, Lc = work.cand, work.Lc
     _shell_sort(cand, kk)
     cand[kk] = m
-    cholesky_rows(data.gram, cand, 0, kk + 1, Lc, work.piv, 0.0, False)
+    cholesky_rows(data.gram, cand, 0, kk + 1, Lc, work.piv, 0.0, False, kk + 1)
     smallest = np.inf
     for j in range(kk):
         smallest = min(smallest, Lc[j, j] * Lc[j, j])
@@ -552,7 +552,7 @@ def _node_columns(work, m):  # pragma: no cover - compiled
 def _factorise(data, work, t):  # pragma: no cover - compiled
     """Factorise T's Gram sub-matrix; the first nearly dependent row, or -1."""
     L = work.L
-    cholesky_rows(data.gram, work.cols, 0, t, L, work.piv, 0.0, False)
+    cholesky_rows(data.gram, work.cols, 0, t, L, work.piv, 0.0, False, t)
     for j in range(t):
         if not L[j, j] * L[j, j] > data.rank_tol:
             return j
@@ -576,7 +576,7 @@ def _branch_on(heap, work, size, bound, c):  # pragma: no cover - compiled
 def _fit_all(data, work, t):  # pragma: no cover - compiled
     """SSE(T), all the node's terms in (the target's row of the factor, then CSNE)."""
     m = data.gram.shape[0] - 1
-    cholesky_rows(data.gram, work.cols, t, t + 1, work.L, work.piv, 0.0, False)
+    cholesky_rows(data.gram, work.cols, t, t + 1, work.L, work.piv, 0.0, False, t + 1)
     return _refined_sse(work.L, data.r_ext, work.cols, t, m, work.theta, work.r, work.g)
 
 

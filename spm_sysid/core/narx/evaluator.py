@@ -41,12 +41,11 @@ import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
-from scipy import linalg
 
 from ..cores import usable_cores
 from .criteria import Criterion, get_criterion
 from .kernels import fit_structures, qr_structures
-from .lstsq import DEFAULT_RANK_TOL, sse_floor
+from .lstsq import DEFAULT_RANK_TOL, solve_upper, sse_floor
 
 #: Structures the Gram path accepts with a smallest squared pivot below
 #: NEAR_RANK * rank_tol have their rank (and fit) decided by QR, as the reference fit
@@ -346,7 +345,7 @@ class StructureEvaluator:
                          mode="r")
         if np.min(np.diag(R)[:k] ** 2) < self.rank_tol:
             return np.nan, np.zeros(k), True
-        th = linalg.solve_triangular(R[:k, :k], R[:k, k], check_finite=False)
+        th = solve_upper(R[:k, :k], R[:k, k])
         return float(R[k, k] ** 2) if R.shape[0] > k else 0.0, th, False
 
 

@@ -27,9 +27,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import linalg
 
 from ..errors import DataError
+from .kernels import pivoted_qr
 
 __all__ = ["COLLINEAR_LIMIT", "DataCheck", "check_problem", "describe_check",
            "excitation_order"]
@@ -175,9 +175,9 @@ def check_problem(problem, rank_tol: float = 1e-9) -> DataCheck:
         raise DataError(check.refusal)
     if usable <= COLLINEAR_LIMIT:
         ev = problem.evaluator()
-        R = linalg.qr(ev.factor[:, :usable], mode="r", pivoting=True)
-        r_mat, piv = R[0], R[1]
-        diag = np.abs(np.diag(r_mat))
+        diag, piv = np.empty(usable), np.empty(usable, dtype=np.int64)
+        pivoted_qr(np.ascontiguousarray(ev.factor[:, :usable].T), diag, piv)
+        diag = diag[:min(usable, ev.factor.shape[0])]
         if diag.size and diag[0] > 0:
             check.condition = float(diag[0] / max(diag[-1], np.finfo(float).tiny))
         usable_names = [names[i] for i in np.flatnonzero(problem.usable)]

@@ -23,8 +23,8 @@ import numpy as np
 
 from .compiled import jit, jit_exact
 
-__all__ = ["cholesky_rows", "cholesky_solve", "csne_gathered", "csne_step", "fit_structures",
-           "jit", "jit_exact", "qr_structures"]
+__all__ = ["GROUPED_FROM", "LANES", "cholesky_rows", "cholesky_solve", "csne_gathered", "csne_step",
+           "fit_structures", "jit", "jit_exact", "pivoted_qr", "qr_structures"]
 
 
 #: Rows of the Cholesky factor (columns of the QR) computed together: in their inner
@@ -33,25 +33,57 @@ __all__ = ["cholesky_rows", "cholesky_solve", "csne_gathered", "csne_step", "fit
 LANES = 8
 
 
+#: Rows of the Cholesky factor below this are computed one at a time (small
+#: structures: the paper's are 5 to 20 terms), from it on in groups of LANES.
+GROUPED_FROM = 32
+
+
 @jit
-def cholesky_rows(gram, cols, start, stop, L, piv, tol, halt):  # pragma: no cover - compiled
+def cholesky_rows(gram, cols, start, stop, L, piv, tol, halt, checked):  # pragma: no cover
     """Rows start..stop-1 of the up-looking Cholesky factor of gram[cols, cols].
 
     Row j of L needs only rows 0..j-1, so a factor of a prefix extends row by
-    row. ``piv[j]`` receives row j's squared pivot. A squared pivot not above
-    ``tol`` (NaN included) leaves a zero diagonal (later rows then give that
-    column 0); the first such row is returned (-1: none), and with ``halt`` the
-    factorisation stops there. The evaluator's fits and the branch and bound's
-    nodes both factorise with this routine.
+    row. ``piv[j]`` receives row j's squared pivot. For rows below ``checked``,
+    a squared pivot not above ``tol`` (NaN included) leaves a zero diagonal
+    (later rows then give that column 0); the first such row is returned (-1:
+    none), and with ``halt`` the factorisation stops there. Rows from
+    ``checked`` on (a target appended to the terms) have a zero diagonal only
+    for a squared pivot not above 0. The evaluator's fits and the branch and
+    bound's nodes both factorise with this routine.
 
-    Rows go in groups of :data:`LANES`: entry (j, i) is ``gram[cj, ci]`` less the
-    dot product of rows j and i over columns < i, computed by the same loop for
-    every entry, so a row's numbers do not depend on the group it fell in.
+    Rows from :data:`GROUPED_FROM` on go in groups of :data:`LANES`: each row
+    of L read in the inner loop serves the whole group. Entry (j, i) is
+    ``gram[cj, ci]`` less the dot product of rows j and i over columns < i,
+    computed by one loop for every entry of a grouped row, so a row's numbers
+    depend on its index only, never on the group it fell in (a test).
     """
     first = -1
+    j0 = start
+    while j0 < min(stop, GROUPED_FROM):  # one row at a time
+        cj = cols[j0]
+        for i in range(j0):
+            acc = gram[cj, cols[i]]
+            for p in range(i):
+                acc -= L[j0, p] * L[i, p]
+            L[j0, i] = acc / L[i, i] if L[i, i] > 0.0 else 0.0
+        d = gram[cj, cj]
+        for p in range(j0):
+            d -= L[j0, p] * L[j0, p]
+        piv[j0] = d
+        if d > (tol if j0 < checked else 0.0):
+            L[j0, j0] = np.sqrt(d)
+        else:
+            L[j0, j0] = 0.0
+            if j0 < checked:
+                if first < 0:
+                    first = j0
+                if halt:
+                    return first
+        j0 += 1
+    if j0 >= stop:
+        return first
     W = np.zeros((LANES, stop))  # W[b, p] = L[j0 + b, p]: the group's rows, side by side
     s = np.zeros(LANES)
-    j0 = start
     while j0 < stop:
         nb = min(LANES, stop - j0)
         for i in range(j0 + nb):
@@ -61,14 +93,15 @@ def cholesky_rows(gram, cols, start, stop, L, piv, tol, halt):  # pragma: no cov
                 for p in range(i):
                     d -= W[b, p] * W[b, p]
                 piv[i] = d
-                if d > tol:
+                if d > (tol if i < checked else 0.0):
                     L[i, i] = np.sqrt(d)
                 else:
                     L[i, i] = 0.0
-                    if first < 0:
-                        first = i
-                    if halt:
-                        return first
+                    if i < checked:
+                        if first < 0:
+                            first = i
+                        if halt:
+                            return first
                 if i == j0 + nb - 1:
                     break
             s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = 0.0
@@ -237,7 +270,8 @@ def fit_structures(gram, r_ext, idx, offsets, rank_tol, y_norm, n, refine_all,
         for j in range(k):
             cols[j] = idx[s + j]
         cols[k] = m
-        weak = cholesky_rows(gram, cols, same, k, L, piv, rank_tol, True)
+        # the terms' rows and the target's (row k: its pivot is the SSE) in one call
+        weak = cholesky_rows(gram, cols, same, k + 1, L, piv, rank_tol, True, k)
         last = k if weak < 0 else weak + 1
         for j in range(last):  # the reused rows' pivots count too
             if piv[j] < minpiv[b]:
@@ -250,7 +284,6 @@ def fit_structures(gram, r_ext, idx, offsets, rank_tol, y_norm, n, refine_all,
         valid = k
         # the target's row: its pivot is sqrt(SSE); at or below 0 an exact fit whose
         # SSE is lost in rounding (refined below), NaN a failure
-        cholesky_rows(gram, cols, k, k + 1, L, piv, 0.0, False)
         if not piv[k] == piv[k]:
             bad[b] = True
         if bad[b]:
@@ -468,3 +501,67 @@ def qr_structures(r_ext, idx, offsets, rank_tol, sse, theta, bad):  # pragma: no
                 acc -= Rt[p, j] * theta[st + p]
             theta[st + j] = acc / Rt[j, j]
         sse[b] = ssq
+
+
+@jit
+def pivoted_qr(At, diag, piv):  # pragma: no cover - compiled
+    """Householder QR with column pivoting of A = At.T: ``|R|``'s diagonal and the order.
+
+    ``At`` (n, rows) holds A's columns as rows (overwritten). Step j takes the
+    remaining column of largest norm (Businger and Golub, the choice of
+    LAPACK's ``dgeqp3``); norms are downdated after each step and computed
+    again where the downdate has lost most of the column's norm. Outputs
+    ``diag[j] = |R[j, j]|`` and ``piv[j]``, the column of A in position j.
+    """
+    n, rows = At.shape
+    norms = np.empty(n)
+    ref = np.empty(n)  # the norm at the last exact computation
+    for c in range(n):
+        acc = 0.0
+        for q in range(rows):
+            acc += At[c, q] * At[c, q]
+        norms[c] = acc
+        ref[c] = acc
+        piv[c] = c
+    for j in range(n):
+        diag[j] = 0.0
+    for j in range(min(rows, n)):
+        p = j
+        for c in range(j + 1, n):
+            if norms[c] > norms[p]:
+                p = c
+        if p != j:
+            for q in range(rows):
+                At[j, q], At[p, q] = At[p, q], At[j, q]
+            norms[j], norms[p] = norms[p], norms[j]
+            ref[j], ref[p] = ref[p], ref[j]
+            piv[j], piv[p] = piv[p], piv[j]
+        nrm2 = 0.0
+        for q in range(j, rows):
+            nrm2 += At[j, q] * At[j, q]
+        if nrm2 == 0.0 or not nrm2 == nrm2:
+            continue
+        alpha = At[j, j]
+        beta = -np.sqrt(nrm2) if alpha >= 0.0 else np.sqrt(nrm2)
+        tau = (beta - alpha) / beta
+        scale = 1.0 / (alpha - beta)
+        for q in range(j + 1, rows):
+            At[j, q] *= scale
+        At[j, j] = beta
+        diag[j] = abs(beta)
+        for c in range(j + 1, n):
+            acc = At[c, j]
+            for q in range(j + 1, rows):
+                acc += At[j, q] * At[c, q]
+            acc *= tau
+            At[c, j] -= acc
+            for q in range(j + 1, rows):
+                At[c, q] -= acc * At[j, q]
+            r = At[c, j]
+            norms[c] -= r * r
+            if norms[c] <= 1e-6 * ref[c]:  # cancellation: compute it again
+                acc = 0.0
+                for q in range(j + 1, rows):
+                    acc += At[c, q] * At[c, q]
+                norms[c] = acc
+                ref[c] = acc
