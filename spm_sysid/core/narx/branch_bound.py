@@ -550,9 +550,12 @@ def _node_columns(work, m):  # pragma: no cover - compiled
 
 @jit
 def _factorise(data, work, t):  # pragma: no cover - compiled
-    """Factorise T's Gram sub-matrix; the first nearly dependent row, or -1."""
+    """Factorise T's Gram sub-matrix and the target's row; the first nearly dependent row, or -1.
+
+    (work.cols[t] is the target: its row, computed with T's, is what :func:`_fit_all` uses.)
+    """
     L = work.L
-    cholesky_rows(data.gram, work.cols, 0, t, L, work.piv, 0.0, False, t)
+    cholesky_rows(data.gram, work.cols, 0, t + 1, L, work.piv, 0.0, False, t)
     for j in range(t):
         if not L[j, j] * L[j, j] > data.rank_tol:
             return j
@@ -574,9 +577,8 @@ def _branch_on(heap, work, size, bound, c):  # pragma: no cover - compiled
 
 @jit
 def _fit_all(data, work, t):  # pragma: no cover - compiled
-    """SSE(T), all the node's terms in (the target's row of the factor, then CSNE)."""
+    """SSE(T), all the node's terms in (the target's row from :func:`_factorise`, then CSNE)."""
     m = data.gram.shape[0] - 1
-    cholesky_rows(data.gram, work.cols, t, t + 1, work.L, work.piv, 0.0, False, t + 1)
     return _refined_sse(work.L, data.r_ext, work.cols, t, m, work.theta, work.r, work.g)
 
 
