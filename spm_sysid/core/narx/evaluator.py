@@ -303,7 +303,7 @@ class StructureEvaluator:
         if all_near:  # known near the threshold (and Gram-accepted): QR decides
             near = np.ones(len(masks), dtype=bool)
         else:
-            _batched(fit_structures, (self.gram, self.factor), idx, offsets, _shared_prefix(masks),
+            _batched(fit_structures, (self.gram, self.factor), idx, offsets, masks,
                      (float(self.rank_tol), self.target_norm, self.n,
                       self.criterion.needs_coefficients),
                      ((sse, "b"), (theta, "i"), (bad, "b"), (minpiv, "b")))
@@ -318,8 +318,7 @@ class StructureEvaluator:
             take = np.concatenate([np.arange(offsets[b], offsets[b + 1]) for b in which])
             sub_sse, sub_theta = np.empty(len(which)), np.zeros(len(take))
             sub_bad = np.empty(len(which), dtype=np.bool_)
-            _batched(qr_structures, (self.factor,), idx[take], sub_offsets,
-                     _shared_prefix(masks[which]),
+            _batched(qr_structures, (self.factor,), idx[take], sub_offsets, masks[which],
                      (float(self.rank_tol),),
                      ((sub_sse, "b"), (sub_theta, "i"), (sub_bad, "b")))
             sse[which], theta[take], bad[which] = sub_sse, sub_theta, sub_bad
@@ -364,12 +363,12 @@ def _shared_prefix(masks: np.ndarray) -> np.ndarray:
     return shared
 
 
-def _batched(kernel, leading: tuple, idx: np.ndarray, offsets: np.ndarray, shared: np.ndarray,
+def _batched(kernel, leading: tuple, idx: np.ndarray, offsets: np.ndarray, masks: np.ndarray,
              trailing: tuple, outputs: tuple) -> None:
     """``kernel(*leading, idx, offsets, *trailing, *outputs)`` on a sorted batch.
 
     ``outputs`` are (array, "b") per structure or (array, "i") per entry of
-    ``idx``; ``shared`` is :func:`_shared_prefix` of the batch. A batch worth
+    ``idx``; ``masks`` are the batch's structures (sorted). A batch worth
     more than :data:`PARALLEL_FIT_WORK` (k^3 less shared^3 per structure: the
     factorisation a kernel does) runs as two halves of about equal work on two
     threads (numba's JIT: it releases the GIL); each structure is computed the
@@ -377,7 +376,9 @@ def _batched(kernel, leading: tuple, idx: np.ndarray, offsets: np.ndarray, share
     """
     n = len(offsets) - 1
     k3 = np.diff(offsets).astype(float) ** 3
-    work = k3 - shared.astype(float) ** 3
+    work = k3
+    if n > 1 and k3.sum() > PARALLEL_FIT_WORK:  # (small batches: not worth counting)
+        work = k3 - _shared_prefix(masks).astype(float) ** 3
     pool = _fit_pool() if n > 1 and work.sum() > PARALLEL_FIT_WORK else None
     if pool is None:
         kernel(*leading, idx, offsets, *trailing, *(a for a, _ in outputs))
