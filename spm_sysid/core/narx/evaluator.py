@@ -52,7 +52,8 @@ from .lstsq import DEFAULT_RANK_TOL, solve_upper, sse_floor
 #: decides it: there the Gram matrix's squared condition number makes pivots unreliable.
 NEAR_RANK = 10.0
 
-#: A batch whose fits cost more than this (sum of k^3 over its structures) is split
+#: A batch whose fits cost more than this (sum over its structures of k^3 less the
+#: cube of the prefix shared with the one before) is split
 #: in two halves fitted on two threads (numba's JIT, which releases the GIL): with
 #: hundreds of candidate terms a generation's fits take tens of milliseconds, and the
 #: halves give the same numbers (each structure is factorised the same way whether

@@ -270,7 +270,7 @@ def fit_structures(gram, r_ext, idx, offsets, rank_tol, y_norm, n, refine_all,
         for j in range(k):
             cols[j] = idx[s + j]
         cols[k] = m
-        # the terms' rows and the target's (row k: its pivot is the SSE) in one call
+        # the terms' rows and the target's (row k: its squared pivot is the SSE) in one call
         weak = cholesky_rows(gram, cols, same, k + 1, L, piv, rank_tol, True, k)
         last = k if weak < 0 else weak + 1
         for j in range(last):  # the reused rows' pivots count too
