@@ -308,3 +308,23 @@ def test_factor_rows_and_qr_columns_do_not_depend_on_their_group():
         first[59] = True
         after = fitted(np.vstack([first, last[0]]))
         assert after[0] == alone[0] and np.array_equal(after[1], alone[1])
+
+
+@pytest.mark.parametrize("rows", [40, 300])
+def test_large_structures_and_short_records_are_decided_as_the_reference_decides(rows):
+    # structures of 26-57 terms (factor rows computed in groups), some with more terms
+    # than rows (rank-deficient, also for the reference fit), a near-duplicate column
+    rng = np.random.default_rng(rows)
+    P = rng.standard_normal((rows, 70))
+    P[:, 50] = P[:, 40] + 1e-6 * rng.standard_normal(rows)
+    t = P[:, :5] @ rng.standard_normal(5) + 0.1 * rng.standard_normal(rows)
+    masks = rng.random((200, 70)) < 0.6
+    ev = StructureEvaluator(P, t, "aic")
+    _, _, bad = ev.fit_batch(masks)
+    ref = np.array([reference_score(P, t, m, "aic") for m in masks])
+    finite = np.isfinite(ref)
+    assert np.array_equal(~bad, finite) and 20 < finite.sum() < 190
+    if rows < 70:
+        assert not finite[masks.sum(axis=1) > rows].any()
+    fast = ev.evaluate(masks)
+    assert np.max(np.abs(fast[finite] - ref[finite])) < 1e-6

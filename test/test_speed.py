@@ -70,12 +70,14 @@ def test_the_t_quantile_and_the_pivoted_qr_agree_with_scipy(robot_arm):
     a[:, 12] = a[:, 2] - a[:, 7] + 0.5 * a[:, 20] + 1e-9 * rng.standard_normal(80)
     d_ref, p_ref, d, p = both(a)
     assert np.array_equal(p, p_ref) and np.allclose(d, d_ref, rtol=1e-8, atol=1e-14)
-    # the data check's figures on real data (unit-norm columns: the first pivot is a tie,
-    # broken by rounding, so orders may differ while the figures agree)
+    # the data check's figures on real data. Unit-norm columns: the first pivot is a tie
+    # broken by rounding, so orders may differ; with 454 candidates about 97 pivots sit
+    # near the threshold and their count moves by a few with the last bits of the data
+    # (95-99 for scipy itself under perturbations of 1e-15), the condition by about 1 %
     u, y = robot_arm
-    for ts in (TermSpace(), TermSpace(ny=6, nu=6, degree=3)):  # 44 and 454 candidates
+    for ts, slack in ((TermSpace(), 0), (TermSpace(ny=6, nu=6, degree=3), 4)):
         d_ref, _, d, _ = both(Problem.from_signals(u, y, ts).evaluator().factor[:, :ts.n_terms])
-        assert np.sum(d ** 2 < 1e-9) == np.sum(d_ref ** 2 < 1e-9)
+        assert abs(np.sum(d ** 2 < 1e-9) - np.sum(d_ref ** 2 < 1e-9)) <= slack
         assert d[0] / d[-1] == pytest.approx(d_ref[0] / d_ref[-1], rel=0.05)
 
 

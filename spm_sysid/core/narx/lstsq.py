@@ -82,7 +82,7 @@ def reference_fit(
         return FitResult(np.empty(0), float(target @ target), False)
     A = P[:, cols]
     norms = np.linalg.norm(A, axis=0)
-    if np.any(norms == 0):
+    if np.any(norms == 0) or k > A.shape[0]:  # a zero column, or more terms than rows
         return FitResult(np.full(k, np.nan), np.nan, True)
     An = A / norms
     Q, R = np.linalg.qr(An, mode="reduced")
