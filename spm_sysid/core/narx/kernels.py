@@ -39,6 +39,20 @@ GROUPED_FROM = 32
 
 
 @jit
+def _pivot(L, piv, j, d, tol):  # pragma: no cover - compiled
+    """Store row j's squared pivot d and its root on L's diagonal.
+
+    False (and a zero diagonal) when d is not above tol (NaN included).
+    """
+    piv[j] = d
+    if d > tol:
+        L[j, j] = np.sqrt(d)
+        return True
+    L[j, j] = 0.0
+    return False
+
+
+@jit
 def cholesky_rows(gram, cols, start, stop, L, piv, tol, halt, checked):  # pragma: no cover
     """Rows start..stop-1 of the up-looking Cholesky factor of gram[cols, cols].
 
@@ -69,16 +83,11 @@ def cholesky_rows(gram, cols, start, stop, L, piv, tol, halt, checked):  # pragm
         d = gram[cj, cj]
         for p in range(j0):
             d -= L[j0, p] * L[j0, p]
-        piv[j0] = d
-        if d > (tol if j0 < checked else 0.0):
-            L[j0, j0] = np.sqrt(d)
-        else:
-            L[j0, j0] = 0.0
-            if j0 < checked:
-                if first < 0:
-                    first = j0
-                if halt:
-                    return first
+        if not _pivot(L, piv, j0, d, tol if j0 < checked else 0.0) and j0 < checked:
+            if first < 0:
+                first = j0
+            if halt:
+                return first
         j0 += 1
     if j0 >= stop:
         return first
@@ -92,16 +101,11 @@ def cholesky_rows(gram, cols, start, stop, L, piv, tol, halt, checked):  # pragm
                 d = gram[cols[i], cols[i]]
                 for p in range(i):
                     d -= W[b, p] * W[b, p]
-                piv[i] = d
-                if d > (tol if i < checked else 0.0):
-                    L[i, i] = np.sqrt(d)
-                else:
-                    L[i, i] = 0.0
-                    if i < checked:
-                        if first < 0:
-                            first = i
-                        if halt:
-                            return first
+                if not _pivot(L, piv, i, d, tol if i < checked else 0.0) and i < checked:
+                    if first < 0:
+                        first = i
+                    if halt:
+                        return first
                 if i == j0 + nb - 1:
                     break
             s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = 0.0
@@ -314,6 +318,18 @@ def fit_structures(gram, r_ext, idx, offsets, rank_tol, y_norm, n, refine_all,
 
 
 @jit
+def householder(alpha, nrm2):  # pragma: no cover - compiled
+    """``(beta, tau, scale)`` of the reflector taking x to beta e_1.
+
+    ``alpha`` is x's first entry, ``nrm2`` its squared norm (positive); the
+    reflector is ``I - tau v v^T`` with ``v = [1, x[1:] * scale]``, and beta
+    has the sign opposite to alpha (no cancellation).
+    """
+    beta = -np.sqrt(nrm2) if alpha >= 0.0 else np.sqrt(nrm2)
+    return beta, (beta - alpha) / beta, 1.0 / (alpha - beta)
+
+
+@jit
 def qr_structures(r_ext, idx, offsets, rank_tol, sse, theta, bad):  # pragma: no cover
     """Fit the structures ``idx[offsets[b]:offsets[b + 1]]`` by Householder QR.
 
@@ -403,9 +419,7 @@ def qr_structures(r_ext, idx, offsets, rank_tol, sse, theta, bad):  # pragma: no
                             for q in range(j + 1, end):
                                 V[j, q] = 0.0
                         else:
-                            beta = -np.sqrt(nrm2) if alpha >= 0.0 else np.sqrt(nrm2)
-                            tau[j] = (beta - alpha) / beta
-                            scale = 1.0 / (alpha - beta)
+                            beta, tau[j], scale = householder(alpha, nrm2)
                             for q in range(j + 1, end):
                                 V[j, q] = X[lane, q] * scale
                             Rt[j, j] = beta
@@ -542,9 +556,7 @@ def pivoted_qr(At, diag, piv):  # pragma: no cover - compiled
         if nrm2 == 0.0 or not nrm2 == nrm2:
             continue
         alpha = At[j, j]
-        beta = -np.sqrt(nrm2) if alpha >= 0.0 else np.sqrt(nrm2)
-        tau = (beta - alpha) / beta
-        scale = 1.0 / (alpha - beta)
+        beta, tau, scale = householder(alpha, nrm2)
         for q in range(j + 1, rows):
             At[j, q] *= scale
         At[j, j] = beta
