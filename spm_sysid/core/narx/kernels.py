@@ -39,17 +39,19 @@ GROUPED_FROM = 32
 
 
 @jit
-def _pivot(L, piv, j, d, tol):  # pragma: no cover - compiled
-    """Store row j's squared pivot d and its root on L's diagonal.
+def _diagonal(L, piv, j, d, tol, checked, first):  # pragma: no cover - compiled
+    """Store row j's squared pivot d and its root on L's diagonal; the first weak row.
 
-    False (and a zero diagonal) when d is not above tol (NaN included).
+    A row below ``checked`` whose d is not above ``tol`` (NaN included), or any
+    row whose d is not above 0, gets a zero diagonal; returns ``first`` updated
+    to j when j is the first weak checked row.
     """
     piv[j] = d
-    if d > tol:
+    if d > (tol if j < checked else 0.0):
         L[j, j] = np.sqrt(d)
-        return True
+        return first
     L[j, j] = 0.0
-    return False
+    return j if j < checked and first < 0 else first
 
 
 @jit
@@ -83,11 +85,9 @@ def cholesky_rows(gram, cols, start, stop, L, piv, tol, halt, checked):  # pragm
         d = gram[cj, cj]
         for p in range(j0):
             d -= L[j0, p] * L[j0, p]
-        if not _pivot(L, piv, j0, d, tol if j0 < checked else 0.0) and j0 < checked:
-            if first < 0:
-                first = j0
-            if halt:
-                return first
+        first = _diagonal(L, piv, j0, d, tol, checked, first)
+        if halt and first == j0:
+            return first
         j0 += 1
     if j0 >= stop:
         return first
@@ -101,11 +101,9 @@ def cholesky_rows(gram, cols, start, stop, L, piv, tol, halt, checked):  # pragm
                 d = gram[cols[i], cols[i]]
                 for p in range(i):
                     d -= W[b, p] * W[b, p]
-                if not _pivot(L, piv, i, d, tol if i < checked else 0.0) and i < checked:
-                    if first < 0:
-                        first = i
-                    if halt:
-                        return first
+                first = _diagonal(L, piv, i, d, tol, checked, first)
+                if halt and first == i:
+                    return first
                 if i == j0 + nb - 1:
                     break
             s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = 0.0
