@@ -19,7 +19,7 @@ from rclpy.node import Node
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from ..ros.common import LATCHED
+from ..ros.common import LATCHED, REQUESTS
 
 __all__ = ["GoalOutcome", "call_trigger", "identify_goal", "main", "set_parameters",
            "wait_for_model"]
@@ -64,7 +64,7 @@ def call_trigger(node: Node, service: str, timeout: float = 300.0) -> tuple[bool
     TimeoutError
         The service did not appear, or did not answer, within ``timeout`` seconds.
     """
-    client = node.create_client(Trigger, service)
+    client = node.create_client(Trigger, service, qos_profile=REQUESTS)
     try:
         deadline = time.monotonic() + timeout
         if not client.wait_for_service(timeout_sec=min(timeout, 30.0)):
@@ -106,7 +106,9 @@ def identify_goal(node: Node, action: str, overrides: dict[str, str] | None = No
     from spm_sysid_interfaces.action import Identify
 
     overrides = overrides or {}
-    client = ActionClient(node, Identify, action)
+    client = ActionClient(node, Identify, action, goal_service_qos_profile=REQUESTS,
+                          result_service_qos_profile=REQUESTS,
+                          cancel_service_qos_profile=REQUESTS)
     try:
         deadline = time.monotonic() + timeout
         if not client.wait_for_server(timeout_sec=min(timeout, 30.0)):

@@ -38,6 +38,7 @@ from .narx.validation import (
     split_segments,
     validate_model,
 )
+from .online.monitor import store_monitor_reference
 from .progress import Progress, ProgressFn
 from .record import Record
 from .settings import JOB_GROUPS, check, defaults
@@ -383,6 +384,7 @@ def run_job(
                                     segment=settings.validation, segments=val,
                                     horizon=settings.horizon or None)
         model.metadata["validation"] = validation.to_dict()
+        store_monitor_reference(model.metadata, validation.residuals, u)
     t2 = time.perf_counter()
     seconds = {"search": t1 - t0, "validation": t2 - t1, "total": t2 - t0}
     model.metadata["data"] = data

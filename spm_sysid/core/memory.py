@@ -2,7 +2,8 @@
 
 Large inputs fail early with a message that says how much they would need,
 instead of exhausting the machine. The bound is ``SPM_SYSID_MAX_MEMORY``
-(bytes, or with a suffix: ``8G``, ``512M``) when set, otherwise half of the
+(bytes, or with a suffix: ``8G``, ``512M``; ``unlimited`` or ``inf`` for no
+bound) when set, otherwise half of the
 memory this process can still use: the least of
 
 * what the system reports as available (``MemAvailable`` in /proc/meminfo),
@@ -17,6 +18,7 @@ or 8 GiB where none of these can be read.
 
 from __future__ import annotations
 
+import math
 import os
 from pathlib import Path
 
@@ -110,19 +112,35 @@ def _address_space_room() -> int | None:
     return max(soft - size, 0)
 
 
+def _parse_limit(text: str) -> int:
+    """Bytes of ``SPM_SYSID_MAX_MEMORY`` (``8G``, ``512M``, ``1e9``; ``inf``/``none``: no bound)."""
+    if text.lower() in ("inf", "infinity", "none", "unlimited"):
+        return _UNLIMITED
+    mult = _SUFFIX.get(text[-1].upper(), 1)
+    try:
+        number = float(text[:-1] if text[-1].upper() in _SUFFIX else text) * mult
+    except ValueError:
+        raise MemoryLimitError(f"SPM_SYSID_MAX_MEMORY={text!r} is not a size such as "
+                               "8G or 512M") from None
+    if math.isnan(number):
+        raise MemoryLimitError(f"SPM_SYSID_MAX_MEMORY={text!r} is not a size such as 8G or 512M")
+    if number == math.inf:
+        return _UNLIMITED
+    if number <= 0:
+        raise MemoryLimitError(f"SPM_SYSID_MAX_MEMORY={text!r} must be positive (a size such "
+                               "as 8G or 512M; 'unlimited' for no bound)")
+    if number < 1:
+        raise MemoryLimitError(f"SPM_SYSID_MAX_MEMORY={text!r} is less than one byte (the "
+                               "number is bytes unless it ends in K, M, G or T: 0.5G is "
+                               "half a gigabyte)")
+    return int(min(number, _UNLIMITED))
+
+
 def memory_limit() -> tuple[int, str]:
     """The bound in bytes and where it comes from."""
     text = os.environ.get("SPM_SYSID_MAX_MEMORY", "").strip()
     if text:
-        try:
-            mult = _SUFFIX.get(text[-1].upper(), 1)
-            value = int(float(text[:-1] if text[-1].upper() in _SUFFIX else text) * mult)
-        except ValueError:
-            raise MemoryLimitError(f"SPM_SYSID_MAX_MEMORY={text!r} is not a size such as "
-                                   "8G or 512M") from None
-        if value <= 0:
-            raise MemoryLimitError(f"SPM_SYSID_MAX_MEMORY={text!r} must be positive")
-        return value, "SPM_SYSID_MAX_MEMORY"
+        return _parse_limit(text), "SPM_SYSID_MAX_MEMORY"
     sources = [(room, label) for room, label in (
         (_meminfo(), "the available memory"),
         (_cgroup_room(), "the memory its control group may still take"),

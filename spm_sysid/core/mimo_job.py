@@ -37,6 +37,7 @@ from .narx.correlation import CorrelationTest, ccf
 from .narx.coupled import refine_coupled
 from .narx.mimo import MimoModel, augmented_inputs, in_threads, output_space
 from .narx.validation import metrics, validate_model
+from .online.monitor import store_monitor_reference
 from .progress import Progress, ProgressFn
 from .record import Record
 
@@ -265,9 +266,11 @@ def run_mimo_job(record: Record, settings, *, progress: ProgressFn | None = None
     if settings.validation != "none":
         reports = [r.report for r in outputs]
         cross = couple_reports(model, u, Y, val, reports, settings.correlation_lags)
-        for r in outputs:
+        for i, r in enumerate(outputs):
             if r.report is not None:
                 r.model.metadata["validation"] = {**r.report.to_dict(), "free_run_coupled": True}
+                store_monitor_reference(r.model.metadata, r.report.residuals,
+                                        augmented_inputs(u, Y, i))
         model.metadata["cross_correlation_tests"] = [t.to_dict() for t in cross]
     data = outputs[0].data
     model.metadata["data"] = data

@@ -17,7 +17,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 
 from ..core.errors import BagError
 
-__all__ = ["LATCHED", "RELIABLE_KEEP_ALL", "message_class", "run_node"]
+__all__ = ["LATCHED", "RELIABLE_KEEP_ALL", "REQUESTS", "message_class", "run_node"]
 
 #: Latched: reliable + transient-local, depth 1; a late subscriber gets the last message.
 LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
@@ -28,6 +28,14 @@ LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
 RELIABLE_KEEP_ALL = QoSProfile(history=HistoryPolicy.KEEP_ALL,
                                reliability=ReliabilityPolicy.RELIABLE,
                                durability=DurabilityPolicy.VOLATILE)
+
+
+#: Services and the action's goal, cancel and result requests: every request is
+#: kept until the executor takes it (rclpy's default keeps the last 10, so a burst of
+#: more simultaneous requests lost some, and their clients waited forever).
+REQUESTS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
+                      reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.VOLATILE)
 
 
 def message_class(msgtype: str):

@@ -55,7 +55,7 @@ from ..core.record import BAG_OPTIONS, DataSpec, Record, load_record
 from ..core.settings import SETTINGS, Setting, check, node_settings, parse_text
 from ..core.stream.buffer import SampleBuffer
 from ..core.stream.diagnostics import diagnostic_statuses, online_status
-from .common import LATCHED, RELIABLE_KEEP_ALL, message_class, run_node
+from .common import LATCHED, RELIABLE_KEEP_ALL, REQUESTS, message_class, run_node
 from .typed import (
     feedback_message,
     model_message,
@@ -71,6 +71,8 @@ __all__ = ["LATCHED", "SysidNode", "main", "parameter_descriptor"]
 
 #: Graph checks (1 s apart) to wait for discovery to name a publisher of a wrong type.
 UNNAMED_CHECKS = 10
+#: Seconds a goal's bag may take to read when ``job_timeout`` is 0 (no limit for the job).
+LOAD_BOUND = 600.0
 
 #: The action result's error codes (``spm_sysid_interfaces/action/Identify``).
 Code = Identify.Result
@@ -164,14 +166,19 @@ class SysidNode(Node):
         self.create_timer(p["tracking_period"], self._publish_tracked)
         self.create_timer(1.0, self._online_tick)
         self.report_pub = self.create_publisher(ValidationReportMsg, "~/validation", LATCHED)
-        self.create_service(Trigger, "~/identify", self._on_identify, callback_group=services)
+        self.create_service(Trigger, "~/identify", self._on_identify, callback_group=services,
+                            qos_profile=REQUESTS)
         self.create_service(GetModel, "~/get_model", self._on_get_model,
-                            callback_group=services)
+                            callback_group=services, qos_profile=REQUESTS)
         # the action shares the Trigger's name (actions live in their own namespace)
         self.action = ActionServer(self, Identify, "~/identify", self._execute_goal,
                                    goal_callback=self._on_goal,
-                                   cancel_callback=self._on_cancel, callback_group=services)
-        self.create_service(Trigger, "~/clear", self._on_clear, callback_group=services)
+                                   cancel_callback=self._on_cancel, callback_group=services,
+                                   goal_service_qos_profile=REQUESTS,
+                                   result_service_qos_profile=REQUESTS,
+                                   cancel_service_qos_profile=REQUESTS)
+        self.create_service(Trigger, "~/clear", self._on_clear, callback_group=services,
+                            qos_profile=REQUESTS)
         self.create_timer(p["diagnostics_period"], self._publish_diagnostics)
         self.create_timer(1.0, self._check_graph)
         # Triggered from the worker's reader thread when a job ends, to wake the executor.
@@ -511,14 +518,20 @@ class SysidNode(Node):
             except (ValueError, TypeError) as exc:
                 return Outcome(Code.INVALID_SETTINGS, f"invalid settings: {exc}")
             try:
-                record = record if record is not None else self._load(values, bag_path)
+                if record is None:  # a bag is read off the executor thread, with a bound
+                    record = await self._off_executor(lambda: self._load(values, bag_path),
+                                                      values["job_timeout"] or LOAD_BOUND)
             except TooFewSamplesError as exc:
                 return Outcome(Code.TOO_FEW_SAMPLES, str(exc))
+            except JobCancelledError:
+                return Outcome(Code.CANCELED, "canceled while reading the data; the previous "
+                               "model stays published")
             except (ValueError, OSError) as exc:
                 return self._failed(Code.BAD_DATA, exc)
             if not await self._worker_ready(30.0):
                 return self._failed(Code.FAILED, RuntimeError(
-                    "the worker process is not ready (see the log)"))
+                    "the worker process is not ready ("
+                    + (self.worker.start_failure or "see the log") + ")"))
             if self._cancel_requested:
                 return Outcome(Code.CANCELED, "canceled before the search started")
             self._started, self._progress = time.monotonic(), None
@@ -567,6 +580,46 @@ class SysidNode(Node):
         message = f"identification failed: {exc}"
         self.get_logger().error(message)
         return Outcome(code, message)
+
+    def _off_executor(self, fn, timeout: float) -> Future:
+        """An awaitable of ``fn()`` run on a thread: its value, its error, or a timeout.
+
+        Reading a user's path may block (a slow disk, a network mount); the
+        executor goes on serving cancels, ``~/get_model`` and ``/diagnostics``
+        meanwhile. A cancel ends the wait too.
+        """
+        done = Future()
+        lock = threading.Lock()
+
+        def settle(value=None, exc: BaseException | None = None) -> None:
+            with lock:
+                if done.done():
+                    return
+                if exc is None:
+                    done.set_result(value)
+                else:
+                    done.set_exception(exc)
+            self._wake.trigger()
+
+        def run() -> None:
+            try:
+                settle(fn())
+            except BaseException as exc:  # noqa: BLE001 - handed to the awaiting coroutine
+                settle(exc=exc)
+
+        def watch() -> None:
+            end = time.monotonic() + timeout
+            while not done.done():
+                if self._cancel_requested:
+                    settle(exc=JobCancelledError("canceled by the client"))
+                elif time.monotonic() > end:
+                    settle(exc=OSError(f"reading the data took longer than {timeout:g} s "
+                                       "(job_timeout); is the path on a slow or stuck device?"))
+                time.sleep(0.05)
+
+        threading.Thread(target=run, daemon=True, name="read-data").start()
+        threading.Thread(target=watch, daemon=True, name="read-data-watch").start()
+        return done
 
     def _until(self, predicate, timeout: float) -> Future:
         """An awaitable: ``predicate()`` became true (or ``timeout`` seconds passed)."""
@@ -868,7 +921,8 @@ class SysidNode(Node):
                 self._progress or Progress("checking data"), time.monotonic() - self._started),
             last_error=self._last_error, model=self._model,
             restored_from=self._restored_from,
-            callback_errors=getattr(self, "callback_errors", 0))
+            callback_errors=getattr(self, "callback_errors", 0),
+            worker_failure=self.worker.start_failure)
         statuses.append(online_status(self.get_fully_qualified_name(), self._online,
                                       {**self._auto, "online_errors": self._online_errors}))
         msg = DiagnosticArray(status=[DiagnosticStatus(

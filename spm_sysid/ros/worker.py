@@ -36,6 +36,8 @@ from typing import Any
 __all__ = ["JobCancelledError", "JobError", "JobWorker", "WorkerDiedError"]
 
 _HEADER = struct.Struct("!Q")
+#: Longest wait (seconds) before restarting a worker that keeps dying while it starts.
+MAX_BACKOFF = 60.0
 
 
 class WorkerDiedError(RuntimeError):
@@ -94,11 +96,15 @@ class JobWorker:
         self.on_event = on_event or (lambda text: None)
         self.env = env
         self.restarts = 0
+        #: Why the last worker died before it was ready ('' once one is ready).
+        self.start_failure = ""
+        self._failures = 0  # consecutive deaths before "ready": the back-off's exponent
         self._lock = threading.Lock()
         self._closing = False
         self._proc: subprocess.Popen | None = None
         self._ready = threading.Event()
         self._job: Future | None = None
+        self._retry: threading.Timer | None = None
         self._start()
 
     # -- state ---------------------------------------------------------------------------
@@ -140,19 +146,33 @@ class JobWorker:
         return job
 
     def cancel(self, reason: str = "cancelled") -> None:
-        """Kill the running job's process and start a fresh worker."""
+        """Kill the running job's process and start a fresh worker.
+
+        The old process is retired and the new one started before the job is
+        answered, so a job submitted from the answer's callback goes to the new
+        worker, never to the dying one.
+        """
         with self._lock:
             proc, job, self._job = self._proc, self._job, None
-        if job is not None and not job.done():
-            job.set_exception(JobCancelledError(reason))
+            if job is None or job.done():
+                return  # nothing runs: the worker stays as it is
+            self._ready.clear()
+            self._proc = None  # its reader thread sees it replaced and stays quiet
         if proc is not None:
             self._kill(proc)
+        with self._lock:
+            if not self._closing and self._proc is None:
+                self.restarts += 1
+                self._start()
+        job.set_exception(JobCancelledError(reason))
 
     def close(self, timeout: float = 1.0) -> None:
         """End the worker (a running job is killed); waits at most about ``timeout``."""
         self._closing = True
         with self._lock:
             proc, job, self._job = self._proc, self._job, None
+            if self._retry is not None:
+                self._retry.cancel()
         if job is not None and not job.done():
             job.set_exception(JobCancelledError("the node is shutting down"))
         if proc is not None:
@@ -161,12 +181,35 @@ class JobWorker:
     # -- process management --------------------------------------------------------------
     def _start(self) -> None:
         self._ready.clear()
+        self._retry = None
         self._proc = subprocess.Popen(
             [sys.executable, "-m", "spm_sysid.ros.worker", self.function],
-            stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=self.env,
-            start_new_session=False)
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+            env=self.env, start_new_session=False)
+        self._proc.last_line = ""
         threading.Thread(target=self._read, args=(self._proc,), name="worker-reader",
                          daemon=True).start()
+        threading.Thread(target=self._relay, args=(self._proc,), name="worker-stderr",
+                         daemon=True).start()
+
+    @staticmethod
+    def _relay(proc: subprocess.Popen) -> None:
+        """Pass the worker's stderr on to ours, keeping its last line (why it died)."""
+        for line in proc.stderr:
+            sys.stderr.buffer.write(line)
+            sys.stderr.flush()
+            if line.strip():
+                proc.last_line = line.decode(errors="replace").strip()[:300]
+
+    @staticmethod
+    def _status(proc: subprocess.Popen) -> str:
+        code = proc.returncode
+        if code is not None and code < 0:
+            try:
+                return f"exit status {code}, {signal.Signals(-code).name}"
+            except ValueError:
+                pass
+        return f"exit status {code}"
 
     @staticmethod
     def _kill(proc: subprocess.Popen, timeout: float = 1.0) -> None:
@@ -186,6 +229,8 @@ class JobWorker:
                 break
             kind = message[0]
             if kind == "ready":
+                proc.was_ready = True
+                self._failures, self.start_failure = 0, ""
                 self._ready.set()
                 self.on_event(f"worker process {proc.pid} ready")
             elif kind == "progress" and self.on_progress is not None:
@@ -204,15 +249,36 @@ class JobWorker:
                 return  # an old process, already replaced
             self._ready.clear()
             job, self._job = self._job, None
-            if job is not None and not job.done():
-                job.set_exception(WorkerDiedError(
-                    f"the worker process died (exit status {proc.returncode})"))
             if self._closing:
+                self._answer_died(job, proc)
                 return
             self.restarts += 1
-            self.on_event(f"worker process {proc.pid} ended (exit status {proc.returncode}); "
-                          "starting a new one")
-            self._start()
+            if getattr(proc, "was_ready", False):
+                self.on_event(f"worker process {proc.pid} ended ({self._status(proc)}); "
+                              "starting a new one")
+                self._start()
+            else:  # it dies while starting: back off (1, 2, 4 ... 60 s), say why
+                self._failures += 1
+                delay = min(2.0 ** (self._failures - 1), MAX_BACKOFF)
+                why = f": {proc.last_line}" if getattr(proc, "last_line", "") else ""
+                self.start_failure = (f"the worker process died while starting "
+                                      f"({self._status(proc)}{why}); {self._failures} "
+                                      f"failed start(s) in a row")
+                self.on_event(f"{self.start_failure}; next try in {delay:g} s")
+                self._retry = threading.Timer(delay, self._retry_start)
+                self._retry.daemon = True
+                self._retry.start()
+        self._answer_died(job, proc)
+
+    def _answer_died(self, job: Future | None, proc: subprocess.Popen) -> None:
+        if job is not None and not job.done():
+            job.set_exception(WorkerDiedError(
+                f"the worker process died ({self._status(proc)})"))
+
+    def _retry_start(self) -> None:
+        with self._lock:
+            if not self._closing and self._proc is not None and self._proc.poll() is not None:
+                self._start()
 
 
 # -- the worker process side -----------------------------------------------------------

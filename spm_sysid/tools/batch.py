@@ -20,8 +20,10 @@ it, never silently ignored), and so is every input's resulting settings.
 Models are written by this process (the client), whatever runs the jobs: a Dask
 worker on another machine sends the model document back with its summary row,
 so the files land in ``DIR`` here. Each input gets a distinct file name (``x``,
-``x-2``, ... never one taken, compared case-insensitively); a ``DIR`` holding an
-earlier batch's summary is refused unless ``force`` is given.
+``x-2``, ... never one taken, compared case-insensitively). A batch writes over
+nothing but an earlier batch's own files (listed in its manifest,
+:data:`MANIFEST`), and those only with ``force``; never over an input, never
+over a file it did not write (:func:`check_destinations`).
 """
 
 from __future__ import annotations
@@ -35,11 +37,16 @@ from pathlib import Path
 
 from .runner import run_tasks
 
-__all__ = ["BATCH_COLUMNS", "check_per_input", "model_names", "run_batch", "settings_for"]
+__all__ = ["BATCH_COLUMNS", "MANIFEST", "check_destinations", "check_per_input", "model_names",
+           "run_batch", "settings_for"]
 
 #: The summary table's columns.
 BATCH_COLUMNS = ("input", "samples", "terms", "criterion", "value", "one_step_fit",
                  "free_run_fit", "status", "seconds", "model")
+
+#: The list of the files a batch wrote in its folder (what a later batch may replace).
+MANIFEST = ".spm_sysid_batch.json"
+SUMMARY_FILES = ("summary.csv", "summary.md")
 
 #: Data options an input's settings may carry besides the schema's settings.
 DATA_KEYS = ("inputs", "output", "input_topic", "input_field", "input_names", "output_topic",
@@ -178,7 +185,8 @@ def run_batch(inputs: Sequence[str], out: str | Path, values: dict, *,
     Raises
     ------
     FileExistsError
-        ``out`` holds an earlier batch's summary and ``force`` is not given.
+        A file would be written over an input or a file no batch wrote, or over
+        an earlier batch's files without ``force`` (:func:`check_destinations`).
     SettingsError
         A per-input setting that is unknown or invalid (before any work).
     """
@@ -186,9 +194,6 @@ def run_batch(inputs: Sequence[str], out: str | Path, values: dict, *,
     from ..core.job import JobSettings
 
     out = Path(out)
-    if (out / "summary.csv").exists() and not force:
-        raise FileExistsError(f"{out} holds an earlier batch (summary.csv); choose another "
-                              "--out, or --force to replace its files (nothing was changed)")
     per_input = check_per_input(per_input)
     names = model_names(inputs)
     tasks = {}
@@ -196,6 +201,7 @@ def run_batch(inputs: Sequence[str], out: str | Path, values: dict, *,
         v = settings_for(str(p), values, per_input)
         JobSettings.from_values(v)  # every input's settings checked before any work
         tasks[str(i)] = (str(p), n, v, str(out / f"{n}.json"))
+    own = check_destinations(out, inputs, [out / f"{n}.json" for n in names], force)
     out.mkdir(parents=True, exist_ok=True)
     count = [0]
 
@@ -219,7 +225,76 @@ def run_batch(inputs: Sequence[str], out: str | Path, values: dict, *,
                          "value": None, "one_step_fit": None, "free_run_fit": None,
                          "status": f"error: {o.error}", "seconds": None, "model": None})
     write_summary(rows, out)
+    written = {Path(r["model"]).name for r in rows if r.get("model")} | set(SUMMARY_FILES)
+    atomic_write_text(out / MANIFEST, json.dumps(
+        {"written_by": "spm-sysid batch", "files": sorted(own | written)}, indent=2) + "\n")
     return rows
+
+
+def _earlier_files(out: Path) -> set[str]:
+    """Names of the files in ``out`` that an earlier batch wrote (from its manifest).
+
+    A folder from a version before the manifest is recognised by its
+    ``summary.csv`` (the batch's columns): that summary, ``summary.md`` and the
+    models its rows name.
+    """
+    manifest = out / MANIFEST
+    if manifest.is_file():
+        try:
+            doc = json.loads(manifest.read_text())
+            if doc.get("written_by") == "spm-sysid batch":
+                return {Path(str(f)).name for f in doc["files"]} | {MANIFEST}
+        except (OSError, ValueError, KeyError, TypeError, AttributeError):
+            pass
+        return set()
+    try:
+        with open(out / "summary.csv", newline="") as f:
+            reader = csv.DictReader(f)
+            if tuple(reader.fieldnames or ()) != BATCH_COLUMNS:
+                return set()
+            models = {Path(r["model"]).name for r in reader if r.get("model")}
+    except (OSError, UnicodeDecodeError, csv.Error):
+        return set()
+    return set(SUMMARY_FILES) | models
+
+
+def check_destinations(out: Path, inputs: Sequence[str], models: Sequence[Path],
+                       force: bool) -> set[str]:
+    """Refuse to write over an input or a file no batch wrote; the earlier batch's files.
+
+    A batch writes its models, ``summary.csv``, ``summary.md`` and a manifest
+    (:data:`MANIFEST`, the files it wrote). It never writes over one of its
+    inputs (with or without ``force``), never over a file that an earlier batch
+    did not write, and over an earlier batch's files only with ``force``.
+
+    Raises
+    ------
+    FileExistsError
+        Naming the file and why (nothing is changed).
+    """
+    from ..core.files import same_file
+
+    own = _earlier_files(out) if out.is_dir() else set()
+    planned = [*models, out / "summary.csv", out / "summary.md", out / MANIFEST]
+    for dest in planned:
+        for source in inputs:
+            if same_file(dest, source) or (Path(source).is_dir()
+                                           and same_file(dest.parent, source)):
+                raise FileExistsError(
+                    f"{dest} would be written, and it is one of the inputs ({source}); choose "
+                    "another --out (nothing was changed)")
+    clash = [d for d in planned if d.exists() or d.is_symlink()]
+    foreign = [d for d in clash if d.name not in own]
+    if foreign:
+        raise FileExistsError(
+            f"{foreign[0]} exists and no earlier batch wrote it; a batch writes over its own "
+            "files only: move it, or choose another --out (nothing was changed)")
+    if clash and not force:
+        raise FileExistsError(
+            f"{out} holds an earlier batch ({', '.join(d.name for d in clash[:3])}"
+            f"{' ...' if len(clash) > 3 else ''}); choose another --out, or --force to "
+            "replace its files (nothing was changed)")
+    return own
 
 
 def write_summary(rows: Sequence[dict], out: Path) -> list[Path]:

@@ -45,6 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import BagError, FieldPathError
+from ..files import file_kind
 from ..settings import SETTINGS
 from ..stream.buffer import pair_streams
 from .channels import check_roles, parse_channels, stream_order, topic_streams
@@ -173,9 +174,7 @@ def _foreign_files(path: Path) -> list[str]:
     out = []
     for entry in sorted(path.iterdir()):
         if entry.name in own and entry.is_file() and not entry.is_symlink():
-            continue
-        if entry.is_file() and not entry.is_symlink() and entry.suffix in (".mcap", ".db3"):
-            continue
+            continue  # only what metadata.yaml lists is the bag's (another .mcap is not)
         out.append(entry.name + ("/" if entry.is_dir() else ""))
     return out
 
@@ -269,6 +268,8 @@ def write_io_bag(
             raise BagError(f"{path} holds files that are not part of the bag ({shown}); "
                            "refusing to replace it, nothing was changed (move them out or "
                            "choose another output)")
+        if path.is_symlink():  # the bag the link names is replaced; the link stays
+            path = Path(os.path.realpath(path))
     path.parent.mkdir(parents=True, exist_ok=True)
     # written as STAGE/NAME, so every file name inside (metadata.yaml and the rosbag2
     # record in the MCAP file) is already the final one; then moved into place
@@ -371,6 +372,44 @@ _MAGIC = b"\x89MCAP0\r\n"
 _FOOTER = struct.Struct("<BQQQI")  # opcode, record length, summary start, offsets, crc
 
 
+def _kind(path: Path) -> str | None:
+    """What ``path`` is (symlinks followed), in words; None when it does not exist.
+
+    ``stat`` never blocks on a pipe, where ``open`` would wait for a writer.
+    """
+    try:
+        mode = os.stat(path).st_mode
+    except (FileNotFoundError, NotADirectoryError):
+        return None
+    except OSError as exc:
+        raise BagError(f"cannot read bag {path}: {exc.strerror or exc}") from None
+    return file_kind(mode)
+
+
+def _check_bag_files(path: Path) -> None:
+    """Refuse a bag directory whose ``metadata.yaml`` or data files are not regular files.
+
+    A pipe named ``*.mcap`` (or the metadata) would block the reader forever.
+    """
+    import yaml
+
+    names = {"metadata.yaml"} | {e.name for e in path.glob("*.mcap")} | {
+        e.name for e in path.glob("*.db3")}
+    kind = _kind(path / "metadata.yaml")
+    if kind == "a regular file":
+        try:
+            meta = yaml.safe_load((path / "metadata.yaml").read_text(errors="replace"))
+            names |= {str(p) for p in meta["rosbag2_bagfile_information"]
+                      ["relative_file_paths"]}
+        except (OSError, yaml.YAMLError, KeyError, TypeError):
+            pass  # rosbags' reader names what is wrong with the metadata
+    for name in sorted(names):
+        kind = _kind(path / name)
+        if kind is not None and kind != "a regular file":
+            raise BagError(f"{path / name} is {kind}, not a bag file: a bag's files must be "
+                           "regular files (nothing was read)")
+
+
 def verify_mcap(path: Path) -> bool:
     """Check an MCAP file's CRCs: every chunk, the data section and the summary.
 
@@ -427,13 +466,19 @@ def open_bag(path: Path, verify: bool = True):
     from rosbags.highlevel import AnyReader
 
     path = Path(path)
-    if not path.exists():
+    kind = _kind(path)
+    if kind is None:
         raise BagError(f"bag not found: {path}")
-    if path.is_dir() and not (path / "metadata.yaml").exists():
+    if kind not in ("a regular file", "a directory"):
+        raise BagError(f"{path} is {kind}, not a bag: a bag is a directory or an .mcap file "
+                       "(nothing was read)")
+    if kind == "a directory" and not (path / "metadata.yaml").exists():
         raise BagError(f"{path} is not a rosbag2 bag (no metadata.yaml in the directory)")
-    if path.is_file() and path.suffix != ".mcap":
+    if kind == "a regular file" and path.suffix != ".mcap":
         raise BagError(f"{path} is not a bag (expected a bag directory or an .mcap file)")
-    files = sorted(path.glob("*.mcap")) if path.is_dir() else [path]
+    if kind == "a directory":
+        _check_bag_files(path)
+    files = sorted(path.glob("*.mcap")) if kind == "a directory" else [path]
     crc_checked = bool(files) and all(verify_mcap(f) for f in files) if verify else False
     try:
         reader = AnyReader([path], default_typestore=typestore())

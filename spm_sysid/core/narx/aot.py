@@ -97,6 +97,43 @@ def _current_files():
             yield lib, meta
 
 
+def _digest(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while chunk := f.read(1 << 20):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _damage(lib: Path, meta: Path) -> tuple[dict | None, str]:
+    """The build's table when the extension is the one ``compile`` wrote, else why not.
+
+    The table records the extension's size and SHA-256; a truncated or altered
+    file would crash the process that loads it (SIGBUS), so it is checked first.
+    """
+    try:
+        table = json.loads(meta.read_text())
+        expected = (int(table["size"]), str(table["sha256"]))
+    except (OSError, ValueError, KeyError, TypeError):
+        return None, f"its table {meta.name} is unreadable or from an older build"
+    try:
+        size = lib.stat().st_size
+        if size != expected[0]:
+            return None, f"{lib.name} has {size} bytes, the build wrote {expected[0]}"
+        if _digest(lib) != expected[1]:
+            return None, f"{lib.name}'s SHA-256 differs from the one the build recorded"
+    except OSError as exc:
+        return None, f"{lib.name} cannot be read ({exc.strerror or exc})"
+    return table, ""
+
+
+def _warn_damaged(lib: Path, why: str) -> None:
+    import sys
+
+    print(f"spm_sysid: warning: the compiled kernels' build {lib} is damaged ({why}); "
+          "running on numba's JIT instead (`spm-sysid compile` rebuilds it)", file=sys.stderr)
+
+
 def _enabled() -> bool:
     return (os.environ.get("SPM_SYSID_AOT", "1") != "0" and not _prefer_jit
             and not getattr(_jit_only, "on", False))
@@ -168,11 +205,14 @@ def _load() -> dict[str, list]:
 
     name = f"_aot_{source_hash()}"
     for lib, meta in _current_files():
+        table, why = _damage(lib, meta)
+        if table is None:
+            _warn_damaged(lib, why)
+            continue
         try:
             spec = importlib.util.spec_from_file_location(name, lib)
             module = importlib.util.module_from_spec(spec)
             spec.loader.exec_module(module)
-            table = json.loads(meta.read_text())
             return {key: [(_signature_check(e["args"]), getattr(module, e["name"]))
                           for e in entries] for key, entries in table["exports"].items()}
         except Exception:  # a broken build: the JIT runs (build_status tells why)
@@ -243,11 +283,16 @@ class BuildStatus:
 
 def build_status() -> BuildStatus:
     """The current build (for these sources), if there is one and it loads."""
-    for lib, _ in _current_files():
+    damaged = ""
+    for lib, meta in _current_files():
         if os.environ.get("SPM_SYSID_AOT", "1") == "0":
             return BuildStatus(None, "turned off by SPM_SYSID_AOT=0")
-        return BuildStatus(lib, "built")
-    return BuildStatus(None, "not built for these sources (`spm-sysid compile` builds it)")
+        table, why = _damage(lib, meta)
+        if table is not None:
+            return BuildStatus(lib, "built")
+        damaged = damaged or f"the build {lib} is damaged ({why}); `spm-sysid compile` rebuilds it"
+    return BuildStatus(None, damaged or "not built for these sources (`spm-sysid compile` "
+                       "builds it)")
 
 
 def build() -> BuildStatus:
@@ -296,8 +341,11 @@ def build() -> BuildStatus:
                 lib, meta = _files(place, name)
                 for old in list(place.glob("_aot_*")):
                     old.unlink()
-                shutil.move(os.path.join(tmp, lib.name), lib)
-                meta.write_text(json.dumps({"format": _FORMAT, "exports": exports}))
+                built = Path(tmp) / lib.name
+                record = {"format": _FORMAT, "size": built.stat().st_size,
+                          "sha256": _digest(built), "exports": exports}
+                shutil.move(built, lib)
+                meta.write_text(json.dumps(record))
             return BuildStatus(lib, "built")
         except Exception as exc:  # not writable, no compiler: say so, try the next place
             errors.append(f"{place}: {type(exc).__name__}: {exc}")

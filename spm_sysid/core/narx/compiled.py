@@ -120,8 +120,7 @@ class Kernel:
             numba = load_numba()
             with _LOCK:
                 if self._jit is None:
-                    options = {"fastmath": {"reassoc", "contract"}} if self.fastmath else {}
-                    self._jit = numba.njit(cache=True, nogil=True, **options)(self.py_func)
+                    self._jit = _dispatcher(numba, self.py_func, self.fastmath)
         return self._jit
 
     def __call__(self, *args):
@@ -135,6 +134,70 @@ class Kernel:
 
     def __repr__(self) -> str:
         return f"<Kernel {self.key}>"
+
+
+_warned: set[str] = set()
+
+
+def _warn_once(key: str, text: str) -> None:
+    """One warning line on stderr per kind of trouble and process."""
+    import sys
+
+    if key not in _warned:
+        _warned.add(key)
+        print(f"spm_sysid: warning: {text}", file=sys.stderr)
+
+
+def _dispatcher(numba, fn: Callable, fastmath: bool):
+    """The numba dispatcher of ``fn``, cached on disk where it can be.
+
+    Where numba finds no writable cache location it compiles in memory only
+    (one warning line); a cache entry that cannot be read (a truncated file) is
+    taken as missing: the kernel is compiled again and the entry rewritten.
+    """
+    options = {"fastmath": {"reassoc", "contract"}} if fastmath else {}
+    try:
+        dispatcher = numba.njit(cache=True, nogil=True, **options)(fn)
+    except RuntimeError as exc:  # "cannot cache function ...: no locator available"
+        _warn_once("locator", f"numba cannot cache the compiled kernels ({exc}); they are "
+                   "compiled again in each process (set NUMBA_CACHE_DIR to a writable folder)")
+        return numba.njit(cache=False, nogil=True, **options)(fn)
+    cache_file = getattr(getattr(dispatcher, "_cache", None), "_cache_file", None)
+    if cache_file is not None:
+        cache_file.__class__ = _tolerant(type(cache_file))
+    return dispatcher
+
+
+_TOLERANT: dict[type, type] = {}
+
+
+def _tolerant(base: type) -> type:
+    """The cache file class of numba, reading an unreadable entry as a missing one."""
+    if base not in _TOLERANT:
+        import pickle
+
+        unreadable = (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError,
+                      ImportError, IndexError, KeyError, MemoryError)
+
+        class TolerantCacheFile(base):
+            def _load_index(self):
+                try:
+                    return super()._load_index()
+                except unreadable as exc:
+                    _warn_once("cache", f"numba's cache entry {self._index_path} cannot be read "
+                               f"({type(exc).__name__}); compiling the kernel again")
+                    return {}
+
+            def _load_data(self, name):
+                try:
+                    return super()._load_data(name)
+                except unreadable as exc:
+                    _warn_once("cache", f"numba's cache entry {name} cannot be read "
+                               f"({type(exc).__name__}); compiling the kernel again")
+                    raise OSError(str(exc)) from None  # numba's load: a missing entry
+
+        _TOLERANT[base] = TolerantCacheFile
+    return _TOLERANT[base]
 
 
 def _register(fn: Callable, fastmath: bool) -> Kernel:

@@ -23,6 +23,17 @@ the same spread and the same correlation. The monitor compares them with it:
   above :data:`DEGRADED_RMS` or a whiteness p-value below
   :data:`DEGRADED_P` give ``DEGRADED`` (not latched: it clears when the
   window looks right again).
+* **The identification's own statistics** (:class:`MonitorReference`). A
+  model's residuals are often neither white after an AR(10) nor of constant
+  spread (the robot arm's are not: its Ljung-Box p falls to 1e-7 in some
+  windows of its own estimation data). So every statistic above is also
+  computed over every window of the identification's residuals, and a
+  threshold is never below the most extreme value seen there (times
+  :data:`REFERENCE_MARGIN`): a model on the data it was fitted on stays
+  ``VALID``, and a change must look worse than anything the identification
+  saw. The reference travels in the model document
+  (``metadata["monitor"]``), so a model restored from a file is monitored
+  exactly as the fresh one.
 """
 
 from __future__ import annotations
@@ -32,8 +43,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["DEGRADED_P", "DEGRADED_RMS", "H_MEAN", "H_VARIANCE", "MonitorState",
-           "ValidityMonitor", "fit_whitening"]
+__all__ = ["DEGRADED_P", "DEGRADED_RMS", "H_MEAN", "H_VARIANCE", "MonitorReference",
+           "MonitorState", "ValidityMonitor", "fit_whitening", "store_monitor_reference"]
 
 #: CUSUM thresholds (mean shift of 1 sd, k = 0.5; variance doubled).
 H_MEAN = 12.0
@@ -47,6 +58,12 @@ LJUNG_BOX_LAGS = 10
 MAX_AR = 10
 
 VALID, DEGRADED, INVALID = "VALID", "DEGRADED", "INVALID"
+#: A threshold is at least this times the worst value on the identification's residuals.
+REFERENCE_MARGIN = 1.05
+#: Window lengths whose reference statistics a model document carries.
+REFERENCE_WINDOWS = (50, 100, 200, 500, 1000, 2000, 5000)
+#: The document's format of the reference (``metadata["monitor"]["version"]``).
+REFERENCE_VERSION = 1
 
 
 def fit_whitening(residuals: np.ndarray, order: int = MAX_AR) -> tuple[np.ndarray, float]:
@@ -65,6 +82,198 @@ def fit_whitening(residuals: np.ndarray, order: int = MAX_AR) -> tuple[np.ndarra
     a, *_ = np.linalg.lstsq(X, e[p:], rcond=None)
     w = e[p:] - X @ a
     return a, float(np.sqrt(np.mean(w * w)))
+
+
+def _whiten(e: np.ndarray, ar: np.ndarray, s: float) -> np.ndarray:
+    """z(t) = (e(t) - sum a_i e(t-i)) / s for t >= p, as the monitor computes it."""
+    p = len(ar)
+    w = e[p:].copy()
+    for i, a in enumerate(ar):
+        w -= a * e[p - i - 1:len(e) - i - 1]
+    return w / s
+
+
+def _sliding_ljung_box(z: np.ndarray, window: int, lags: int = LJUNG_BOX_LAGS) -> np.ndarray:
+    """The Ljung-Box statistic Q of every window of ``window`` samples of ``z``.
+
+    The same statistic as :func:`ljung_box_p` computes for one window (mean
+    removed per window), for all windows at once from running sums.
+    """
+    n, w = len(z), int(window)
+    if n < w or w <= lags + 1:
+        return np.zeros(0)
+    c1 = np.concatenate([[0.0], np.cumsum(z)])
+    c2 = np.concatenate([[0.0], np.cumsum(z * z)])
+    a = np.arange(n - w + 1)
+    total = c1[a + w] - c1[a]
+    m = total / w
+    denom = (c2[a + w] - c2[a]) - w * m * m
+    q = np.zeros(len(a))
+    for k in range(1, lags + 1):
+        ck = np.concatenate([[0.0], np.cumsum(z[k:] * z[:-k])])  # ck[j]: sum of t < j + k
+        cross = ck[a + w - k] - ck[a]
+        head = c1[a + w] - c1[a + k]  # z(t), t = a+k .. a+w-1
+        tail = c1[a + w - k] - c1[a]  # z(t-k)
+        num = cross - m * (head + tail) + (w - k) * m * m
+        with np.errstate(invalid="ignore", divide="ignore"):
+            q += (num / denom) ** 2 / (w - k)
+    return np.where(denom > 0, w * (w + 2) * q, 0.0)
+
+
+def _sliding_rms(e: np.ndarray, window: int) -> np.ndarray:
+    c = np.concatenate([[0.0], np.cumsum(e * e)])
+    if len(e) < window:
+        return np.zeros(0)
+    return np.sqrt(np.maximum(c[window:] - c[:-window], 0.0) / window)
+
+
+def _cusum_maxima(z: np.ndarray) -> tuple[float, float]:
+    """The largest mean and variance CUSUM statistics over ``z`` (as the monitor runs them)."""
+    gp = gn = gv = top_m = top_v = 0.0
+    for x in z.tolist():
+        gp = max(0.0, gp + x - K_MEAN)
+        gn = max(0.0, gn - x - K_MEAN)
+        gv = max(0.0, gv + 0.25 * x * x - LLR_VARIANCE)
+        top_m, top_v = max(top_m, gp, gn), max(top_v, gv)
+    return top_m, top_v
+
+
+@dataclass(frozen=True)
+class MonitorReference:
+    """The identification's residual statistics that the monitor compares a stream with.
+
+    Attributes
+    ----------
+    sigma : float
+        RMS of the identification's one-step residuals.
+    ar : tuple of float
+        The whitening filter (:func:`fit_whitening`).
+    innovation_sd : float
+        Standard deviation of the whitened residuals.
+    cusum_mean, cusum_variance : float
+        The largest CUSUM statistics over the identification's residuals.
+    windows : dict
+        ``{window: (largest Ljung-Box Q, largest RMS ratio)}`` over every window of
+        that many samples of the identification's residuals.
+    samples : int
+        Residuals the reference was computed from.
+    input_std : float or None
+        The identification input's largest standard deviation (the tracker's
+        quiet check; None when unknown).
+    """
+
+    sigma: float
+    ar: tuple[float, ...]
+    innovation_sd: float
+    cusum_mean: float
+    cusum_variance: float
+    windows: dict
+    samples: int
+    input_std: float | None = None
+
+    @classmethod
+    def from_residuals(cls, residuals: np.ndarray,
+                       windows: tuple[int, ...] = REFERENCE_WINDOWS,
+                       inputs: np.ndarray | None = None) -> MonitorReference:
+        """The reference of these one-step residuals (non-finite ones left out).
+
+        ``inputs`` (n,) or (n, m): the identification's inputs, for ``input_std``.
+        """
+        e = np.asarray(residuals, dtype=float).ravel()
+        e = e[np.isfinite(e)]
+        if len(e) < 2:
+            raise ValueError("the monitor needs the identification's residuals (at least 2)")
+        sigma = float(np.sqrt(np.mean(e * e))) or 1.0
+        ar, s = fit_whitening(e)
+        s = s or sigma
+        z = _whiten(e, ar, s)
+        table = {}
+        for w in sorted(set(int(x) for x in windows)):
+            q, r = _sliding_ljung_box(z, w), _sliding_rms(e[len(ar):], w)
+            if len(q) and len(r):
+                table[w] = (float(np.max(q)), float(np.max(r)) / sigma)
+        top_m, top_v = _cusum_maxima(z)
+        spread = None
+        if inputs is not None:
+            u = np.asarray(inputs, dtype=float)
+            u = u.reshape(len(u), -1)[np.all(np.isfinite(u.reshape(len(u), -1)), axis=1)]
+            spread = float(np.max(np.std(u, axis=0))) if u.size else None
+        return cls(sigma, tuple(float(a) for a in ar), float(s), top_m, top_v, table, len(e),
+                   spread or None)
+
+    def for_window(self, window: int) -> tuple[float, float] | None:
+        """(largest Q, largest RMS ratio) to expect in windows of ``window`` samples.
+
+        A window the table holds is exact; otherwise the nearest shorter one
+        (Q scaled by the length ratio: it grows at most in proportion), else None.
+        """
+        if window in self.windows:
+            return self.windows[window]
+        shorter = [w for w in self.windows if w < window]
+        if not shorter:
+            return None
+        w = max(shorter)
+        q, r = self.windows[w]
+        return q * window / w, r
+
+    def to_dict(self) -> dict:
+        """For the model document's ``metadata["monitor"]``."""
+        return {"version": REFERENCE_VERSION, "samples": self.samples, "sigma": self.sigma,
+                "whitening_ar": list(self.ar), "innovation_sd": self.innovation_sd,
+                "cusum_mean_max": self.cusum_mean, "cusum_variance_max": self.cusum_variance,
+                "windows": [{"window": w, "ljung_box_max": q, "rms_ratio_max": r}
+                            for w, (q, r) in sorted(self.windows.items())],
+                "input_std": self.input_std}
+
+    @classmethod
+    def from_dict(cls, doc) -> MonitorReference:
+        """Read :meth:`to_dict`'s output; ValueError naming what is wrong."""
+        def number(value, what: str, low: float = 0.0, positive: bool = False) -> float:
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not (
+                    math.isfinite(value) and value >= low and (value > 0 or not positive)):
+                raise ValueError(f"monitor.{what} must be a finite number >= {low:g}, got "
+                                 f"{value!r}")
+            return float(value)
+
+        if not isinstance(doc, dict) or doc.get("version") != REFERENCE_VERSION:
+            raise ValueError(f"monitor reference of an unknown format (version must be "
+                             f"{REFERENCE_VERSION})")
+        ar = doc.get("whitening_ar")
+        if not isinstance(ar, list) or len(ar) > 100:
+            raise ValueError("monitor.whitening_ar must be a list of at most 100 numbers")
+        coefficients = tuple(number(a, "whitening_ar", low=-math.inf) for a in ar)
+        rows = doc.get("windows")
+        if not isinstance(rows, list):
+            raise ValueError("monitor.windows must be a list")
+        table = {}
+        for row in rows:
+            if not isinstance(row, dict) or not isinstance(row.get("window"), int) or \
+                    isinstance(row.get("window"), bool) or row["window"] < 2:
+                raise ValueError("monitor.windows: each row needs an integer window >= 2")
+            table[row["window"]] = (number(row.get("ljung_box_max"), "ljung_box_max"),
+                                    number(row.get("rms_ratio_max"), "rms_ratio_max"))
+        samples = doc.get("samples")
+        if not isinstance(samples, int) or isinstance(samples, bool) or samples < 2:
+            raise ValueError("monitor.samples must be an integer >= 2")
+        spread = doc.get("input_std")
+        return cls(number(doc.get("sigma"), "sigma", positive=True), coefficients,
+                   number(doc.get("innovation_sd"), "innovation_sd", positive=True),
+                   number(doc.get("cusum_mean_max"), "cusum_mean_max"),
+                   number(doc.get("cusum_variance_max"), "cusum_variance_max"), table, samples,
+                   None if spread is None else number(spread, "input_std", positive=True))
+
+
+def store_monitor_reference(metadata: dict, residuals: np.ndarray,
+                            inputs: np.ndarray | None = None) -> None:
+    """The reference of these validation residuals into a model's ``metadata["monitor"]``.
+
+    What a model restored from its file is monitored against, as the fresh one
+    is (nothing is stored with fewer than two finite residuals). ``inputs``:
+    the identification's inputs (their spread, for the tracker).
+    """
+    e = np.asarray(residuals, dtype=float)
+    if np.count_nonzero(np.isfinite(e)) >= 2:
+        metadata["monitor"] = MonitorReference.from_residuals(e, inputs=inputs).to_dict()
 
 
 @dataclass(frozen=True)
@@ -106,22 +315,28 @@ class ValidityMonitor:
 
     Parameters
     ----------
-    residuals : ndarray
+    residuals : ndarray or MonitorReference
         The identification's one-step residuals (their spread and correlation
-        are the reference).
+        are the reference), or the reference computed from them.
     window : int
         Samples of the RMS and whiteness window.
     """
 
-    def __init__(self, residuals: np.ndarray, window: int = 200) -> None:
-        e = np.asarray(residuals, dtype=float)
-        e = e[np.isfinite(e)]
-        if len(e) < 2:
-            raise ValueError("the monitor needs the identification's residuals (at least 2)")
-        self.sigma = float(np.sqrt(np.mean(e * e))) or 1.0
-        self.ar, s = fit_whitening(e)
-        self.s = s or self.sigma
+    def __init__(self, residuals: np.ndarray | MonitorReference, window: int = 200) -> None:
+        ref = (residuals if isinstance(residuals, MonitorReference)
+               else MonitorReference.from_residuals(residuals, (int(window),)))
+        self.reference = ref
+        self.sigma = ref.sigma
+        self.ar, self.s = np.asarray(ref.ar, dtype=float), ref.innovation_sd
         self.window = int(window)
+        seen = ref.for_window(self.window)
+        # thresholds: the fixed ones, or beyond the worst the identification's residuals
+        # showed (a model on its own data stays VALID)
+        self.h_mean = max(H_MEAN, REFERENCE_MARGIN * ref.cusum_mean)
+        self.h_variance = max(H_VARIANCE, REFERENCE_MARGIN * ref.cusum_variance)
+        self.q_limit = max(_chi2_isf(DEGRADED_P, LJUNG_BOX_LAGS),
+                           REFERENCE_MARGIN * seen[0] if seen else 0.0)
+        self.rms_limit = max(DEGRADED_RMS, REFERENCE_MARGIN * seen[1] if seen else 0.0)
         self._past = np.zeros(len(self.ar))  # e(t-1), e(t-2), ...
         self._e = np.zeros(self.window)
         self._z = np.zeros(self.window)
@@ -135,7 +350,7 @@ class ValidityMonitor:
         self._gp = self._gn = self._gv = 0.0
         self._zero = {"mean": 0, "variance": 0}  # last index each statistic was zero
         self._alarm: tuple[str, int] | None = None
-        self._p = math.nan
+        self._p = self._q = math.nan
         self._filled = 0
         self._e[:] = 0.0
         self._sumsq = 0.0
@@ -168,9 +383,9 @@ class ValidityMonitor:
         if self._gv == 0.0:
             self._zero["variance"] = n + 1
         if self._alarm is None:
-            if max(self._gp, self._gn) > H_MEAN:
+            if max(self._gp, self._gn) > self.h_mean:
                 self._alarm = ("mean", self._zero["mean"])
-            elif self._gv > H_VARIANCE:
+            elif self._gv > self.h_variance:
                 self._alarm = ("variance", self._zero["variance"])
         col = n % self.window
         self._sumsq += e * e - self._e[col] * self._e[col]
@@ -178,7 +393,8 @@ class ValidityMonitor:
         self._filled = min(self._filled + 1, self.window)
         self.n = n + 1
         if self._filled == self.window and self.n % (self.window // 2) == 0:
-            self._p = ljung_box_p(np.roll(self._z, -(col + 1)), LJUNG_BOX_LAGS)
+            self._q = ljung_box_q(np.roll(self._z, -(col + 1)), LJUNG_BOX_LAGS)
+            self._p = _chi2_sf(self._q, LJUNG_BOX_LAGS)
         return self.state()
 
     def state(self) -> MonitorState:
@@ -192,24 +408,43 @@ class ValidityMonitor:
                       f"(began about sample {at} of {self.n})")
         else:
             change, reasons = -1, []
-            if rms > DEGRADED_RMS:
-                reasons.append(f"residual RMS {rms:.2f} x the identification's")
-            if self._p < DEGRADED_P:
-                reasons.append(f"residuals not white (Ljung-Box p = {self._p:.1e})")
+            if rms > self.rms_limit:
+                reasons.append(f"residual RMS {rms:.2f} x the identification's (limit "
+                               f"{self.rms_limit:.2f})")
+            if self._q > self.q_limit:
+                reasons.append(f"residuals more correlated than on the identification data "
+                               f"(Ljung-Box p = {self._p:.1e}, Q = {self._q:.1f} > "
+                               f"{self.q_limit:.1f})")
             state = DEGRADED if reasons else VALID
             reason = "; ".join(reasons)
-        return MonitorState(state, self.n, rms, self._p, max(self._gp, self._gn) / H_MEAN,
-                            self._gv / H_VARIANCE, change, reason)
+        return MonitorState(state, self.n, rms, self._p,
+                            max(self._gp, self._gn) / self.h_mean, self._gv / self.h_variance,
+                            change, reason)
 
 
-def ljung_box_p(z: np.ndarray, lags: int) -> float:
-    """Ljung-Box p-value of ``z`` over ``lags`` lags (chi-squared with ``lags`` dof)."""
-    from scipy.special import chdtrc
-
+def ljung_box_q(z: np.ndarray, lags: int) -> float:
+    """The Ljung-Box statistic of ``z`` over ``lags`` lags (NaN when it cannot be computed)."""
     z = np.asarray(z, dtype=float) - np.mean(z)
     n = len(z)
     denom = float(z @ z)
     if n <= lags + 1 or denom <= 0:
         return math.nan
     q = sum((float(z[k:] @ z[:-k]) / denom) ** 2 / (n - k) for k in range(1, lags + 1))
-    return float(chdtrc(lags, n * (n + 2) * q))
+    return n * (n + 2) * q
+
+
+def ljung_box_p(z: np.ndarray, lags: int) -> float:
+    """Ljung-Box p-value of ``z`` over ``lags`` lags (chi-squared with ``lags`` dof)."""
+    return _chi2_sf(ljung_box_q(z, lags), lags)
+
+
+def _chi2_sf(q: float, dof: int) -> float:
+    from scipy.special import chdtrc
+
+    return math.nan if math.isnan(q) else float(chdtrc(dof, q))
+
+
+def _chi2_isf(p: float, dof: int) -> float:
+    from scipy.special import chdtri
+
+    return float(chdtri(dof, p))

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..narx.model import NarxModel
-from .monitor import MonitorState, ValidityMonitor
+from .monitor import MonitorReference, MonitorState, ValidityMonitor
 from .predictor import OnlinePredictor
 from .tracker import RecursiveTracker
 
@@ -51,9 +51,13 @@ class OnlineSession:
     ----------
     model : NarxModel
     residuals : ndarray or None
-        The identification's one-step residuals (monitor reference). Without
-        them (a model restored from a file) the document's one-step RMS is
-        used and the residuals are taken as white.
+        The identification's one-step residuals. The monitor's reference is
+        the one the model document carries (``metadata["monitor"]``, written
+        by the job from these same residuals), so a fresh model and one
+        restored from a file are monitored alike; without it, these
+        residuals; without either (a document written before the documents
+        carried it), the document's one-step RMS, the residuals taken as
+        white (:attr:`reference_source` says which).
     monitor_window : int
     tracking : bool
         Run the recursive tracker (needs the model's coefficient covariance).
@@ -74,19 +78,31 @@ class OnlineSession:
         self.model = model
         self.predictor = OnlinePredictor(model)
         self._compiled = model.compiled
-        if residuals is None or len(residuals) < 2:
+        stored = model.metadata.get("monitor") if isinstance(model.metadata, dict) else None
+        if stored is not None:
+            try:
+                reference = MonitorReference.from_dict(stored)
+            except ValueError as exc:
+                raise ValueError(f"the model document's monitor reference is invalid ({exc})") \
+                    from None
+            self.reference_source = "document"
+        elif residuals is not None and len(residuals) >= 2:
+            reference = MonitorReference.from_residuals(residuals, (int(monitor_window),))
+            self.reference_source = "residuals"
+        else:
             rms = math.sqrt(model.mse) if model.mse else 1.0
-            residuals = np.array([rms, -rms])  # RMS only; no whitening
-        residuals = np.asarray(residuals, dtype=float)
-        self.sigma = float(np.sqrt(np.mean(residuals ** 2))) or 1.0
-        self.monitor = ValidityMonitor(residuals, window=monitor_window)
+            reference = MonitorReference.from_residuals(np.array([rms, -rms]), ())
+            self.reference_source = "none"  # RMS only; no whitening, fixed thresholds
+        self.sigma = reference.sigma
+        self.monitor = ValidityMonitor(reference, window=monitor_window)
         self.tracker = None
         if tracking:
             unc = model.uncertainty
             rows = max((model.n_samples or 0) - model.term_space.max_lag, 0)
             self.tracker = RecursiveTracker(
                 model.coefficients, None if unc is None else unc.covariance,
-                unc.sigma2 if unc is not None else self.sigma ** 2, input_std,
+                unc.sigma2 if unc is not None else self.sigma ** 2,
+                input_std if input_std is not None else reference.input_std,
                 forgetting=forgetting, rows=rows)
         self.horizon = int(horizon)
         if self.horizon < 1:

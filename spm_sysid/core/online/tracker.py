@@ -95,10 +95,15 @@ class RecursiveTracker:
     def quiet(self) -> bool:
         """The input has barely moved over the last ``quiet_window`` samples.
 
+        With the identification's input spread known, the first ``quiet_window``
+        samples count as quiet too (their spread is not known yet).
+
         Computed every :data:`QUIET_EVERY` samples (it costs more than an update).
         """
-        if self.input_std is None or len(self._u) < self._u.maxlen:
+        if self.input_std is None:
             return False
+        if len(self._u) < self._u.maxlen:
+            return True  # excitation not yet seen: an update could only drift
         self._since_quiet += 1
         if self._quiet is None or self._since_quiet >= QUIET_EVERY:
             u = np.asarray(self._u)

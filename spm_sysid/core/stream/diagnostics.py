@@ -34,7 +34,7 @@ def diagnostic_statuses(name: str, stats: dict, *, field_errors: int = 0,
                         type_mismatches: list[str] | None = None, namesakes: int = 0,
                         running: tuple | None = None, last_error: str | None = None,
                         model: dict | None = None, restored_from: str | None = None,
-                        callback_errors: int = 0) -> list[Status]:
+                        callback_errors: int = 0, worker_failure: str = "") -> list[Status]:
     """The node's statuses: buffer, identification, one per correlation test.
 
     Parameters
@@ -60,6 +60,8 @@ def diagnostic_statuses(name: str, stats: dict, *, field_errors: int = 0,
         Where the last model was loaded from at start-up.
     callback_errors : int
         Callbacks that raised and were logged (the node went on).
+    worker_failure : str
+        Why the worker process keeps dying while it starts ('' when it does not).
     """
     type_mismatches = type_mismatches or []
     lost = stats["rejected_nonfinite"] + stats["rejected_out_of_order"]
@@ -76,14 +78,15 @@ def diagnostic_statuses(name: str, stats: dict, *, field_errors: int = 0,
         problems.append(f"{unset_stamps} message(s) with header.stamp never set (receive time "
                         "used)")
     if not worker_ready:
-        problems.append("worker not ready")
+        problems.append(f"worker not ready: {worker_failure}" if worker_failure
+                        else "worker not ready")
     if callback_errors:
         problems.append(f"{callback_errors} callback error(s) (see the log)")
     level = OK
     if (lost or field_errors or unset_stamps or namesakes or stats.get("time_jumps")
             or not worker_ready or callback_errors):
         level = WARN
-    if type_mismatches:
+    if type_mismatches or worker_failure:
         level = ERROR
     statuses = [Status(
         level, f"{name}: buffer",

@@ -1,0 +1,303 @@
+"""Issue 30 without ROS: nothing hangs, crashes or is overwritten.
+
+Each test is the failure as it was reported: a pipe given as a bag, a truncated
+ahead-of-time build or numba cache, a batch writing over its own input, make-bag
+deleting files that are not the bag's, a worker answering a job before it died.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from spm_sysid.core.errors import MemoryLimitError
+from spm_sysid.core.memory import memory_limit
+
+from .conftest import ROOT
+
+BIN = Path(sys.executable).parent
+
+
+def run(*args, env=None, timeout=120, cwd=None):
+    """A command as a user types it; a hang fails the test (the timeout), it never blocks."""
+    return subprocess.run([str(BIN / args[0]), *args[1:]], capture_output=True, text=True,
+                          timeout=timeout, env=env, cwd=cwd)
+
+
+def digest(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+# -- a pipe as a bag ----------------------------------------------------------------------
+
+
+def test_a_pipe_given_as_a_bag_is_one_error_line_and_never_blocks(tmp_path):
+    fifo = tmp_path / "f.mcap"
+    os.mkfifo(fifo)
+    for given in (fifo, tmp_path / "g"):
+        if given != fifo:
+            os.mkfifo(given)
+        r = run("spm-sysid", "identify", "--bag", str(given), timeout=60)
+        assert r.returncode == 2, r.stderr
+        lines = r.stderr.strip().splitlines()
+        assert len(lines) == 1 and "is a pipe, not a bag" in lines[0], r.stderr
+
+
+def test_a_pipe_inside_a_bag_directory_is_refused(tmp_path):
+    bag = tmp_path / "bag"
+    assert run("spm-sysid", "make-bag", "--output", str(bag)).returncode == 0
+    data = bag / "bag.mcap"
+    data.unlink()
+    os.mkfifo(data)
+    r = run("spm-sysid", "identify", "--bag", str(bag), timeout=60)
+    assert r.returncode == 2
+    assert "bag.mcap is a pipe, not a bag file" in r.stderr
+
+
+# -- the ahead-of-time build and numba's cache --------------------------------------------
+
+
+def _aot_env(place: Path) -> dict:
+    return {**os.environ, "SPM_SYSID_AOT_DIR": str(place)}
+
+
+@pytest.mark.skipif(shutil.which("cc") is None and shutil.which("gcc") is None,
+                    reason="no C compiler: the kernels run on numba's JIT")
+def test_a_truncated_build_runs_on_the_jit_with_one_warning_and_compile_repairs_it(tmp_path):
+    env = _aot_env(tmp_path / "aot")
+    assert run("spm-sysid", "compile", env=env, timeout=600).returncode == 0
+    (lib,) = (tmp_path / "aot").glob("_aot_*.so")
+    table = json.loads(lib.with_name(lib.name.split(".")[0] + ".json").read_text())
+    assert table["size"] == lib.stat().st_size and table["sha256"] == digest(lib)
+    good = run("spm-sysid", "identify", "--quiet", "--json", str(tmp_path / "good.json"),
+               env=env)
+    assert good.returncode == 0 and "warning" not in good.stderr
+    lib.write_bytes(lib.read_bytes()[:100_000])  # as `head -c 100000` left it
+    r = run("spm-sysid", "identify", "--quiet", "--json", str(tmp_path / "jit.json"), env=env)
+    assert r.returncode == 0, r.stderr  # was SIGBUS (exit 135)
+    warnings = [x for x in r.stderr.splitlines() if "warning" in x]
+    assert len(warnings) == 1 and "is damaged" in warnings[0] and "compile" in warnings[0]
+    doc = json.loads((tmp_path / "jit.json").read_text())
+    assert doc["coefficients"] == json.loads((tmp_path / "good.json").read_text())[
+        "coefficients"]
+    c = run("spm-sysid", "compile", env=env, timeout=600)
+    assert c.returncode == 0, c.stderr
+    (lib,) = (tmp_path / "aot").glob("_aot_*.so")
+    assert lib.stat().st_size == table["size"]
+    again = run("spm-sysid", "identify", "--quiet", env=env)
+    assert again.returncode == 0 and "warning" not in again.stderr
+
+
+KERNEL_MODULE = '''
+import numpy as np
+from spm_sysid.core.narx.compiled import jit
+
+
+@jit
+def total(x):
+    s = 0.0
+    for v in x:
+        s += v
+    return s
+
+
+print(total(np.arange(10.0)))
+'''
+
+
+def test_an_unreadable_numba_cache_entry_is_compiled_again(tmp_path):
+    (tmp_path / "kern.py").write_text(KERNEL_MODULE)
+    env = {**os.environ, "SPM_SYSID_AOT": "0", "PYTHONPATH": f"{tmp_path}:{ROOT}"}
+    env.pop("NUMBA_CACHE_DIR", None)
+
+    def call():
+        return subprocess.run([sys.executable, "-c", "import kern"], capture_output=True,
+                              text=True, env=env, cwd=tmp_path, timeout=300)
+
+    first = call()
+    assert first.returncode == 0 and first.stdout.strip() == "45.0", first.stderr
+    cached = sorted((tmp_path / "__pycache__").glob("kern.total-*.nb*"))
+    assert {p.suffix for p in cached} == {".nbi", ".nbc"}
+    for kind in (".nbi", ".nbc"):  # a truncated index, then a truncated data file
+        for p in (tmp_path / "__pycache__").glob(f"kern.total-*{kind}"):
+            p.write_bytes(p.read_bytes()[:20])
+        r = call()
+        assert r.returncode == 0 and r.stdout.strip() == "45.0", r.stderr  # was UnpicklingError
+        warnings = [x for x in r.stderr.splitlines() if "warning" in x]
+        assert len(warnings) == 1 and "cannot be read" in warnings[0], r.stderr
+        again = call()  # the entry was written anew
+        assert again.returncode == 0 and "warning" not in again.stderr
+
+
+def test_no_writable_cache_location_compiles_in_memory_with_one_warning(monkeypatch, capsys):
+    from numba.core.caching import CacheImpl
+
+    from spm_sysid.core.narx import compiled
+
+    # what numba meets on a read-only install with no writable home (cannot be made here
+    # as root): no cache locator accepts the file
+    monkeypatch.setattr(CacheImpl, "_locator_classes", [])
+    monkeypatch.setattr(compiled, "_warned", set())
+    kernel = compiled.Kernel(lambda x: x + 1.0, fastmath=False)
+    assert kernel.jit(1.0) == 2.0
+    err = capsys.readouterr().err
+    assert err.count("spm_sysid: warning") == 1 and "cannot cache the compiled kernels" in err
+
+
+# -- batch and make-bag never write over what is not theirs -------------------------------
+
+
+def _bytes(folder: Path) -> dict:
+    return {p.name: p.read_bytes() for p in folder.iterdir() if p.is_file()}
+
+
+def test_batch_never_writes_over_an_unrelated_file(robot_arm_path, tmp_path):
+    d = tmp_path / "d"
+    d.mkdir()
+    shutil.copy(robot_arm_path, d / "take.csv")
+    (d / "take.json").write_text('{"mine": true}\n')
+    before = _bytes(d)
+    r = run("spm-sysid", "batch", str(d / "take.csv"), "--out", str(d))
+    assert r.returncode != 0
+    assert "take.json exists and no earlier batch wrote it" in r.stderr
+    assert _bytes(d) == before
+    r = run("spm-sysid", "batch", str(d / "take.csv"), "--out", str(d), "--force")
+    assert r.returncode != 0 and _bytes(d) == before  # --force does not change that
+
+
+@pytest.mark.parametrize("name", ["run.json", "summary.csv"])
+def test_batch_never_writes_over_its_input(robot_arm_path, tmp_path, name):
+    d = tmp_path / "d"
+    d.mkdir()
+    shutil.copy(robot_arm_path, d / name)
+    before = _bytes(d)
+    for extra in ([], ["--force"]):
+        r = run("spm-sysid", "batch", str(d / name), "--out", str(d), *extra)
+        assert r.returncode != 0 and "it is one of the inputs" in r.stderr, r.stderr
+        assert _bytes(d) == before
+
+
+def test_batch_replaces_only_its_own_earlier_files_with_force(robot_arm_path, tmp_path):
+    out = tmp_path / "out"
+    assert run("spm-sysid", "batch", str(robot_arm_path), "--out", str(out)).returncode == 0
+    manifest = json.loads((out / ".spm_sysid_batch.json").read_text())
+    assert set(manifest["files"]) == {"robot_arm.json", "summary.csv", "summary.md"}
+    (out / "notes.txt").write_text("keep me\n")
+    r = run("spm-sysid", "batch", str(robot_arm_path), "--out", str(out))
+    assert r.returncode != 0 and "holds an earlier batch" in r.stderr and "--force" in r.stderr
+    r = run("spm-sysid", "batch", str(robot_arm_path), "--out", str(out), "--force")
+    assert r.returncode == 0, r.stderr
+    assert (out / "notes.txt").read_text() == "keep me\n"
+
+
+def test_make_bag_force_keeps_files_that_are_not_the_bags(tmp_path):
+    bag = tmp_path / "bag"
+    assert run("spm-sysid", "make-bag", "--output", str(bag)).returncode == 0
+    for name in ("other.mcap", "old.db3"):
+        (bag / name).write_bytes(b"not the bag's")
+    r = run("spm-sysid", "make-bag", "--output", str(bag), "--force")
+    assert r.returncode != 0 and "not part of the bag" in r.stderr
+    assert (bag / "other.mcap").read_bytes() == b"not the bag's"
+    assert (bag / "old.db3").read_bytes() == b"not the bag's"
+
+
+def test_make_bag_force_through_a_symlink_replaces_the_bag_and_keeps_the_link(tmp_path):
+    real = tmp_path / "real"
+    assert run("spm-sysid", "make-bag", "--output", str(real)).returncode == 0
+    link = tmp_path / "link"
+    link.symlink_to(real)
+    r = run("spm-sysid", "make-bag", "--output", str(link), "--force", "--rate", "50")
+    assert r.returncode == 0, r.stderr
+    assert link.is_symlink() and Path(os.readlink(link)) == real
+    import yaml
+
+    info = yaml.safe_load((real / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert info["duration"]["nanoseconds"] == 1023 * 20_000_000  # 50 Hz, the new bag's rate
+    assert not [p for p in tmp_path.iterdir() if ".old-" in p.name or ".partial-" in p.name]
+
+
+# -- settings from the environment ----------------------------------------------------------
+
+
+@pytest.mark.parametrize("text", ["inf", "1e400", "unlimited"])
+def test_an_unlimited_memory_bound_is_no_bound(monkeypatch, text):
+    monkeypatch.setenv("SPM_SYSID_MAX_MEMORY", text)
+    limit, source = memory_limit()
+    assert limit >= 2**60 and source == "SPM_SYSID_MAX_MEMORY"
+
+
+@pytest.mark.parametrize("text, words", [("0.5", "less than one byte"),
+                                         ("0", "must be positive"), ("nan", "not a size"),
+                                         ("lots", "not a size")])
+def test_a_memory_bound_that_means_nothing_is_a_clear_error(monkeypatch, text, words):
+    monkeypatch.setenv("SPM_SYSID_MAX_MEMORY", text)
+    with pytest.raises(MemoryLimitError, match=words):
+        memory_limit()
+
+
+def test_identify_and_validate_with_an_unlimited_memory_bound(tmp_path):
+    env = {**os.environ, "SPM_SYSID_MAX_MEMORY": "inf"}
+    r = run("spm-sysid", "identify", "--quiet", "--json", str(tmp_path / "m.json"), env=env)
+    assert r.returncode == 0, r.stderr  # was OverflowError
+    r = run("spm-sysid", "validate", str(tmp_path / "m.json"), env=env)
+    assert r.returncode == 0, r.stderr
+
+
+# -- the node's worker: a job after a cancel goes to a live process ------------------------
+
+
+def test_a_job_submitted_when_one_is_canceled_goes_to_the_new_worker():
+    from spm_sysid.ros.worker import JobCancelledError, JobWorker
+
+    worker = JobWorker("test.helpers.jobs:sleepy",
+                       env={**os.environ, "PYTHONPATH": str(ROOT)})
+    try:
+        assert worker.wait_ready(120)
+        second, submitted = [], threading.Event()
+
+        def resubmit(job):  # the node starts the next goal from the answer of the last
+            second.append(worker.submit(0.01))
+            submitted.set()
+
+        for _ in range(10):  # failed 10 of 10 before: the dying worker got the job
+            second.clear()
+            submitted.clear()
+            first = worker.submit(60.0)
+            first.add_done_callback(resubmit)
+            threading.Timer(0.2, worker.cancel, args=("job_timeout",)).start()
+            with pytest.raises(JobCancelledError):
+                first.result(timeout=60)
+            assert submitted.wait(60)
+            assert second[0].result(timeout=120) == 0.01
+    finally:
+        worker.close()
+
+
+def test_a_worker_that_dies_while_starting_backs_off_and_says_why(tmp_path):
+    from spm_sysid.ros.worker import JobWorker
+
+    events = []
+    worker = JobWorker("test.helpers.no_such_module:job", on_event=events.append,
+                       env={**os.environ, "PYTHONPATH": str(ROOT)})
+    try:
+        deadline = time.monotonic() + 60
+        while worker.restarts < 2 and time.monotonic() < deadline:
+            time.sleep(0.1)
+        time.sleep(1.0)
+        assert worker.restarts <= 3  # 1 s, then 2 s apart: not four times a second
+        assert "died while starting" in worker.start_failure
+        assert "ModuleNotFoundError" in worker.start_failure  # its last stderr line
+        assert any("next try in" in e for e in events)
+        assert not worker.ready
+    finally:
+        worker.close()
