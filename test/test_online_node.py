@@ -73,12 +73,19 @@ def test_the_robot_arm_bag_replayed_again_stays_valid_and_scaled_by_one_and_a_ha
 
         # the same bag again (its stamps go back: a new segment): predictions equal the
         # model's, the model stays valid
-        predictions = []
+        predictions, validity = [], []
         sub = harness.node.create_subscription(Prediction, "/spm_sysid/prediction",
                                                predictions.append, 2000)
+        vsub = harness.node.create_subscription(Validity, "/spm_sysid/validity",
+                                                validity.append, 2000)
         play_bag(ros_env, arm)
         harness.spin_until(lambda: len(predictions) >= len(y) - 4, 30)
         harness.node.destroy_subscription(sub)
+        harness.node.destroy_subscription(vsub)
+        # on the data it was fitted on the model is VALID all along (issue 30: it was
+        # DEGRADED, "residuals not white", during 721 of the 1020 samples)
+        assert validity and all(m.state == Validity.VALID for m in validity), [
+            m.reason for m in validity if m.state != Validity.VALID][:3]
         assert len(predictions) == len(y) - 4  # the first 4 of the pass only fill the lags
         doc = json.loads(harness.latched(String, "/spm_sysid/model", 30).data)
         assert doc["terms"] == EQ1
@@ -96,7 +103,7 @@ def test_the_robot_arm_bag_replayed_again_stays_valid_and_scaled_by_one_and_a_ha
                 for p in predictions[:3]] == stamps[4:7]  # stamped with the sample
         v, _ = latest(harness, Validity, "/spm_sysid/validity",
                       lambda m: m.samples >= len(y) - 4)
-        assert v is not None and v.state != Validity.INVALID, v.reason
+        assert v is not None and v.state == Validity.VALID, v.reason
 
         # scaled by 1.5: a change, INVALID within the pass, in /diagnostics too
         play_bag(ros_env, scaled)
@@ -111,6 +118,40 @@ def test_the_robot_arm_bag_replayed_again_stays_valid_and_scaled_by_one_and_a_ha
         assert harness.spin_until(lambda: harness.statuses().get(
             "model validity", (0,))[0] == 2, 10)
         assert harness.statuses()["model validity"][2]["state"] == "INVALID"
+    finally:
+        stop(node)
+
+
+def test_a_restored_model_is_monitored_as_the_fresh_one(ros_env, harness, robot_arm, tmp_path):
+    """A model from model_path: VALID on its own data, INVALID scaled by 1.5 (issue 30)."""
+    u, y = robot_arm
+    arm = write_io_bag(tmp_path / "arm", u, y)
+    scaled = write_io_bag(tmp_path / "scaled", 1.5 * u, 1.5 * y)
+    saved = tmp_path / "model.json"
+    node = start_node(ros_env, "seed:=1", f"model_path:={saved}")
+    try:
+        harness.wait_ready()
+        play_bag(ros_env, arm)
+        harness.wait_buffer(lambda kv: int(kv["samples"]) >= len(y))
+        assert harness.call("/spm_sysid/identify").success
+    finally:
+        stop(node)
+    doc = json.loads(saved.read_text())
+    assert doc["metadata"]["monitor"]["windows"]  # the reference travels in the document
+    node = start_node(ros_env, f"model_path:={saved}")  # a restart: the model restored
+    try:
+        harness.wait_ready()
+        validity = []
+        sub = harness.node.create_subscription(Validity, "/spm_sysid/validity",
+                                               validity.append, 2000)
+        play_bag(ros_env, arm)
+        assert harness.spin_until(lambda: any(m.samples >= len(y) - 4 for m in validity), 30)
+        assert all(m.state == Validity.VALID for m in validity), [
+            m.reason for m in validity if m.state != Validity.VALID][:3]
+        play_bag(ros_env, scaled)
+        assert harness.spin_until(
+            lambda: any(m.state == Validity.INVALID for m in validity), 30)
+        harness.node.destroy_subscription(sub)
     finally:
         stop(node)
 

@@ -772,6 +772,12 @@ class SysidNode(Node):
             self._online = None
             self.get_logger().warning(f"the model cannot be monitored online ({exc})")
             return
+        sessions = getattr(self._online, "sessions", [self._online])
+        if any(s.reference_source == "none" for s in sessions):
+            self.get_logger().warning(
+                "the model document carries no residual statistics (metadata.monitor: it was "
+                "written by an older version); the monitor takes its residuals as white and "
+                "may doubt a good model: identify again to monitor it against its own")
         self.validity_pub.publish(validity_message(self._online, self._last_stamp))
 
     def _on_pair(self, stamp: int, u: np.ndarray, y) -> None:

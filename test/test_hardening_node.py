@@ -1,0 +1,71 @@
+"""Issue 30 over real DDS: a goal never freezes the node; every request gets an answer.
+
+A real sysid_node process; this test's rclpy node is the client.
+"""
+
+import os
+import time
+
+from action_msgs.msg import GoalStatus
+from spm_sysid_interfaces.action import Identify
+
+from .ros_harness import IdentifyClient, start_node, stop
+
+Code = Identify.Result
+
+
+def test_a_pipe_as_the_goals_bag_ends_at_once_and_the_node_stays_responsive(
+        ros_env, harness, arm_bag, tmp_path):
+    fifo = tmp_path / "f.mcap"
+    os.mkfifo(fifo)
+    bag = tmp_path / "bag"
+    bag.mkdir()
+    (bag / "metadata.yaml").write_text((arm_bag / "metadata.yaml").read_text())
+    os.mkfifo(bag / "robot_arm.mcap")  # the name the metadata lists, as a pipe
+    node = start_node(ros_env, "seed:=1")
+    try:
+        harness.wait_ready()
+        client = IdentifyClient(harness)
+        for path, words in ((fifo, "is a pipe, not a bag"),
+                            (bag, "robot_arm.mcap is a pipe, not a bag file")):
+            status, result = client.result(client.send(bag_path=path), timeout=60)
+            assert status == GoalStatus.STATUS_ABORTED
+            assert result.error_code == Code.BAD_DATA and words in result.message, \
+                result.message
+        # the node answers on: its model service, and a goal on a real bag
+        assert not client.get_model().available
+        status, result = client.result(client.send(bag_path=arm_bag), timeout=120)
+        assert status == GoalStatus.STATUS_SUCCEEDED and "AIC -10744.78" in result.message
+    finally:
+        stop(node)
+
+
+def test_thirty_goals_and_thirty_cancels_at_once_each_get_an_answer(ros_env, harness, arm_bag):
+    node = start_node(ros_env, "seed:=1")
+    try:
+        harness.wait_ready()
+        client = IdentifyClient(harness)
+        goal = Identify.Goal(setting_names=["generations"], setting_values=["100000"],
+                             bag_path=str(arm_bag))
+        sent = [client.client.send_goal_async(goal) for _ in range(30)]  # before any spin
+        assert harness.spin_until(lambda: all(f.done() for f in sent), 60), \
+            f"{sum(f.done() for f in sent)} of 30 goals answered"
+        handles = [f.result() for f in sent]
+        assert all(h.accepted for h in handles)
+        results = [h.get_result_async() for h in handles]
+        # 29 end at once, BUSY; one runs (a long search)
+        assert harness.spin_until(lambda: sum(r.done() for r in results) >= 29, 60)
+        busy = [r.result().result for r in results if r.done()]
+        assert len(busy) == 29 and all(b.error_code == Code.BUSY for b in busy)
+        (running,) = [h for h, r in zip(handles, results) if not r.done()]
+        cancels = [running.cancel_goal_async() for _ in range(30)]
+        assert harness.spin_until(lambda: all(c.done() for c in cancels), 60), \
+            f"{sum(c.done() for c in cancels)} of 30 cancels answered"
+        t0 = time.monotonic()
+        assert harness.spin_until(lambda: all(r.done() for r in results), 60)
+        last = [r for h, r in zip(handles, results) if h is running][0].result()
+        assert last.status == GoalStatus.STATUS_CANCELED and \
+            last.result.error_code == Code.CANCELED, (last.status, last.result.message)
+        assert time.monotonic() - t0 < 60
+    finally:
+        stop(node)
