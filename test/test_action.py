@@ -197,11 +197,21 @@ def test_call_identify_uses_the_action_and_ctrl_c_cancels_the_goal(ros_env, harn
                            text=True, env=ros_env, timeout=120, cwd=ROOT)
         assert r.returncode == 0, r.stderr
         assert r.stdout.startswith("success: y(t) = 3.158y(t-1) - 4.439y(t-2)")
+        # a summary to read (issue 30: it was 300 lines of JSON): equation, table, fits
+        shown = r.stdout.splitlines()
+        assert shown[1].startswith("y(t) = 3.158y(t-1)") and len(shown) < 30
+        assert any(x.split()[:1] == ["y(t-1)"] and "[" in x for x in shown)  # interval
+        assert any(x.startswith("fits: one-step fit") for x in shown)
+        assert shown[-1].startswith("criterion: AIC -10744.78, certified optimal")
+        progress = r.stderr.splitlines()  # not a terminal: a line per phase
+        assert progress[0].startswith("checking data") and any(
+            p.startswith("search: generation ") for p in progress)
+        assert not any(": 0, 0 structures" in p for p in progress), progress
+        r = subprocess.run(call + ["--show-model", "--json", "--quiet"], capture_output=True,
+                           text=True, env=ros_env, timeout=120, cwd=ROOT)
+        assert r.returncode == 0, r.stderr
         doc = json.loads(r.stdout.split("\n", 1)[1])
         assert doc["terms"] == EQ1
-        progress = r.stderr.splitlines()  # not a terminal: a line per phase
-        assert progress[0].startswith("checking data: 0") and any(
-            p.startswith("search: ") for p in progress)
 
         # the example client of examples/, as its docstring says to run it
         r = subprocess.run([sys.executable, "examples/identify_action_client.py", str(arm_bag),

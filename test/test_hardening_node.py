@@ -69,3 +69,34 @@ def test_thirty_goals_and_thirty_cancels_at_once_each_get_an_answer(ros_env, har
         assert time.monotonic() - t0 < 60
     finally:
         stop(node)
+
+
+def test_call_with_no_node_says_at_once_that_it_waits(ros_env):
+    import subprocess
+    import sys
+
+    from .conftest import ROOT
+
+    proc = subprocess.Popen([sys.executable, "-m", "spm_sysid.apps.main", "call", "clear",
+                             "--timeout", "8"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, env=ros_env, cwd=ROOT)
+    first = proc.stderr.readline()  # before the timeout: it says what it waits for
+    assert first.startswith("waiting for /spm_sysid/clear") and "sysid_node running" in first
+    assert proc.poll() is None
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 2 and "is not available" in err
+
+
+def test_sysid_node_without_its_messages_built_is_one_error_line(ros_env):
+    import subprocess
+    import sys
+
+    from .conftest import ROOT
+
+    code = ("import sys; sys.modules['spm_sysid_interfaces'] = None\n"  # as if never built
+            "from spm_sysid.ros.entry import sysid_node; sys.exit(sysid_node([]))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       env=ros_env, cwd=ROOT, timeout=120)
+    assert r.returncode == 1
+    assert r.stderr.strip().splitlines() == [r.stderr.strip()]  # one line, no traceback
+    assert "spm_sysid_interfaces" in r.stderr and "make setup" in r.stderr

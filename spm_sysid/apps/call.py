@@ -28,6 +28,26 @@ __all__ = ["GoalOutcome", "call_trigger", "identify_goal", "main", "set_paramete
 CANCEL_WAIT = 10.0
 
 
+#: Seconds of silence before saying that the node is being waited for.
+SAY_WAITING = 2.0
+
+
+def wait_for(ready, what: str, timeout: float) -> bool:
+    """Wait up to ``timeout`` s for ``ready(seconds)``; say so on stderr after a moment.
+
+    With no node running, a user learns at once that the command waits, and
+    for how long, instead of staring at a silent terminal.
+    """
+    first = min(timeout, SAY_WAITING)
+    if ready(first):
+        return True
+    if timeout <= first:
+        return False
+    print(f"waiting for {what} (up to {timeout:.0f} s more; is sysid_node running, with the "
+          "same ROS_DOMAIN_ID?) ...", file=sys.stderr, flush=True)
+    return ready(timeout - first)
+
+
 def set_parameters(node: Node, target: str, timeout: float = 10.0, **values) -> None:
     """Set parameters of node ``target`` (e.g. ``/spm_sysid``) through its service.
 
@@ -67,7 +87,8 @@ def call_trigger(node: Node, service: str, timeout: float = 300.0) -> tuple[bool
     client = node.create_client(Trigger, service, qos_profile=REQUESTS)
     try:
         deadline = time.monotonic() + timeout
-        if not client.wait_for_service(timeout_sec=min(timeout, 30.0)):
+        if not wait_for(lambda t: client.wait_for_service(timeout_sec=t), service,
+                        min(timeout, 30.0)):
             raise TimeoutError(f"service {service} is not available (is sysid_node running, "
                                "with the same ROS_DOMAIN_ID?)")
         future = client.call_async(Trigger.Request())
@@ -111,7 +132,8 @@ def identify_goal(node: Node, action: str, overrides: dict[str, str] | None = No
                           cancel_service_qos_profile=REQUESTS)
     try:
         deadline = time.monotonic() + timeout
-        if not client.wait_for_server(timeout_sec=min(timeout, 30.0)):
+        if not wait_for(lambda t: client.wait_for_server(timeout_sec=t), action,
+                        min(timeout, 30.0)):
             raise TimeoutError(f"action {action} is not available (is sysid_node running, "
                                "with the same ROS_DOMAIN_ID?)")
         goal = Identify.Goal(setting_names=list(overrides),
@@ -145,6 +167,62 @@ def identify_goal(node: Node, action: str, overrides: dict[str, str] | None = No
         client.destroy()
 
 
+def feedback_text(fb) -> str:
+    """One feedback message in words: only the figures that mean something in its phase.
+
+    ``search: generation 120/300, best -10744.78, 21805 structures, 0.3 s``;
+    ``validation, 0.5 s``.
+    """
+    parts = []
+    if fb.total:
+        step = "generation " if fb.phase == "search" else "step "
+        parts.append(f"{step}{fb.step}/{fb.total}")
+    if fb.best_value == fb.best_value:  # not NaN
+        parts.append(f"best {fb.best_value:.2f}")
+    if fb.gap == fb.gap:
+        parts.append(f"gap {fb.gap:.2f}")
+    if fb.structures_evaluated:
+        parts.append(f"{fb.structures_evaluated} structures")
+    parts.append(f"{fb.elapsed:.1f} s")
+    head = f"{fb.phase}: " if len(parts) > 1 else f"{fb.phase}, "
+    return head + ", ".join(parts)
+
+
+def model_summary(doc: dict) -> str:
+    """A model document for reading: equation, coefficient table, fits, certification."""
+    from ..core.narx.certify import describe_certificate
+    from ..core.narx.mimo import MIMO_SCHEMA
+    from ..core.narx.model import NarxModel
+
+    if doc.get("schema") == MIMO_SCHEMA:
+        parts = [f"coupled model of {len(doc['outputs'])} outputs "
+                 f"({', '.join(doc['outputs'])})"]
+        parts += [model_summary(m) for m in doc["models"]]
+        return "\n\n".join(parts)
+    model = NarxModel.from_dict(doc)
+    lines = [model.equation(), model.coefficient_table()]
+    meta = doc.get("metadata") or {}
+    val = meta.get("validation") or {}
+    fits = []
+    for key, label in (("one_step", "one-step"), ("free_run", "free-run")):
+        fit = (val.get(key) or {}).get("fit_percent")
+        if fit is not None:
+            fits.append(f"{label} fit {fit:.1f} %")
+    if val.get("diverged_at") is not None:
+        fits.append(f"the free run diverged at sample {val['diverged_at']}")
+    if fits:
+        lines.append("fits: " + ", ".join(fits))
+    crit = doc.get("criterion") or {}
+    text = f"criterion: {str(crit.get('name', '?')).upper()}"
+    if crit.get("value") is not None:
+        text += f" {crit['value']:.2f}"
+    cert = describe_certificate(meta.get("certificate"))
+    lines.append(text + (f", {cert}" if cert else ""))
+    for w in meta.get("warnings") or []:
+        lines.append(f"warning: {w}")
+    return "\n".join(lines)
+
+
 class FeedbackLine:
     """The feedback as one progress line (redrawn on a terminal, a line per phase else)."""
 
@@ -156,13 +234,7 @@ class FeedbackLine:
         now = time.monotonic()
         if not self.tty and fb.phase == self.phase and now - self.last < 5.0:
             return
-        of = f"/{fb.total}" if fb.total else ""
-        text = f"{fb.phase}: {fb.step}{of}"
-        if fb.best_value == fb.best_value:  # not NaN
-            text += f", best {fb.best_value:.2f}"
-        if fb.gap == fb.gap:
-            text += f", gap {fb.gap:.2f}"
-        text += f", {fb.structures_evaluated} structures, {fb.elapsed:.1f} s"
+        text = feedback_text(fb)
         if self.tty:
             self.stream.write("\r\x1b[K" + text)
         else:
@@ -192,7 +264,8 @@ def wait_for_model(node: Node, topic: str, timeout: float = 10.0) -> dict | None
 
 def main(action: str, node_name: str = "/spm_sysid", timeout: float = 300.0,
          show_model: bool = False, overrides: dict[str, str] | None = None,
-         bag_path: str = "", trigger: bool = False, quiet: bool = False) -> int:
+         bag_path: str = "", trigger: bool = False, quiet: bool = False,
+         as_json: bool = False) -> int:
     """Entry of ``spm-sysid call``; prints the answer, returns an exit status.
 
     0: identified (or cleared); 1: the node refused or the search failed; 2: no
@@ -222,7 +295,7 @@ def main(action: str, node_name: str = "/spm_sysid", timeout: float = 300.0,
     try:
         if action == "identify" and not trigger:
             return _identify(node, f"{node_name}/identify", timeout, show_model,
-                             overrides or {}, bag_path, quiet)
+                             overrides or {}, bag_path, quiet, as_json)
         ok, message = call_trigger(node, f"{node_name}/{action}", timeout)
         if ok:
             print("success: " + message)
@@ -231,7 +304,7 @@ def main(action: str, node_name: str = "/spm_sysid", timeout: float = 300.0,
         if ok and action == "identify" and show_model:
             doc = wait_for_model(node, f"{node_name}/model")
             if doc is not None:
-                print(json.dumps(doc, indent=2))
+                print(json.dumps(doc, indent=2) if as_json else model_summary(doc))
         return 0 if ok else 1
     except TimeoutError as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -242,7 +315,8 @@ def main(action: str, node_name: str = "/spm_sysid", timeout: float = 300.0,
 
 
 def _identify(node: Node, action: str, timeout: float, show_model: bool,
-              overrides: dict[str, str], bag_path: str, quiet: bool) -> int:
+              overrides: dict[str, str], bag_path: str, quiet: bool,
+              as_json: bool = False) -> int:
     from spm_sysid_interfaces.action import Identify
 
     line = None if quiet else FeedbackLine()
@@ -257,7 +331,8 @@ def _identify(node: Node, action: str, timeout: float, show_model: bool,
     if r.error_code in (Identify.Result.NONE, Identify.Result.DIVERGED):
         print("success: " + r.message)
         if show_model:
-            print(json.dumps(json.loads(r.document), indent=2))
+            doc = json.loads(r.document)
+            print(json.dumps(doc, indent=2) if as_json else model_summary(doc))
         return 0
     if r.error_code == Identify.Result.CANCELED:
         print(f"canceled: {r.message}", file=sys.stderr)

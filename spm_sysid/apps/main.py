@@ -28,7 +28,7 @@ def _cmd_call(args) -> int:
         overrides[name.strip()] = value
     return call_main(args.action, node_name=args.node, timeout=args.timeout,
                      show_model=args.show_model, overrides=overrides, bag_path=args.bag or "",
-                     trigger=args.trigger, quiet=args.quiet)
+                     trigger=args.trigger, quiet=args.quiet, as_json=args.json)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -41,7 +41,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--node", default="/spm_sysid", help="node name (default /spm_sysid)")
     p.add_argument("--timeout", type=float, default=300.0, help="seconds to wait")
     p.add_argument("--show-model", action="store_true",
-                   help="print the model document after identify")
+                   help="print the model after identify: equation, coefficients with "
+                        "intervals, fits, certification")
+    p.add_argument("--json", action="store_true",
+                   help="with --show-model: print the model document (JSON) instead")
     p.add_argument("--set", action="append", metavar="NAME=VALUE",
                    help="override a setting for this identification only (repeatable), "
                    "e.g. --set criterion=bic --set generations=100")

@@ -153,6 +153,19 @@ class Record:
             return SegmentInfo([(0, len(self.y))] if len(self.y) else [])
         return find_segments(self.stamps_ns, period_ns, gap_factor)
 
+    def row_seconds(self, segments, lag0: int) -> np.ndarray | None:
+        """Seconds (from the first sample) of the regression rows of ``segments``.
+
+        Rows are t = a + ``lag0`` .. b - 1 of each ``[a, b)`` segment, in the
+        order validation reports them; None without time stamps (plots then use
+        the sample index).
+        """
+        if self.stamps_ns is None or not len(self.stamps_ns):
+            return None
+        rows = np.concatenate([np.arange(a + lag0, b) for a, b in segments]) if segments \
+            else np.zeros(0, dtype=int)
+        return (self.stamps_ns[rows] - self.stamps_ns[0]) / 1e9
+
     def metadata(self) -> dict:
         """What a model document records of its data: source, files, stamps."""
         out: dict = {"source": self.source}

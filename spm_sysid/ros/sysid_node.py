@@ -205,6 +205,7 @@ class SysidNode(Node):
         self._restored_from: str | None = None
         self._last_error: str | None = None
         self._field_errors = 0
+        self._field_error = ""  # the last message whose field could not be read, why
         self._unset = UnsetStamps()
         self._namesakes = 0
         self._type_mismatch: dict[tuple[str, str], str] = {}
@@ -307,6 +308,7 @@ class SysidNode(Node):
             value = [extract(msg, step) for step in steps]
         except FieldPathError as exc:
             self._field_errors += 1
+            self._field_error = str(exc)
             if self._field_errors == 1:
                 self.get_logger().error(str(exc))
             return
@@ -471,8 +473,11 @@ class SysidNode(Node):
             return load_record(spec)
         stamps, u, y = self._snapshot()
         if len(y) < values["min_samples"]:
+            why = (f"; {self._field_errors} message(s) were dropped because a field could "
+                   f"not be read (last: {self._field_error})" if self._field_errors else "")
             raise TooFewSamplesError(f"too few samples: {len(y)} paired samples in the buffer, "
-                                f"at least {values['min_samples']} needed (min_samples)")
+                                     f"at least {values['min_samples']} needed (min_samples)"
+                                     + why)
         return self._record_of(u, y, stamps, f"buffer of {self.get_fully_qualified_name()}",
                                unset_stamps=self._unset.count)
 

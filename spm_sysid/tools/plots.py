@@ -89,12 +89,20 @@ def plot_correlation_tests(report: ValidationReport, stem: Path, title: str = ""
     return _save(fig, stem)
 
 
+def _axis(n: int, times: np.ndarray | None) -> tuple[np.ndarray, str]:
+    """The x values of n rows and their label: seconds where the stamps are known."""
+    if times is not None and len(times) == n:
+        return np.asarray(times, dtype=float), "time (s)"
+    return np.arange(n), "sample"
+
+
 def plot_prediction(report: ValidationReport, stem: Path, kind: str = "one_step",
-                    title: str = "") -> list[Path]:
+                    title: str = "", times: np.ndarray | None = None) -> list[Path]:
     """Measured and predicted output superimposed, with the error beneath.
 
     ``kind``: ``one_step``, ``k_step`` (the report's horizon) or ``free_run``. A
     run that diverged is drawn up to the divergence, marked by a vertical line.
+    ``times``: seconds of the report's rows (the x axis; else the sample index).
     """
     if kind not in ("one_step", "k_step", "free_run"):
         raise ValueError(f"kind must be 'one_step', 'k_step' or 'free_run', got {kind!r}")
@@ -106,7 +114,7 @@ def plot_prediction(report: ValidationReport, stem: Path, kind: str = "one_step"
          "free_run": report.free_run_metrics}[kind]
     label = {"one_step": "one-step prediction", "k_step": f"{report.horizon}-step prediction",
              "free_run": "free-run simulation"}[kind]
-    t = np.arange(len(report.measured))
+    t, xlabel = _axis(len(report.measured), times)
     err = report.measured - pred
     fig, (ax1, axz, ax2) = plt.subplots(3, 1, figsize=(8, 7),
                                         gridspec_kw={"height_ratios": [2, 1.5, 1]})
@@ -128,14 +136,16 @@ def plot_prediction(report: ValidationReport, stem: Path, kind: str = "one_step"
     axz.plot(t[z], report.measured[z], color="k", lw=1.0, marker=".", ms=2.5, label="measured")
     axz.plot(t[z], pred[z], color="tab:red", lw=1.0, ls="--", label=label)
     axz.set_ylabel("output y")
-    axz.set_title(f"samples {t[z][0]}–{t[z][-1]} (around the largest error)", fontsize=8)
+    span = (f"samples {t[z][0]}–{t[z][-1]}" if xlabel == "sample"
+            else f"{t[z][0]:.3f}–{t[z][-1]:.3f} s")
+    axz.set_title(f"{span} (around the largest error)", fontsize=8)
     ax1.axvspan(t[z][0], t[z][-1], color="tab:orange", alpha=0.15, lw=0)
     if m.get("diverged_at") is not None:
         bad = np.flatnonzero(~np.isfinite(pred))
         row = int(bad[0]) if bad.size else len(pred) - 1
         for ax in (ax1, ax2):
-            ax.axvline(row, color="tab:red", lw=1.5)
-        ax1.annotate(f"diverged at sample {m['diverged_at']}", (row, ax1.get_ylim()[1]),
+            ax.axvline(t[row], color="tab:red", lw=1.5)
+        ax1.annotate(f"diverged at sample {m['diverged_at']}", (t[row], ax1.get_ylim()[1]),
                      xytext=(-5, -12), textcoords="offset points", ha="right",
                      color="tab:red", fontsize=9)
         summary = f"{label[0].upper() + label[1:]}: DIVERGED at sample {m['diverged_at']}"
@@ -146,7 +156,7 @@ def plot_prediction(report: ValidationReport, stem: Path, kind: str = "one_step"
     ax1.set_title(f"{title} — {summary}" if title else summary, fontsize=9)
     ax2.plot(t, err, color="tab:blue", lw=0.7)
     ax2.set_ylabel("error")
-    ax2.set_xlabel("sample")
+    ax2.set_xlabel(xlabel)
     ax2.sharex(ax1)
     fig.tight_layout()
     return _save(fig, stem)
@@ -194,10 +204,12 @@ def plot_convergence(
 
 def write_model_figures(
     report: ValidationReport, directory: Path, name: str = "model", model=None,
+    times: np.ndarray | None = None,
 ) -> list[Path]:
     """The correlation, one-step, k-step (with a horizon) and free-run figures.
 
     With ``model``, every title says which model it shows (criterion, focus, size).
+    ``times``: seconds of the report's rows (time stamps known: a time axis).
     """
     directory = Path(directory)
     which = model_label(model)
@@ -207,15 +219,16 @@ def write_model_figures(
         paths += plot_correlation_tests(report, directory / f"{name}_correlation",
                                         title=f"{prefix}correlation tests ({report.segment} "
                                               "data)")
-    paths += plot_prediction(report, directory / f"{name}_one_step", "one_step", which)
+    paths += plot_prediction(report, directory / f"{name}_one_step", "one_step", which, times)
     if report.k_step is not None:
-        paths += plot_prediction(report, directory / f"{name}_k_step", "k_step", which)
-    paths += plot_prediction(report, directory / f"{name}_free_run", "free_run", which)
+        paths += plot_prediction(report, directory / f"{name}_k_step", "k_step", which, times)
+    paths += plot_prediction(report, directory / f"{name}_free_run", "free_run", which, times)
     return paths
 
 
 def plot_outputs(reports: Sequence[ValidationReport], names: Sequence[str], stem: Path,
-                 kind: str = "free_run", title: str = "") -> list[Path]:
+                 kind: str = "free_run", title: str = "",
+                 times: np.ndarray | None = None) -> list[Path]:
     """Several outputs: measured and predicted, one panel per output (error beneath each).
 
     ``kind``: ``free_run`` (for a coupled model: the coupled simulation) or
@@ -230,7 +243,7 @@ def plot_outputs(reports: Sequence[ValidationReport], names: Sequence[str], stem
         ax, axe = axes[2 * k], axes[2 * k + 1]
         pred = rep.one_step if kind == "one_step" else rep.free_run
         m = rep.one_step_metrics if kind == "one_step" else rep.free_run_metrics
-        t = np.arange(len(rep.measured))
+        t, xlabel = _axis(len(rep.measured), times)
         ax.plot(t, rep.measured, color="k", lw=0.8, label="measured")
         ax.plot(t, pred, color="tab:red", lw=0.7, ls="--", label=label)
         ax.set_ylabel(name)
@@ -241,7 +254,7 @@ def plot_outputs(reports: Sequence[ValidationReport], names: Sequence[str], stem
         axe.plot(t, rep.measured - pred, color="tab:blue", lw=0.7)
         axe.set_ylabel("error")
         axe.sharex(ax)
-    axes[-1].set_xlabel("sample")
+    axes[-1].set_xlabel(xlabel)
     if title:
         fig.suptitle(title, fontsize=10)
     fig.tight_layout()
@@ -249,7 +262,8 @@ def plot_outputs(reports: Sequence[ValidationReport], names: Sequence[str], stem
 
 
 def write_mimo_figures(reports: Sequence[ValidationReport], models: Sequence, names: Sequence[str],
-                       cross_tests: list, directory: Path, name: str = "model") -> list[Path]:
+                       cross_tests: list, directory: Path, name: str = "model",
+                       times: np.ndarray | None = None) -> list[Path]:
     """The figures of a coupled model of several outputs, one report and model per output.
 
     ``<name>_free_run`` and ``<name>_one_step`` (a panel per output), each
@@ -258,8 +272,9 @@ def write_mimo_figures(reports: Sequence[ValidationReport], models: Sequence, na
     """
     directory = Path(directory)
     paths = plot_outputs(reports, names, directory / f"{name}_free_run", "free_run",
-                         "coupled model — every output's simulation fed back into all")
-    paths += plot_outputs(reports, names, directory / f"{name}_one_step", "one_step")
+                         "coupled model — every output's simulation fed back into all", times)
+    paths += plot_outputs(reports, names, directory / f"{name}_one_step", "one_step",
+                          times=times)
     for out, rep, model in zip(names, reports, models):
         if rep.tests:
             paths += plot_correlation_tests(

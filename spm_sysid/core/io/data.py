@@ -289,7 +289,10 @@ def parse_data_text(text: str, source: str = "<text>", inputs: list[str] | None 
               else [k for k in range(width) if k not in iys and k != it])
         if not iu or set(iys) & set(iu) or len(set(iu)) != len(iu) or len(set(iys)) != len(
                 iys) or (it is not None and (it in iu or it in iys)):
-            raise DataError(f"{source}: choose distinct input and output columns")
+            shown = ", ".join(str(c) for c in [*(inputs or []), *outputs])
+            raise DataError(f"{source}: choose distinct input and output columns (the "
+                            f"columns asked for, {shown}, name a column twice or the time "
+                            "column)")
     elif names and "u" in names and "y" in names:
         iu, iys = [names.index("u")], [names.index("y")]
     else:
@@ -344,8 +347,12 @@ def parse_data_text(text: str, source: str = "<text>", inputs: list[str] | None 
     u = signals[:, :m] if m > 1 else signals[:, 0]
     y = signals[:, m:] if len(iys) > 1 else signals[:, m]
 
+    # lower-case names (as before), or as written where two chosen differ only by case
+    written = bool(names) and len({names[j] for j in [*iu, *iys]}) < len(iu) + len(iys)
+    shown = table.header_names if written else names
+
     def label(j: int, default: str) -> str:
-        return names[j] if chosen and names and names[j].isidentifier() else default
+        return shown[j] if chosen and names and shown[j].isidentifier() else default
 
     in_names = tuple(label(j, f"u{k + 1}" if m > 1 else "u") for k, j in enumerate(iu))
     out_names = tuple(label(j, f"y{k + 1}" if len(iys) > 1 else "y")
@@ -358,6 +365,12 @@ def parse_data_text(text: str, source: str = "<text>", inputs: list[str] | None 
 def _column(table: Table, sel) -> int:
     sel = str(sel).strip()
     names, width = table.names, table.width
+    if table.header_names and sel in table.header_names:  # as written: q1 and Q1 differ
+        return table.header_names.index(sel)
+    if names and names.count(sel.lower()) > 1:
+        raise DataError(f"{table.source}: {sel!r} matches the columns "
+                        f"{[h for h in table.header_names if h.lower() == sel.lower()]} "
+                        "but none exactly (names differ only by case): spell it as written")
     if names and sel.lower() in names:
         return names.index(sel.lower())
     try:

@@ -183,7 +183,8 @@ class MimoModel:
     def from_dict(cls, doc: dict) -> MimoModel:
         if not isinstance(doc, dict) or doc.get("schema") != MIMO_SCHEMA:
             raise ModelFormatError(f"not a several-output model (schema {MIMO_SCHEMA!r})")
-        if doc.get("schema_version") != MIMO_SCHEMA_VERSION:
+        version = doc.get("schema_version")
+        if isinstance(version, bool) or version != MIMO_SCHEMA_VERSION:  # true is not 1
             raise ModelFormatError(f"several-output model version "
                                    f"{doc.get('schema_version')!r} is not supported")
         outputs, inputs = tuple(doc["outputs"]), tuple(doc["inputs"])

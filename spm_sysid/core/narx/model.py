@@ -283,7 +283,7 @@ class NarxModel:
                 f"not a spm_sysid model document (schema must be {MODEL_SCHEMA!r})"
             )
         version = doc.get("schema_version")
-        if version not in READABLE_VERSIONS:
+        if not _is_int(version) or version not in READABLE_VERSIONS:  # true is not 1
             raise ModelFormatError(
                 f"model schema version {version!r} is not supported (this is version "
                 f"{MODEL_SCHEMA_VERSION})"
@@ -344,9 +344,10 @@ class NarxModel:
         crit = crit or {}
         for key in ("mse", "n_samples"):
             value = doc.get(key)
-            if value is not None and not (_is_int(value) if key == "n_samples"
-                                          else _is_number(value)):
-                raise ModelFormatError(f"{key!r} must be a number or null, got {_show(value)}")
+            if value is not None and not (_is_int(value) and value >= 0 if key == "n_samples"
+                                          else _is_number(value) and value >= 0):
+                raise ModelFormatError(f"{key!r} must be a number >= 0 or null, got "
+                                       f"{_show(value)}")
         metadata = doc.get("metadata") or {}
         if not isinstance(metadata, dict):
             raise ModelFormatError("'metadata' must be an object")

@@ -279,7 +279,8 @@ class Problem:
         ------
         DataError
             Bad shapes, non-finite values, too few samples, out-of-range
-            magnitudes, no usable segment, an output that is zero throughout.
+            magnitudes, no usable segment, an output that is constant (or zero)
+            throughout.
         MemoryLimitError
             The candidate matrix and the evaluator's factors would exceed the
             memory bound.
@@ -295,6 +296,9 @@ class Problem:
         u, y = validate_signals(u, y, term_space, segs if given else None)
         if not np.any(y):
             raise DataError("the output y is zero throughout: there is nothing to identify")
+        if np.all(y == y[0]):  # a stuck sensor: y(t) = y(t-1) would "fit" it exactly
+            raise DataError(f"the output y is constant ({y[0]:g} throughout; a stuck or "
+                            "disconnected sensor?): there is nothing to identify")
         rows = sum(b - a - term_space.max_lag for a, b in segs)
         m = term_space.n_terms
         # the matrix, its scaled copy in the evaluator and the QR work space, with margin,

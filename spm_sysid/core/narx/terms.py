@@ -93,6 +93,13 @@ class TermSpace:
             if len(values) not in (0, 1, m) or (label != "inputs" and not values):
                 raise ValueError(f"{label} gives {len(values)} values for {m} inputs (give "
                                  f"one value for all inputs, or one per input)")
+        if names and len(names) != m:
+            which = " and ".join(label for label, values in (("nu", nus), ("delay", delays))
+                                 if len(values) == m)
+            raise ValueError(f"{which} give{'' if ' and ' in which else 's'} {m} values, but there "
+                             f"{'is 1 input' if len(names) == 1 else f'are {len(names)} inputs'}"
+                             f" ({', '.join(map(str, names))}): give one value per input, or "
+                             "one for all")
         nus = tuple(check("nu", v) for v in (nus * m if len(nus) == 1 else nus))
         delays = tuple(check("delay", v) for v in (delays * m if len(delays) == 1 else delays))
         if not names:

@@ -119,6 +119,15 @@ class Uncertainty:
         cov = np.asarray(doc["covariance"], dtype=float)
         if cov.shape != (k, k) or not np.all(np.isfinite(cov)):
             raise ValueError(f"uncertainty.covariance must be a finite {k} x {k} matrix")
+        if np.any(np.diag(cov) < 0):
+            raise ValueError("uncertainty.covariance has a negative variance on its diagonal "
+                             "(not a covariance)")
+        if not np.allclose(cov, cov.T, rtol=1e-6, atol=0.0):
+            raise ValueError("uncertainty.covariance must be symmetric")
+        sigma2 = doc["sigma2"]
+        if isinstance(sigma2, bool) or not isinstance(sigma2, (int, float)) or not (
+                np.isfinite(sigma2) and sigma2 >= 0):
+            raise ValueError("uncertainty.sigma2 must be a finite number >= 0")
         dof = doc["dof"]
         if not isinstance(dof, int) or isinstance(dof, bool) or dof < 0:
             raise ValueError("uncertainty.dof must be an integer >= 0")

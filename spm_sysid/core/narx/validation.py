@@ -179,9 +179,21 @@ def split_segments(bounds: list[tuple[int, int]], n: int, fraction: float, max_l
 
 
 def check_correlation_lags(lags: int, rows: int) -> None:
-    """Raise SettingsError unless 1 <= ``lags`` < ``rows`` (the validation rows)."""
+    """Raise SettingsError unless 1 <= ``lags`` < ``rows`` (the validation rows).
+
+    With no more rows than the default 20 lags, the message says that the data
+    are too short (the cure), not only which lags would fit.
+    """
+    if rows < 2:
+        raise SettingsError(f"too few samples to validate: {rows} validation row(s), the "
+                            "correlation tests need at least 2 (more data, or validation: "
+                            "none)")
     if not 1 <= lags < rows:
-        raise SettingsError(f"correlation_lags must be between 1 and {rows - 1} for {rows} "
+        short = (f"too few samples to validate with correlation_lags {lags}: {rows} "
+                 f"validation rows; record more data (at least {lags + 1} rows), or set "
+                 f"correlation_lags to at most {rows - 1}")
+        raise SettingsError(short if lags >= 1 and rows <= 20 else
+                            f"correlation_lags must be between 1 and {rows - 1} for {rows} "
                             f"validation rows, got {lags}")
 
 

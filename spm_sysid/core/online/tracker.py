@@ -72,8 +72,13 @@ class RecursiveTracker:
             P = P * max(1.0, rows * (1.0 - forgetting))
         else:
             P = np.eye(k) * 1e3
-        self.P = 0.5 * (P + P.T)
-        self.max_trace = max_trace_factor * float(np.trace(self.P))
+        with np.errstate(over="ignore", invalid="ignore"):
+            self.P = 0.5 * (P + P.T)
+            self.max_trace = max_trace_factor * float(np.trace(self.P))
+        if not (np.all(np.isfinite(self.theta)) and np.all(np.isfinite(self.P))
+                and np.isfinite(self.max_trace)):
+            raise ValueError("the model's coefficients or their covariance are too large to "
+                             "track (they overflow double precision)")
         self.lam = float(forgetting)
         self.input_std = None if input_std is None or not input_std > 0 else float(input_std)
         self._first: list = []
@@ -127,22 +132,26 @@ class RecursiveTracker:
         if self.quiet():
             self.frozen += 1
             return False
-        e = y - float(phi @ self.theta)
-        Pphi = self.P @ phi
-        denom = self.lam + float(phi @ Pphi)
-        if not denom > 0 or not np.isfinite(denom) or not np.isfinite(e):
-            self.skipped += 1
-            return False
-        gain = Pphi / denom
-        self.theta += gain * e
-        P = (self.P - np.outer(gain, Pphi)) / self.lam
-        P = 0.5 * (P + P.T)
-        trace = float(np.trace(P))
+        with np.errstate(over="ignore", invalid="ignore"):
+            e = y - float(phi @ self.theta)
+            Pphi = self.P @ phi
+            denom = self.lam + float(phi @ Pphi)
+            if not denom > 0 or not np.isfinite(denom) or not np.isfinite(e):
+                self.skipped += 1
+                return False
+            gain = Pphi / denom
+            theta = self.theta + gain * e
+            P = (self.P - np.outer(gain, Pphi)) / self.lam
+            P = 0.5 * (P + P.T)
+            trace = float(np.trace(P))
+            post = y - float(phi @ theta)
+            if not (np.all(np.isfinite(theta)) and np.isfinite(trace) and np.isfinite(post)):
+                self.skipped += 1  # the update would overflow: the sample is left out
+                return False
         if trace > self.max_trace:
             P *= self.max_trace / trace
-        self.P = P
+        self.theta, self.P = theta, P
         # forgetting-weighted error variance (a posteriori error of this sample)
-        post = y - float(phi @ self.theta)
         self.sigma2 = self.lam * self.sigma2 + (1 - self.lam) * e * post
         self.updates += 1
         return True

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import argparse
+
 from ...core.errors import SettingsError
 from .common import (
     UserError,
@@ -72,12 +74,22 @@ def cmd_identify(args) -> int:
     if args.plots:
         from ..plots import write_model_figures
 
-        paths = write_model_figures(result.report, args.plots, model=model)
+        paths = write_model_figures(result.report, args.plots, model=model,
+                                    times=validation_times(record, args))
         print(f"figures written to {args.plots}: {', '.join(p.name for p in paths)}")
     if args.json:
         path = model.save(args.json)
         print(f"model written to {path}")
     return 0
+
+
+def validation_times(record, args):
+    """Seconds of the validation rows of ``identify`` (None without time stamps)."""
+    from ...core.job import validation_segments
+
+    settings = job_settings(args)
+    _, val, _ = validation_segments(record, settings)
+    return record.row_seconds(val, settings.term_space.max_lag)
 
 
 def report_several(args, record, result) -> int:
@@ -101,7 +113,8 @@ def report_several(args, record, result) -> int:
 
         paths = write_mimo_figures([r.report for r in result.outputs],
                                    [r.model for r in result.outputs], result.output_names,
-                                   result.cross_tests, args.plots)
+                                   result.cross_tests, args.plots,
+                                   times=validation_times(record, args))
         print(f"figures written to {args.plots}: {', '.join(p.name for p in paths)}")
     if args.json:
         path = result.model.save(args.json)
@@ -236,7 +249,7 @@ def cmd_validate(args) -> int:
         raise UserError(str(exc)) from None
     if isinstance(model, MimoModel):
         return validate_several(args, model)
-    record = load(args)
+    record = load_by_names(args, model.term_space.inputs, (model.term_space.output,))
     u, y = record.u, record.y
     segments = validated_segments(args, record, model.term_space.max_lag)
     print(f"model: {args.model}")
@@ -254,9 +267,40 @@ def cmd_validate(args) -> int:
     if args.plots:
         from ..plots import write_model_figures
 
-        paths = write_model_figures(report, args.plots, model=model)
+        paths = write_model_figures(report, args.plots, model=model,
+                                    times=record.row_seconds(segments,
+                                                             model.term_space.max_lag))
         print(f"figures written to {args.plots}: {', '.join(p.name for p in paths)}")
     return 0
+
+
+def load_by_names(args, inputs, outputs, several: bool = False):
+    """The data, its columns chosen by the model's signal names when the options do not.
+
+    A model identified on columns ``tau``, ``acc`` validates on a file's columns of
+    those names; a file without them (no header, other names) is read in its
+    default layout, and a note says so.
+    """
+    from ...core.errors import DataError
+
+    default = {"u", "y"} | {f"u{i}" for i in range(1, 10)} | {f"y{i}" for i in range(1, 10)}
+    given = getattr(args, "inputs", None) or getattr(args, "output_column", None)
+    if given or getattr(args, "data", None) is None or set(inputs) | set(outputs) <= default:
+        return load(args, several)
+    named = argparse.Namespace(**{**vars(args), "inputs": list(inputs),
+                                  "output_column": ",".join(outputs)})
+    try:
+        record = load(named, several)
+    except DataError as exc:
+        if "no column" not in str(exc):
+            raise
+        print(f"note: the data has no columns named as the model's signals "
+              f"({', '.join(inputs)} -> {', '.join(outputs)}); its columns are read in the "
+              "default layout (choose them with --inputs and --output)")
+        return load(args, several)
+    print(f"note: columns chosen by the model's signal names: inputs {', '.join(inputs)}, "
+          f"output {', '.join(outputs)}")
+    return record
 
 
 def validated_segments(args, record, lag0: int) -> list[tuple[int, int]]:
@@ -281,7 +325,7 @@ def validate_several(args, model) -> int:
     from ...core.narx.mimo import augmented_inputs
     from ...core.narx.validation import validate_model
 
-    record = load(args, several=True)
+    record = load_by_names(args, model.inputs, model.outputs, several=True)
     if record.output_names != model.outputs or record.n_inputs != len(model.inputs):
         raise UserError(f"the model has outputs {', '.join(model.outputs)} and "
                         f"{len(model.inputs)} input(s); the data has outputs "
@@ -308,7 +352,8 @@ def validate_several(args, model) -> int:
     if args.plots:
         from ..plots import write_mimo_figures
 
-        paths = write_mimo_figures(reports, model.models, model.outputs, cross, args.plots)
+        paths = write_mimo_figures(reports, model.models, model.outputs, cross, args.plots,
+                                   times=record.row_seconds(segments, model.max_lag))
         print(f"figures written to {args.plots}: {', '.join(p.name for p in paths)}")
     return 0
 
