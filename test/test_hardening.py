@@ -300,3 +300,15 @@ def test_a_worker_that_dies_while_starting_backs_off_and_says_why(tmp_path):
         assert not worker.ready
     finally:
         worker.close()
+
+
+def test_progress_lines_say_only_what_means_something():
+    from spm_sysid.core.progress import Progress
+
+    assert Progress("validation", elapsed=0.3).line() == "validation, 0.3 s"  # was ": 0, 0 ..."
+    assert Progress("checking data").line() == "checking data, 0.0 s"
+    assert Progress("search", 120, 300, -10744.781, 21805, elapsed=0.31).line() == \
+        "search: generation 120/300, best -10744.78, 21805 structures fitted, 0.3 s"
+    assert Progress("certification", 7, 0, -5.0, 10, -6.5, 1.0).line() == \
+        ("certification: node 7, best -5.00, lower bound -6.50 (gap 1.50), 10 structures "
+         "fitted, 1.0 s")

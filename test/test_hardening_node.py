@@ -81,7 +81,8 @@ def test_call_with_no_node_says_at_once_that_it_waits(ros_env):
                              "--timeout", "8"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, env=ros_env, cwd=ROOT)
     first = proc.stderr.readline()  # before the timeout: it says what it waits for
-    assert first.startswith("waiting for /spm_sysid/clear") and "sysid_node running" in first
+    assert first.startswith("still waiting for /spm_sysid/clear after 3 s")
+    assert "sysid_node running" in first
     assert proc.poll() is None
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 2 and "is not available" in err

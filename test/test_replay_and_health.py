@@ -216,10 +216,12 @@ def test_dead_worker_is_reported_and_restarted(ros_env, harness, readme_bag):
         workers = children(node.pid)
         assert len(workers) == 1
         os.kill(workers[0], signal.SIGKILL)
-        kv = harness.wait_buffer(lambda kv: kv["worker_ready"] == "False", 10)
-        assert kv["worker_ready"] == "False"
-        kv = harness.wait_buffer(lambda kv: kv["worker_ready"] == "True", 60)
-        assert kv["worker_restarts"] == "1"
+        # the death is counted (a new worker may be ready again within one diagnostics
+        # period: with the kernels' build it starts in about 0.2 s)
+        kv = harness.wait_buffer(lambda kv: kv["worker_restarts"] == "1"
+                                 and kv["worker_ready"] == "True", 60)
+        assert kv["worker_restarts"] == "1" and kv["worker_ready"] == "True"
+        assert children(node.pid) != workers  # a new process
         assert fast_player(ros_env).returncode == 0
         harness.wait_buffer(lambda kv: int(kv["samples"]) >= 1024, 30)
         res = harness.call("/spm_sysid/identify")
@@ -354,3 +356,38 @@ def test_call_errors_go_to_stderr(ros_env):
                        env=ros_env, timeout=60, cwd=ROOT)
     assert r.returncode == 2 and r.stdout == ""
     assert r.stderr.startswith("error: service /spm_sysid/identify is not available")
+
+
+def test_the_readme_tutorial_as_written(ros_env, harness, readme_bag):
+    """The README's five commands (the bag made by readme_bag): node, replay, identify, watch."""
+    node = readme_node(ros_env)
+    try:
+        player = readme_player(ros_env)
+        assert player.returncode == 0 and "delivery confirmed" in player.stderr
+        harness.wait_buffer(lambda kv: int(kv["samples"]) >= 1024, 30)
+        r = subprocess.run([_script("spm-sysid"), "call", "identify", "--show-model"],
+                           env=ros_env, cwd=ROOT, capture_output=True, text=True, timeout=120)
+        assert r.returncode == 0, r.stderr
+        out = r.stdout.splitlines()
+        assert out[0].startswith("success: y(t) = 3.158y(t-1) - 4.439y(t-2)")
+        assert "AIC -10744.78, 8 terms" in out[0]
+        assert "fits: one-step fit 98.1 %, free-run fit 11.1 %" in out
+        assert out[-1].startswith("criterion: AIC -10744.78, certified optimal over all")
+        assert any(x.startswith("search: generation 0/300, best ") for x in
+                   r.stderr.splitlines())
+        watch = subprocess.Popen([_script("spm-sysid"), "call", "watch", "--timeout", "30"],
+                                 env=ros_env, cwd=ROOT, stdout=subprocess.PIPE,
+                                 stderr=subprocess.PIPE, text=True)
+        assert watch.stdout.readline().startswith("VALID: ")  # the latched state at once
+        assert readme_player(ros_env).returncode == 0  # step 3 again: the robot runs
+        lines = []
+        while not any("1020 samples monitored" in x for x in lines):
+            line = watch.stdout.readline()
+            assert line, watch.stderr.read()
+            lines.append(line)
+        watch.send_signal(signal.SIGINT)  # Ctrl-C
+        rest, err = watch.communicate(timeout=30)
+        assert watch.returncode == 0, err
+        assert all(x.startswith("VALID: ") for x in lines + rest.splitlines()), lines
+    finally:
+        stop(node)

@@ -1,6 +1,7 @@
 """Calling the node without the ``ros2`` command line.
 
-``spm-sysid call identify`` sends a goal to the node's ``~/identify`` action
+``spm-sysid call watch`` prints the model's validity as it changes (for users
+without the ``ros2`` command line). ``spm-sysid call identify`` sends a goal to the node's ``~/identify`` action
 (:func:`identify_goal`): a progress line from its feedback, Ctrl-C cancels the
 goal, the typed result's code decides the exit status. ``spm-sysid call clear``
 and ``call identify --trigger`` use the ``std_srvs/Trigger`` services
@@ -11,6 +12,7 @@ and ``call identify --trigger`` use the ``std_srvs/Trigger`` services
 from __future__ import annotations
 
 import json
+import math
 import sys
 import time
 
@@ -29,7 +31,7 @@ CANCEL_WAIT = 10.0
 
 
 #: Seconds of silence before saying that the node is being waited for.
-SAY_WAITING = 2.0
+SAY_WAITING = 3.0
 
 
 def wait_for(ready, what: str, timeout: float) -> bool:
@@ -43,8 +45,8 @@ def wait_for(ready, what: str, timeout: float) -> bool:
         return True
     if timeout <= first:
         return False
-    print(f"waiting for {what} (up to {timeout:.0f} s more; is sysid_node running, with the "
-          "same ROS_DOMAIN_ID?) ...", file=sys.stderr, flush=True)
+    print(f"still waiting for {what} after {first:g} s (up to {timeout - first:.0f} s more; is "
+          "sysid_node running, with the same ROS_DOMAIN_ID?) ...", file=sys.stderr, flush=True)
     return ready(timeout - first)
 
 
@@ -168,24 +170,12 @@ def identify_goal(node: Node, action: str, overrides: dict[str, str] | None = No
 
 
 def feedback_text(fb) -> str:
-    """One feedback message in words: only the figures that mean something in its phase.
+    """One ``Identify`` feedback message as the node logs its progress (one formatter)."""
+    from ..core.progress import Progress
 
-    ``search: generation 120/300, best -10744.78, 21805 structures, 0.3 s``;
-    ``validation, 0.5 s``.
-    """
-    parts = []
-    if fb.total:
-        step = "generation " if fb.phase == "search" else "step "
-        parts.append(f"{step}{fb.step}/{fb.total}")
-    if fb.best_value == fb.best_value:  # not NaN
-        parts.append(f"best {fb.best_value:.2f}")
-    if fb.gap == fb.gap:
-        parts.append(f"gap {fb.gap:.2f}")
-    if fb.structures_evaluated:
-        parts.append(f"{fb.structures_evaluated} structures")
-    parts.append(f"{fb.elapsed:.1f} s")
-    head = f"{fb.phase}: " if len(parts) > 1 else f"{fb.phase}, "
-    return head + ", ".join(parts)
+    bound = fb.best_value - fb.gap if fb.gap == fb.gap else math.nan
+    return Progress(fb.phase, fb.step, fb.total, fb.best_value, fb.structures_evaluated, bound,
+                    fb.elapsed).line()
 
 
 def model_summary(doc: dict) -> str:
@@ -262,6 +252,49 @@ def wait_for_model(node: Node, topic: str, timeout: float = 10.0) -> dict | None
         node.destroy_subscription(sub)
 
 
+def validity_line(msg) -> str:
+    """One ``~/validity`` message in words."""
+    text = f"{msg.state_name}: {msg.samples} samples monitored"
+    if msg.rms_ratio == msg.rms_ratio:  # not NaN
+        text += f", residual RMS {msg.rms_ratio:.2f} x the identification's"
+    if msg.whiteness_p == msg.whiteness_p:
+        text += f", whiteness p {msg.whiteness_p:.2g}"
+    return text + (f" -- {msg.reason}" if msg.reason else "")
+
+
+def watch_validity(node: Node, topic: str, seconds: float, every: float = 1.0) -> int:
+    """Print the model's validity (``~/validity``) for ``seconds``: each change, else once a second.
+
+    For users without the ``ros2`` command line. Returns 0, or 2 when no message
+    arrived at all (no node, or another ROS_DOMAIN_ID).
+    """
+    from spm_sysid_interfaces.msg import Validity
+
+    got: list = []
+    sub = node.create_subscription(Validity, topic, got.append, LATCHED)
+    shown, last, t_shown = 0, None, -math.inf
+    try:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            rclpy.spin_once(node, timeout_sec=0.1)
+            if len(got) == shown:
+                continue
+            msg, shown = got[-1], len(got)
+            now = time.monotonic()
+            if msg.state_name != last or now - t_shown >= every:
+                print(validity_line(msg), flush=True)
+                last, t_shown = msg.state_name, now
+    except KeyboardInterrupt:
+        pass
+    finally:
+        node.destroy_subscription(sub)
+    if not got:
+        print(f"error: nothing on {topic} within {seconds:.0f} s (is sysid_node running, with "
+              "the same ROS_DOMAIN_ID?)", file=sys.stderr)
+        return 2
+    return 0
+
+
 def main(action: str, node_name: str = "/spm_sysid", timeout: float = 300.0,
          show_model: bool = False, overrides: dict[str, str] | None = None,
          bag_path: str = "", trigger: bool = False, quiet: bool = False,
@@ -293,6 +326,8 @@ def main(action: str, node_name: str = "/spm_sysid", timeout: float = 300.0,
     rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
     node = Node("spm_sysid_call")
     try:
+        if action == "watch":
+            return watch_validity(node, f"{node_name}/validity", timeout)
         if action == "identify" and not trigger:
             return _identify(node, f"{node_name}/identify", timeout, show_model,
                              overrides or {}, bag_path, quiet, as_json)

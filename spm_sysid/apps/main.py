@@ -36,10 +36,14 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     sub = next(a for a in parser._actions if a.dest == "command")  # argparse's subparsers
     p = sub.add_parser("call", help="ask a running sysid node to identify (its action: "
-                       "progress, Ctrl-C cancels) or to clear its buffer")
-    p.add_argument("action", choices=("identify", "clear"))
+                       "progress, Ctrl-C cancels), to clear its buffer, or watch its "
+                       "model's validity")
+    p.add_argument("action", choices=("identify", "clear", "watch"),
+                   help="identify; clear the buffer; watch: print ~/validity for --timeout "
+                        "seconds (each change, else once a second)")
     p.add_argument("--node", default="/spm_sysid", help="node name (default /spm_sysid)")
-    p.add_argument("--timeout", type=float, default=300.0, help="seconds to wait")
+    p.add_argument("--timeout", type=float, default=300.0,
+                   help="seconds to wait (watch: seconds to watch)")
     p.add_argument("--show-model", action="store_true",
                    help="print the model after identify: equation, coefficients with "
                         "intervals, fits, certification")

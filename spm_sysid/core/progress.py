@@ -57,16 +57,24 @@ class Progress:
         return self.best - self.bound if math.isfinite(self.bound) else math.nan
 
     def line(self) -> str:
-        """One line for a log."""
-        of = f"/{self.total}" if self.total else ""
-        text = f"{self.phase}: {self.step}{of}"
+        """One line for a log or a terminal: only the figures that mean something now.
+
+        ``search: generation 120/300, best -10744.78, 21805 structures fitted,
+        0.3 s``; ``validation, 0.5 s`` (no "0, 0 structures" for a phase
+        without steps).
+        """
+        parts = []
+        if self.total or self.step:
+            name = {"search": "generation ", "certification": "node "}.get(self.phase, "step ")
+            parts.append(f"{name}{self.step}" + (f"/{self.total}" if self.total else ""))
         if math.isfinite(self.best):
-            text += f", best {self.best:.2f}"
+            parts.append(f"best {self.best:.2f}")
         if math.isfinite(self.bound):
-            text += f", lower bound {self.bound:.2f} (gap {self.gap:.2f})"
+            parts.append(f"lower bound {self.bound:.2f} (gap {self.gap:.2f})")
         if self.evaluations:
-            text += f", {self.evaluations} structures fitted"
-        return text + f", {self.elapsed:.1f} s"
+            parts.append(f"{self.evaluations} structures fitted")
+        parts.append(f"{self.elapsed:.1f} s")
+        return f"{self.phase}{': ' if len(parts) > 1 else ', '}" + ", ".join(parts)
 
 
 #: What a progress callback looks like.
