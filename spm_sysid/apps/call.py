@@ -1,12 +1,13 @@
 """Calling the node without the ``ros2`` command line.
 
-``spm-sysid call watch`` prints the model's validity as it changes (for users
-without the ``ros2`` command line). ``spm-sysid call identify`` sends a goal to
-the node's ``~/identify`` action (:func:`identify_goal`): a progress line from
-its feedback, Ctrl-C cancels the goal, the typed result's code decides the exit status. ``spm-sysid call clear``
+``spm-sysid call identify`` sends a goal to the node's ``~/identify`` action
+(:func:`identify_goal`): a progress line from its feedback, Ctrl-C cancels the
+goal, the typed result's code decides the exit status. ``spm-sysid call clear``
 and ``call identify --trigger`` use the ``std_srvs/Trigger`` services
-(:func:`call_trigger`). Another rclpy node can do the same with its own client
-(``examples/identify_action_client.py``, ``examples/identify_from_node.py``).
+(:func:`call_trigger`). ``spm-sysid call watch`` prints the model's validity as
+it changes (:func:`watch_validity`). Another rclpy node can do the same with
+its own client (``examples/identify_action_client.py``,
+``examples/identify_from_node.py``).
 """
 
 from __future__ import annotations
