@@ -107,7 +107,10 @@ def test_a_worker_killed_mid_study_loses_no_run(cluster, tmp_path):
 
 def test_an_interrupted_study_resumes_without_redoing_runs(cluster, tmp_path):
     out = tmp_path / "resume"
-    args = [sys.executable, "-m", "spm_sysid.apps.main", *STUDY, "--out", str(out),
+    # runs of about 0.2 s each (the study's 12 runs of 40 generations took 0.2 s in all:
+    # on a busy machine they all finished before the interrupt arrived)
+    study_args = (*STUDY[:-1], "--generations", "1000", "--quiet")
+    args = [sys.executable, "-m", "spm_sysid.apps.main", *study_args, "--out", str(out),
             "--workers", "1"]
     study = subprocess.Popen(args, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     partial = out / "runs.partial.jsonl"
@@ -119,12 +122,13 @@ def test_an_interrupted_study_resumes_without_redoing_runs(cluster, tmp_path):
     study.wait(60)
     done = len([line for line in partial.read_text().splitlines() if line.strip()])
     assert 3 <= done < 12
-    again = spm(*STUDY, "--out", str(out))
+    again = spm(*study_args, "--out", str(out))
     assert again.returncode == 2 and "--resume" in again.stderr  # nothing overwritten
-    resumed = spm(*STUDY, "--out", str(out), "--resume", "--scheduler", cluster["address"])
+    resumed = spm(*study_args, "--out", str(out), "--resume", "--scheduler",
+                  cluster["address"])
     assert resumed.returncode == 0, resumed.stderr
     assert f"resumed: {done} run(s) were already done" in resumed.stdout
-    ref = spm(*STUDY, "--out", str(tmp_path / "ref"))
+    ref = spm(*study_args, "--out", str(tmp_path / "ref"))
     assert ref.returncode == 0, ref.stderr
     assert _runs(out) == _runs(tmp_path / "ref")
 

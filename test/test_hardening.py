@@ -17,6 +17,7 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from spm_sysid.core.errors import MemoryLimitError
@@ -312,3 +313,141 @@ def test_progress_lines_say_only_what_means_something():
     assert Progress("certification", 7, 0, -5.0, 10, -6.5, 1.0).line() == \
         ("certification: node 7, best -5.00, lower bound -6.50 (gap 1.50), 10 structures "
          "fitted, 1.0 s")
+
+
+# -- crafted model documents, stuck signals, names, plots, tracking -------------------------
+
+
+@pytest.fixture(scope="module")
+def arm_doc(robot_arm):
+    from spm_sysid.core.job import JobSettings, run_job
+    from spm_sysid.core.record import Record
+
+    u, y = robot_arm
+    record = Record.from_samples(u, y, source="robot arm")
+    result = run_job(record, JobSettings.from_values({"seed": 1}))
+    return result.model.to_dict(), result.residuals
+
+
+@pytest.mark.parametrize("edit, words", [
+    (lambda d: d.__setitem__("schema_version", True), "schema version True"),
+    (lambda d: d.__setitem__("n_samples", -5), "'n_samples' must be a number >= 0"),
+    (lambda d: d["uncertainty"]["covariance"][0].__setitem__(0, -1.0),
+     "negative variance"),
+    (lambda d: d["uncertainty"].__setitem__("sigma2", -1.0), "sigma2 must be"),
+])
+def test_a_crafted_model_document_is_refused_with_its_reason(arm_doc, tmp_path, edit, words):
+    import copy
+
+    doc = copy.deepcopy(arm_doc[0])
+    edit(doc)
+    path = tmp_path / "m.json"
+    path.write_text(json.dumps(doc))
+    r = run("spm-sysid", "validate", str(path))
+    assert r.returncode == 2 and words in r.stderr, r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+
+
+def test_the_tracker_never_overflows_on_huge_coefficients(arm_doc):
+    import copy
+
+    from spm_sysid.core.narx.model import NarxModel
+    from spm_sysid.core.online.session import OnlineSession
+
+    doc = copy.deepcopy(arm_doc[0])
+    doc["coefficients"] = [1e300] * len(doc["coefficients"])
+    model = NarxModel.from_dict(doc)
+    with pytest.raises(ValueError, match="too large to track"):
+        OnlineSession(model, tracking=True, sample_period=0.01)
+
+
+def test_a_constant_output_is_not_identifiable(robot_arm, tmp_path):
+    u, _ = robot_arm
+    path = tmp_path / "stuck.dat"
+    np.savetxt(path, np.column_stack([u, np.full(len(u), 0.25)]))
+    r = run("spm-sysid", "identify", "--data", str(path))
+    assert r.returncode == 2
+    assert "the output y is constant (0.25 throughout; a stuck or disconnected sensor?)" \
+        in r.stderr
+
+
+def test_validate_reads_the_columns_the_model_was_identified_on(robot_arm, tmp_path):
+    u, y = robot_arm
+    path = tmp_path / "named.csv"
+    # the output first: a file read in the default layout would swap them
+    np.savetxt(path, np.column_stack([y, u]), delimiter=",", header="acc,tau", comments="")
+    model = tmp_path / "m.json"
+    r = run("spm-sysid", "identify", "--data", str(path), "--inputs", "tau", "--output", "acc",
+            "--quiet", "--json", str(model))
+    assert r.returncode == 0, r.stderr
+    r = run("spm-sysid", "validate", str(model), "--data", str(path))
+    assert r.returncode == 0, r.stderr
+    assert "columns chosen by the model's signal names: inputs tau, output acc" in r.stdout
+    assert "fit 98.14 %" in r.stdout  # the paper's eq. (1) on its own data
+
+
+def test_columns_that_differ_only_by_case_stay_apart(robot_arm, tmp_path):
+    from spm_sysid.core.io.data import load_data
+
+    u, y = robot_arm
+    path = tmp_path / "joints.csv"
+    np.savetxt(path, np.column_stack([u, y, 2 * y]), delimiter=",", header="tau1,q1,Q1",
+               comments="")
+    data = load_data(path, inputs=["tau1"], output=["q1", "Q1"])
+    assert data.output_names == ("q1", "Q1")
+    np.testing.assert_array_equal(data.y[:, 1], 2 * y)
+
+
+def test_more_lags_than_inputs_names_the_inputs():
+    from spm_sysid.core.narx.terms import TermSpace
+
+    with pytest.raises(ValueError, match=r"nu gives 2 values, but there is 1 input \(tau1\)"):
+        TermSpace(nu=(1, 1), inputs=("tau1",), output="q1")
+
+
+def test_too_few_rows_to_validate_says_so(robot_arm, tmp_path):
+    u, y = robot_arm
+    path = tmp_path / "short.dat"
+    np.savetxt(path, np.column_stack([u[:12], y[:12]]))
+    r = run("spm-sysid", "identify", "--data", str(path), "--ny", "1", "--nu", "1",
+            "--degree", "1")
+    assert r.returncode == 2
+    assert "too few samples to validate with --correlation-lags 20: 11 validation rows" \
+        in r.stderr
+
+
+def test_figures_have_a_time_axis_when_the_data_have_stamps(robot_arm, tmp_path):
+    from spm_sysid.core.record import Record
+
+    u, y = robot_arm
+    record = Record.from_samples(u, y, source="x", stamps_ns=np.arange(len(y)) * 10_000_000)
+    seconds = record.row_seconds([(0, len(y))], 4)
+    assert len(seconds) == len(y) - 4 and seconds[0] == pytest.approx(0.04)
+    assert Record.from_samples(u, y, source="x").row_seconds([(0, len(y))], 4) is None
+    bag = tmp_path / "bag"
+    assert run("spm-sysid", "make-bag", "--output", str(bag), "--rate", "100").returncode == 0
+    r = run("spm-sysid", "identify", "--bag", str(bag), "--quiet", "--plots",
+            str(tmp_path / "figs"))
+    assert r.returncode == 0, r.stderr
+    svg = (tmp_path / "figs" / "model_one_step.svg").read_text()
+    assert "time (s)" in svg and ">sample<" not in svg
+
+
+def test_tracking_from_a_constant_input_never_drifts(arm_doc):
+    import copy
+
+    from spm_sysid.core.narx.model import NarxModel
+    from spm_sysid.core.online.session import OnlineSession
+
+    doc = copy.deepcopy(arm_doc[0])
+    assert doc["metadata"]["monitor"]["input_std"] > 0  # the identification's input spread
+    model = NarxModel.from_dict(doc)
+    session = OnlineSession(model, tracking=True, sample_period=0.01)
+    rng = np.random.default_rng(0)
+    y = [0.0] * 4
+    for k in range(2000):  # the input constant from the first sample, the output noise
+        y.append(0.001 * rng.standard_normal())
+        session.feed(k * 10_000_000, 0.3, y[-1])
+    tracker = session.tracker
+    assert tracker.updates == 0 and tracker.frozen > 0  # was 499 updates, 2.7 SE of drift
+    np.testing.assert_array_equal(tracker.theta, model.coefficients)

@@ -181,6 +181,8 @@ def test_nan_every_10th_sample_through_the_node_names_the_gaps(ros_env, harness)
     finally:
         stop(node)
     assert sent["nans"] == 103 and kv["rejected_nonfinite"] == "103"
+    # every message acknowledged before the publisher ended (issue 30: a fixed 1 s sleep)
+    assert sent["delivery_confirmed"] is True and kv["received_outputs"] == "1024"
     assert res.success, res.message
     assert ("918 samples in 102 contiguous segment(s); 102 gap(s) (102 samples missing), "
             "1 segment(s) too short to use (3 samples)") in res.message

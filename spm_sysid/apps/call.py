@@ -14,8 +14,11 @@ from __future__ import annotations
 
 import json
 import math
+import signal
 import sys
+import threading
 import time
+from contextlib import contextmanager
 
 import rclpy
 from rclpy.node import Node
@@ -105,6 +108,27 @@ def call_trigger(node: Node, service: str, timeout: float = 300.0) -> tuple[bool
         node.destroy_client(client)
 
 
+@contextmanager
+def _interrupts():
+    """An event set by Ctrl-C (SIGINT) inside the block, instead of a KeyboardInterrupt.
+
+    A KeyboardInterrupt raised inside an rclpy callback or task (a feedback
+    message being handled) can be swallowed by the executor, and the goal then
+    runs on; a flag checked between spins is never lost. Outside the main
+    thread no handler can be set: Ctrl-C stays a KeyboardInterrupt there.
+    """
+    flag = threading.Event()
+    try:
+        before = signal.signal(signal.SIGINT, lambda *_: flag.set())
+    except ValueError:  # not the main thread
+        before = None
+    try:
+        yield flag
+    finally:
+        if before is not None:
+            signal.signal(signal.SIGINT, before)
+
+
 class GoalOutcome:
     """How a goal ended: ``status`` (action_msgs GoalStatus), ``result`` (Identify.Result)."""
 
@@ -150,12 +174,15 @@ def identify_goal(node: Node, action: str, overrides: dict[str, str] | None = No
             raise TimeoutError(f"{action} did not accept the goal")
         handle = sent.result()
         result = handle.get_result_async()
-        interrupted = False
-        try:
-            rclpy.spin_until_future_complete(
-                node, result, timeout_sec=max(0.1, deadline - time.monotonic()))
-        except KeyboardInterrupt:
-            interrupted = True
+        with _interrupts() as interrupted:
+            try:
+                while not result.done() and not interrupted.is_set() and \
+                        time.monotonic() < deadline:
+                    rclpy.spin_once(node, timeout_sec=0.1)
+            except KeyboardInterrupt:  # where no handler could be set (not the main thread)
+                interrupted.set()
+        interrupted = interrupted.is_set()
+        if interrupted:
             cancel = handle.cancel_goal_async()
             rclpy.spin_until_future_complete(node, cancel, timeout_sec=CANCEL_WAIT)
             rclpy.spin_until_future_complete(node, result, timeout_sec=CANCEL_WAIT)

@@ -32,6 +32,8 @@ __all__ = ["LEARN_INPUT", "RecursiveTracker"]
 LEARN_INPUT = 500
 #: Samples between two checks of the input's spread.
 QUIET_EVERY = 5
+#: Largest coefficient magnitude tracked: beyond it, products in an update overflow.
+MAX_COEFFICIENT = 1e100
 
 
 class RecursiveTracker:
@@ -76,7 +78,8 @@ class RecursiveTracker:
             self.P = 0.5 * (P + P.T)
             self.max_trace = max_trace_factor * float(np.trace(self.P))
         if not (np.all(np.isfinite(self.theta)) and np.all(np.isfinite(self.P))
-                and np.isfinite(self.max_trace)):
+                and np.isfinite(self.max_trace)
+                and np.max(np.abs(self.theta), initial=0.0) <= MAX_COEFFICIENT):
             raise ValueError("the model's coefficients or their covariance are too large to "
                              "track (they overflow double precision)")
         self.lam = float(forgetting)
