@@ -5,6 +5,7 @@ from __future__ import annotations
 import fcntl
 import itertools
 import os
+import signal
 import sys
 from pathlib import Path
 
@@ -16,6 +17,12 @@ sys.path.insert(0, str(ROOT))
 
 from spm_sysid.core.io.data import load_io  # noqa: E402
 from spm_sysid.core.io.datasets import find_robot_arm  # noqa: E402
+
+# Ctrl-C reaches the processes the tests start, as in a terminal: a suite started in the
+# background (`make test &` from a script) inherits SIGINT ignored, and so would every
+# process it starts (an ignored signal survives exec), so the tests' Ctrl-C would be lost.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 # ROS traffic stays on this machine, whatever the caller's environment says.
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"

@@ -194,3 +194,40 @@ def test_the_k_step_prediction_online_equals_the_models(robot_arm):
     assert np.all(np.isnan(k_online[:5 - 1]))  # the window fills first (k - 1 more samples)
     np.testing.assert_allclose(k_online[4:], k_batch[4:], rtol=1e-10, atol=1e-12)
     assert len(k_online) == len(y) - lag
+
+
+def test_a_restored_model_with_correlated_residuals_stays_valid_on_unchanged_data():
+    """ARX with MA(1) noise, restored from its document, at 1 kHz (issue 30: INVALID at
+    about sample 5 500 when a restored model was monitored without whitening)."""
+    import copy
+    import json
+
+    from spm_sysid.core.job import JobSettings, run_job
+    from spm_sysid.core.online.session import OnlineSession
+    from spm_sysid.core.record import Record
+
+    def arx_ma1(n, seed):
+        rng = np.random.default_rng(seed)
+        u, e = rng.uniform(-1, 1, n), 0.05 * rng.standard_normal(n)
+        y = np.zeros(n)
+        for t in range(1, n):
+            y[t] = 0.5 * y[t - 1] + u[t - 1] + e[t] + 0.8 * e[t - 1]
+        return u, y
+
+    u, y = arx_ma1(5000, 1)
+    result = run_job(Record.from_samples(u, y, source="arx"), JobSettings.from_values(
+        {"ny": 2, "nu": 2, "degree": 1, "criterion": "bic", "seed": 0}))
+    doc = json.loads(json.dumps(result.model.to_dict()))  # as saved and read back
+    fresh = OnlineSession(NarxModel.from_dict(copy.deepcopy(doc)), result.residuals,
+                          sample_period=0.001)
+    restored = OnlineSession(NarxModel.from_dict(copy.deepcopy(doc)), None,
+                             sample_period=0.001)
+    assert fresh.reference_source == restored.reference_source == "document"
+    u2, y2 = arx_ma1(30_000, 2)
+    for k in range(len(y2)):
+        a = fresh.feed(k * 1_000_000, u2[k], y2[k])
+        b = restored.feed(k * 1_000_000, u2[k], y2[k])
+        if a is not None:
+            assert a.state == b.state  # monitored exactly alike
+    assert not any(to == "INVALID" for _, _, to in restored.transitions)
+    assert restored.monitor.n == len(y2) - 2

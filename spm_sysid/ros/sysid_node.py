@@ -523,9 +523,11 @@ class SysidNode(Node):
             except (ValueError, TypeError) as exc:
                 return Outcome(Code.INVALID_SETTINGS, f"invalid settings: {exc}")
             try:
-                if record is None:  # a bag is read off the executor thread, with a bound
+                if record is None and bag_path:  # read off the executor, with a bound
                     record = await self._off_executor(lambda: self._load(values, bag_path),
                                                       values["job_timeout"] or LOAD_BOUND)
+                elif record is None:  # the buffer: on the executor, as its callbacks
+                    record = self._load(values, "")
             except TooFewSamplesError as exc:
                 return Outcome(Code.TOO_FEW_SAMPLES, str(exc))
             except JobCancelledError:
