@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from spm_sysid.core.narx import aot
+from spm_sysid.core.narx import compiled as registry
 from spm_sysid.core.narx.aot import build_forced, build_status, jit_only
 from spm_sysid.core.narx.certify import certify
 from spm_sysid.core.narx.compiled import Kernel, kernels
@@ -112,17 +113,17 @@ def test_a_call_the_build_does_not_hold_runs_on_the_jit_with_the_same_result(rob
 
 def test_a_build_for_other_sources_is_never_loaded(tmp_path, monkeypatch):
     monkeypatch.setenv("SPM_SYSID_AOT_DIR", str(tmp_path))
-    monkeypatch.setattr(aot, "_loaded", None)
+    monkeypatch.setattr(registry, "_loaded", None)
     with build_forced():
         assert not build_status() and aot.exports_for("kernels.fit_structures") == []
     if _BUILT:  # the real build, renamed as if made from other sources
-        real = aot._files(aot._HERE / "__pycache__", f"_aot_{aot.source_hash()}")
+        real = registry._files(registry._HERE / "__pycache__", f"_aot_{aot.source_hash()}")
         for f in real:
             shutil.copy(f, tmp_path / f.name.replace(aot.source_hash(), "0" * 16))
-        monkeypatch.setattr(aot, "_loaded", None)
+        monkeypatch.setattr(registry, "_loaded", None)
         with build_forced():
             assert not build_status() and aot.exports_for("kernels.fit_structures") == []
-    monkeypatch.setattr(aot, "_loaded", None)
+    monkeypatch.setattr(registry, "_loaded", None)
 
 
 def test_the_kernels_are_numba_dispatchers_inside_compiled_code():
@@ -193,12 +194,12 @@ def test_the_work_split_counts_what_neighbours_share():
 def test_a_long_running_process_can_prefer_the_jit_which_releases_the_gil(monkeypatch):
     # the node does (spm_sysid.ros.entry): its subscriptions keep recording while a
     # kernel runs; the build would hold the GIL for a whole certification round
-    monkeypatch.setattr(aot, "_prefer_jit", False)
+    monkeypatch.setattr(registry, "_prefer_jit", False)
     with build_forced():
         before = aot.exports_for("kernels.fit_structures")
         assert aot.prefer_jit() is True
         assert aot.exports_for("kernels.fit_structures") == []
-        monkeypatch.setattr(aot, "_prefer_jit", False)
+        monkeypatch.setattr(registry, "_prefer_jit", False)
         assert aot.exports_for("kernels.fit_structures") == before
 
 
@@ -206,7 +207,7 @@ def test_the_build_is_named_for_this_cpu(monkeypatch):
     # compiled for the host CPU: a copy of the environment on another CPU must not load it
     here = aot.source_hash()
     aot.source_hash.cache_clear()
-    monkeypatch.setattr(aot, "_cpu_signature", lambda: "flags : sse2")
+    monkeypatch.setattr(registry, "_cpu_signature", lambda: "flags : sse2")
     try:
         assert aot.source_hash() != here
     finally:

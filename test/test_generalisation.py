@@ -16,7 +16,7 @@ from spm_sysid.core.narx.criteria import aicc
 from spm_sysid.core.narx.excitation import check_problem, excitation_order
 from spm_sysid.core.narx.identify import identify
 from spm_sysid.core.narx.model import NarxModel
-from spm_sysid.core.narx.problem import Problem
+from spm_sysid.core.narx.problem import Problem, fit_structure
 from spm_sysid.core.narx.selection import blocked_folds, stress_check, surrogate_input
 from spm_sysid.core.narx.terms import TermSpace
 from spm_sysid.core.narx.uncertainty import output_band
@@ -28,7 +28,7 @@ def _eq1(robot_arm):
     u, y = robot_arm
     mask = np.zeros(44, dtype=bool)
     mask[:8] = True
-    return NarxModel.fit(u, y, mask, TermSpace())
+    return fit_structure(u, y, mask, TermSpace())
 
 
 def test_covariance_is_sigma2_inverse_gram_of_the_regressors(robot_arm):

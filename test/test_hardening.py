@@ -320,7 +320,7 @@ def test_progress_lines_say_only_what_means_something():
 
 @pytest.fixture(scope="module")
 def arm_doc(robot_arm):
-    from spm_sysid.core.job import JobSettings, run_job
+    from spm_sysid.core.jobs import JobSettings, run_job
     from spm_sysid.core.record import Record
 
     u, y = robot_arm

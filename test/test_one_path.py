@@ -7,7 +7,7 @@ import sys
 import numpy as np
 import pytest
 
-from spm_sysid.core.job import JobSettings, run_job
+from spm_sysid.core.jobs import JobSettings, run_job
 from spm_sysid.core.narx.ga import GAConfig
 from spm_sysid.core.narx.identify import identify
 from spm_sysid.core.narx.terms import TermSpace

@@ -202,7 +202,7 @@ def test_a_restored_model_with_correlated_residuals_stays_valid_on_unchanged_dat
     import copy
     import json
 
-    from spm_sysid.core.job import JobSettings, run_job
+    from spm_sysid.core.jobs import JobSettings, run_job
     from spm_sysid.core.online.session import OnlineSession
     from spm_sysid.core.record import Record
 

@@ -8,7 +8,7 @@ import yaml
 from rcl_interfaces.srv import DescribeParameters, GetParameters
 
 from spm_sysid.core.errors import SettingsError
-from spm_sysid.core.job import JobSettings
+from spm_sysid.core.jobs import JobSettings
 from spm_sysid.core.narx.ga import GAConfig
 from spm_sysid.core.narx.terms import TermSpace
 from spm_sysid.core.settings import SETTINGS, check, node_settings

@@ -94,7 +94,7 @@ def test_compile_loads_or_compiles_every_kernel():
     assert r.returncode == 0, r.stderr
     assert "compiling the certification" in r.stdout
     assert "kernels loaded from the cache in" in r.stdout or "compiled and cached" in r.stdout
-    from spm_sysid.core.narx.warmup import kernels_are_cached
+    from spm_sysid.core.jobs.warmup import kernels_are_cached
 
     assert kernels_are_cached()
 

@@ -5,7 +5,7 @@ import pytest
 from PIL import Image
 
 from spm_sysid.core.narx.correlation import ccf, correlation_tests
-from spm_sysid.core.narx.model import NarxModel
+from spm_sysid.core.narx.problem import fit_structure
 from spm_sysid.core.narx.terms import TermSpace
 from spm_sysid.core.narx.validation import metrics, split_segments, validate_model
 from spm_sysid.tools.plots import plot_convergence, write_model_figures
@@ -47,8 +47,8 @@ def test_missing_term_fails_the_residual_autocorrelation_test():
     for t in range(2, n):
         y[t] = 0.6 * y[t - 1] - 0.4 * y[t - 2] + u[t - 1] + 0.05 * rng.normal()
     ts = TermSpace(ny=2, nu=1, degree=1)
-    full = NarxModel.fit(u, y, np.array([True, True, True]), ts)
-    missing = NarxModel.fit(u, y, np.array([True, False, True]), ts)  # no y(t-2)
+    full = fit_structure(u, y, np.array([True, True, True]), ts)
+    missing = fit_structure(u, y, np.array([True, False, True]), ts)  # no y(t-2)
     assert validate_model(full, u, y).test("ee").passed
     bad = validate_model(missing, u, y).test("ee")
     assert not bad.passed and abs(bad.worst_lag) in (1, 2)
@@ -73,7 +73,7 @@ def test_validation_of_eq1_matches_the_paper(robot_arm):
     u, y = robot_arm
     mask = np.zeros(44, dtype=bool)
     mask[:8] = True
-    model = NarxModel.fit(u, y, mask, TermSpace())
+    model = fit_structure(u, y, mask, TermSpace())
     rep = validate_model(model, u, y)
     assert rep.one_step_metrics["max_abs"] == pytest.approx(0.01467, abs=5e-5)
     assert rep.one_step_metrics["mean_abs"] == pytest.approx(0.004255, abs=5e-6)
@@ -100,7 +100,7 @@ def test_figures_are_valid_images(robot_arm, tmp_path):
     u, y = robot_arm
     mask = np.zeros(44, dtype=bool)
     mask[:8] = True
-    rep = validate_model(NarxModel.fit(u, y, mask, TermSpace()), u, y)
+    rep = validate_model(fit_structure(u, y, mask, TermSpace()), u, y)
     paths = write_model_figures(rep, tmp_path)
     paths += plot_convergence({"AIC, population 20": {0.0: [[3, 2, 1], [4, 2, 2]],
                                                        0.15: [[3, 1, 1], [2, 1, 1]]}},

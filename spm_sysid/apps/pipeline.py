@@ -18,7 +18,7 @@ import sys
 import time
 from pathlib import Path
 
-__all__ = ["main", "stop_process", "wait_for_buffer"]
+__all__ = ["main", "stop_process"]
 
 
 class PipelineError(RuntimeError):
@@ -43,32 +43,6 @@ def stop_process(proc: subprocess.Popen | None, timeout: float = 10.0) -> None:
     except subprocess.TimeoutExpired:
         proc.kill()
         proc.wait()
-
-
-def wait_for_buffer(node, done, timeout: float, status: str = "buffer") -> dict:
-    """Watch a sysid node status on /diagnostics (``buffer``) until ``done(values)``.
-
-    Returns the last key/value pairs seen (empty if none arrived).
-    """
-    import rclpy
-    from diagnostic_msgs.msg import DiagnosticArray
-
-    seen: dict = {}
-
-    def on_diag(msg):
-        for st in msg.status:
-            if st.name.endswith(": " + status):
-                seen.clear()
-                seen.update({k.key: k.value for k in st.values})
-
-    sub = node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 10)
-    deadline = time.monotonic() + timeout
-    try:
-        while time.monotonic() < deadline and not (seen and done(seen)):
-            rclpy.spin_once(node, timeout_sec=0.1)
-    finally:
-        node.destroy_subscription(sub)
-    return seen
 
 
 def run(args) -> int:
@@ -96,7 +70,7 @@ def run(args) -> int:
     from rclpy.node import Node
     from std_srvs.srv import Trigger
 
-    from .call import call_trigger, set_parameters, wait_for_model
+    from ..ros.client import call_trigger, set_parameters, wait_for_buffer, wait_for_model
 
     rclpy.init()
     client = Node("spm_sysid_pipeline")

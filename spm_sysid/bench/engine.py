@@ -150,13 +150,13 @@ def run_simulation_benchmark(u: np.ndarray, y: np.ndarray, *, repeats: int = 3,
     """
     from ..core.narx import simulation
     from ..core.narx.identify import identify
-    from ..core.narx.model import NarxModel
+    from ..core.narx.problem import fit_structure
     from ..core.narx.validation import metrics
 
     space = TermSpace()
     mask = np.zeros(space.n_terms, dtype=bool)
     mask[:30] = True
-    model = NarxModel.fit(u, y, mask, space)
+    model = fit_structure(u, y, mask, space)
     cm, theta = model.compiled, model.coefficients
     u2 = space.inputs_2d(u)
     lo, hi = simulation.divergence_bounds(y)

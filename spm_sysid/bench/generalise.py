@@ -78,7 +78,7 @@ def tank_table(orders=(2, 3, 4), degrees=(2, 3), seed: int = 0) -> list[dict]:
 
 def coverage(replicates: int = 300, n: int = 300, seed: int = 2026) -> tuple[float, list]:
     """Share of 95 % intervals that hold the true coefficient (pooled, per coefficient)."""
-    from ..core.narx.model import NarxModel
+    from ..core.narx.problem import fit_structure
     from ..core.narx.terms import TermSpace
 
     truth = {"y(t-1)": 0.5, "y(t-2)": -0.3, "u(t-1)": 1.0, "u(t-1)*u(t-2)": 0.2}
@@ -94,7 +94,7 @@ def coverage(replicates: int = 300, n: int = 300, seed: int = 2026) -> tuple[flo
         for t in range(2, n):
             y[t] = (0.5 * y[t - 1] - 0.3 * y[t - 2] + u[t - 1] + 0.2 * u[t - 1] * u[t - 2]
                     + e[t])
-        m = NarxModel.fit(u, y, mask, ts)
+        m = fit_structure(u, y, mask, ts)
         iv = m.uncertainty.intervals(m.coefficients)
         hits += (iv[:, 0] <= true) & (true <= iv[:, 1])
     return float(hits.sum() / (replicates * len(true))), list(hits / replicates)

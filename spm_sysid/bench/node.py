@@ -41,8 +41,7 @@ def run(args) -> None:
     import rclpy
     from rclpy.node import Node
 
-    from ..apps.call import call_trigger, wait_for_model
-    from ..apps.pipeline import wait_for_buffer
+    from ..ros.client import call_trigger, wait_for_buffer, wait_for_model
 
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                ROS_DOMAIN_ID=str(args.domain), PYTHONUNBUFFERED="1")
@@ -111,7 +110,7 @@ def run(args) -> None:
               f"identify+validate in the worker {statistics.median(searches):.3f} s "
               f"({args.repeats} calls)")
         # 4. the action: round trip, and cancel latency during a long search
-        from ..apps.call import identify_goal
+        from ..ros.client import identify_goal
 
         goals = []
         for _ in range(args.repeats):

@@ -2,7 +2,7 @@
 
 The node is thin: messages become numbers in a
 :class:`~spm_sysid.core.stream.buffer.SampleBuffer`; a snapshot goes to
-:func:`spm_sysid.core.job.run_job` in a worker process (so the search never
+:func:`spm_sysid.core.jobs.run_job` in a worker process (so the search never
 blocks recording, and uses the other core); the result becomes messages.
 Parameters come from the settings schema (:mod:`spm_sysid.core.settings`),
 diagnostics from :mod:`spm_sysid.core.stream.diagnostics`. Interface: see
@@ -45,7 +45,7 @@ from ..core.errors import FieldPathError
 from ..core.files import atomic_write_text, check_writable_file
 from ..core.io.channels import check_roles, parse_channels, stream_order, topic_streams
 from ..core.io.fields import UnsetStamps, default_field, extract, parse_path
-from ..core.job import JobSettings
+from ..core.jobs import JobSettings
 from ..core.narx.mimo import MIMO_SCHEMA, MimoModel, read_model_document
 from ..core.narx.model import NarxModel
 from ..core.online.coupled import CoupledSession, coupled_held_out_mse
@@ -211,7 +211,7 @@ class SysidNode(Node):
         self._type_mismatch: dict[tuple[str, str], str] = {}
         self._unnamed_checks = 0
         self._logged = {"rejected_out_of_order": 0, "time_jumps": 0}
-        self.worker = JobWorker("spm_sysid.core.job:run_job", on_progress=self._on_progress,
+        self.worker = JobWorker("spm_sysid.core.jobs.run:run_job", on_progress=self._on_progress,
                                 on_event=self.get_logger().info)
         self.get_logger().info(
             f"recording inputs {self._describe(self.channels)} and outputs "

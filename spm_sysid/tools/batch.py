@@ -1,7 +1,7 @@
 """Identifying many recordings at once: ``spm-sysid batch INPUT... --out DIR``.
 
 Each input (a data file, or a rosbag2 bag directory or ``.mcap`` file) is one
-job (:func:`spm_sysid.core.job.run_job`) with the same settings, or with its own
+job (:func:`spm_sysid.core.jobs.run_job`) with the same settings, or with its own
 from a YAML file; jobs run on this machine or on a Dask cluster
 (:mod:`spm_sysid.tools.runner`). Every input gets a row in the summary
 (``summary.csv``, ``summary.md``): samples, terms, criterion value, one-step and
@@ -125,7 +125,7 @@ def model_names(inputs: Sequence[str]) -> list[str]:
 
 def _identify_one(task: tuple, shared) -> tuple[dict, dict]:
     """One input: identify and validate; its summary row and model document."""
-    from ..core.job import JobSettings, run_job
+    from ..core.jobs import JobSettings, run_job
     from ..core.record import DataSpec, load_record
 
     path, name, values, model_path = task
@@ -191,7 +191,7 @@ def run_batch(inputs: Sequence[str], out: str | Path, values: dict, *,
         A per-input setting that is unknown or invalid (before any work).
     """
     from ..core.files import atomic_write_text
-    from ..core.job import JobSettings
+    from ..core.jobs import JobSettings
 
     out = Path(out)
     per_input = check_per_input(per_input)

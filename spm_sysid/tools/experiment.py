@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core.errors import SettingsError
-from ..core.job import JobSettings
+from ..core.jobs import JobSettings
 from ..core.narx.ga import GAConfig
 from ..core.narx.identify import identify_problem
 from ..core.narx.problem import Problem

@@ -69,37 +69,7 @@ class NarxModel:
     metadata: dict = field(default_factory=dict)
     uncertainty: Uncertainty | None = None
 
-    # -- construction -------------------------------------------------------------------
-    @classmethod
-    def fit(
-        cls, u: np.ndarray, y: np.ndarray, mask: np.ndarray, term_space: TermSpace,
-        segments: list[tuple[int, int]] | None = None, **info,
-    ) -> NarxModel:
-        """Least-squares fit (Householder QR) of the structure ``mask`` on u, y.
-
-        A convenience for one structure: it builds the regression problem
-        (:class:`~spm_sysid.core.narx.problem.Problem`) and fits it; code that fits
-        several structures on the same data builds the problem once and calls
-        its :meth:`~spm_sysid.core.narx.problem.Problem.model`. ``segments``
-        (``[start, stop)`` ranges of contiguous samples) keep every regression row
-        inside one segment; None is the whole record.
-
-        Raises
-        ------
-        ValueError
-            If the structure is empty or its regressors are linearly dependent.
-        """
-        from .problem import Problem
-
-        mask = np.asarray(mask, dtype=bool)
-        if mask.shape != (term_space.n_terms,):
-            raise ValueError(f"mask must have {term_space.n_terms} entries, got {mask.shape}")
-        if not mask.any():
-            raise ValueError("cannot fit a structure with no terms")
-        problem = Problem(term_space, u, y, [(a, b) for a, b in normalise_segments(
-            segments, len(y)) if b - a > term_space.max_lag])
-        return problem.model(mask, **info)
-
+    # -- construction -----------------------------------------------------------------
     def with_coefficients(self, coefficients: np.ndarray) -> NarxModel:
         """The same structure with other coefficients (no uncertainty, no metadata)."""
         return NarxModel(self.term_space, list(self.term_indices),

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -38,8 +39,11 @@ from .lstsq import DEFAULT_RANK_TOL, reference_fit
 from .segments import normalise_segments, usable_segments
 from .terms import TermSpace, power_of_two_scale
 
+if TYPE_CHECKING:
+    from .model import NarxModel
+
 __all__ = ["LARGE_SPACE", "Problem", "StructureFit", "check_magnitudes", "check_samples",
-           "excluded_columns", "validate_signals"]
+           "excluded_columns", "fit_structure", "validate_signals"]
 
 #: In larger term spaces the data need rows for structures of this many terms only.
 LARGE_SPACE = 100
@@ -434,3 +438,29 @@ class Problem:
                          n_samples=self.n_samples,
                          uncertainty=from_least_squares(fit.r_factor, fit.column_norms,
                                                         fit.sse, rows), **info)
+
+
+def fit_structure(u: np.ndarray, y: np.ndarray, mask: np.ndarray, term_space: TermSpace,
+                  segments: list[tuple[int, int]] | None = None, **info) -> NarxModel:
+    """Least-squares fit (Householder QR) of the structure ``mask`` on u, y.
+
+    A convenience for one structure: it builds the regression problem
+    (:class:`Problem`) and fits it; code that fits several structures on the
+    same data builds the problem once and calls its :meth:`Problem.model`.
+    ``segments`` (``[start, stop)`` ranges of contiguous samples) keep every
+    regression row inside one segment; None is the whole record. ``info``
+    goes to the model (``criterion``, ``criterion_value`` ...).
+
+    Raises
+    ------
+    ValueError
+        If the structure is empty or its regressors are linearly dependent.
+    """
+    mask = np.asarray(mask, dtype=bool)
+    if mask.shape != (term_space.n_terms,):
+        raise ValueError(f"mask must have {term_space.n_terms} entries, got {mask.shape}")
+    if not mask.any():
+        raise ValueError("cannot fit a structure with no terms")
+    problem = Problem(term_space, u, y, [(a, b) for a, b in normalise_segments(
+        segments, len(y)) if b - a > term_space.max_lag])
+    return problem.model(mask, **info)

@@ -153,7 +153,7 @@ def refine_simulation(model: NarxModel, u: np.ndarray, y: np.ndarray,
         The estimation record(s).
     segments : list of (start, stop), optional
         Contiguous parts, each simulated from its own initial conditions (as for
-        :meth:`NarxModel.fit`); None is the whole record.
+        :func:`~spm_sysid.core.narx.problem.fit_structure`); None is the whole record.
     max_evaluations : int
         Most simulations (with Jacobian) Levenberg-Marquardt may run.
     """

@@ -159,7 +159,7 @@ def add_column_options(g) -> None:
 
 def job_settings(args):
     """The job's settings from the options, checked once (names come with the data)."""
-    from ...core.job import JobSettings
+    from ...core.jobs import JobSettings
 
     try:
         return JobSettings.from_values(vars(args))
@@ -249,7 +249,7 @@ def as_option(exc: Exception) -> str:
 
 def announce_compile() -> None:
     """Say so when this command will compile numba's kernels (their first use here)."""
-    from ...core.narx.warmup import kernels_are_cached
+    from ...core.jobs.warmup import kernels_are_cached
 
     if not kernels_are_cached():
         print("note: compiling the numeric kernels (first use on this machine, about 30 s; "

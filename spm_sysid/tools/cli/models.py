@@ -41,7 +41,7 @@ def usable_segments(record, max_lag: int) -> list[tuple[int, int]]:
 
 
 def cmd_identify(args) -> int:
-    from ...core.job import run_job
+    from ...core.jobs import run_job
 
     settings = job_settings(args)
     if args.plots and settings.validation == "none":
@@ -85,7 +85,7 @@ def cmd_identify(args) -> int:
 
 def validation_times(record, args):
     """Seconds of the validation rows of ``identify`` (None without time stamps)."""
-    from ...core.job import validation_segments
+    from ...core.jobs import validation_segments
 
     settings = job_settings(args)
     _, val, _ = validation_segments(record, settings)
@@ -321,7 +321,7 @@ def validate_several(args, model) -> int:
     Each output's report with the coupled free run, the residuals'
     cross-correlation, figures with a panel per output.
     """
-    from ...core.mimo_job import couple_reports, cross_summary
+    from ...core.jobs.several import couple_reports, cross_summary
     from ...core.narx.mimo import augmented_inputs
     from ...core.narx.validation import validate_model
 
@@ -406,7 +406,7 @@ def cmd_propose_lags(args) -> int:
 
 
 def cmd_compile(args) -> int:
-    from ...core.narx.warmup import compile_all, kernels_are_cached
+    from ...core.jobs.warmup import compile_all, kernels_are_cached
 
     before = kernels_are_cached()
     seconds, status = compile_all(report=lambda text: print(text, flush=True))

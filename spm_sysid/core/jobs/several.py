@@ -1,7 +1,8 @@
 """The job of a record with several outputs: one coupled model, validated per output.
 
-:func:`spm_sysid.core.job.run_job` hands a record of several outputs here. Each
-output is one single-output job (:func:`run_job`) on the record seen from that
+:func:`spm_sysid.core.jobs.run.run_job` hands a record of several outputs here.
+Each output is one single-output job
+(:func:`~spm_sysid.core.jobs.single.run_single_job`) on the record seen from that
 output -- the inputs, then the other outputs as extra signals with delay 1
 (:func:`spm_sysid.core.narx.mimo.output_space`) -- so every output gets the whole
 single-output path: segments, GA with SPM, polish, certification, validated
@@ -33,13 +34,14 @@ from typing import Any
 
 import numpy as np
 
-from .narx.correlation import CorrelationTest, ccf
-from .narx.coupled import refine_coupled
-from .narx.mimo import MimoModel, augmented_inputs, in_threads, output_space
-from .narx.validation import metrics, validate_model
-from .online.monitor import store_monitor_reference
-from .progress import Progress, ProgressFn
-from .record import Record
+from ..narx.correlation import CorrelationTest, ccf
+from ..narx.coupled import refine_coupled
+from ..narx.mimo import MimoModel, augmented_inputs, in_threads, output_space
+from ..narx.validation import metrics, validate_model
+from ..online.monitor import store_monitor_reference
+from ..progress import Progress, ProgressFn
+from ..record import Record
+from .single import run_single_job, validation_segments
 
 __all__ = ["MimoJobResult", "couple_reports", "cross_correlation_tests", "cross_summary",
            "run_mimo_job"]
@@ -218,15 +220,13 @@ def run_mimo_job(record: Record, settings, *, progress: ProgressFn | None = None
                  ) -> MimoJobResult:
     """Identify and validate a record of several outputs (see the module doc).
 
-    Parameters and errors as for :func:`spm_sysid.core.job.run_job`.
+    Parameters and errors as for :func:`~spm_sysid.core.jobs.single.run_single_job`.
     """
-    from .job import run_job, validation_segments
-
     t0 = time.perf_counter()
     names = tuple(record.output_names)
     clash = set(names) & set(record.input_names)
     if clash:
-        from .errors import DataError
+        from ..errors import DataError
         raise DataError(f"an output and an input share a name: {', '.join(sorted(clash))} "
                         "(set output_names or input_names)")
     Y, u = record.y, record.u
@@ -242,7 +242,7 @@ def run_mimo_job(record: Record, settings, *, progress: ProgressFn | None = None
         space = output_space(base.term_space, names, i)
         rec = replace(record, u=augmented_inputs(u, Y, i), y=Y[:, i], output_name=names[i],
                       output_names=(names[i],), input_names=space.inputs)
-        return run_job(rec, replace(base, term_space=space), progress=relay,
+        return run_single_job(rec, replace(base, term_space=space), progress=relay,
                        progress_every=progress_every, metadata=metadata)
 
     outputs = in_threads(one, len(names))

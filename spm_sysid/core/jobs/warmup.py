@@ -22,7 +22,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from .aot import BuildStatus, build, build_status, jit_only
+from ..narx import aot
+from ..narx.aot import BuildStatus, build, build_status, jit_only
 
 __all__ = ["compile_all", "kernels_are_cached"]
 
@@ -34,7 +35,7 @@ def kernels_are_cached() -> bool:
     """True when the ahead-of-time build or numba's disk cache holds the kernels (a fast start)."""
     if build_status():
         return True
-    here = os.path.dirname(__file__)
+    here = os.path.dirname(aot.__file__)  # numba caches beside the kernels' sources
     places = [os.path.join(here, "__pycache__")]
     if os.environ.get("NUMBA_CACHE_DIR"):
         places.append(os.environ["NUMBA_CACHE_DIR"])
@@ -62,9 +63,10 @@ def compile_all(report: Callable[[str], None] | None = None) -> tuple[float, Bui
 
 
 def _warm_up(say: Callable[[str], None]) -> None:
-    from ..job import JobSettings, run_job
+    from ..narx.certify import ensure_compiled
     from ..record import Record
-    from .certify import ensure_compiled
+    from .run import run_job
+    from .settings import JobSettings
 
     rng = np.random.default_rng(0)
     n = 300
@@ -79,7 +81,7 @@ def _warm_up(say: Callable[[str], None]) -> None:
     run_job(record, JobSettings.from_values({**ga, "ny": 2, "nu": 2, "seed": 0,
                                              "auto_certify_time_limit": 0.0}))
     say("compiling the QR arbitration of near-rank structures ...")
-    from .evaluator import StructureEvaluator
+    from ..narx.evaluator import StructureEvaluator
 
     g = np.random.default_rng(0)
     P = g.standard_normal((60, 6))

@@ -1,16 +1,14 @@
-"""One job: a record in, a validated model out, with frozen settings and a typed result.
+"""One job of one output: a record in, a validated model out, with a typed result.
 
 ::
 
     Record --segments, split--> Problem --identify_problem--> model --validate--> JobResult
 
-The command line, ``batch``, the node's worker process, the ``make run``
-pipeline and the benchmarks all call :func:`run_job`. Settings are a frozen
-:class:`JobSettings` built once, at the edge, from the settings schema
-(:mod:`spm_sysid.core.settings`); the signals' names come with the record
-(:mod:`spm_sysid.core.record`). The result is a :class:`JobResult` (model,
-validation report, search statistics, data account, timings) with the one
-summary formatter, :meth:`JobResult.summary`.
+:func:`run_single_job` is the whole path for one output; a record of several
+outputs goes through :mod:`spm_sysid.core.jobs.several`, which runs this path
+per output, and :func:`spm_sysid.core.jobs.run.run_job` picks between them. The
+result is a :class:`JobResult` (model, validation report, search statistics,
+data account, timings) with the one summary formatter, :meth:`JobResult.summary`.
 """
 
 from __future__ import annotations
@@ -22,150 +20,26 @@ from typing import Any
 
 import numpy as np
 
-from .blas import one_blas_thread
-from .errors import DataError, SettingsError
-from .narx.certify import describe_certificate
-from .narx.criteria import get_criterion
-from .narx.ga import GAConfig, GAResult
-from .narx.identify import identify_problem
-from .narx.model import NarxModel
-from .narx.problem import Problem
-from .narx.segments import describe_data, segment_report
-from .narx.terms import TermSpace
-from .narx.validation import (
+from ..blas import one_blas_thread
+from ..errors import DataError
+from ..narx.certify import describe_certificate
+from ..narx.ga import GAResult
+from ..narx.identify import identify_problem
+from ..narx.model import NarxModel
+from ..narx.problem import Problem
+from ..narx.segments import describe_data, segment_report
+from ..narx.validation import (
     ValidationReport,
     check_correlation_lags,
     split_segments,
     validate_model,
 )
-from .online.monitor import store_monitor_reference
-from .progress import Progress, ProgressFn
-from .record import Record
-from .settings import JOB_GROUPS, check, defaults
+from ..online.monitor import store_monitor_reference
+from ..progress import Progress, ProgressFn
+from ..record import Record
+from .settings import JobSettings
 
-__all__ = ["JobResult", "JobSettings", "describe_selection", "run_job", "validation_segments",
-           "warm_up"]
-
-
-def warm_up() -> None:
-    """Load (or, the first time, compile) the compiled kernels once.
-
-    The node's worker process calls it before it reports ready, so the time of a
-    job (and its ``job_timeout``) is the job's own.
-    """
-    from .narx.evaluator import StructureEvaluator
-    from .narx.simulation import free_run_sensitivities
-
-    StructureEvaluator(np.eye(3), np.ones(3)).evaluate(np.eye(3, dtype=bool))
-    model = NarxModel(TermSpace(ny=1, nu=1, degree=1), [0, 1], np.array([0.5, 0.1]))
-    model.run(np.zeros(6), np.ones(6), horizon=2)
-    free_run_sensitivities(model.compiled, model.coefficients, np.zeros((6, 1)), np.ones(6))
-
-
-_TERM_FIELDS = ("ny", "nu", "degree", "delay", "constant")
-_GA_FIELDS = ("population_size", "generations", "crossover_prob", "mutation_prob",
-              "spm_fraction", "fitness", "init_terms", "mutation_per_structure", "elitism")
-
-
-@dataclass(frozen=True)
-class JobSettings:
-    """Everything a job needs besides the data; build it with :meth:`from_values`.
-
-    Attributes
-    ----------
-    term_space : TermSpace
-    ga : GAConfig
-    criterion : str
-        A registered criterion name (``aic``, ``bic``, ``pmic2``, ...).
-    seed : int or None
-        None: a new random seed (the schema's -1).
-    validation : str
-        ``estimation``, ``holdout`` or ``none``.
-    validation_split, correlation_lags, sample_period, gap_factor
-        See the settings schema.
-    """
-
-    term_space: TermSpace = field(default_factory=TermSpace)
-    ga: GAConfig = field(default_factory=GAConfig)
-    criterion: str = "aic"
-    seed: int | None = None
-    validation: str = "estimation"
-    validation_split: float = 0.5
-    correlation_lags: int = 20
-    sample_period: float = 0.0
-    gap_factor: float = 1.5
-    focus: str = "prediction"
-    shortlist: int = 20
-    selection: str = "auto"
-    max_terms: int = 0
-    horizon: int = 0
-    certify: bool = False
-    certify_time_limit: float = 60.0
-    polish: bool = True
-    auto_certify_time_limit: float = 10.0
-
-    @classmethod
-    def from_values(cls, values: Mapping[str, Any], inputs: tuple[str, ...] = (),
-                    output: str = "y") -> JobSettings:
-        """Checked settings from a mapping of schema names (others are ignored).
-
-        Missing names take the schema's defaults; ``nu`` and ``delay`` may be one
-        value per input. ``inputs``/``output`` name the signals (their number fixes
-        the number of inputs). Raises SettingsError (a ValueError) naming the first
-        invalid setting.
-        """
-        v = defaults(JOB_GROUPS)
-        v.update({k: values[k] for k in v if k in values and values[k] is not None})
-        for name in ("criterion", "seed", "validation", "validation_split",
-                     "correlation_lags", "sample_period", "gap_factor", "focus", "shortlist",
-                     "selection", "max_terms", "horizon", "certify", "certify_time_limit",
-                     "polish", "auto_certify_time_limit"):
-            v[name] = check(name, v[name])
-        criterion = v["criterion"].lower()
-        try:
-            get_criterion(criterion)
-        except (KeyError, ValueError) as exc:
-            raise SettingsError(str(exc).strip("'\"")) from None
-        return cls(
-            term_space=TermSpace(**{k: v[k] for k in _TERM_FIELDS}, inputs=tuple(inputs),
-                                 output=output),
-            ga=GAConfig(**{k: v[k] for k in _GA_FIELDS}),
-            criterion=criterion,
-            seed=None if v["seed"] < 0 else v["seed"],
-            validation=v["validation"],
-            validation_split=v["validation_split"],
-            correlation_lags=v["correlation_lags"],
-            sample_period=v["sample_period"],
-            gap_factor=v["gap_factor"],
-            focus=v["focus"],
-            shortlist=v["shortlist"],
-            selection=v["selection"],
-            max_terms=v["max_terms"],
-            horizon=v["horizon"],
-            certify=v["certify"],
-            certify_time_limit=v["certify_time_limit"],
-            polish=v["polish"],
-            auto_certify_time_limit=v["auto_certify_time_limit"],
-        )
-
-    def for_signals(self, inputs: tuple[str, ...], output: str) -> JobSettings:
-        """These settings with the term space naming a record's signals.
-
-        Raises
-        ------
-        SettingsError
-            Per-input settings (``nu``, ``delay``) that do not fit the number of
-            inputs.
-        """
-        from dataclasses import replace
-
-        if (tuple(inputs), output) == (self.term_space.inputs, self.term_space.output):
-            return self
-        try:
-            space = replace(self.term_space, inputs=tuple(inputs), output=output)
-        except ValueError as exc:
-            raise SettingsError(str(exc)) from None
-        return replace(self, term_space=space)
+__all__ = ["JobResult", "describe_selection", "run_single_job", "validation_segments"]
 
 
 @dataclass
@@ -305,7 +179,7 @@ def validation_segments(record: Record, settings: JobSettings
 
 
 @one_blas_thread()
-def run_job(
+def run_single_job(
     record: Record,
     settings: JobSettings,
     *,
@@ -313,7 +187,7 @@ def run_job(
     progress_every: int = 25,
     metadata: Mapping[str, Any] | None = None,
 ) -> JobResult:
-    """Identify and validate a record.
+    """Identify and validate a record of one output.
 
     Parameters
     ----------
@@ -338,8 +212,6 @@ def run_job(
     Returns
     -------
     JobResult
-        Or, for a record of several outputs, a
-        :class:`~spm_sysid.core.mimo_job.MimoJobResult` (one coupled model).
 
     Raises
     ------
@@ -348,11 +220,6 @@ def run_job(
     SettingsError
         Settings that do not fit the data (per-input lags, correlation lags).
     """
-    if record.n_outputs > 1:  # one coupled model of several outputs
-        from .mimo_job import run_mimo_job
-
-        return run_mimo_job(record, settings, progress=progress,
-                            progress_every=progress_every, metadata=metadata)
     t0 = time.perf_counter()
     report = progress or (lambda p: None)
     report(Progress("checking data", elapsed=0.0))
