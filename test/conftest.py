@@ -79,6 +79,20 @@ EQ1 = ["y(t-1)", "y(t-2)", "y(t-3)", "y(t-4)", "u(t-1)", "u(t-2)", "u(t-3)", "u(
 EQ2 = ["y(t-1)", "y(t-2)", "y(t-3)", "y(t-4)", "u(t-1)", "u(t-3)", "u(t-4)"]
 
 
+def eq1_model(robot_arm):
+    """The paper's eq. (1): y(t-1..4) and u(t-1..4) by least squares on the robot-arm data.
+
+    A new model each call (tests change their metadata), criterion AIC as the paper's.
+    """
+    from spm_sysid.core.narx.problem import fit_structure
+    from spm_sysid.core.narx.terms import TermSpace
+
+    u, y = robot_arm
+    mask = np.zeros(44, dtype=bool)
+    mask[:8] = True  # the first 8 candidates: the linear lags, in the documented order
+    return fit_structure(u, y, mask, TermSpace(), criterion="aic", criterion_value=-10744.78)
+
+
 @pytest.fixture
 def harness(ros_env):
     """An rclpy node of the test's own on its domain (:class:`test.ros_harness.Harness`)."""

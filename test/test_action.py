@@ -4,6 +4,11 @@ A real sysid_node process; this test's rclpy node is the client. Goals read the
 robot-arm bag directly (``bag_path``), so no replay is needed.
 """
 
+import pytest
+
+pytest.importorskip("rclpy", reason="ROS 2 is not installed here (make test installs it)")
+pytestmark = pytest.mark.ros
+
 import json
 import math
 import re
@@ -12,7 +17,6 @@ import subprocess
 import sys
 import time
 
-import pytest
 from action_msgs.msg import GoalStatus
 from spm_sysid_interfaces.action import Identify
 from spm_sysid_interfaces.msg import NarxModel as NarxModelMsg

@@ -153,12 +153,12 @@ def test_the_papers_models_are_certified_optimal(robot_arm, criterion, names):
     assert res.model.metadata["certificate"]["status"] == "refused"
 
 
-def test_certify_command_and_identify_certify(tmp_path):
+def test_certify_command_and_identify_certify(tmp_path, robot_arm_path):
     def spm(*args):
         return subprocess.run([sys.executable, "-m", "spm_sysid.apps.main", *args],
                               capture_output=True, text=True, cwd=ROOT, timeout=300)
 
-    r = spm("certify", "--data", str(ROOT.parent / "shared" / "data" / "robot_arm.dat"),
+    r = spm("certify", "--data", str(robot_arm_path),
             "--criterion", "aic", "--json", str(tmp_path / "c.json"))
     assert r.returncode == 0, r.stderr
     assert "status: optimal" in r.stdout and "value: -10744.7850" in r.stdout

@@ -1,17 +1,19 @@
 """colcon builds the package; the installed sysid_node runs and offers its service."""
 
+import pytest
+
+pytest.importorskip("rclpy", reason="ROS 2 is not installed here (make test installs it)")
+
 import os
 import shutil
 import subprocess
 import sys
 
-import pytest
-
 from .conftest import ROOT
 from .ros_harness import Harness, stop
 
 #: one worker runs this file (its module fixture is expensive to make twice)
-pytestmark = pytest.mark.xdist_group("colcon")
+pytestmark = [pytest.mark.ros, pytest.mark.slow, pytest.mark.xdist_group("colcon")]
 
 
 @pytest.fixture(scope="module")

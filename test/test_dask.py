@@ -15,7 +15,7 @@ BIN = os.path.dirname(sys.executable)
 
 
 #: one worker runs this file (its module fixture is expensive to make twice)
-pytestmark = pytest.mark.xdist_group("dask")
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("dask")]
 
 
 @pytest.fixture(scope="module")

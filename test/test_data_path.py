@@ -19,7 +19,7 @@ from spm_sysid.core.narx.segments import find_segments
 from spm_sysid.core.narx.terms import TermSpace
 from spm_sysid.tools.experiment import ExperimentConfig
 
-from .conftest import EQ1, ROOT
+from .conftest import EQ1, ROOT, eq1_model
 
 FAST = GAConfig(population_size=100, generations=120)
 
@@ -255,12 +255,6 @@ def test_model_file_is_written_atomically(tmp_path, robot_arm):
 # -- one clear line ----------------------------------------------------------------------
 
 
-def _doc(robot_arm):
-    u, y = robot_arm
-    mask = np.zeros(44, dtype=bool)
-    mask[:8] = True
-    return NarxModel.fit(u, y, mask, TermSpace()).to_dict()
-
 
 @pytest.mark.parametrize("mutate, message", [
     (lambda d: d.update(criterion="aic"), "'criterion' must be null or an object"),
@@ -274,7 +268,7 @@ def _doc(robot_arm):
     (lambda d: d.update(metadata=[1]), "'metadata' must be an object"),
 ])
 def test_malformed_model_fields_are_one_line_errors(robot_arm, tmp_path, mutate, message):
-    doc = _doc(robot_arm)
+    doc = eq1_model(robot_arm).to_dict()
     mutate(doc)
     with pytest.raises(ModelFormatError, match=message):
         NarxModel.from_dict(doc)
@@ -286,7 +280,7 @@ def test_malformed_model_fields_are_one_line_errors(robot_arm, tmp_path, mutate,
 
 
 def test_nan_coefficient_token_in_a_file_is_refused(robot_arm, tmp_path):
-    doc = _doc(robot_arm)
+    doc = eq1_model(robot_arm).to_dict()
     p = tmp_path / "m.json"
     p.write_text(json.dumps(doc).replace(str(doc["coefficients"][0]), "NaN", 1))
     with pytest.raises(ModelFormatError, match="NaN"):

@@ -16,25 +16,18 @@ from spm_sysid.core.narx.criteria import aicc
 from spm_sysid.core.narx.excitation import check_problem, excitation_order
 from spm_sysid.core.narx.identify import identify
 from spm_sysid.core.narx.model import NarxModel
-from spm_sysid.core.narx.problem import Problem, fit_structure
+from spm_sysid.core.narx.problem import Problem
 from spm_sysid.core.narx.selection import blocked_folds, stress_check, surrogate_input
 from spm_sysid.core.narx.terms import TermSpace
 from spm_sysid.core.narx.uncertainty import output_band
 
-from .conftest import EQ1, ROOT
-
-
-def _eq1(robot_arm):
-    u, y = robot_arm
-    mask = np.zeros(44, dtype=bool)
-    mask[:8] = True
-    return fit_structure(u, y, mask, TermSpace())
+from .conftest import EQ1, ROOT, eq1_model
 
 
 def test_covariance_is_sigma2_inverse_gram_of_the_regressors(robot_arm):
     """Against the plain formula sigma^2 (P^T P)^-1 with numpy's own least squares."""
     u, y = robot_arm
-    m = _eq1(robot_arm)
+    m = eq1_model(robot_arm)
     P = TermSpace().regression_matrix(u, y)[:, :8]
     t = TermSpace().target(y)
     theta, *_ = np.linalg.lstsq(P, t, rcond=None)
@@ -77,7 +70,7 @@ def test_the_free_run_covariance_comes_from_the_jacobian(robot_arm):
 
 def test_output_bands_contain_the_model_and_widen_with_noise(robot_arm):
     u, y = robot_arm
-    m = _eq1(robot_arm)
+    m = eq1_model(robot_arm)
     one = output_band(m, u, y, horizon=1, draws=100)
     free = output_band(m, u, y, horizon=None, draws=50)
     yhat = m.predict(u, y)

@@ -7,12 +7,16 @@ bag written with rosbags and replayed by ``bag_player``; the node reads
 of the same topic.
 """
 
+import pytest
+
+pytest.importorskip("rclpy", reason="ROS 2 is not installed here (make test installs it)")
+pytestmark = pytest.mark.ros
+
 import json
 import subprocess
 import sys
 
 import numpy as np
-import pytest
 from spm_sysid_interfaces.msg import NarxModelSet, Prediction, Validity
 
 from spm_sysid.core.io.bagio import read_bag_signals

@@ -8,19 +8,11 @@ from spm_sysid.core.narx.model import NarxModel
 from spm_sysid.core.narx.problem import fit_structure
 from spm_sysid.core.narx.terms import TermSpace
 
-from .conftest import EQ1
-
-
-def _eq1(robot_arm):
-    u, y = robot_arm
-    ts = TermSpace()
-    mask = np.zeros(44, dtype=bool)
-    mask[:8] = True
-    return fit_structure(u, y, mask, ts, criterion="aic", criterion_value=-10744.78)
+from .conftest import EQ1, eq1_model
 
 
 def test_equation_reads_like_the_paper(robot_arm):
-    m = _eq1(robot_arm)
+    m = eq1_model(robot_arm)
     assert m.terms == EQ1
     assert m.equation() == (
         "y(t) = 3.158y(t-1) - 4.439y(t-2) + 3.130y(t-3) - 0.982y(t-4) + 0.019u(t-1) "
@@ -29,7 +21,7 @@ def test_equation_reads_like_the_paper(robot_arm):
 
 def test_one_step_errors_match_the_papers_figure_6(robot_arm):
     u, y = robot_arm
-    e = _eq1(robot_arm).residuals(u, y)
+    e = eq1_model(robot_arm).residuals(u, y)
     assert np.max(np.abs(e)) == pytest.approx(0.01467, abs=5e-5)
     assert np.mean(np.abs(e)) == pytest.approx(0.004255, abs=5e-6)
     assert np.mean(e ** 2) == pytest.approx(2.6199e-05, rel=1e-4)
@@ -37,7 +29,7 @@ def test_one_step_errors_match_the_papers_figure_6(robot_arm):
 
 def test_json_round_trip_then_predict_and_simulate_on_new_data(robot_arm, tmp_path):
     u, y = robot_arm
-    m = _eq1(robot_arm)
+    m = eq1_model(robot_arm)
     m.metadata["note"] = "test"
     path = m.save(tmp_path / "sub" / "model.json")
     doc = json.loads(path.read_text())
@@ -87,7 +79,7 @@ def test_free_run_simulation_of_a_known_linear_system_is_exact():
     (lambda d: d.update(coefficients=[1.0]), "differ in length"),
 ])
 def test_malformed_model_documents(robot_arm, tmp_path, mutate, message):
-    doc = _eq1(robot_arm).to_dict()
+    doc = eq1_model(robot_arm).to_dict()
     mutate(doc)
     path = tmp_path / "m.json"
     path.write_text(json.dumps(doc))
@@ -117,13 +109,13 @@ def test_fit_rejects_empty_and_dependent_structures():
 
 def test_version_1_documents_still_load(robot_arm):
     u, y = robot_arm
-    doc = _eq1(robot_arm).to_dict()
+    doc = eq1_model(robot_arm).to_dict()
     doc["schema_version"] = 1
     for key in ("inputs", "output"):
         del doc["term_space"][key]  # version 1 had neither
     m = NarxModel.from_dict(doc)
     assert m.terms == EQ1 and m.term_space.inputs == ("u",)
-    assert np.array_equal(m.predict(u, y), _eq1(robot_arm).predict(u, y))
+    assert np.array_equal(m.predict(u, y), eq1_model(robot_arm).predict(u, y))
 
 
 def test_two_input_term_space_names_lags_and_products():

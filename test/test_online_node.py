@@ -5,10 +5,14 @@ robot driver) at a fixed rate with index stamps that continue from pass to
 pass, like a robot that keeps running.
 """
 
+import pytest
+
+pytest.importorskip("rclpy", reason="ROS 2 is not installed here (make test installs it)")
+pytestmark = pytest.mark.ros
+
 import json
 
 import numpy as np
-import pytest
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: F401 - the harness subscribes
 from spm_sysid_interfaces.msg import NarxModel as NarxModelMsg
 from spm_sysid_interfaces.msg import Prediction, Validity

@@ -5,7 +5,6 @@ import sys
 
 import pytest
 import yaml
-from rcl_interfaces.srv import DescribeParameters, GetParameters
 
 from spm_sysid.core.errors import SettingsError
 from spm_sysid.core.jobs import JobSettings
@@ -16,7 +15,6 @@ from spm_sysid.core.stream.diagnostics import ERROR, OK, WARN, diagnostic_status
 from spm_sysid.tools.experiment import ExperimentConfig
 
 from .conftest import ROOT
-from .ros_harness import Harness, start_node, stop
 
 
 def cli(*args):
@@ -44,7 +42,13 @@ def test_help_offers_every_command_line_setting_with_its_aliases():
             assert s.option not in text, s.name
 
 
+@pytest.mark.ros
 def test_node_declares_the_schema_parameters(ros_env):
+    pytest.importorskip("rclpy", reason="ROS 2 is not installed here")
+    from rcl_interfaces.srv import DescribeParameters, GetParameters
+
+    from .ros_harness import Harness, start_node, stop
+
     node = start_node(ros_env, schema_defaults=True)
     h = Harness(ros_env)
     try:
@@ -130,7 +134,11 @@ def test_experiment_yaml_rejects_with_a_reason(tmp_path, text, message):
     assert r.returncode == 2 and message in r.stderr, r.stderr
 
 
+@pytest.mark.ros
 def test_node_parameter_rejected_with_the_schemas_reason(ros_env):
+    pytest.importorskip("rclpy", reason="ROS 2 is not installed here")
+    from .ros_harness import Harness, start_node, stop
+
     node = start_node(ros_env)
     h = Harness(ros_env)
     try:

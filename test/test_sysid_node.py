@@ -1,11 +1,15 @@
 """sysid_node over real DDS: node, player, publisher and this test in separate processes."""
 
+import pytest
+
+pytest.importorskip("rclpy", reason="ROS 2 is not installed here (make test installs it)")
+pytestmark = pytest.mark.ros
+
 import json
 import subprocess
 import sys
 
 import numpy as np
-import pytest
 from std_msgs.msg import Float64MultiArray, String
 
 from spm_sysid.core.io.bagio import write_io_bag

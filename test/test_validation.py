@@ -10,6 +10,8 @@ from spm_sysid.core.narx.terms import TermSpace
 from spm_sysid.core.narx.validation import metrics, split_segments, validate_model
 from spm_sysid.tools.plots import plot_convergence, write_model_figures
 
+from .conftest import eq1_model
+
 
 def _direct_ccf(a, b, tau):
     a = np.asarray(a, float) - np.mean(a)
@@ -71,9 +73,7 @@ def test_metrics_fit_percent():
 
 def test_validation_of_eq1_matches_the_paper(robot_arm):
     u, y = robot_arm
-    mask = np.zeros(44, dtype=bool)
-    mask[:8] = True
-    model = fit_structure(u, y, mask, TermSpace())
+    model = eq1_model(robot_arm)
     rep = validate_model(model, u, y)
     assert rep.one_step_metrics["max_abs"] == pytest.approx(0.01467, abs=5e-5)
     assert rep.one_step_metrics["mean_abs"] == pytest.approx(0.004255, abs=5e-6)
@@ -98,9 +98,7 @@ def test_holdout_split_keeps_initial_conditions(robot_arm):
 
 def test_figures_are_valid_images(robot_arm, tmp_path):
     u, y = robot_arm
-    mask = np.zeros(44, dtype=bool)
-    mask[:8] = True
-    rep = validate_model(fit_structure(u, y, mask, TermSpace()), u, y)
+    rep = validate_model(eq1_model(robot_arm), u, y)
     paths = write_model_figures(rep, tmp_path)
     paths += plot_convergence({"AIC, population 20": {0.0: [[3, 2, 1], [4, 2, 2]],
                                                        0.15: [[3, 1, 1], [2, 1, 1]]}},
