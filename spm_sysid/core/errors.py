@@ -15,11 +15,16 @@ __all__ = [
     "MissingDependencyError",
     "ModelFormatError",
     "SettingsError",
+    "TooFewSamplesError",
 ]
 
 
 class DataError(ValueError):
     """Input data that cannot be used, with a message a user can act on."""
+
+
+class TooFewSamplesError(DataError):
+    """Fewer samples (or regression rows) than the identification needs."""
 
 
 class BagError(DataError):

@@ -33,7 +33,7 @@ from collections.abc import Callable
 from concurrent.futures import Future
 from typing import Any
 
-__all__ = ["JobCancelledError", "JobError", "JobWorker", "WorkerDiedError"]
+__all__ = ["JobCancelledError", "JobError", "JobTimeoutError", "JobWorker", "WorkerDiedError"]
 
 _HEADER = struct.Struct("!Q")
 #: Longest wait (seconds) before restarting a worker that keeps dying while it starts.
@@ -46,6 +46,10 @@ class WorkerDiedError(RuntimeError):
 
 class JobCancelledError(RuntimeError):
     """The job was cancelled (timeout, shutdown or a user's request)."""
+
+
+class JobTimeoutError(JobCancelledError):
+    """The job was cancelled because it ran longer than its time limit."""
 
 
 class JobError(RuntimeError):
@@ -145,12 +149,13 @@ class JobWorker:
                 raise WorkerDiedError("the worker process is not running") from None
         return job
 
-    def cancel(self, reason: str = "cancelled") -> None:
+    def cancel(self, reason: str = "cancelled",
+               error: type[JobCancelledError] = JobCancelledError) -> None:
         """Kill the running job's process and start a fresh worker.
 
         The old process is retired and the new one started before the job is
         answered, so a job submitted from the answer's callback goes to the new
-        worker, never to the dying one.
+        worker, never to the dying one. The job fails with ``error(reason)``.
         """
         with self._lock:
             proc, job, self._job = self._proc, self._job, None
@@ -164,7 +169,7 @@ class JobWorker:
             if not self._closing and self._proc is None:
                 self.restarts += 1
                 self._start()
-        job.set_exception(JobCancelledError(reason))
+        job.set_exception(error(reason))
 
     def close(self, timeout: float = 1.0) -> None:
         """End the worker (a running job is killed); waits at most about ``timeout``."""

@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..errors import DataError
+from ..errors import DataError, TooFewSamplesError
 from ..memory import check_memory
 from .criteria import Criterion, get_criterion
 from .lstsq import DEFAULT_RANK_TOL, reference_fit
@@ -66,7 +66,7 @@ def check_samples(n_samples: int, max_lag: int, n_terms: int = 1) -> None:
     """
     rows = n_samples - max_lag
     if rows <= n_terms:
-        raise DataError(
+        raise TooFewSamplesError(
             f"too few samples: {n_samples} samples give {max(rows, 0)} regression rows "
             f"with maximum lag {max_lag}, but {n_terms + 1} or more are needed for "
             f"{n_terms} candidate terms (need at least {max_lag + n_terms + 1} samples)"
@@ -149,7 +149,7 @@ def validate_signals(u, y, term_space: TermSpace,
     else:
         rows = sum(b - a - term_space.max_lag for a, b in segments)
         if rows <= need:
-            raise DataError(
+            raise TooFewSamplesError(
                 f"too few samples: {len(segments)} segment(s) longer than the largest lag "
                 f"({term_space.max_lag}) give {max(rows, 0)} regression rows, but "
                 f"{need + 1} or more are needed for {term_space.n_terms} candidate terms")

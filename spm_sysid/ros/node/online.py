@@ -1,0 +1,140 @@
+"""The current model on the live stream: prediction, validity and tracking topics.
+
+Every paired sample the buffer makes goes to the current model's session
+(:class:`~spm_sysid.core.online.session.OnlineSession`, or
+:class:`~spm_sysid.core.online.coupled.CoupledSession` for several outputs):
+its one-step (and k-step) prediction on ``~/prediction``, the monitor's state
+on ``~/validity`` (each change logged), the tracked coefficients on
+``~/tracked_model``. A failure is counted, never fatal to recording.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from spm_sysid_interfaces.msg import NarxModel as NarxModelMsg
+from spm_sysid_interfaces.msg import Prediction, Validity
+
+from ...core.narx.mimo import MimoModel
+from ...core.online.coupled import CoupledSession
+from ...core.online.session import OnlineSession
+from ..common import LATCHED
+from ..typed import prediction_message, tracked_message, validity_message
+from .recording import Recorder
+
+__all__ = ["OnlinePart"]
+
+
+class OnlinePart:
+    """Prediction and validity of the current model for ``node``.
+
+    Parameters
+    ----------
+    node : Node
+    values : callable
+        The node's held parameter values, read when a model starts
+        (``monitor``, its window, tracking, horizon, ``prediction_every``).
+    recorder : Recorder
+        Its buffer's pairs are fed here; its channel order maps them.
+    on_invalid : callable
+        Called when the model becomes INVALID (the re-identification policy).
+    """
+
+    def __init__(self, node: Node, values, recorder: Recorder, on_invalid) -> None:
+        self.node, self.values, self.recorder, self.on_invalid = node, values, recorder, on_invalid
+        self.pred_pub = node.create_publisher(Prediction, "~/prediction", QoSProfile(
+            history=HistoryPolicy.KEEP_LAST, depth=100,
+            reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE))
+        self.validity_pub = node.create_publisher(Validity, "~/validity", LATCHED)
+        self.tracked_pub = node.create_publisher(NarxModelMsg, "~/tracked_model", LATCHED)
+        self.session: OnlineSession | CoupledSession | None = None
+        self.doc: dict | None = None
+        self.errors = 0
+        self.predictions = 0
+        self.model_time = time.monotonic()
+        self.last_stamp: int | None = None
+        recorder.buffer.on_pair = self.on_pair
+        node.create_timer(values()["tracking_period"], self.publish_tracked)
+
+    def start(self, model, doc: dict, residuals=None) -> None:
+        """A new current model: a fresh session (its monitor starts VALID)."""
+        v = self.values()
+        self.model_time, self.doc = time.monotonic(), doc
+        if not v["monitor"]:
+            self.session = None
+            return
+        options = dict(monitor_window=v["monitor_window"], tracking=v["tracking"],
+                       forgetting=v["forgetting"], sample_period=v["sample_period"],
+                       gap_factor=v["gap_factor"], horizon=v["prediction_horizon"])
+        try:
+            if isinstance(model, MimoModel):  # one session per output
+                self.session = CoupledSession(MimoModel.from_dict(doc), residuals, **options)
+            else:
+                self.session = OnlineSession(type(model).from_dict(doc), residuals,
+                                             input_std=None, **options)
+        except (ValueError, TypeError) as exc:  # e.g. a restored model without uncertainty
+            self.session = None
+            self.node.get_logger().warning(f"the model cannot be monitored online ({exc})")
+            return
+        sessions = getattr(self.session, "sessions", [self.session])
+        if any(s.reference_source == "none" for s in sessions):
+            self.node.get_logger().warning(
+                "the model document carries no residual statistics (metadata.monitor: it was "
+                "written by an older version); the monitor takes its residuals as white and "
+                "may doubt a good model: identify again to monitor it against its own")
+        self.publish_validity()
+
+    def on_pair(self, stamp: int, u: np.ndarray, y) -> None:
+        """Each new aligned sample (the buffer calls this): predict, monitor, track."""
+        self.last_stamp = stamp
+        session = self.session
+        if session is None:
+            return
+        u = u[self.recorder.order] if len(u) > 1 else u[0]
+        try:
+            if isinstance(session, CoupledSession):
+                samples, changed = session.feed(stamp, u,
+                                                np.asarray(y)[self.recorder.out_order])
+                names = session.outputs
+            else:
+                sample = session.feed(stamp, u, y)
+                samples, changed = [sample], sample is not None and sample.changed
+                names = (session.model.term_space.output,)
+        except Exception as exc:  # noqa: BLE001 - counted and reported, recording goes on
+            self.errors += 1
+            if self.errors == 1:
+                self.node.get_logger().error(f"online prediction failed ({exc}); counted in "
+                                             "/diagnostics (online_errors)")
+            return
+        if all(s is None for s in samples):
+            return
+        self.predictions += 1
+        if self.predictions % self.values()["prediction_every"] == 0:
+            for name, sample in zip(names, samples):
+                if sample is not None:
+                    self.pred_pub.publish(prediction_message(sample, session.horizon,
+                                                             output_name=name))
+        if changed:
+            st = session.state
+            text = f"model validity: {st.state}" + (f" ({st.reason})" if st.reason else "")
+            # one call site per severity: rclpy refuses a site whose severity changes
+            if st.state == "VALID":
+                self.node.get_logger().info(text)
+            else:
+                self.node.get_logger().warning(text)
+            self.validity_pub.publish(validity_message(session, stamp))
+            if st.state == "INVALID":
+                self.on_invalid()
+
+    def publish_validity(self) -> None:
+        self.validity_pub.publish(validity_message(self.session, self.last_stamp))
+
+    def publish_tracked(self) -> None:
+        session = self.session
+        if session is None or session.tracker is None or self.doc is None:
+            return
+        stamp = self.node.get_clock().now().to_msg()
+        self.tracked_pub.publish(tracked_message(self.doc, session.tracker, stamp))
