@@ -8,9 +8,11 @@ import pytest
 
 from spm_sysid.bench.two_link import record
 from spm_sysid.core.errors import ModelFormatError
-from spm_sysid.core.narx.mimo import MimoModel, identify_mimo, output_space
+from spm_sysid.core.jobs import JobSettings, run_job
+from spm_sysid.core.narx.mimo import MimoModel, output_space
 from spm_sysid.core.narx.model import NarxModel
 from spm_sysid.core.narx.terms import TermSpace
+from spm_sysid.core.record import Record
 
 TRUE = {  # known cross terms: y2 enters y1's model and y1 enters y2's
     "y1": {"y1(t-1)": 0.5, "u1(t-1)": 0.8, "y2(t-1)": 0.2, "y1(t-1)*u1(t-1)": 0.1},
@@ -18,6 +20,15 @@ TRUE = {  # known cross terms: y2 enters y1's model and y1 enters y2's
 }
 SPACE = TermSpace(ny=1, nu=1, degree=2, inputs=("u1", "u2"), output="y")
 FACTOR = re.compile(r"^(\w+)\(t-(\d+)\)(?:\^(\d+))?$")
+
+
+def identify_coupled(u, Y, outputs, space, **settings):
+    """The one job of several outputs (run_job) on arrays, the term space's lags and names."""
+    record = Record.from_samples(u, Y, source="test", input_names=space.inputs,
+                                 output_names=outputs)
+    values = {"ny": space.ny, "nu": space.nu, "degree": space.degree, "delay": space.delay,
+              "constant": space.constant, **settings}
+    return run_job(record, JobSettings.from_values(values))
 
 
 def term_value(name: str, signals: dict, t: int) -> float:
@@ -60,7 +71,7 @@ def known_model(coefs: dict = TRUE) -> MimoModel:
 
 def test_the_cross_terms_are_recovered_exactly_without_noise():
     u, Y = two_output_system(500, seed=0)
-    res = identify_mimo(u=u, Y=Y, outputs=("y1", "y2"), term_space=SPACE, criterion="bic",
+    res = identify_coupled(u, Y, ("y1", "y2"), SPACE, criterion="bic",
                         seed=0)
     for name, model in zip(("y1", "y2"), res.model.models):
         got = dict(zip(model.terms, model.coefficients))
@@ -68,12 +79,12 @@ def test_the_cross_terms_are_recovered_exactly_without_noise():
         for term, c in TRUE[name].items():
             assert got[term] == pytest.approx(c, abs=1e-9)
     assert res.criterion_value == pytest.approx(sum(r.model.criterion_value
-                                                    for r in res.results))
+                                                    for r in res.outputs))
 
 
 def test_with_noise_the_structure_and_coefficients_within_tolerance():
     u, Y = two_output_system(2000, seed=1, noise=0.01)
-    res = identify_mimo(u=u, Y=Y, outputs=("y1", "y2"), term_space=SPACE, criterion="bic",
+    res = identify_coupled(u, Y, ("y1", "y2"), SPACE, criterion="bic",
                         seed=0)
     for name, model in zip(("y1", "y2"), res.model.models):
         got = dict(zip(model.terms, model.coefficients))
@@ -103,7 +114,7 @@ def test_the_coupled_simulation_equals_a_plain_python_reference():
 
 def test_the_document_round_trips_and_single_output_documents_are_unchanged(tmp_path):
     u, Y = two_output_system(500, seed=0)
-    res = identify_mimo(u=u, Y=Y, outputs=("y1", "y2"), term_space=SPACE, criterion="bic",
+    res = identify_coupled(u, Y, ("y1", "y2"), SPACE, criterion="bic",
                         seed=0)
     path = res.model.save(tmp_path / "mimo.json")
     back = MimoModel.load(path)
@@ -118,7 +129,7 @@ def test_the_document_round_trips_and_single_output_documents_are_unchanged(tmp_
     with pytest.raises(ModelFormatError, match="does not belong to output"):
         MimoModel.from_dict(doc)
     with pytest.raises(ValueError, match="share a name"):
-        identify_mimo(u=u, Y=Y, outputs=("u1", "y2"), term_space=SPACE)
+        identify_coupled(u, Y, ("u1", "y2"), SPACE)
 
 
 def test_a_two_link_arm_is_identified_coupled_and_simulates_a_new_record():
@@ -126,7 +137,7 @@ def test_a_two_link_arm_is_identified_coupled_and_simulates_a_new_record():
     tau, q = record(2000, seed=0)
     tau2, q2 = record(1000, seed=1)
     space = TermSpace(ny=2, nu=2, degree=2, inputs=("tau1", "tau2"), output="q")
-    res = identify_mimo(u=tau, Y=q, outputs=("q1", "q2"), term_space=space, criterion="bic",
+    res = identify_coupled(tau, q, ("q1", "q2"), space, criterion="bic",
                         seed=0)
     m1, m2 = res.model.models
     # the physics couples the joints: each angle's model has the other joint in it
@@ -175,7 +186,7 @@ def test_joint_refinement_lowers_the_coupled_free_run_error_and_reports_it_truly
 
     u, Y = two_output_system(800, seed=7)
     Y = Y + 0.02 * np.random.default_rng(7).standard_normal(Y.shape)  # output error: LS biased
-    res = identify_mimo(u=u, Y=Y, outputs=("y1", "y2"), term_space=SPACE, criterion="bic",
+    res = identify_coupled(u, Y, ("y1", "y2"), SPACE, criterion="bic",
                         seed=0)
     refined, info = refine_coupled(res.model, u, Y)
     assert info["taken"] and info["after"] < info["before"]

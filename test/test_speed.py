@@ -128,7 +128,7 @@ def test_the_polish_budget_is_a_count_so_results_repeat():
     b = identify_problem(problem, criterion="aic", seed=3, auto_certify_time_limit=0,
                          selection="criterion").model
     assert a.terms == b.terms and a.metadata["polish"] == b.metadata["polish"]
-    from spm_sysid.core.narx.identify import POLISH_STRUCTURES
+    from spm_sysid.core.narx.search import POLISH_STRUCTURES
 
     assert a.metadata["polish"]["structures"] <= POLISH_STRUCTURES
     assert a.metadata["polish"]["kicks"] >= 1  # the iterated search ran

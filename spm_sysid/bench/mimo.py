@@ -21,9 +21,9 @@ __all__ = ["main"]
 
 
 def run(args) -> None:
-    from ..core.narx.identify import identify
-    from ..core.narx.mimo import identify_mimo
+    from ..core.jobs import JobSettings, run_job
     from ..core.narx.terms import TermSpace
+    from ..core.record import Record
     from .two_link import record
 
     tau, q = record(args.samples, seed=0)
@@ -33,13 +33,18 @@ def run(args) -> None:
     mimo, single = [], []
     for rep in range(args.repeats + 1):  # the first loads the compiled kernels: not timed
         t0 = time.perf_counter()
-        res = identify_mimo(u=tau, Y=q, outputs=("q1", "q2"), term_space=space, **kw)
+        res = run_job(Record.from_samples(tau, q, source="two-link arm",
+                                          input_names=space.inputs, output_names=("q1", "q2")),
+                      JobSettings.from_values({"ny": 2, "nu": 2, "degree": args.degree,
+                                               "validation": "none", **kw}))
         if rep:
             mimo.append(time.perf_counter() - t0)
         t0 = time.perf_counter()
-        for i, name in enumerate(("q1", "q2")):
-            identify(u=tau, y=q[:, i], term_space=space.__class__(
-                ny=2, nu=2, degree=args.degree, inputs=("tau1", "tau2"), output=name), **kw)
+        for i, name in enumerate(("q1", "q2")):  # each output alone, the same job
+            run_job(Record.from_samples(tau, q[:, i], source="two-link arm",
+                                        input_names=space.inputs, output_name=name),
+                    JobSettings.from_values({"ny": 2, "nu": 2, "degree": args.degree,
+                                             "validation": "none", **kw}))
         if rep:
             single.append(time.perf_counter() - t0)
     fits = res.model.fits(tau2, q2)

@@ -47,23 +47,24 @@ from ..cores import usable_cores
 from ..memory import check_memory, memory_limit
 from .aot import build_status
 from .branch_bound import (
-    COUNTERS,
     DONE,
-    EXPANDED,
     FULL,
-    OPEN,
-    PENDING,
     Data,
-    Heap,
-    expand,
-    words_for,
-    workspace,
+)
+from .certify_heaps import (
+    MAX_OPEN_BYTES,
+    OpenNodes,
+    balance,
+    check_certify_memory,
+    lower_bound,
+    share_best,
+    worker_bytes,
 )
 from .compiled import jit_available, jit_loaded
 from .criteria import Criterion, get_criterion
 from .evaluator import NEAR_RANK, StructureEvaluator
 from .lstsq import DEFAULT_RANK_TOL
-from .search import local_search
+from .search import polish as search_polish
 
 __all__ = ["CERTIFIABLE", "Certificate", "certify", "certify_data", "check_certify_memory",
            "describe_certificate", "ensure_compiled", "penalty_per_size", "search_is_compiled"]
@@ -177,44 +178,9 @@ def penalty_per_size(criterion: Criterion, n: int, m: int, max_terms: int = 0) -
     return pen
 
 
-#: Open nodes (all workers') may use at most this much memory before the search stops
-#: with ``limit`` (less when the memory bound leaves less; :mod:`spm_sysid.core.memory`).
-MAX_OPEN_BYTES = 1 << 30
-
-
-def setup_bytes(rows: int, m: int) -> float:
-    """Memory to set a certification of ``m`` candidates on ``rows`` rows up.
-
-    The regression matrix and its scaled copy, the evaluator's ``[P y]`` and QR
-    work space, its Gram matrix and triangular factor, and the search's copies of
-    both.
-    """
-    r = min(rows, m + 1)
-    return 8.0 * (4 * rows * (m + 1) + 2 * (m + 2) ** 2 + 2 * r * (m + 2))
-
-
-def worker_bytes(rows: int, m: int) -> float:
-    """Memory of one search worker's scratch space (about 14 (m+1)^2 numbers)."""
-    r = min(rows, m + 1)
-    return 8.0 * (14 * (m + 1) ** 2 + 2 * r * (m + 1))
-
-
-def check_certify_memory(rows: int, m: int) -> None:
-    """Refuse, before anything is built, a certification the memory bound cannot hold.
-
-    Raises
-    ------
-    MemoryLimitError
-        The set-up plus one search worker would exceed the bound.
-    """
-    check_memory(setup_bytes(rows, m) + worker_bytes(rows, m),
-                 f"certifying {m} candidate terms on {rows} rows")
-
 #: Subsets of its free terms a node enumerates exactly (its smallest sizes).
 ENUMERATION_BUDGET = 3000
 
-#: ... and up to this many times as many where the next size up is left open.
-DEEP_FACTOR = 4
 
 #: Seconds a search runs on the ahead-of-time build (one thread) before it loads numba's
 #: JIT to run its heaps in parallel: most searches end before, and the JIT costs 0.7 s
@@ -224,7 +190,7 @@ PARALLEL_AFTER = 1.0
 
 def polish(ev: StructureEvaluator, mask: np.ndarray, usable: np.ndarray,
            seconds: float = 5.0, deadline: float | None = None) -> tuple[np.ndarray, float]:
-    """Local search from ``mask`` (:func:`~spm_sysid.core.narx.search.local_search`).
+    """The polish (:func:`~spm_sysid.core.narx.search.polish`) of ``mask``, for an incumbent.
 
     One term added, removed or swapped while that helps; a good incumbent lets
     the branch and bound cut more. It stops after ``seconds`` or at
@@ -233,133 +199,9 @@ def polish(ev: StructureEvaluator, mask: np.ndarray, usable: np.ndarray,
     stop = time.perf_counter() + seconds
     allowed = np.zeros(len(mask), dtype=bool)
     allowed[usable] = True
-    res = local_search(ev.score, mask, allowed, deadline=stop if deadline is None
-                       else min(stop, deadline))
+    res = search_polish(ev.score, mask, allowed, deadline=stop if deadline is None
+                        else min(stop, deadline))
     return res.mask, res.value
-
-
-def _settle(ev: StructureEvaluator, usable: np.ndarray, rows: np.ndarray, best: np.ndarray,
-            best_mask: np.ndarray) -> None:
-    """Score the search's near rank-deficient candidates with the evaluator."""
-    bits = np.unpackbits(rows.view(np.uint8).reshape(len(rows), -1), axis=1,
-                         bitorder="little")[:, :len(usable)].astype(bool)
-    masks = np.zeros((len(rows), ev.n_terms), dtype=bool)
-    masks[:, usable] = bits
-    scores = ev.score(masks)
-    i = int(np.argmin(scores))
-    if scores[i] < best[0]:
-        best[0] = scores[i]
-        best_mask[:] = bits[i]
-
-
-class _OpenNodes:
-    """One worker of the search: open nodes, incumbent, counters, scratch space.
-
-    The open nodes are a heap in arrays the compiled search fills; the counters
-    are named in :data:`~.branch_bound.COUNTERS`.
-    """
-
-    def __init__(self, mu: int, rows: int, best: float, best_mask: np.ndarray, share: int = 1,
-                 open_bytes: int = MAX_OPEN_BYTES) -> None:
-        self.nw = words_for(mu)
-        cap = 1 << 12
-        self.bound = np.empty(cap)
-        self.inside = np.zeros((cap, self.nw), dtype=np.uint64)
-        self.free = np.zeros((cap, self.nw), dtype=np.uint64)
-        self.counts = np.zeros(len(COUNTERS), dtype=np.int64)
-        self.pending = np.zeros((max(4096, 4 * mu + 8), self.nw), dtype=np.uint64)
-        self.best = np.array([best])
-        self.best_mask = np.asarray(best_mask, dtype=bool).copy()
-        self.max_open = open_bytes // share // (8 + 16 * self.nw)
-        self.work = workspace(mu, rows, self.nw)
-
-    @property
-    def size(self) -> int:
-        return int(self.counts[OPEN])
-
-    @property
-    def nodes(self) -> int:
-        return int(self.counts[EXPANDED])
-
-    @property
-    def heap(self) -> Heap:
-        """The arrays as the compiled search takes them (rebuilt after a resize)."""
-        return Heap(self.bound, self.inside, self.free, self.counts, self.best,
-                    self.best_mask, self.pending)
-
-    def push_root(self, mu: int) -> None:
-        self.bound[0] = -np.inf
-        self.free[0] = 0
-        for j in range(mu):
-            self.free[0, j // 64] |= np.uint64(1) << np.uint64(j % 64)
-        self.counts[OPEN] = 1
-
-    def open_bound(self) -> float:
-        return float(self.bound[0]) if self.size else np.inf
-
-    def expand(self, data: Data, pops: int, budget: int) -> int:
-        return expand(data, self.heap, self.work, pops, budget, DEEP_FACTOR * budget)
-
-    def expand_in_parallel(self, data: Data, pops: int, budget: int) -> int:
-        """The same on numba's JIT, which releases the GIL (heaps run on threads)."""
-        return expand.jit(data, self.heap, self.work, pops, budget, DEEP_FACTOR * budget)
-
-    def settle(self, ev: StructureEvaluator, usable: np.ndarray) -> None:
-        """Near rank-deficient candidates: the evaluator decides."""
-        if self.counts[PENDING]:
-            _settle(ev, usable, self.pending[:self.counts[PENDING]], self.best, self.best_mask)
-            self.counts[PENDING] = 0
-
-    def resize(self, cap: int) -> None:
-        keep = self.size
-        for name in ("bound", "inside", "free"):
-            old = getattr(self, name)
-            new = np.zeros((cap,) + old.shape[1:], dtype=old.dtype)
-            new[:keep] = old[:keep]
-            setattr(self, name, new)
-
-    def grow(self) -> bool:
-        """Double the room for open nodes; False past :data:`MAX_OPEN_BYTES`."""
-        cap = len(self.bound)
-        if 2 * cap > self.max_open:
-            return False
-        self.resize(2 * cap)
-        return True
-
-
-def _share_best(heaps: list[_OpenNodes]) -> None:
-    """Every worker prunes with the best incumbent any has found."""
-    top = min(heaps, key=lambda h: h.best[0])
-    for h in heaps:
-        if h is not top and top.best[0] < h.best[0]:
-            h.best[0] = top.best[0]
-            h.best_mask[:] = top.best_mask
-
-
-def _lower(heaps: list[_OpenNodes]) -> float:
-    """No structure scores below this: the least open bound, or the incumbent."""
-    return float(min([h.open_bound() for h in heaps] + [heaps[0].best[0]]))
-
-
-def _balance(heaps: list[_OpenNodes]) -> None:
-    """Deal the open nodes out again, best first, when a worker runs short."""
-    sizes = [h.size for h in heaps]
-    total = sum(sizes)
-    if total < 2 * len(heaps) or min(sizes) * 4 >= max(sizes):
-        return
-    bound = np.concatenate([h.bound[:h.size] for h in heaps])
-    inside = np.concatenate([h.inside[:h.size] for h in heaps])
-    free = np.concatenate([h.free[:h.size] for h in heaps])
-    order = np.argsort(bound, kind="stable")
-    for i, h in enumerate(heaps):
-        pick = order[i::len(heaps)]  # sorted: a valid heap
-        need = len(pick) + 4096
-        if len(h.bound) < need:
-            h.resize(1 << int(np.ceil(np.log2(need))))
-        h.bound[:len(pick)] = bound[pick]
-        h.inside[:len(pick)] = inside[pick]
-        h.free[:len(pick)] = free[pick]
-        h.counts[OPEN] = len(pick)
 
 
 _COMPILED = False
@@ -522,7 +364,7 @@ def certify(
                                   "search up)", warm_start=warm_value)
 
     budget = ENUMERATION_BUDGET if enumeration_budget is None else int(enumeration_budget)
-    heaps = [_OpenNodes(mu, r_aug.shape[0], best_value, best_full[usable], workers,
+    heaps = [OpenNodes(mu, r_aug.shape[0], best_value, best_full[usable], workers,
                         open_bytes) for _ in range(workers)]
     heaps[0].push_root(mu)
     data = Data(gram, r_aug, pen, float(n), ev.sse_scale, ev.sse_floor, ev.rank_tol, tolerance,
@@ -547,12 +389,12 @@ def certify(
             if pool is None or len(busy) == 1 or started - search_start < serial_for:
                 results = [h.expand(data, pops, budget) for h in busy]
             else:
-                results = list(pool.map(_OpenNodes.expand_in_parallel, busy,
+                results = list(pool.map(OpenNodes.expand_in_parallel, busy,
                                         [data] * len(busy), [pops] * len(busy),
                                         [budget] * len(busy)))
             for h in busy:
                 h.settle(ev, usable)
-            _share_best(heaps)
+            share_best(heaps)
             now = time.perf_counter()
             if all(r == DONE for r in results):  # the incumbent only improves: stays proved
                 break
@@ -562,7 +404,7 @@ def certify(
                 reason = f"memory limit ({sum(h.size for h in heaps):,} open nodes)"
                 break
             if workers > 1:
-                _balance(heaps)
+                balance(heaps)
             # rounds of about 0.1-0.4 s: limits and progress are checked between them
             if now - started < 0.1:
                 chunk = min(chunk * 2, 1 << 16)
@@ -577,14 +419,14 @@ def certify(
             if progress is not None and now - last_report > 0.5:
                 last_report = now
                 progress(sum(h.nodes for h in heaps), float(heaps[0].best[0]),
-                         _lower(heaps))
+                         lower_bound(heaps))
     finally:
         if pool is not None:
             pool.shutdown()
     best = heaps[0].best
     best_mask = heaps[0].best_mask
     nodes = sum(h.nodes for h in heaps)
-    lower = float(best[0]) if status == "optimal" else max(_lower(heaps), trivial)
+    lower = float(best[0]) if status == "optimal" else max(lower_bound(heaps), trivial)
     mask = np.zeros(m, dtype=bool)
     mask[usable[best_mask]] = True
     value = ev.cached_score(mask) if mask.any() else np.inf

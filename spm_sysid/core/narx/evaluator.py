@@ -64,7 +64,7 @@ PARALLEL_FIT_WORK = 5e6
 #: QR in :meth:`StructureEvaluator.evaluate` (an Akaike roulette weight of exp(-25)).
 ARBITRATION_WINDOW = 50.0
 
-__all__ = ["StructureEvaluator", "structure_keys"]
+__all__ = ["StructureEvaluator", "key_mask", "mask_key", "structure_keys"]
 
 
 def structure_keys(masks: np.ndarray) -> np.ndarray:
@@ -76,6 +76,20 @@ def structure_keys(masks: np.ndarray) -> np.ndarray:
     masks = np.asarray(masks, dtype=bool)
     packed = np.ascontiguousarray(np.packbits(masks, axis=-1, bitorder="little"))
     return packed.view(np.dtype((np.void, packed.shape[-1]))).reshape(masks.shape[:-1])
+
+
+def mask_key(mask: np.ndarray) -> bytes:
+    """One structure's key for a dictionary: its bits packed (numpy's default bit order).
+
+    The order of keys that tie on a value follows from these bytes (finalists
+    are sorted by value, then key), so it must not change.
+    """
+    return np.packbits(mask).tobytes()
+
+
+def key_mask(key: bytes, n_terms: int) -> np.ndarray:
+    """The structure of a :func:`mask_key` (a bool mask of ``n_terms``)."""
+    return np.unpackbits(np.frombuffer(key, dtype=np.uint8))[:n_terms].astype(bool)
 
 
 class StructureEvaluator:

@@ -6,10 +6,13 @@ degree. It is built on the single-output path: output i's term space has its
 own lags ``y_i(t-1..t-ny)`` as the output, and the other outputs as extra
 "inputs" with delay 1 and ``ny`` lags (``y_j(t-1..t-ny)``: an output's present
 value never enters another output's model, so the model stays causal and can
-be simulated). So every output is identified by :func:`identify` -- GA with
-SPM, polish, certification, validated selection, uncertainty -- with its own
-criterion value; the joint summary is the sum of the outputs' criterion
-values (each a log-likelihood-type score of its own residuals).
+be simulated). This module is the model; identifying it is the one job of any
+number of outputs (:func:`spm_sysid.core.jobs.run_job` on a record of several
+outputs, :mod:`spm_sysid.core.jobs.several`): every output gets the whole
+single-output path -- GA with SPM, polish, certification, validated selection,
+uncertainty -- with its own criterion value; the joint summary is the sum of
+the outputs' criterion values (each a log-likelihood-type score of its own
+residuals).
 
 The **coupled free-run simulation** (:meth:`MimoModel.simulate`) feeds every
 output's prediction back into every term that uses it, all outputs stepping
@@ -26,7 +29,6 @@ single-output document is unchanged and still what one output gives.
 from __future__ import annotations
 
 import json
-import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -35,12 +37,11 @@ import numpy as np
 from ..cores import usable_cores
 from ..errors import ModelFormatError
 from ..files import atomic_write_text, read_bytes
-from .identify import identify
 from .model import NarxModel, read_json_document
 from .terms import TermSpace
 
-__all__ = ["MIMO_SCHEMA", "MimoModel", "MimoResult", "identify_mimo", "output_space",
-           "in_threads", "read_model_document"]
+__all__ = ["MIMO_SCHEMA", "MimoModel", "augmented_inputs", "in_threads", "output_space",
+           "read_model_document"]
 
 MIMO_SCHEMA = "spm_sysid/narx-mimo-model"
 MIMO_SCHEMA_VERSION = 1
@@ -213,20 +214,6 @@ def fit_percent(y: np.ndarray, yhat: np.ndarray) -> float | None:
     return float(100.0 * (1.0 - np.linalg.norm(y - yhat) / np.linalg.norm(y - np.mean(y))))
 
 
-@dataclass
-class MimoResult:
-    """The several-output model and each output's identification."""
-
-    model: MimoModel
-    results: list  # IdentificationResult per output
-    seconds: float
-
-    @property
-    def criterion_value(self) -> float:
-        """The joint summary: the sum of the outputs' criterion values."""
-        return float(sum(r.model.criterion_value for r in self.results))
-
-
 def in_threads(fn, n: int) -> list:
     """``[fn(0), ..., fn(n-1)]``, on up to as many threads as there are cores.
 
@@ -245,48 +232,6 @@ def in_threads(fn, n: int) -> list:
 
     with ThreadPoolExecutor(workers) as pool:
         return list(pool.map(fn, range(n)))
-
-
-def identify_mimo(*, u: np.ndarray, Y: np.ndarray, outputs: tuple[str, ...],
-                  term_space: TermSpace, **kwargs) -> MimoResult:
-    """Identify a model of several outputs (see the module doc).
-
-    Parameters
-    ----------
-    u : ndarray, shape (n,) or (n, m)
-        Inputs; their names, lags and delays are ``term_space``'s.
-    Y : ndarray, shape (n, q)
-        Outputs, q >= 2.
-    outputs : tuple of str
-        Their names (distinct identifiers, none an input's name).
-    term_space : TermSpace
-        ny (every output's lags), inputs, degree, constant.
-    **kwargs
-        Passed to :func:`identify` for every output (criterion, seed, focus ...).
-    """
-    Y = np.asarray(Y, dtype=float)
-    if Y.ndim != 2 or Y.shape[1] < 2:
-        raise ValueError("several outputs need Y of shape (n, outputs) with 2 or more columns")
-    if len(outputs) != Y.shape[1] or len(set(outputs)) != len(outputs):
-        raise ValueError(f"give one distinct name per output ({Y.shape[1]}), got {outputs}")
-    clash = set(outputs) & set(term_space.inputs)
-    if clash:
-        raise ValueError(f"an output and an input share a name: {', '.join(sorted(clash))}")
-    t0 = time.perf_counter()
-
-    def one(i: int):
-        space = output_space(term_space, tuple(outputs), i)
-        return identify(u=augmented_inputs(u, Y, i), y=Y[:, i], term_space=space, **kwargs)
-
-    results = in_threads(one, Y.shape[1])  # the outputs in parallel (the GIL released)
-    model = MimoModel.joined(tuple(outputs), tuple(term_space.inputs),
-                             [r.model for r in results])
-    if kwargs.get("focus") == "simulation":  # the coefficients refined jointly, coupled
-        from .coupled import refine_coupled
-
-        model, info = refine_coupled(model, u, Y)
-        model.metadata["coupled_refinement"] = info
-    return MimoResult(model, results, time.perf_counter() - t0)
 
 
 def read_model_document(path: str | Path) -> tuple[NarxModel | MimoModel, dict]:

@@ -1,0 +1,350 @@
+"""The simulation focus: structures judged by how they simulate, not by one-step error.
+
+A structure is fitted by least squares, refined on its free-run error
+(:func:`~spm_sysid.core.narx.refine.refine_simulation`) and scored by the
+criterion with the free-run SSE in place of the one-step SSE
+(:func:`simulation_value`). :class:`SimulationScorer` is that score, the one
+scorer of both selections:
+
+* :func:`select_for_simulation` (selection by the criterion): the candidates,
+  then a local search around the best, the winner refined to convergence;
+* :func:`validated_simulation` (validated selection): the candidates screened
+  in-sample with short refinements, finalists per degree and size judged on
+  held-out blocks, the chosen one refined and checked by the stability guard.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from ..errors import DataError
+from ..progress import Progress, ProgressFn
+from .criteria import Criterion
+from .evaluator import key_mask, mask_key
+from .model import NarxModel
+from .problem import Problem
+from .refine import free_run_uncertainty, refine_simulation
+from .search import SearchResult, local_search
+from .selection import Scores, stress_check
+
+__all__ = ["FINALISTS", "FOLD_STEPS", "PER_SIZE", "SEARCH_STEPS", "SimulationScorer",
+           "select_for_simulation", "simulation_value", "validated_simulation"]
+
+#: Levenberg-Marquardt evaluations per move of the simulation-focused local search
+#: (warm-started from the neighbour; the winner is then refined to convergence).
+SEARCH_STEPS = 30
+#: Structure sizes judged on held-out blocks after the in-sample screening (simulation),
+#: and structures of each size.
+FINALISTS = 8
+PER_SIZE = 2
+#: Levenberg-Marquardt evaluations of a fold's fit (from least squares on its rows).
+FOLD_STEPS = 100
+
+
+def simulation_value(criterion: Criterion, sse: float, rows: int, mask: np.ndarray,
+                     coefficients: np.ndarray, problem: Problem) -> float:
+    """The criterion with the free-run SSE (standardised coefficients as for one-step)."""
+    beta = np.zeros((1, problem.term_space.n_terms))
+    y_norm = float(np.linalg.norm(problem.target)) * problem.y_scale or 1.0
+    beta[0, mask] = coefficients * problem.column_norms[mask] / y_norm
+    v = float(criterion(np.array([max(sse, 1e-300)]), rows, np.array([mask.sum()]), beta)[0])
+    return v if np.isfinite(v) else np.inf
+
+
+class SimulationScorer:
+    """Structures scored by the criterion of their refined free-run error; cached.
+
+    Parameters
+    ----------
+    problem : Problem
+    criterion : Criterion
+    steps : int or None
+        Levenberg-Marquardt evaluations of a refinement from least squares (None:
+        refine_simulation's own limit); a move of the local search is warm-started from the
+        current structure's coefficients with :data:`SEARCH_STEPS` (from least
+        squares with ``steps`` when that fails).
+    max_terms : int
+        Larger structures score +inf (0: no limit).
+    notes : bool
+        Keep the refinement's account in each model's metadata.
+    progress, started
+        ``refinement`` progress: structures refined, best value so far.
+
+    Attributes
+    ----------
+    scored : dict
+        Structure key (:func:`~spm_sysid.core.narx.evaluator.mask_key`) ->
+        (value, refined model or None); +inf for one that cannot be fitted or
+        whose simulation diverges on the estimation data.
+    """
+
+    def __init__(self, problem: Problem, criterion: Criterion, *, steps: int | None = None,
+                 max_terms: int = 0, notes: bool = False, progress: ProgressFn | None = None,
+                 started: float | None = None) -> None:
+        self.problem, self.criterion = problem, criterion
+        self.steps, self.max_terms, self.notes = steps, max_terms, notes
+        self.report = progress or (lambda p: None)
+        self.started = time.perf_counter() if started is None else started
+        self.scored: dict[bytes, tuple[float, NarxModel | None]] = {}
+        self.refinements = 0
+        self.current: NarxModel | None = None  # the local search's current structure
+
+    def __call__(self, mask: np.ndarray) -> float:
+        """The structure's value (scored once; warm-started from :attr:`current`)."""
+        key = mask_key(mask)
+        if key in self.scored:
+            return self.scored[key][0]
+        problem = self.problem
+        value, model = np.inf, None
+        if mask.any() and not (mask & ~problem.usable).any() and not (
+                self.max_terms and mask.sum() > self.max_terms):
+            try:
+                model = problem.model(mask)
+            except ValueError:  # linearly dependent on this data
+                model = None
+        if model is not None:
+            ref = self._refine(model)
+            self.refinements += 1
+            if ref.success and np.isfinite(ref.sse):
+                model.coefficients = ref.coefficients
+                value = simulation_value(self.criterion, ref.sse, problem.rows, mask,
+                                         ref.coefficients, problem)
+                if self.notes:
+                    model.metadata = {"refinement": ref.message, "free_run_sse": ref.sse,
+                                      "least_squares_free_run_sse": ref.sse_start}
+            else:
+                model = None
+        self.scored[key] = (value, model)
+        self.report(Progress("refinement", self.refinements, 0, self.best_value,
+                             elapsed=time.perf_counter() - self.started))
+        return value
+
+    def _refine(self, model: NarxModel):
+        u, y, segments = self.problem.u, self.problem.y, self.problem.segments
+        start = self.current
+        if start is not None:  # warm start: the neighbour's refined coefficients
+            theta = dict(zip(start.term_indices, start.coefficients))
+            ls = model.coefficients
+            model.coefficients = np.array([theta.get(i, 0.0) for i in model.term_indices])
+            ref = refine_simulation(model, u, y, segments, max_evaluations=SEARCH_STEPS)
+            if ref.success:
+                return ref
+            model.coefficients = ls
+        steps = {} if self.steps is None else {"max_evaluations": self.steps}
+        return refine_simulation(model, u, y, segments, **steps)
+
+    @property
+    def best_value(self) -> float:
+        return min(v for v, _ in self.scored.values())
+
+    def best_key(self) -> bytes:
+        return min(self.scored, key=lambda k: self.scored[k][0])
+
+    def search(self, candidates: np.ndarray, max_steps: int = 10) -> SearchResult | None:
+        """Score the candidates, then remove or add one term at a time around the best.
+
+        The terms a move may bring in: every usable term in spaces of at most 100,
+        else the candidates' terms. None when no candidate simulates.
+        """
+        for mask in candidates:
+            self(mask)
+        best = self.best_key()
+        if not np.isfinite(self.scored[best][0]):
+            return None
+        n = self.problem.term_space.n_terms
+        self.current = self.scored[best][1]
+        pool = self.problem.usable.copy() if n <= 100 else candidates.any(axis=0)
+
+        def moved(mask: np.ndarray, value: float) -> None:
+            self.current = self.scored[mask_key(mask)][1]
+
+        return local_search(lambda masks: np.array([self(m) for m in masks]),
+                            key_mask(best, n), pool, moves=("remove", "add"),
+                            start_value=self.scored[best][0], max_steps=max_steps,
+                            on_step=moved)
+
+
+def select_for_simulation(
+    problem: Problem, candidates: np.ndarray, criterion: Criterion, *,
+    metadata: dict | None = None, max_passes: int = 10,
+    progress: ProgressFn | None = None, started: float | None = None,
+) -> NarxModel:
+    """The structure and coefficients that simulate best, by an information criterion.
+
+    Each candidate structure (rows of ``candidates``, masks over the whole term
+    space, e.g. the GA's best by the one-step criterion) is fitted by least
+    squares, refined on its free-run error
+    (:func:`~spm_sysid.core.narx.refine.refine_simulation`) and scored by
+    ``criterion`` with the free-run SSE in place of the one-step SSE (so AIC
+    becomes ``N ln(SSE_sim / N) + 2k``). From the best, a local search
+    (:func:`~spm_sysid.core.narx.search.local_search`) removes or adds one term
+    at a time (terms of the candidates; every usable term in spaces of at most
+    100) while that lowers the simulation criterion. Structures whose
+    simulation diverges on the estimation data are never returned.
+
+    Raises
+    ------
+    DataError
+        When every candidate's simulation diverges on the estimation data.
+    """
+    u, y, segments = problem.u, problem.y, problem.segments
+    scorer = SimulationScorer(problem, criterion, notes=True, progress=progress,
+                              started=started)
+    found = scorer.search(candidates, max_steps=max_passes)
+    if found is None:
+        raise DataError("every candidate structure's free-run simulation diverges on the "
+                        "estimation data (or cannot be fitted): no model simulates")
+    best = found.mask
+    value, model = scorer.scored[mask_key(best)]
+    # the search's moves ran a few Levenberg-Marquardt steps each: finish the winner's
+    final = refine_simulation(model, u, y, segments)
+    refinements = scorer.refinements + 1
+    if final.success and final.sse < model.metadata["free_run_sse"]:
+        model.coefficients = final.coefficients
+        value = simulation_value(criterion, final.sse, problem.rows, best, final.coefficients,
+                                 problem)
+        model.metadata["free_run_sse"] = final.sse
+    one_step = model.residuals(u, y, segments)
+    model.mse = float(one_step @ one_step) / len(one_step)
+    model.criterion, model.criterion_value = criterion.name, value
+    model.n_samples = problem.n_samples
+    model.uncertainty = free_run_uncertainty(model, u, y, segments)
+    model.metadata = {**(metadata or {}), "simulation": {
+        **model.metadata, "candidates": len(candidates), "refinements": refinements,
+        "local_search_steps": found.steps,
+        "criterion_meaning": f"{criterion.name.upper()} of the free-run simulation error "
+                             "(SSE of the simulated output) on the estimation data"}}
+    return model
+
+
+def validated_simulation(problem, candidates, folds, crit, max_terms, report,
+                         started) -> tuple[NarxModel, dict]:
+    """Simulation focus, validated: screen in-sample, judge finalists on held-out blocks.
+
+    1. every candidate by the criterion of its free-run error after a short
+       refinement on all estimation data (:class:`SimulationScorer`, at most
+       :data:`SEARCH_STEPS` evaluations);
+    2. finalists: for each highest degree (linear, quadratic, ...) the best
+       screened structures of each size, up to :data:`FINALISTS` sizes spread
+       over the range (the group's best always among them) -- the held-out
+       blocks decide how large and how nonlinear a model the data support;
+       each fold fits least squares on its rows, refines on its free-run
+       error over its segments, and simulates the held-out block; a
+       run that leaves the measured range rejects the structure;
+    3. the chosen (fewest terms within one standard error of the best held-out
+       error) is refined to convergence on all data and must pass the guard
+       (:func:`~spm_sysid.core.narx.selection.stress_check`); otherwise the next.
+    """
+    u, y, segments = problem.u, problem.y, problem.segments
+    scorer = SimulationScorer(problem, crit, steps=SEARCH_STEPS, max_terms=max_terms,
+                              progress=report, started=started)
+    for mask in candidates:
+        scorer(mask)
+    screened = scorer.scored
+    finals = _finalists(screened, problem.term_space)
+    if not finals:
+        raise DataError("every candidate structure's free-run simulation diverges on the "
+                        "estimation data (or cannot be fitted): no model simulates")
+    n = problem.term_space.n_terms
+    scores = Scores()
+    for _, key in finals:
+        mask = key_mask(key, n)
+        values = [_fold_free_run(problem, fold, mask) for fold in folds]
+        scores.masks.append(mask)
+        if all(np.isfinite(values)):
+            scores.mean.append(float(np.mean(values)))
+            scores.stderr.append(float(np.std(values, ddof=1) / np.sqrt(len(values))))
+        else:
+            scores.mean.append(np.inf)
+            scores.stderr.append(np.inf)
+            scores.rejected += 1
+        report(Progress("refinement", len(scores.masks), len(finals),
+                        elapsed=time.perf_counter() - started))
+    removed, reasons = scores.rejected, []
+    for i in scores.order():
+        mask = scores.masks[i]
+        model = screened[mask_key(mask)][1]
+        start = model.coefficients
+        final = refine_simulation(model, u, y, segments)
+        if final.success and np.isfinite(final.sse):
+            model.coefficients = final.coefficients
+        reason = stress_check(model, u, y, segments)
+        if reason and final.success:
+            model.coefficients = start
+            reason = stress_check(model, u, y, segments)
+        if reason:
+            removed += 1
+            reasons.append(reason)
+            continue
+        e = model.measured(y, segments) - model.run(u, y, None, segments)[0]
+        sse = float(e @ e)
+        one_step = model.residuals(u, y, segments)
+        model.mse = float(one_step @ one_step) / len(one_step)
+        model.criterion = crit.name
+        model.criterion_value = simulation_value(crit, sse, problem.rows, mask,
+                                                 model.coefficients, problem)
+        model.n_samples = problem.n_samples
+        model.uncertainty = free_run_uncertainty(model, u, y, segments)
+        model.metadata = {"simulation": {
+            "refinement": final.message, "free_run_sse": sse,
+            "least_squares_free_run_sse": final.sse_start,
+            "criterion_meaning": f"{crit.name.upper()} of the free-run simulation error "
+                                 "(SSE of the simulated output) on the estimation data"}}
+        return model, {"held_out_mse": scores.mean[i], "held_out_stderr": scores.stderr[i],
+                       "candidates": len(candidates), "screened": len(screened),
+                       "finalists": len(finals), "removed_by_guard": removed,
+                       **({"guard_reasons": reasons} if reasons else {})}
+    raise DataError(f"every finalist structure's simulation leaves the output's range off the "
+                    f"estimation data ({removed} removed by the guard"
+                    + (f": {reasons[0]}" if reasons else "") + ")")
+
+
+def _finalists(screened: dict, term_space) -> list[tuple[float, bytes]]:
+    """The best screened structures of each size (:data:`PER_SIZE`), sizes spread, by degree.
+
+    Structures are grouped by their highest degree (linear, quadratic, ...):
+    in-sample, a nonlinear structure nearly always beats a linear one of the
+    same size, yet off the estimation data the linear one often simulates
+    better, so each group sends its own finalists to the held-out blocks. In
+    each group at most :data:`FINALISTS` sizes, spread on a log scale (small
+    models are cheap to overlook and often what the data support), the group's
+    best among them.
+    """
+    n_terms = term_space.n_terms
+    degree = np.array([len(t) for t in term_space.terms])
+    groups: dict[int, dict[int, list[tuple[float, bytes]]]] = {}
+    for key, (value, _) in screened.items():
+        if np.isfinite(value):
+            mask = key_mask(key, n_terms)
+            by_size = groups.setdefault(int(degree[mask].max()), {})
+            by_size.setdefault(int(mask.sum()), []).append((value, key))
+    out = []
+    for by_size in groups.values():
+        sizes = sorted(by_size)
+        if len(sizes) > FINALISTS:
+            best_size = min(sizes, key=lambda k: min(by_size[k])[0])
+            targets = np.geomspace(sizes[0], sizes[-1], FINALISTS - 1)
+            spread = {min(sizes, key=lambda k: abs(np.log(k) - np.log(t))) for t in targets}
+            sizes = sorted(spread | {best_size})
+        out += [item for k in sizes for item in sorted(by_size[k])[:PER_SIZE]]
+    return sorted(out)
+
+
+def _fold_free_run(problem, fold, mask: np.ndarray) -> float:
+    """Held-out free-run MSE of the structure fitted and refined on the fold (inf: diverged)."""
+    u, y = problem.u, problem.y
+    try:
+        fit = problem.fit(mask, rows=fold.train)
+    except ValueError:
+        return np.nan
+    model = problem.model(mask, fit)
+    ref = refine_simulation(model, u, y, fold.train_segments, max_evaluations=FOLD_STEPS)
+    if ref.success and np.isfinite(ref.sse):
+        model.coefficients = ref.coefficients
+    yhat, at = model.run(u, y, None, fold.held_out)
+    if at is not None:
+        return np.inf
+    e = model.measured(y, fold.held_out) - yhat
+    return float(np.mean(e * e))
