@@ -84,8 +84,8 @@ def eq1_model(robot_arm):
 
     A new model each call (tests change their metadata), criterion AIC as the paper's.
     """
-    from spm_sysid.core.narx.problem import fit_structure
-    from spm_sysid.core.narx.terms import TermSpace
+    from spm_sysid.core.fit.problem import fit_structure
+    from spm_sysid.core.model.terms import TermSpace
 
     u, y = robot_arm
     mask = np.zeros(44, dtype=bool)

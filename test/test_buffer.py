@@ -126,7 +126,7 @@ def test_far_future_stamp_costs_one_sample_and_recovers_by_itself():
 
 
 def test_replayed_timeline_becomes_a_new_segment():
-    from spm_sysid.core.narx.segments import find_segments
+    from spm_sysid.core.model.segments import find_segments
 
     b = SampleBuffer(1000)
     for rep in range(2):               # the same 50 stamps twice, as a replayed bag

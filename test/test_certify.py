@@ -7,11 +7,11 @@ import sys
 import numpy as np
 import pytest
 
-from spm_sysid.core.narx.certify import certify, certify_data, penalty_per_size
-from spm_sysid.core.narx.criteria import get_criterion
-from spm_sysid.core.narx.evaluator import StructureEvaluator
-from spm_sysid.core.narx.identify import identify
-from spm_sysid.core.narx.terms import TermSpace
+from spm_sysid.core.fit.criteria import get_criterion
+from spm_sysid.core.fit.evaluator import StructureEvaluator
+from spm_sysid.core.identify import identify
+from spm_sysid.core.model.terms import TermSpace
+from spm_sysid.core.search.certify import certify, certify_data, penalty_per_size
 
 from .conftest import EQ1, EQ2, ROOT
 
@@ -200,7 +200,7 @@ def test_hard_cases_are_made_the_same_way_each_time():
 
 
 def test_running_out_of_room_for_open_nodes_stops_with_a_valid_bound(monkeypatch):
-    import spm_sysid.core.narx.certify as certify_module
+    import spm_sysid.core.search.certify as certify_module
     from spm_sysid.bench.certify import CASES
 
     monkeypatch.setattr(certify_module, "MAX_OPEN_BYTES", 1)  # no room beyond the first block
@@ -264,8 +264,8 @@ def test_a_search_stopped_in_its_set_up_reports_a_finite_bound(robot_arm):
 
 
 def test_the_local_search_in_small_batches_finds_the_same(monkeypatch):
-    import spm_sysid.core.narx.certify as certify_module
-    import spm_sysid.core.narx.search as search_module
+    import spm_sysid.core.search.certify as certify_module
+    import spm_sysid.core.search.local as search_module
 
     P, t = _problem("structured", 2)
     start = np.zeros(P.shape[1], dtype=bool)

@@ -3,7 +3,7 @@ import math
 import numpy as np
 import pytest
 
-from spm_sysid.core.narx.criteria import (
+from spm_sysid.core.fit.criteria import (
     CRITERIA,
     Criterion,
     get_criterion,

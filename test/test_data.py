@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from spm_sysid.core.errors import DataError
+from spm_sysid.core.identify import check_samples, identify
 from spm_sysid.core.io import datasets as data_mod
 from spm_sysid.core.io.data import load_io
 from spm_sysid.core.io.datasets import (
@@ -16,7 +17,6 @@ from spm_sysid.core.io.datasets import (
     find_robot_arm,
     numeric_sha256,
 )
-from spm_sysid.core.narx.identify import check_samples, identify
 
 
 def test_robot_arm_file_is_the_known_data(robot_arm):

@@ -10,13 +10,13 @@ import numpy as np
 import pytest
 
 from spm_sysid.core.errors import BagError, DataError, ModelFormatError
+from spm_sysid.core.identify import identify
 from spm_sysid.core.io.bagio import read_bag_signals, write_io_bag
 from spm_sysid.core.io.data import load_data
-from spm_sysid.core.narx.ga import GAConfig
-from spm_sysid.core.narx.identify import identify
-from spm_sysid.core.narx.model import NarxModel
-from spm_sysid.core.narx.segments import find_segments
-from spm_sysid.core.narx.terms import TermSpace
+from spm_sysid.core.model.narx import NarxModel
+from spm_sysid.core.model.segments import find_segments
+from spm_sysid.core.model.terms import TermSpace
+from spm_sysid.core.search.ga import GAConfig
 from spm_sysid.tools.experiment import ExperimentConfig
 
 from .conftest import EQ1, ROOT, eq1_model
@@ -448,7 +448,7 @@ def test_two_inputs_from_a_csv_by_column_name(tmp_path):
 
 
 def test_propose_lags_finds_the_order_and_degree_of_a_known_system(tmp_path):
-    from spm_sysid.core.narx.orders import propose_orders
+    from spm_sysid.core.validate.orders import propose_orders
 
     rng = np.random.default_rng(5)
     n = 1500

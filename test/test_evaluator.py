@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 
 from spm_sysid.bench.engine import NaiveEvaluator
-from spm_sysid.core.narx.evaluator import StructureEvaluator, structure_keys
-from spm_sysid.core.narx.lstsq import reference_fit, reference_score
-from spm_sysid.core.narx.terms import TermSpace
+from spm_sysid.core.fit.evaluator import StructureEvaluator, structure_keys
+from spm_sysid.core.fit.lstsq import reference_fit, reference_score
+from spm_sysid.core.model.terms import TermSpace
 
 from .conftest import EQ1, EQ2
 
@@ -82,7 +82,7 @@ def test_a_missing_or_broken_numba_is_one_clear_error(tmp_path):
     assert node.returncode == 1 and "Traceback" not in node.stderr
     assert node.stderr.startswith("error: spm_sysid needs numba")
     # with the ahead-of-time build (when `make setup` made one), numba is not needed
-    from spm_sysid.core.narx.aot import build_status
+    from spm_sysid.core.compiled.aot import build_status
 
     if build_status():
         env.pop("SPM_SYSID_AOT")
@@ -234,7 +234,7 @@ def test_nearly_dependent_structures_are_decided_as_the_reference_decides():
 def test_the_compiled_qr_arbitration_equals_numpy_qr_structure_by_structure():
     # sorted batches share prefixes (their reflectors are reused); collinear columns
     # put pivots on both sides of the rank threshold
-    from spm_sysid.core.narx.kernels import qr_structures
+    from spm_sysid.core.compiled.kernels import qr_structures
 
     rng = np.random.default_rng(3)
     P = rng.standard_normal((300, 120))
@@ -266,7 +266,7 @@ def test_the_compiled_qr_arbitration_equals_numpy_qr_structure_by_structure():
 def test_factor_rows_and_qr_columns_do_not_depend_on_their_group():
     # rows (columns) are computed LANES at a time; a factor extended from any prefix,
     # and a structure fitted after a neighbour that shares a prefix, give the same bits
-    from spm_sysid.core.narx.kernels import GROUPED_FROM, LANES, cholesky_rows, qr_structures
+    from spm_sysid.core.compiled.kernels import GROUPED_FROM, LANES, cholesky_rows, qr_structures
 
     rng = np.random.default_rng(5)
     P = rng.standard_normal((200, 60))

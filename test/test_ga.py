@@ -3,8 +3,10 @@
 import numpy as np
 import pytest
 
-from spm_sysid.core.narx.evaluator import StructureEvaluator
-from spm_sysid.core.narx.ga import (
+from spm_sysid.core.fit.evaluator import StructureEvaluator
+from spm_sysid.core.identify import identify
+from spm_sysid.core.model.terms import TermSpace
+from spm_sysid.core.search.ga import (
     GAConfig,
     crossover,
     mutate,
@@ -13,8 +15,6 @@ from spm_sysid.core.narx.ga import (
     run_ga,
     spm_mating,
 )
-from spm_sysid.core.narx.identify import identify
-from spm_sysid.core.narx.terms import TermSpace
 
 from .conftest import EQ1, EQ2
 

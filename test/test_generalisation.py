@@ -11,15 +11,15 @@ from scipy import stats
 
 from spm_sysid.bench.tanks import record as tank_record
 from spm_sysid.core.errors import DataError
-from spm_sysid.core.narx.certify import certify
-from spm_sysid.core.narx.criteria import aicc
-from spm_sysid.core.narx.excitation import check_problem, excitation_order
-from spm_sysid.core.narx.identify import identify
-from spm_sysid.core.narx.model import NarxModel
-from spm_sysid.core.narx.problem import Problem
-from spm_sysid.core.narx.selection import blocked_folds, stress_check, surrogate_input
-from spm_sysid.core.narx.terms import TermSpace
-from spm_sysid.core.narx.uncertainty import output_band
+from spm_sysid.core.fit.criteria import aicc
+from spm_sysid.core.fit.problem import Problem
+from spm_sysid.core.identify import identify
+from spm_sysid.core.model.narx import NarxModel
+from spm_sysid.core.model.terms import TermSpace
+from spm_sysid.core.model.uncertainty import output_band
+from spm_sysid.core.search.certify import certify
+from spm_sysid.core.select.validated import blocked_folds, stress_check, surrogate_input
+from spm_sysid.core.validate.excitation import check_problem, excitation_order
 
 from .conftest import EQ1, ROOT, eq1_model
 

@@ -100,7 +100,7 @@ def test_a_truncated_build_runs_on_the_jit_with_one_warning_and_compile_repairs_
 
 KERNEL_MODULE = '''
 import numpy as np
-from spm_sysid.core.narx.compiled import jit
+from spm_sysid.core.compiled.registry import jit
 
 
 @jit
@@ -142,7 +142,7 @@ def test_an_unreadable_numba_cache_entry_is_compiled_again(tmp_path):
 def test_no_writable_cache_location_compiles_in_memory_with_one_warning(monkeypatch, capsys):
     from numba.core.caching import CacheImpl
 
-    from spm_sysid.core.narx import compiled
+    from spm_sysid.core.compiled import registry as compiled
 
     # what numba meets on a read-only install with no writable home (cannot be made here
     # as root): no cache locator accepts the file
@@ -351,7 +351,7 @@ def test_a_crafted_model_document_is_refused_with_its_reason(arm_doc, tmp_path, 
 def test_the_tracker_never_overflows_on_huge_coefficients(arm_doc):
     import copy
 
-    from spm_sysid.core.narx.model import NarxModel
+    from spm_sysid.core.model.narx import NarxModel
     from spm_sysid.core.online.session import OnlineSession
 
     doc = copy.deepcopy(arm_doc[0])
@@ -399,7 +399,7 @@ def test_columns_that_differ_only_by_case_stay_apart(robot_arm, tmp_path):
 
 
 def test_more_lags_than_inputs_names_the_inputs():
-    from spm_sysid.core.narx.terms import TermSpace
+    from spm_sysid.core.model.terms import TermSpace
 
     with pytest.raises(ValueError, match=r"nu gives 2 values, but there is 1 input \(tau1\)"):
         TermSpace(nu=(1, 1), inputs=("tau1",), output="q1")
@@ -436,7 +436,7 @@ def test_figures_have_a_time_axis_when_the_data_have_stamps(robot_arm, tmp_path)
 def test_tracking_from_a_constant_input_never_drifts(arm_doc):
     import copy
 
-    from spm_sysid.core.narx.model import NarxModel
+    from spm_sysid.core.model.narx import NarxModel
     from spm_sysid.core.online.session import OnlineSession
 
     doc = copy.deepcopy(arm_doc[0])

@@ -18,7 +18,7 @@ def test_ruff_is_clean():
 
 
 def test_core_imports_without_ros():
-    code = ("import sys, spm_sysid, spm_sysid.core.narx.identify, spm_sysid.tools.cli;"
+    code = ("import sys, spm_sysid, spm_sysid.core.identify, spm_sysid.tools.cli;"
             "assert 'rclpy' not in sys.modules, 'core pulled in rclpy'")
     r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)
     assert r.returncode == 0, r.stderr

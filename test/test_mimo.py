@@ -9,9 +9,9 @@ import pytest
 from spm_sysid.bench.two_link import record
 from spm_sysid.core.errors import ModelFormatError
 from spm_sysid.core.jobs import JobSettings, run_job
-from spm_sysid.core.narx.mimo import MimoModel, output_space
-from spm_sysid.core.narx.model import NarxModel
-from spm_sysid.core.narx.terms import TermSpace
+from spm_sysid.core.model.mimo import MimoModel, output_space
+from spm_sysid.core.model.narx import NarxModel
+from spm_sysid.core.model.terms import TermSpace
 from spm_sysid.core.record import Record
 
 TRUE = {  # known cross terms: y2 enters y1's model and y1 enters y2's
@@ -182,7 +182,7 @@ def test_identify_with_two_output_columns_on_the_command_line(tmp_path):
 
 
 def test_joint_refinement_lowers_the_coupled_free_run_error_and_reports_it_truly():
-    from spm_sysid.core.narx.coupled import refine_coupled
+    from spm_sysid.core.model.coupled import refine_coupled
 
     u, Y = two_output_system(800, seed=7)
     Y = Y + 0.02 * np.random.default_rng(7).standard_normal(Y.shape)  # output error: LS biased

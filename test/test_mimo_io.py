@@ -16,7 +16,7 @@ from spm_sysid.core.errors import DataError
 from spm_sysid.core.io.bagio import read_bag_signals, typestore, write_io_bag
 from spm_sysid.core.jobs import JobSettings, run_job
 from spm_sysid.core.jobs.several import MimoJobResult
-from spm_sysid.core.narx.mimo import MimoModel, read_model_document
+from spm_sysid.core.model.mimo import MimoModel, read_model_document
 from spm_sysid.core.record import DataSpec, Record, load_record
 from spm_sysid.core.stream.buffer import SampleBuffer, pair_streams
 

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 
 from spm_sysid.core.errors import ModelFormatError
-from spm_sysid.core.narx.model import NarxModel
-from spm_sysid.core.narx.problem import fit_structure
-from spm_sysid.core.narx.terms import TermSpace
+from spm_sysid.core.fit.problem import fit_structure
+from spm_sysid.core.model.narx import NarxModel
+from spm_sysid.core.model.terms import TermSpace
 
 from .conftest import EQ1, eq1_model
 
@@ -134,7 +134,7 @@ def test_two_input_term_space_names_lags_and_products():
 
 
 def test_two_input_system_with_a_cross_product_is_recovered_exactly():
-    from spm_sysid.core.narx.identify import identify
+    from spm_sysid.core.identify import identify
 
     rng = np.random.default_rng(3)
     n = 800

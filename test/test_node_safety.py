@@ -13,8 +13,8 @@ import sys
 import numpy as np
 from std_msgs.msg import String
 
-from spm_sysid.core.narx.model import NarxModel
-from spm_sysid.core.narx.terms import TermSpace
+from spm_sysid.core.model.narx import NarxModel
+from spm_sysid.core.model.terms import TermSpace
 
 from .conftest import ROOT
 from .ros_harness import start_node, stop

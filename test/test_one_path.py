@@ -7,11 +7,11 @@ import sys
 import numpy as np
 import pytest
 
+from spm_sysid.core.identify import identify
 from spm_sysid.core.jobs import JobSettings, run_job
-from spm_sysid.core.narx.ga import GAConfig
-from spm_sysid.core.narx.identify import identify
-from spm_sysid.core.narx.terms import TermSpace
+from spm_sysid.core.model.terms import TermSpace
 from spm_sysid.core.record import DataSpec, Record, load_record
+from spm_sysid.core.search.ga import GAConfig
 
 from .conftest import ROOT
 

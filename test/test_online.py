@@ -5,8 +5,8 @@ import pytest
 
 from spm_sysid import identify
 from spm_sysid.bench.online import system
-from spm_sysid.core.narx.model import NarxModel
-from spm_sysid.core.narx.terms import TermSpace
+from spm_sysid.core.model.narx import NarxModel
+from spm_sysid.core.model.terms import TermSpace
 from spm_sysid.core.online import OnlinePredictor, RecursiveTracker, ValidityMonitor
 from spm_sysid.core.online.monitor import fit_whitening, ljung_box_p
 

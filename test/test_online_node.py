@@ -20,7 +20,7 @@ from std_msgs.msg import String
 
 from spm_sysid.bench.online import system
 from spm_sysid.core.io.bagio import read_bag_signals, write_io_bag
-from spm_sysid.core.narx.model import NarxModel
+from spm_sysid.core.model.narx import NarxModel
 
 from .conftest import EQ1
 from .ros_harness import LATCHED, finish_publisher, play_bag, publisher, start_node, stop

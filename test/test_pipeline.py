@@ -3,7 +3,7 @@
 import subprocess
 import sys
 
-from spm_sysid.core.narx.model import NarxModel
+from spm_sysid.core.model.narx import NarxModel
 
 from .conftest import ROOT
 

@@ -19,8 +19,8 @@ import pytest
 from spm_sysid.core.errors import DataError, FileCheckError, ModelFormatError
 from spm_sysid.core.files import atomic_write_text
 from spm_sysid.core.io.data import load_data
-from spm_sysid.core.narx.model import NarxModel
-from spm_sysid.core.narx.terms import TermSpace
+from spm_sysid.core.model.narx import NarxModel
+from spm_sysid.core.model.terms import TermSpace
 
 from .conftest import ROOT
 

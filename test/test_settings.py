@@ -8,8 +8,8 @@ import yaml
 
 from spm_sysid.core.errors import SettingsError
 from spm_sysid.core.jobs import JobSettings
-from spm_sysid.core.narx.ga import GAConfig
-from spm_sysid.core.narx.terms import TermSpace
+from spm_sysid.core.model.terms import TermSpace
+from spm_sysid.core.search.ga import GAConfig
 from spm_sysid.core.settings import SETTINGS, check, node_settings
 from spm_sysid.core.stream.diagnostics import ERROR, OK, WARN, diagnostic_statuses
 from spm_sysid.tools.experiment import ExperimentConfig

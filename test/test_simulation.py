@@ -7,18 +7,18 @@ import sys
 import numpy as np
 import pytest
 
-from spm_sysid.core.narx import simulation
-from spm_sysid.core.narx.identify import identify
-from spm_sysid.core.narx.model import NarxModel
-from spm_sysid.core.narx.problem import fit_structure
-from spm_sysid.core.narx.refine import (
+from spm_sysid.core.fit.problem import fit_structure
+from spm_sysid.core.fit.refine import (
     linear_radius,
     linear_stability_check,
     refine_simulation,
 )
-from spm_sysid.core.narx.simulation import free_run_sensitivities, run_model
-from spm_sysid.core.narx.terms import TermSpace
-from spm_sysid.core.narx.validation import metrics, validate_model
+from spm_sysid.core.identify import identify
+from spm_sysid.core.model import simulation
+from spm_sysid.core.model.narx import NarxModel
+from spm_sysid.core.model.simulation import free_run_sensitivities, run_model
+from spm_sysid.core.model.terms import TermSpace
+from spm_sysid.core.validate.validation import metrics, validate_model
 
 from .conftest import ROOT
 

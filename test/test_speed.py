@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from spm_sysid.bench.certify import CASES
-from spm_sysid.core.narx.identify import identify, identify_problem
-from spm_sysid.core.narx.problem import Problem
-from spm_sysid.core.narx.search import local_search
-from spm_sysid.core.narx.terms import TermSpace
+from spm_sysid.core.fit.problem import Problem
+from spm_sysid.core.identify import identify, identify_problem
+from spm_sysid.core.model.terms import TermSpace
+from spm_sysid.core.search.local import local_search
 
 from .conftest import EQ1, ROOT
 
@@ -42,7 +42,7 @@ def test_identify_imports_no_plots_dask_ros_or_scipy():
 
 
 def _built() -> bool:
-    from spm_sysid.core.narx.aot import build_status
+    from spm_sysid.core.compiled.aot import build_status
 
     return bool(build_status())
 
@@ -51,8 +51,8 @@ def test_the_t_quantile_and_the_pivoted_qr_agree_with_scipy(robot_arm):
     from scipy import linalg
     from scipy.special import stdtrit
 
-    from spm_sysid.core.narx.kernels import pivoted_qr
-    from spm_sysid.core.narx.uncertainty import T_EXPANSION_DOF, t_quantile
+    from spm_sysid.core.compiled.kernels import pivoted_qr
+    from spm_sysid.core.model.uncertainty import T_EXPANSION_DOF, t_quantile
 
     for dof in (1, 5, 30, T_EXPANSION_DOF - 1, T_EXPANSION_DOF, 1012, 10 ** 6):
         for p in (0.6, 0.975, 0.9995):
@@ -128,7 +128,7 @@ def test_the_polish_budget_is_a_count_so_results_repeat():
     b = identify_problem(problem, criterion="aic", seed=3, auto_certify_time_limit=0,
                          selection="criterion").model
     assert a.terms == b.terms and a.metadata["polish"] == b.metadata["polish"]
-    from spm_sysid.core.narx.search import POLISH_STRUCTURES
+    from spm_sysid.core.search.local import POLISH_STRUCTURES
 
     assert a.metadata["polish"]["structures"] <= POLISH_STRUCTURES
     assert a.metadata["polish"]["kicks"] >= 1  # the iterated search ran

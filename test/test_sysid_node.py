@@ -13,7 +13,7 @@ import numpy as np
 from std_msgs.msg import Float64MultiArray, String
 
 from spm_sysid.core.io.bagio import write_io_bag
-from spm_sysid.core.narx.model import NarxModel
+from spm_sysid.core.model.narx import NarxModel
 
 from .conftest import EQ1, ROOT
 from .ros_harness import finish_publisher, publisher, start_node, stop

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from spm_sysid.core.narx.terms import TermSpace
+from spm_sysid.core.model.terms import TermSpace
 
 
 def test_paper_setting_has_44_terms_in_documented_order():

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from spm_sysid.core.narx.correlation import ccf, correlation_tests
-from spm_sysid.core.narx.problem import fit_structure
-from spm_sysid.core.narx.terms import TermSpace
-from spm_sysid.core.narx.validation import metrics, split_segments, validate_model
+from spm_sysid.core.fit.problem import fit_structure
+from spm_sysid.core.model.terms import TermSpace
+from spm_sysid.core.validate.correlation import ccf, correlation_tests
+from spm_sysid.core.validate.validation import metrics, split_segments, validate_model
 from spm_sysid.tools.plots import plot_convergence, write_model_figures
 
 from .conftest import eq1_model

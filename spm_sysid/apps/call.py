@@ -37,9 +37,9 @@ def feedback_text(fb) -> str:
 
 def model_summary(doc: dict) -> str:
     """A model document for reading: equation, coefficient table, fits, certification."""
-    from ..core.narx.certify import describe_certificate
-    from ..core.narx.mimo import MIMO_SCHEMA
-    from ..core.narx.model import NarxModel
+    from ..core.model.mimo import MIMO_SCHEMA
+    from ..core.model.narx import NarxModel
+    from ..core.search.certify import describe_certificate
 
     if doc.get("schema") == MIMO_SCHEMA:
         parts = [f"coupled model of {len(doc['outputs'])} outputs "

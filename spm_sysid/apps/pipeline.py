@@ -129,8 +129,8 @@ def run(args) -> int:
         client.destroy_node()
         rclpy.shutdown()
 
-    from ..core.narx.model import NarxModel
-    from ..core.narx.validation import validate_model
+    from ..core.model.narx import NarxModel
+    from ..core.validate.validation import validate_model
     from ..tools.plots import write_model_figures
 
     print("[6/6] models (published on /spm_sysid/model), validated on the replayed data:")

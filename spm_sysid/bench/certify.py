@@ -105,9 +105,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--first-seed", type=int, default=1,
                    help="the reach table's seeds are first-seed .. first-seed + seeds - 1")
     args = p.parse_args(argv)
-    from ..core.narx.certify import certify_data
-    from ..core.narx.identify import identify
-    from ..core.narx.terms import TermSpace
+    from ..core.identify import identify
+    from ..core.model.terms import TermSpace
+    from ..core.search.certify import certify_data
 
     cases = [c.strip() for c in args.cases.split(",") if c.strip()]
     unknown = [c for c in cases if c not in CASES]
@@ -142,10 +142,10 @@ def main(argv: list[str] | None = None) -> int:
 def reach(cases: list[str], criteria: list[str], seeds: int, time_limit: float,
           first_seed: int = 1) -> None:
     """How often the GA alone, and the GA with its polish, reach the certified optimum."""
-    from ..core.narx.certify import certify
-    from ..core.narx.identify import identify_problem
-    from ..core.narx.problem import Problem
-    from ..core.narx.terms import TermSpace
+    from ..core.fit.problem import Problem
+    from ..core.identify import identify_problem
+    from ..core.model.terms import TermSpace
+    from ..core.search.certify import certify
 
     print(f"\nGA (paper settings) alone and with the polish, seeds {first_seed}.."
           f"{first_seed + seeds - 1}: runs that reach "

@@ -24,7 +24,7 @@ def main(argv: list[str] | None = None) -> int:
     from deap import base, creator, tools
 
     from ..core.io.datasets import load_robot_arm
-    from ..core.narx.terms import TermSpace
+    from ..core.model.terms import TermSpace
 
     u, y = load_robot_arm()
     ts = TermSpace()

@@ -50,8 +50,8 @@ def one_step_fit(model, u: np.ndarray, y: np.ndarray) -> float:
 
 def tank_table(orders=(2, 3, 4), degrees=(2, 3), seed: int = 0) -> list[dict]:
     """The tanks rows (see the module doc)."""
-    from ..core.narx.identify import identify
-    from ..core.narx.terms import TermSpace
+    from ..core.identify import identify
+    from ..core.model.terms import TermSpace
     from .tanks import record
 
     u, y = record(1)
@@ -78,8 +78,8 @@ def tank_table(orders=(2, 3, 4), degrees=(2, 3), seed: int = 0) -> list[dict]:
 
 def coverage(replicates: int = 300, n: int = 300, seed: int = 2026) -> tuple[float, list]:
     """Share of 95 % intervals that hold the true coefficient (pooled, per coefficient)."""
-    from ..core.narx.problem import fit_structure
-    from ..core.narx.terms import TermSpace
+    from ..core.fit.problem import fit_structure
+    from ..core.model.terms import TermSpace
 
     truth = {"y(t-1)": 0.5, "y(t-2)": -0.3, "u(t-1)": 1.0, "u(t-1)*u(t-2)": 0.2}
     ts = TermSpace(ny=2, nu=2, degree=2)
@@ -110,9 +110,9 @@ def _halves():
 
 def robot_arm_holdout(seed: int = 0) -> list[tuple[str, int, float, float]]:
     """(what, terms, second-half free-run fit, seconds) for the holdout comparison."""
-    from ..core.narx.identify import identify
-    from ..core.narx.orders import propose_orders
-    from ..core.narx.terms import TermSpace
+    from ..core.identify import identify
+    from ..core.model.terms import TermSpace
+    from ..core.validate.orders import propose_orders
 
     u1, y1, u2, y2 = _halves()
     prop = propose_orders(u1, y1)
@@ -131,8 +131,8 @@ def robot_arm_holdout(seed: int = 0) -> list[tuple[str, int, float, float]]:
 
 def large_space(seed: int = 0) -> list[tuple[str, int, float, float, int, float]]:
     """(what, terms, one-step fit, free-run fit, warnings, seconds), first -> second half."""
-    from ..core.narx.identify import identify
-    from ..core.narx.terms import TermSpace
+    from ..core.identify import identify
+    from ..core.model.terms import TermSpace
 
     u1, y1, u2, y2 = _halves()
     out = []

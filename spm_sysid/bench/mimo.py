@@ -22,7 +22,7 @@ __all__ = ["main"]
 
 def run(args) -> None:
     from ..core.jobs import JobSettings, run_job
-    from ..core.narx.terms import TermSpace
+    from ..core.model.terms import TermSpace
     from ..core.record import Record
     from .two_link import record
 

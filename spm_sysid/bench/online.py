@@ -57,7 +57,7 @@ def _session(model, residuals, tracking=False):
 
 def run(args) -> None:
     from .. import identify
-    from ..core.narx.terms import TermSpace
+    from ..core.model.terms import TermSpace
 
     space = TermSpace(ny=2, nu=2, degree=2)
     u0, y0 = system(2000, seed=1)

@@ -79,13 +79,13 @@ def import_breakdown(top: int = 8) -> list[tuple[str, float]]:
 
 def phase_breakdown() -> list[tuple[str, float]]:
     """Seconds of each phase of the default identification, in this (warm) process."""
-    from ..core.narx.certify import certify
-    from ..core.narx.excitation import check_problem
-    from ..core.narx.ga import GAConfig, run_ga
-    from ..core.narx.identify import _polish
-    from ..core.narx.problem import Problem
-    from ..core.narx.validation import validate_model
+    from ..core.fit.problem import Problem
+    from ..core.identify import _polish
     from ..core.record import DataSpec, load_record
+    from ..core.search.certify import certify
+    from ..core.search.ga import GAConfig, run_ga
+    from ..core.validate.excitation import check_problem
+    from ..core.validate.validation import validate_model
 
     out = []
     t = time.perf_counter()
@@ -116,10 +116,10 @@ def phase_breakdown() -> list[tuple[str, float]]:
 
 def ga_times(repeats: int) -> tuple[list[float], list[float]]:
     """Seconds of the GA at paper settings (fresh evaluator each), and of GA + polish."""
-    from ..core.narx.ga import GAConfig, run_ga
-    from ..core.narx.identify import _polish
-    from ..core.narx.problem import Problem
+    from ..core.fit.problem import Problem
+    from ..core.identify import _polish
     from ..core.record import DataSpec, load_record
+    from ..core.search.ga import GAConfig, run_ga
 
     rec = load_record(DataSpec())
     problem = Problem.from_signals(rec.u, rec.y)
@@ -137,8 +137,8 @@ def ga_times(repeats: int) -> tuple[list[float], list[float]]:
 
 def simulation_times(repeats: int) -> list[tuple[str, float, int]]:
     """(case, median seconds, terms) of the default simulation-focused identification."""
-    from ..core.narx.identify import identify
-    from ..core.narx.terms import TermSpace
+    from ..core.identify import identify
+    from ..core.model.terms import TermSpace
     from ..core.record import DataSpec, load_record
     from .tanks import record
 
@@ -161,10 +161,10 @@ def simulation_times(repeats: int) -> list[tuple[str, float, int]]:
 
 def large_space() -> list[tuple[str, float, int, float]]:
     """(criterion, GA seconds, terms, value) for 454 candidates on the robot-arm data."""
-    from ..core.narx.ga import GAConfig, run_ga
-    from ..core.narx.problem import Problem
-    from ..core.narx.terms import TermSpace
+    from ..core.fit.problem import Problem
+    from ..core.model.terms import TermSpace
     from ..core.record import DataSpec, load_record
+    from ..core.search.ga import GAConfig, run_ga
 
     rec = load_record(DataSpec())
     problem = Problem.from_signals(rec.u, rec.y, TermSpace(ny=6, nu=6, degree=3))
@@ -194,7 +194,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"speed benchmark ({os.cpu_count()} cores); repeats {a.repeats}, "
           f"baseline repeats {a.baseline_repeats}", flush=True)
 
-    from ..core.narx.aot import build_status
+    from ..core.compiled.aot import build_status
 
     status = build_status()
     ours, jit, base = quick_command(a.repeats, a.baseline_repeats)

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import DataError
-from .narx.segments import SegmentInfo, find_segments
+from .model.segments import SegmentInfo, find_segments
 from .settings import BAG_OPTIONS
 
 __all__ = ["DataSpec", "Record", "combine", "load_record"]
@@ -52,7 +52,7 @@ class Record:
         Inputs, oldest first (one column per input, in the user's order).
     y : ndarray, shape (n,) or (n, q)
         The output (one column per output when there are several: a coupled
-        model of several joints, :mod:`spm_sysid.core.narx.mimo`).
+        model of several joints, :mod:`spm_sysid.core.model.mimo`).
     source : str
         Where the samples came from, for people.
     input_names : tuple of str

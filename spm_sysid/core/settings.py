@@ -12,8 +12,8 @@ the rule it broke.
 
 This module sits at the bottom of the core (it imports nothing of the
 package but its errors), so the model's own settings classes
-(:class:`~spm_sysid.core.narx.terms.TermSpace`,
-:class:`~spm_sysid.core.narx.ga.GAConfig`) validate through it too.
+(:class:`~spm_sysid.core.model.terms.TermSpace`,
+:class:`~spm_sysid.core.search.ga.GAConfig`) validate through it too.
 """
 
 from __future__ import annotations

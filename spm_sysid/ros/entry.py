@@ -18,8 +18,8 @@ __all__ = ["sysid_node"]
 def sysid_node(args: list[str] | None = None) -> int:
     """``sysid_node``: :func:`spm_sysid.ros.sysid_node.main`."""
     try:
-        from ..core.narx.aot import prefer_jit
-        from ..core.narx.compiled import require_kernels
+        from ..core.compiled.aot import prefer_jit
+        from ..core.compiled.registry import require_kernels
         from .sysid_node import main
 
         require_kernels()

@@ -28,7 +28,7 @@ from spm_sysid_interfaces.msg import (
     Validity,
 )
 
-from ..core.narx.terms import TermSpace
+from ..core.model.terms import TermSpace
 from ..core.progress import Progress
 
 __all__ = ["feedback_message", "model_message", "model_set_message", "prediction_message",
@@ -52,7 +52,7 @@ def model_message(doc: Mapping, stamp=None) -> NarxModel:
 
     ``stamp`` (a ``builtin_interfaces/Time``) goes into the header.
     """
-    from ..core.narx.certify import describe_certificate
+    from ..core.search.certify import describe_certificate
 
     space = TermSpace.from_dict(doc["term_space"])
     meta = doc.get("metadata") or {}

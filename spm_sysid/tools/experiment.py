@@ -5,8 +5,8 @@ GA runs are made with seeds ``seed, seed + 1, ...`` -- the *same* seeds for
 every setting (common random numbers), so settings differ only by their
 parameters. Runs go to a process pool, one process per core, or to a Dask
 cluster; each process builds the regression problem
-(:class:`~spm_sysid.core.narx.problem.Problem`) once, and each run is
-:func:`~spm_sysid.core.narx.identify.identify_problem` with the run's settings:
+(:class:`~spm_sysid.core.fit.problem.Problem`) once, and each run is
+:func:`~spm_sysid.core.identify.identify_problem` with the run's settings:
 the very computation ``identify`` does with those settings and that seed.
 
 Per setting the summary counts the runs that *reached the best*: whose final
@@ -29,13 +29,13 @@ from pathlib import Path
 import numpy as np
 
 from ..core.errors import SettingsError
+from ..core.fit.problem import Problem
+from ..core.identify import identify_problem
 from ..core.jobs import JobSettings
-from ..core.narx.ga import GAConfig
-from ..core.narx.identify import identify_problem
-from ..core.narx.problem import Problem
-from ..core.narx.terms import TermSpace
-from ..core.narx.validation import metrics
+from ..core.model.terms import TermSpace
+from ..core.search.ga import GAConfig
 from ..core.settings import JOB_GROUPS, SETTINGS, check
+from ..core.validate.validation import metrics
 
 __all__ = ["ExperimentConfig", "RunRecord", "SettingSummary", "run_experiment", "summarise"]
 
@@ -368,7 +368,7 @@ def certify_optima(u: np.ndarray, y: np.ndarray, config: ExperimentConfig,
     Only for the prediction focus (with the simulation focus the runs' values are
     criteria of the simulation error, which branch and bound does not search).
     """
-    from ..core.narx.certify import CERTIFIABLE, certify_data
+    from ..core.search.certify import CERTIFIABLE, certify_data
 
     if config.focus != "prediction":
         return {}

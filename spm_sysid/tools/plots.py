@@ -25,7 +25,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.ticker import MaxNLocator  # noqa: E402
 
-from ..core.narx.validation import ValidationReport  # noqa: E402
+from ..core.validate.validation import ValidationReport  # noqa: E402
 
 __all__ = ["model_label", "plot_convergence", "plot_correlation_tests", "plot_outputs",
            "plot_prediction", "write_mimo_figures", "write_model_figures"]

@@ -515,7 +515,7 @@ def read_bag_signals(
     (:func:`spm_sysid.core.stream.buffer.pair_streams`; ``tolerance_ns`` defaults to
     the node's ``stamp_tolerance``): NaN/inf values are rejected and counted, stamps
     that go back start a new segment, and the holes show in the stamps
-    (:func:`spm_sysid.core.narx.segments.find_segments`). Header stamps that stay
+    (:func:`spm_sysid.core.model.segments.find_segments`). Header stamps that stay
     zero (never filled in; :class:`~spm_sysid.core.io.fields.UnsetStamps`) are
     not times: those messages' log times are used instead, and they are counted
     (``unset_stamps``).

@@ -15,7 +15,7 @@ one per input::
 
 Outputs are given the same way (``output_topic``, ``output_type``,
 ``output_field``, ``output_names``); several outputs make a coupled model of
-several joints (:mod:`spm_sysid.core.narx.mimo`).
+several joints (:mod:`spm_sysid.core.model.mimo`).
 """
 
 from __future__ import annotations

@@ -14,8 +14,8 @@ from typing import Any
 import numpy as np
 
 from ..blas import one_blas_thread
-from ..narx.model import NarxModel
-from ..narx.terms import TermSpace
+from ..model.narx import NarxModel
+from ..model.terms import TermSpace
 from ..progress import ProgressFn
 from ..record import Record
 from .settings import JobSettings
@@ -31,8 +31,8 @@ def warm_up() -> None:
     The node's worker process calls it before it reports ready, so the time of a
     job (and its ``job_timeout``) is the job's own.
     """
-    from ..narx.evaluator import StructureEvaluator
-    from ..narx.simulation import free_run_sensitivities
+    from ..fit.evaluator import StructureEvaluator
+    from ..model.simulation import free_run_sensitivities
 
     StructureEvaluator(np.eye(3), np.ones(3)).evaluate(np.eye(3, dtype=bool))
     model = NarxModel(TermSpace(ny=1, nu=1, degree=1), [0, 1], np.array([0.5, 0.1]))

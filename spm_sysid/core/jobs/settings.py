@@ -12,9 +12,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from ..errors import SettingsError
-from ..narx.criteria import get_criterion
-from ..narx.ga import GAConfig
-from ..narx.terms import TermSpace
+from ..fit.criteria import get_criterion
+from ..model.terms import TermSpace
+from ..search.ga import GAConfig
 from ..settings import JOB_GROUPS, check, defaults
 
 __all__ = ["JobSettings"]

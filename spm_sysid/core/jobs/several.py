@@ -4,10 +4,10 @@
 Each output is one single-output job
 (:func:`~spm_sysid.core.jobs.single.run_single_job`) on the record seen from that
 output -- the inputs, then the other outputs as extra signals with delay 1
-(:func:`spm_sysid.core.narx.mimo.output_space`) -- so every output gets the whole
+(:func:`spm_sysid.core.model.mimo.output_space`) -- so every output gets the whole
 single-output path: segments, GA with SPM, polish, certification, validated
 selection, uncertainty, warnings and the correlation tests of its residuals.
-Then the outputs are put together (:class:`~spm_sysid.core.narx.mimo.MimoModel`)
+Then the outputs are put together (:class:`~spm_sysid.core.model.mimo.MimoModel`)
 and validated jointly:
 
 * the free-run simulation in each output's report is replaced by the **coupled**
@@ -16,7 +16,7 @@ and validated jointly:
   single-output free-run band (other outputs measured) is left out, since it
   would not describe the coupled run;
 * with simulation focus, the coefficients of all outputs are refined jointly on
-  the coupled free-run error (:func:`spm_sysid.core.narx.coupled.refine_coupled`)
+  the coupled free-run error (:func:`spm_sysid.core.model.coupled.refine_coupled`)
   and each output validated again with them;
 * the one-step residuals of every pair of outputs are cross-correlated
   (``cross_<a>_<b>``, lags -L..L without lag 0: correlated noise at the same
@@ -34,13 +34,13 @@ from typing import Any
 
 import numpy as np
 
-from ..narx.correlation import CorrelationTest, ccf
-from ..narx.coupled import refine_coupled
-from ..narx.mimo import MimoModel, augmented_inputs, in_threads, output_space
-from ..narx.validation import metrics, validate_model
+from ..model.coupled import refine_coupled
+from ..model.mimo import MimoModel, augmented_inputs, in_threads, output_space
 from ..online.monitor import store_monitor_reference
 from ..progress import Progress, ProgressFn
 from ..record import Record
+from ..validate.correlation import CorrelationTest, ccf
+from ..validate.validation import metrics, validate_model
 from .single import run_single_job, validation_segments
 
 __all__ = ["MimoJobResult", "couple_reports", "cross_correlation_tests", "cross_summary",

@@ -22,21 +22,21 @@ import numpy as np
 
 from ..blas import one_blas_thread
 from ..errors import DataError
-from ..narx.certify import describe_certificate
-from ..narx.ga import GAResult
-from ..narx.identify import identify_problem
-from ..narx.model import NarxModel
-from ..narx.problem import Problem
-from ..narx.segments import describe_data, segment_report
-from ..narx.validation import (
+from ..fit.problem import Problem
+from ..identify import identify_problem
+from ..model.narx import NarxModel
+from ..model.segments import describe_data, segment_report
+from ..online.monitor import store_monitor_reference
+from ..progress import Progress, ProgressFn
+from ..record import Record
+from ..search.certify import describe_certificate
+from ..search.ga import GAResult
+from ..validate.validation import (
     ValidationReport,
     check_correlation_lags,
     split_segments,
     validate_model,
 )
-from ..online.monitor import store_monitor_reference
-from ..progress import Progress, ProgressFn
-from ..record import Record
 from .settings import JobSettings
 
 __all__ = ["JobResult", "describe_selection", "run_single_job", "validation_segments"]
@@ -56,7 +56,7 @@ class JobResult:
     search : GAResult
         The GA run (best score, evaluations, history, seconds).
     data : dict
-        Samples, segments, gaps ... (:func:`spm_sysid.core.narx.segments.segment_report`).
+        Samples, segments, gaps ... (:func:`spm_sysid.core.model.segments.segment_report`).
     estimation_samples : int
         Samples the fit used.
     seconds : dict

@@ -8,7 +8,7 @@ first ``certify`` about 20 s. :func:`compile_all` runs one small job of each
 kind -- the GA and its polish, the certification, the simulation focus with
 validated selection, validation with bands, two coupled outputs -- which calls
 every kernel once, then builds the ahead-of-time extension
-(:mod:`spm_sysid.core.narx.aot`) from the kernels Python called, which later
+(:mod:`spm_sysid.core.compiled.aot`) from the kernels Python called, which later
 commands load without numba. ``spm-sysid compile`` runs it, and ``make setup``
 (so ``make run`` and ``make test``) runs that after installing.
 """
@@ -22,25 +22,24 @@ from collections.abc import Callable
 
 import numpy as np
 
-from ..narx import aot
-from ..narx.aot import BuildStatus, build, build_status, jit_only
+from ..compiled.aot import BuildStatus, build, build_status, jit_only
 
 __all__ = ["compile_all", "kernels_are_cached"]
 
 #: One cached kernel of each module that has them (checked by kernels_are_cached).
-_MARKERS = ("kernels.fit_structures", "branch_bound.expand", "simulation._run")
+_MARKERS = (("compiled", "kernels.fit_structures"), ("search", "branch_bound.expand"),
+            ("model", "simulation._run"))
 
 
 def kernels_are_cached() -> bool:
     """True when the ahead-of-time build or numba's disk cache holds the kernels (a fast start)."""
     if build_status():
         return True
-    here = os.path.dirname(aot.__file__)  # numba caches beside the kernels' sources
-    places = [os.path.join(here, "__pycache__")]
-    if os.environ.get("NUMBA_CACHE_DIR"):
-        places.append(os.environ["NUMBA_CACHE_DIR"])
-    return all(any(glob.glob(os.path.join(p, "**", f"{m}-*.nbi"), recursive=True)
-                   for p in places) for m in _MARKERS)
+    core = os.path.dirname(os.path.dirname(__file__))
+    extra = [os.environ["NUMBA_CACHE_DIR"]] if os.environ.get("NUMBA_CACHE_DIR") else []
+    return all(any(glob.glob(os.path.join(p, "**", f"{marker}-*.nbi"), recursive=True)
+                   for p in [os.path.join(core, folder, "__pycache__"), *extra])
+               for folder, marker in _MARKERS)
 
 
 def compile_all(report: Callable[[str], None] | None = None) -> tuple[float, BuildStatus]:
@@ -63,8 +62,8 @@ def compile_all(report: Callable[[str], None] | None = None) -> tuple[float, Bui
 
 
 def _warm_up(say: Callable[[str], None]) -> None:
-    from ..narx.certify import ensure_compiled
     from ..record import Record
+    from ..search.certify import ensure_compiled
     from .run import run_job
     from .settings import JobSettings
 
@@ -81,7 +80,7 @@ def _warm_up(say: Callable[[str], None]) -> None:
     run_job(record, JobSettings.from_values({**ga, "ny": 2, "nu": 2, "seed": 0,
                                              "auto_certify_time_limit": 0.0}))
     say("compiling the QR arbitration of near-rank structures ...")
-    from ..narx.evaluator import StructureEvaluator
+    from ..fit.evaluator import StructureEvaluator
 
     g = np.random.default_rng(0)
     P = g.standard_normal((60, 6))

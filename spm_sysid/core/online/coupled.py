@@ -1,6 +1,6 @@
 """Several outputs on a live stream: one :class:`OnlineSession` per output, one verdict.
 
-A coupled model (:class:`~spm_sysid.core.narx.mimo.MimoModel`) predicts each
+A coupled model (:class:`~spm_sysid.core.model.mimo.MimoModel`) predicts each
 output one step ahead from the measured past of every output and input, so
 each output is monitored by its own session, fed with the inputs and the other
 outputs as extra input signals (as it was identified). The verdict of the whole
@@ -17,7 +17,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..narx.mimo import MimoModel, augmented_inputs
+from ..model.mimo import MimoModel, augmented_inputs
 from .monitor import MonitorState
 from .session import OnlineSample, OnlineSession, held_out_mse
 

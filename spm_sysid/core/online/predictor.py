@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..narx.model import NarxModel
+from ..model.narx import NarxModel
 
 __all__ = ["OnlinePredictor"]
 

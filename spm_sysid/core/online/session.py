@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..narx.model import NarxModel
+from ..model.narx import NarxModel
 from .monitor import MonitorReference, MonitorState, ValidityMonitor
 from .predictor import OnlinePredictor
 from .tracker import RecursiveTracker
@@ -172,7 +172,7 @@ class OnlineSession:
         """The k-step prediction of the newest sample (NaN until the window is full)."""
         if len(self._win_y) < self._win_y.maxlen:
             return math.nan
-        from ..narx.simulation import run_model
+        from ..model.simulation import run_model
 
         u = np.asarray(self._win_u, dtype=float).reshape(len(self._win_y), -1)
         y = np.asarray(self._win_y, dtype=float)

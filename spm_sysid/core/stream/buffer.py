@@ -24,7 +24,7 @@ stream stamped after them are discarded (counted). A lone late sample followed
 by in-order ones is rejected (counted). So a single far-future stamp costs
 itself and never blocks a stream, and a bag replayed into a running node
 becomes a new segment after ``resync_samples`` samples. Pair stamps that go
-back mark a new segment (see :mod:`spm_sysid.core.narx.segments`).
+back mark a new segment (see :mod:`spm_sysid.core.model.segments`).
 
 Alignment: each stream is in stamp order, so the oldest waiting samples of all
 streams form one aligned sample when their stamps lie within ``tolerance_ns``

@@ -18,7 +18,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from spm_sysid_interfaces.msg import NarxModel as NarxModelMsg
 from spm_sysid_interfaces.msg import Prediction, Validity
 
-from ...core.narx.mimo import MimoModel
+from ...core.model.mimo import MimoModel
 from ...core.online.coupled import CoupledSession
 from ...core.online.session import OnlineSession
 from ..common import LATCHED

@@ -21,7 +21,7 @@ from spm_sysid_interfaces.msg import ValidationReport as ValidationReportMsg
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
 
 from ...core.files import atomic_write_text
-from ...core.narx.mimo import MimoModel, read_model_document
+from ...core.model.mimo import MimoModel, read_model_document
 from ..common import LATCHED
 from ..typed import model_message, model_set_message, report_message
 

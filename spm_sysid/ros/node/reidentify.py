@@ -15,7 +15,7 @@ import time
 import numpy as np
 from rclpy.node import Node
 
-from ...core.narx.mimo import MimoModel
+from ...core.model.mimo import MimoModel
 from ...core.online.coupled import coupled_held_out_mse
 from ...core.online.session import held_out_mse
 from .identification import Identification

@@ -234,7 +234,7 @@ def check_outputs(args) -> None:
 
 def check_correlation_lags_option(corr_lags: int, rows: int) -> None:
     """The validation rule, named as the option (before any work)."""
-    from ...core.narx.validation import check_correlation_lags
+    from ...core.validate.validation import check_correlation_lags
 
     try:
         check_correlation_lags(corr_lags, rows)

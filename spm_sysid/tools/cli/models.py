@@ -26,7 +26,7 @@ __all__ = ["add_parsers"]
 
 def usable_segments(record, max_lag: int) -> list[tuple[int, int]]:
     """The record's segments longer than ``max_lag`` (one error line when there are none)."""
-    from ...core.narx.segments import usable_segments as usable
+    from ...core.model.segments import usable_segments as usable
 
     info = record.segment_info()
     bounds, _, _ = usable(info.bounds, max_lag)
@@ -61,7 +61,7 @@ def cmd_identify(args) -> int:
         bars.close()
     if record.n_outputs > 1:
         return report_several(args, record, result)
-    from ...core.narx.excitation import describe_check
+    from ...core.validate.excitation import describe_check
 
     model = result.model
     print(f"data: {record.source}, {result.estimation_samples} samples used for estimation")
@@ -97,7 +97,7 @@ def report_several(args, record, result) -> int:
 
     One coupled model: each output's block, the joint summary, figures per output.
     """
-    from ...core.narx.excitation import describe_check
+    from ...core.validate.excitation import describe_check
 
     print(f"data: {record.source}, {len(record)} samples, outputs "
           f"{', '.join(record.output_names)} (one coupled model: each output's terms may "
@@ -124,7 +124,7 @@ def report_several(args, record, result) -> int:
 
 def data_notes(account: dict, metadata: dict) -> list[str]:
     """What a user should know about the data an identification used."""
-    from ...core.narx.segments import describe_data
+    from ...core.model.segments import describe_data
 
     notes = []
     if account["gaps"] or account["rejected_samples"] or account["unpaired_samples"]:
@@ -155,7 +155,8 @@ def cmd_certify(args) -> int:
     import time
 
     from ...core.files import atomic_write_text
-    from ...core.narx.certify import (
+    from ...core.identify import identify
+    from ...core.search.certify import (
         CERTIFIABLE,
         certify_data,
         check_certify_memory,
@@ -163,7 +164,6 @@ def cmd_certify(args) -> int:
         ensure_compiled,
         search_is_compiled,
     )
-    from ...core.narx.identify import identify
 
     if args.criterion not in CERTIFIABLE:
         raise UserError(f"--criterion {args.criterion} cannot be certified (its value depends "
@@ -235,13 +235,13 @@ def cmd_certify(args) -> int:
 
 
 def cmd_validate(args) -> int:
-    from ...core.narx.validation import validate_model
+    from ...core.validate.validation import validate_model
 
     if args.tail is not None and not 0 < args.tail < 1:
         raise UserError(f"--tail must be between 0 and 1, got {args.tail}")
     check_outputs(args)
     from ...core.errors import ModelFormatError
-    from ...core.narx.mimo import MimoModel, read_model_document
+    from ...core.model.mimo import MimoModel, read_model_document
 
     try:
         model, _ = read_model_document(args.model)
@@ -305,7 +305,7 @@ def load_by_names(args, inputs, outputs, several: bool = False):
 
 def validated_segments(args, record, lag0: int) -> list[tuple[int, int]]:
     """The segments ``validate`` runs on: the usable ones, their last ``--tail``."""
-    from ...core.narx.validation import split_segments
+    from ...core.validate.validation import split_segments
 
     segments = usable_segments(record, lag0)
     if args.tail is not None:
@@ -322,8 +322,8 @@ def validate_several(args, model) -> int:
     cross-correlation, figures with a panel per output.
     """
     from ...core.jobs.several import couple_reports, cross_summary
-    from ...core.narx.mimo import augmented_inputs
-    from ...core.narx.validation import validate_model
+    from ...core.model.mimo import augmented_inputs
+    from ...core.validate.validation import validate_model
 
     record = load_by_names(args, model.inputs, model.outputs, several=True)
     if record.output_names != model.outputs or record.n_inputs != len(model.inputs):
@@ -362,8 +362,8 @@ def validate_several(args, model) -> int:
 
 
 def cmd_check_data(args) -> int:
-    from ...core.narx.excitation import check_problem
-    from ...core.narx.problem import Problem
+    from ...core.fit.problem import Problem
+    from ...core.validate.excitation import check_problem
 
     settings = job_settings(args)
     record = load(args)
@@ -385,7 +385,7 @@ def cmd_check_data(args) -> int:
 
 
 def cmd_propose_lags(args) -> int:
-    from ...core.narx.orders import propose_orders
+    from ...core.validate.orders import propose_orders
 
     record = load(args)
     info = record.segment_info()

@@ -52,7 +52,7 @@ class PhaseBars:
         self.bar.set_postfix(post, refresh=True)
 
     def generation(self, stats) -> None:
-        """A GA generation (:class:`~spm_sysid.core.narx.ga.GenerationStats`) as progress."""
+        """A GA generation (:class:`~spm_sysid.core.search.ga.GenerationStats`) as progress."""
         self(Progress("search", stats.generation, self._total, stats.best, stats.evaluations))
 
     def for_generations(self, total: int) -> PhaseBars:

@@ -1,7 +1,7 @@
 """The coupled free run of several outputs, compiled, and its joint refinement.
 
 Every output's model is a polynomial in lagged values of the inputs, its own
-output and the other outputs (:mod:`spm_sysid.core.narx.mimo`). In the coupled
+output and the other outputs (:mod:`spm_sysid.core.model.mimo`). In the coupled
 free run all outputs step together: at each t every output's value is computed
 from the simulated past of all of them, then written where the next step reads
 it. One compiled loop (:func:`coupled_run`) runs any set of structures: the
@@ -27,7 +27,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .compiled import jit_exact as jit
+from ..compiled.registry import jit_exact as jit
 from .simulation import divergence_bounds
 from .uncertainty import from_jacobian
 
@@ -47,7 +47,7 @@ class CoupledCompiled:
 
     @classmethod
     def from_models(cls, models, n_inputs: int) -> CoupledCompiled:
-        """The kernel form of a :class:`~spm_sysid.core.narx.mimo.MimoModel`'s models."""
+        """The kernel form of a :class:`~spm_sysid.core.model.mimo.MimoModel`'s models."""
         q = len(models)
         lins = [m.term_space.linear for m in models]
         n_lin = max(len(lin) for lin in lins)

@@ -11,7 +11,7 @@ A GA run scores tens of thousands of chromosomes, most of them repeats. The
   ``(k+1) x (k+1)`` sub-matrix, independent of the number of samples N: the
   last pivot of the factor is ``sqrt(SSE)``, the others give the coefficients;
 * fits all new structures of a generation in one compiled call
-  (:mod:`spm_sysid.core.narx.kernels`), each at its own size, stopping a
+  (:mod:`spm_sysid.core.compiled.kernels`), each at its own size, stopping a
   factorisation at the first pivot that shows the structure rank-deficient.
 
 Rank handling: with unit-norm columns, the squared Cholesky pivot of term j is
@@ -22,16 +22,16 @@ by the others to within a relative residual of about 3e-5) is
 score, ``+inf``, as does the empty structure. Such a structure is never the
 best: dropping the redundant term gives the same SSE with fewer terms.
 
-:func:`spm_sysid.core.narx.lstsq.reference_fit` is the slow, numerically
+:func:`spm_sysid.core.fit.lstsq.reference_fit` is the slow, numerically
 preferred path (Householder QR of the selected columns); it gives the final
 model's coefficients and is the yardstick the evaluator is tested against. The
 benchmark's naive baseline lives with the benchmark (:mod:`spm_sysid.bench.engine`).
 
 The numbers behind the evaluator -- the Gram matrix :attr:`gram`, the
 triangular factor :attr:`factor`, the SSE floor -- are public: the branch and
-bound (:mod:`spm_sysid.core.narx.certify`) searches over the same problem with
+bound (:mod:`spm_sysid.core.search.certify`) searches over the same problem with
 them, and :meth:`with_criterion` gives an evaluator of another criterion that
-shares them (a :class:`~spm_sysid.core.narx.problem.Problem` computes them once).
+shares them (a :class:`~spm_sysid.core.fit.problem.Problem` computes them once).
 """
 
 from __future__ import annotations
@@ -42,10 +42,11 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
+from ..compiled.kernels import fit_structures, qr_structures
 from ..cores import usable_cores
+from ..model.uncertainty import solve_upper
 from .criteria import Criterion, get_criterion
-from .kernels import fit_structures, qr_structures
-from .lstsq import DEFAULT_RANK_TOL, solve_upper, sse_floor
+from .lstsq import DEFAULT_RANK_TOL, sse_floor
 
 #: Structures the Gram path accepts with a smallest squared pivot below
 #: NEAR_RANK * rank_tol have their rank (and fit) decided by QR, as the reference fit
@@ -102,7 +103,7 @@ class StructureEvaluator:
     target : ndarray, shape (N,)
         y(t) for the regression rows.
     criterion : str, Criterion or callable
-        See :func:`spm_sysid.core.narx.criteria.get_criterion`.
+        See :func:`spm_sysid.core.fit.criteria.get_criterion`.
     rank_tol : float
         See the module docstring.
     sse_scale : float
@@ -126,7 +127,7 @@ class StructureEvaluator:
     target_norm : float
         Norm of the target (1 for a zero target).
     sse_floor : float
-        SSE below which a fit counts as exact (:func:`~spm_sysid.core.narx.lstsq.sse_floor`).
+        SSE below which a fit counts as exact (:func:`~spm_sysid.core.fit.lstsq.sse_floor`).
     evaluations : int
         Structures actually fitted (cache misses).
     lookups : int
@@ -280,7 +281,7 @@ class StructureEvaluator:
     def fit_batch(self, masks: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
         """SSE, standardised coefficients and rank-deficiency flags for a batch.
 
-        One compiled call (:func:`~spm_sysid.core.narx.kernels.fit_structures`)
+        One compiled call (:func:`~spm_sysid.core.compiled.kernels.fit_structures`)
         fits every structure at its own size. Every structure accepted with a
         pivot near ``rank_tol`` is decided by QR (as the reference).
 

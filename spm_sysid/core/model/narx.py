@@ -56,7 +56,7 @@ class NarxModel:
         Free-form, JSON-serialisable extras (GA settings, seed, validation ...).
     uncertainty : Uncertainty or None
         The coefficients' covariance and how it was obtained
-        (:mod:`spm_sysid.core.narx.uncertainty`); None when unknown.
+        (:mod:`spm_sysid.core.model.uncertainty`); None when unknown.
     """
 
     term_space: TermSpace
@@ -159,7 +159,7 @@ class NarxModel:
 
         Returns the predictions of every segment's rows, concatenated, and the
         first sample index (in ``y``) at which a run left the measured output's
-        range (see :mod:`spm_sysid.core.narx.simulation`), or None.
+        range (see :mod:`spm_sysid.core.model.simulation`), or None.
         """
         u = self.term_space.inputs_2d(u)
         y = np.asarray(y, dtype=float)

@@ -9,7 +9,7 @@ over every estimation segment (each simulated from its own initial
 conditions). This is a nonlinear least-squares problem; it is solved by
 Levenberg-Marquardt (``scipy.optimize.least_squares(method="lm")``) started
 from the least-squares coefficients, with the exact Jacobian from the
-sensitivity equations (:func:`~spm_sysid.core.narx.simulation.free_run_sensitivities`).
+sensitivity equations (:func:`~spm_sysid.core.model.simulation.free_run_sensitivities`).
 
 Stability: a step that would make the model's linear part unstable (a pole
 of its output-lag polynomial on or outside the unit circle, see
@@ -19,7 +19,7 @@ on any other record. A refinement that ends unstable (possible only from an
 unstable least-squares start) fails, so simulation-focused selection never
 returns a model whose linear part is unstable. On the estimation data, a
 simulation that leaves the measured range
-(see :mod:`~spm_sysid.core.narx.simulation`) costs as if every later output sat
+(see :mod:`~spm_sysid.core.model.simulation`) costs as if every later output sat
 on the range's edge, with no gradient, so a step into divergence is always
 rejected; a result that still diverges is never returned (the start is kept,
 and when that diverges too, the refinement fails and says so).
@@ -31,9 +31,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .model import NarxModel
-from .segments import normalise_segments
-from .simulation import divergence_bounds, free_run_sensitivities
+from ..model.narx import NarxModel
+from ..model.segments import normalise_segments
+from ..model.simulation import divergence_bounds, free_run_sensitivities
 
 __all__ = ["Refinement", "free_run_uncertainty", "linear_radius", "linear_stability_check",
            "refine_simulation"]
@@ -117,9 +117,9 @@ def free_run_uncertainty(model: NarxModel, u: np.ndarray, y: np.ndarray,
     """The coefficients' covariance for the free-run problem (Gauss-Newton), or None.
 
     None when the simulation diverges on u, y (there is no local quadratic
-    model of the error there). See :mod:`spm_sysid.core.narx.uncertainty`.
+    model of the error there). See :mod:`spm_sysid.core.model.uncertainty`.
     """
-    from .uncertainty import from_jacobian
+    from ..model.uncertainty import from_jacobian
 
     ts = model.term_space
     u = ts.inputs_2d(u)
@@ -153,7 +153,7 @@ def refine_simulation(model: NarxModel, u: np.ndarray, y: np.ndarray,
         The estimation record(s).
     segments : list of (start, stop), optional
         Contiguous parts, each simulated from its own initial conditions (as for
-        :func:`~spm_sysid.core.narx.problem.fit_structure`); None is the whole record.
+        :func:`~spm_sysid.core.fit.problem.fit_structure`); None is the whole record.
     max_evaluations : int
         Most simulations (with Jacobian) Levenberg-Marquardt may run.
     """

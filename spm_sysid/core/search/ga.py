@@ -1,7 +1,7 @@
 """Genetic algorithm with single parent mating (SPM) for NARX structure selection.
 
 A chromosome is one bit per candidate term, in the order of
-:attr:`spm_sysid.core.narx.terms.TermSpace.terms` (1 = term present). One generation,
+:attr:`spm_sysid.core.model.terms.TermSpace.terms` (1 = term present). One generation,
 as in section 2 of the paper:
 
 1. score the population with the criterion (lower is better);
@@ -36,8 +36,8 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from ..fit.evaluator import structure_keys
 from ..settings import SETTINGS, check_all
-from .evaluator import structure_keys
 
 __all__ = [
     "FITNESS_TRANSFORMS",

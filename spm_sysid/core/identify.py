@@ -20,17 +20,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..blas import one_blas_thread
-from ..errors import DataError
-from ..progress import Progress, ProgressFn
-from .criteria import Criterion, get_criterion
-from .ga import GAConfig, GAResult, GenerationStats, run_ga
-from .model import NarxModel
-from .problem import Problem, check_samples, validate_signals
-from .search import polish
-from .selection import blocked_folds, candidate_structures, cv_scores
-from .simulation_focus import select_for_simulation, validated_simulation
-from .terms import TermSpace
+from .blas import one_blas_thread
+from .errors import DataError
+from .fit.criteria import Criterion, get_criterion
+from .fit.problem import Problem, check_samples, validate_signals
+from .model.narx import NarxModel
+from .model.terms import TermSpace
+from .progress import Progress, ProgressFn
+from .search.ga import GAConfig, GAResult, GenerationStats, run_ga
+from .search.local import polish
+from .select.simulation import select_for_simulation, validated_simulation
+from .select.validated import blocked_folds, candidate_structures, cv_scores
 
 __all__ = ["FOCUS", "SELECTION", "IdentificationResult", "check_samples", "identify",
            "identify_problem", "select_for_simulation", "validate_signals"]
@@ -86,10 +86,10 @@ def identify(
         Makes the run reproducible.
     callback : callable, optional
         Called with each generation's statistics; returning ``False`` stops the
-        search (see :func:`spm_sysid.core.narx.ga.run_ga`).
+        search (see :func:`spm_sysid.core.search.ga.run_ga`).
     segments : list of (start, stop), optional
         Contiguous parts of the record (``[start, stop)`` indices, e.g. from
-        :func:`spm_sysid.core.narx.segments.find_segments`): regression rows are built
+        :func:`spm_sysid.core.model.segments.find_segments`): regression rows are built
         inside each and fitted together, never across a gap. Segments no longer
         than the largest lag are skipped. Default: the whole record.
     focus : {"prediction", "simulation"}
@@ -102,7 +102,7 @@ def identify(
         refined and compared.
     certify_time_limit : float, optional
         After the GA, prove its best structure the optimum of the whole term
-        space by branch and bound (:mod:`spm_sysid.core.narx.certify`; AIC and
+        space by branch and bound (:mod:`spm_sysid.core.search.certify`; AIC and
         BIC), within this many seconds; the result is in
         ``model.metadata["certificate"]`` (``optimal``, or ``limit`` with the
         lower bound and gap, or ``refused`` with the reason). A better structure
@@ -110,13 +110,13 @@ def identify(
     selection : {"auto", "criterion", "validated"}
         How the structure is chosen: by the criterion on the estimation data
         (the paper's), or by its error on held-out blocks of the estimation
-        data (:mod:`spm_sysid.core.narx.selection`; the final model is fitted
+        data (:mod:`spm_sysid.core.select.validated`; the final model is fitted
         on all of it). ``auto``: validated for the simulation focus, and for the
         prediction focus when there are fewer than 10 rows per candidate term.
     max_terms : int
         Structures of more terms are not selected (0: no limit).
     polish : bool
-        After the GA, :func:`~spm_sysid.core.narx.search.polish`: a local search
+        After the GA, :func:`~spm_sysid.core.search.local.polish`: a local search
         from its best structure (one term added, removed or swapped while that
         improves the criterion), then kicks (4 to 11 terms flipped, a cheap
         add/remove descent, and the full search from the promising ones), within
@@ -151,7 +151,7 @@ def identify(
                             auto_certify_time_limit=auto_certify_time_limit, progress=progress)
 
 
-#: How a structure is chosen (see :mod:`spm_sysid.core.narx.selection`).
+#: How a structure is chosen (see :mod:`spm_sysid.core.select.validated`).
 SELECTION = ("auto", "criterion", "validated")
 
 #: ``auto`` validates the prediction focus too when there are fewer rows than this many
@@ -189,7 +189,7 @@ def identify_problem(
 
     ``started`` is ``time.perf_counter()`` at the job's start (progress reports
     count their seconds from it; default: now). ``check_data``: run the data
-    check (:mod:`spm_sysid.core.narx.excitation`) first; its warnings go into
+    check (:mod:`spm_sysid.core.validate.excitation`) first; its warnings go into
     ``model.metadata["warnings"]``.
     """
     crit = get_criterion(criterion)
@@ -203,7 +203,7 @@ def identify_problem(
     warnings: list[str] = []
     data_check = None
     if check_data:
-        from .excitation import check_problem
+        from .validate.excitation import check_problem
 
         data_check = check_problem(problem)
         warnings += data_check.warnings
@@ -228,7 +228,7 @@ def identify_problem(
         mode, note = "criterion", "the record is too short for held-out blocks"
     certificate = None
     if certify_time_limit is None and auto_certify_time_limit > 0:
-        from .certify import CERTIFIABLE
+        from .search.certify import CERTIFIABLE
 
         if (mode == "criterion" and focus == "prediction" and crit.name in CERTIFIABLE
                 and problem.usable.sum() <= AUTO_CERTIFY_TERMS):
@@ -276,7 +276,7 @@ def identify_problem(
 
 
 def _polish(problem: Problem, evaluator, result: GAResult) -> dict:
-    """The polish (:func:`~spm_sysid.core.narx.search.polish`) of the GA's best, in place.
+    """The polish (:func:`~spm_sysid.core.search.local.polish`) of the GA's best, in place.
 
     What it did, for the document.
     """
@@ -311,8 +311,8 @@ def _selection_mode(selection: str, focus: str, problem: Problem) -> tuple[str, 
 
 def _select_validated(problem, evaluator, folds, crit, shortlist, max_terms, simulate,
                       report, started) -> tuple[NarxModel, dict]:
-    """Validated selection (see :mod:`spm_sysid.core.narx.selection`); model and record."""
-    from .orders import forward_selection_path
+    """Validated selection (see :mod:`spm_sysid.core.select.validated`); model and record."""
+    from .search.forward import forward_selection_path
 
     limit = min(60, max(1, problem.rows // AUTO_ROWS_PER_TERM))
     degree = np.array([len(t) for t in problem.term_space.terms])[problem.usable]
@@ -395,7 +395,7 @@ def _overfit_warnings(problem, model) -> list[str]:
 def _certify_search(problem: Problem, evaluator, result: GAResult, crit: Criterion,
                     time_limit: float, report: ProgressFn, started: float) -> dict:
     """Certify the GA's result in place (a better structure found replaces it)."""
-    from .certify import certify
+    from .search.certify import certify
 
     def on_nodes(nodes: int, best: float, lower: float) -> None:
         report(Progress("certification", nodes, 0, best, bound=lower,

@@ -3,7 +3,7 @@
 :func:`reference_fit` is the numerically preferred path (Householder QR of the
 selected, unit-norm columns): it gives a model's coefficients and is the
 yardstick the evaluator's fast path is tested against. Both use one rank rule
-(see :mod:`spm_sysid.core.narx.evaluator`): a squared relative pivot below
+(see :mod:`spm_sysid.core.fit.evaluator`): a squared relative pivot below
 ``rank_tol`` makes a structure rank-deficient.
 """
 
@@ -13,10 +13,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..model.uncertainty import solve_upper
 from .criteria import Criterion, get_criterion
 
 __all__ = ["DEFAULT_RANK_TOL", "FitResult", "reference_fit", "reference_score", "score_one",
-           "solve_upper", "sse_floor"]
+           "sse_floor"]
 
 DEFAULT_RANK_TOL = 1e-9
 
@@ -92,17 +93,6 @@ def reference_fit(
     theta_n = solve_upper(R, z)
     resid = target - An @ theta_n
     return FitResult(theta_n / norms, float(resid @ resid), False, R, norms)
-
-
-def solve_upper(R: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``R^-1 b`` for an upper-triangular R (b a vector or a matrix).
-
-    numpy's LU solve: an upper-triangular matrix is its own LU factor (no row
-    is exchanged, every multiplier is 0), so this is back substitution, as
-    scipy's ``solve_triangular`` -- without importing scipy's linear algebra
-    (about 0.2 s of a quick command). A zero diagonal raises ``LinAlgError``.
-    """
-    return np.linalg.solve(R, b)
 
 
 def score_one(crit: Criterion, sse: float, n: int, n_terms: int, cols: np.ndarray,

@@ -1,6 +1,6 @@
 """Can these data identify this space? A check before any search.
 
-For a :class:`~spm_sysid.core.narx.problem.Problem` it reports:
+For a :class:`~spm_sysid.core.fit.problem.Problem` it reports:
 
 * **persistent excitation** of each input: the largest order n for which n
   lagged copies of the input are linearly independent on the data (smallest
@@ -28,8 +28,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..compiled.kernels import pivoted_qr
 from ..errors import DataError
-from .kernels import pivoted_qr
 
 __all__ = ["COLLINEAR_LIMIT", "DataCheck", "check_problem", "describe_check",
            "excitation_order"]

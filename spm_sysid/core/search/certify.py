@@ -43,15 +43,19 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..compiled.aot import build_status
+from ..compiled.registry import jit_available, jit_loaded
 from ..cores import usable_cores
+from ..fit.criteria import Criterion, get_criterion
+from ..fit.evaluator import NEAR_RANK, StructureEvaluator
+from ..fit.lstsq import DEFAULT_RANK_TOL
 from ..memory import check_memory, memory_limit
-from .aot import build_status
 from .branch_bound import (
     DONE,
     FULL,
     Data,
 )
-from .certify_heaps import (
+from .heaps import (
     MAX_OPEN_BYTES,
     OpenNodes,
     balance,
@@ -60,11 +64,7 @@ from .certify_heaps import (
     share_best,
     worker_bytes,
 )
-from .compiled import jit_available, jit_loaded
-from .criteria import Criterion, get_criterion
-from .evaluator import NEAR_RANK, StructureEvaluator
-from .lstsq import DEFAULT_RANK_TOL
-from .search import polish as search_polish
+from .local import polish as search_polish
 
 __all__ = ["CERTIFIABLE", "Certificate", "certify", "certify_data", "check_certify_memory",
            "describe_certificate", "ensure_compiled", "penalty_per_size", "search_is_compiled"]
@@ -190,7 +190,7 @@ PARALLEL_AFTER = 1.0
 
 def polish(ev: StructureEvaluator, mask: np.ndarray, usable: np.ndarray,
            seconds: float = 5.0, deadline: float | None = None) -> tuple[np.ndarray, float]:
-    """The polish (:func:`~spm_sysid.core.narx.search.polish`) of ``mask``, for an incumbent.
+    """The polish (:func:`~spm_sysid.core.search.local.polish`) of ``mask``, for an incumbent.
 
     One term added, removed or swapped while that helps; a good incumbent lets
     the branch and bound cut more. It stops after ``seconds`` or at
@@ -348,7 +348,7 @@ def certify(
 
     # incumbent: the warm start (else forward selection), then a local search
     if warm_start is None:
-        from .orders import forward_selection
+        from .forward import forward_selection
 
         _, warm_start = forward_selection(ev, max_terms=min(60, mu), deadline=deadline)
     warm = np.asarray(warm_start, dtype=bool)
@@ -465,8 +465,8 @@ def certify_data(
     ``started`` (``time.perf_counter()``) is when the caller's work began, e.g. a
     warm-start GA: the time limit counts from there (default: now).
     """
-    from .problem import Problem
-    from .segments import normalise_segments
+    from ..fit.problem import Problem
+    from ..model.segments import normalise_segments
 
     ensure_compiled()  # the first use compiles; the time limit starts after
     started = time.perf_counter() if started is None else started

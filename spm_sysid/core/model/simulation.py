@@ -19,7 +19,7 @@ widened by ``DIVERGENCE_FACTOR`` times its span on each side); that sample and
 all later ones are NaN and the sample index is reported, never an infinite error.
 
 The kernels are plain Python compiled by numba in Python's order of operations
-(:func:`~spm_sysid.core.narx.kernels.jit_exact`); without numba the same Python
+(:func:`~spm_sysid.core.compiled.kernels.jit_exact`); without numba the same Python
 runs and gives the same numbers (tests compare both bit for bit).
 """
 
@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .compiled import jit_exact as jit
+from ..compiled.registry import jit_exact as jit
 
 __all__ = ["DIVERGENCE_FACTOR", "CompiledModel", "divergence_bounds",
            "free_run_sensitivities", "run_model"]

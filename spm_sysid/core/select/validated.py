@@ -37,8 +37,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .lstsq import reference_fit
-from .simulation import divergence_bounds, run_model
+from ..fit.lstsq import reference_fit
+from ..model.simulation import divergence_bounds, run_model
 
 __all__ = ["FOLDS", "Fold", "Scores", "blocked_folds", "candidate_structures", "cv_scores",
            "stress_check", "surrogate_input"]
@@ -208,7 +208,7 @@ def _fold_mse(problem, fold: Fold, mask: np.ndarray, simulate: bool) -> float:
 
 
 def _scaled_model(problem, mask, theta):
-    from .model import NarxModel
+    from ..model.narx import NarxModel
 
     return NarxModel(problem.term_space, [int(i) for i in np.flatnonzero(mask)], theta)
 

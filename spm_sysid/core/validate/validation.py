@@ -13,10 +13,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import DataError, SettingsError
+from ..model.narx import NarxModel
+from ..model.segments import normalise_segments
+from ..model.uncertainty import Band, output_band
 from .correlation import CorrelationTest, correlation_tests
-from .model import NarxModel
-from .segments import normalise_segments
-from .uncertainty import Band, output_band
 
 __all__ = ["ValidationReport", "check_correlation_lags", "describe_metrics", "metrics",
            "split_segments", "validate_model"]
@@ -216,7 +216,7 @@ def validate_model(
     segment : str
         Label for reports (``"estimation"`` or ``"holdout"``).
     segments : list of (start, stop), optional
-        Contiguous parts of the record (see :mod:`spm_sysid.core.narx.segments`):
+        Contiguous parts of the record (see :mod:`spm_sysid.core.model.segments`):
         predictions never cross from one to the next, and each is simulated from
         its own initial conditions. The correlation tests run on the residuals of
         all segments, concatenated.
@@ -224,7 +224,7 @@ def validate_model(
         Also report k-step-ahead prediction for this k (> 1).
     bands : bool
         With a model that carries coefficient uncertainty, 95 % bands of its
-        one-step and free-run outputs (:func:`~spm_sysid.core.narx.uncertainty.output_band`).
+        one-step and free-run outputs (:func:`~spm_sysid.core.model.uncertainty.output_band`).
     """
     try:
         u = model.term_space.inputs_2d(u)

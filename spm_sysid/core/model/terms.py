@@ -310,7 +310,7 @@ class TermSpace:
         """Regression matrix and target built inside each segment, stacked.
 
         ``segments`` are ``[start, stop)`` index ranges of contiguous samples
-        (see :mod:`spm_sysid.core.narx.segments`); rows never cross from one segment to
+        (see :mod:`spm_sysid.core.model.segments`); rows never cross from one segment to
         the next. Segments with no more than ``max_lag`` samples give no row.
         None means the whole record is one segment. ``terms``: only these
         columns (see :meth:`regression_matrix`).

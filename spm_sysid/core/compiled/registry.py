@@ -4,7 +4,7 @@ A kernel is plain Python decorated with :func:`jit` (sums may be reordered) or
 :func:`jit_exact` (Python's order of operations). Called from Python, a
 :class:`Kernel` runs
 
-1. the ahead-of-time build (:mod:`spm_sysid.core.narx.aot`, a C extension that
+1. the ahead-of-time build (:mod:`spm_sysid.core.compiled.aot`, a C extension that
    ``spm-sysid compile`` makes from the same functions with numba's pycc) when
    it exists for these sources, holds the argument types of the call, and the
    process has not imported numba: no numba import, no JIT set-up -- about
@@ -243,7 +243,10 @@ def as_array_check(dtype: str, ndim: int, contiguous: bool, mutable: bool
 
 # -- the ahead-of-time build: where it is, whether it is intact, its functions ----------
 
-KERNEL_MODULES = ("kernels", "simulation", "branch_bound", "coupled")
+#: The modules that define kernels, under ``spm_sysid.core`` (a test checks that none is
+#: missing); a kernel's key is its module's last name and its own.
+KERNEL_MODULES = ("compiled.kernels", "model.simulation", "search.branch_bound",
+                  "model.coupled")
 _FORMAT = 1
 _HERE = Path(__file__).resolve().parent
 _BUILD_LOCK = threading.Lock()
@@ -274,8 +277,8 @@ def source_hash() -> str:
     h = hashlib.sha256(f"{_FORMAT} {sys.version} {np.__version__} {version('numba')} "
                        f"{_cpu_signature()}".encode())
     # the kernels, this loader, the builder, and the warm-up (what is exported)
-    for path in (*(_HERE / f"{name}.py" for name in (*KERNEL_MODULES, "compiled", "aot")),
-                 _HERE.parent / "jobs" / "warmup.py"):
+    for name in (*KERNEL_MODULES, "compiled.registry", "compiled.aot", "jobs.warmup"):
+        path = _HERE.parent / (name.replace(".", "/") + ".py")
         h.update(path.read_bytes())
     return h.hexdigest()[:16]
 

@@ -1,7 +1,7 @@
 """The branch and bound's bookkeeping: open nodes per worker, shared incumbent, memory.
 
 Each search worker keeps its open nodes in a heap of arrays that the compiled
-search (:mod:`spm_sysid.core.narx.branch_bound`) fills and drains; workers
+search (:mod:`spm_sysid.core.search.branch_bound`) fills and drains; workers
 share the best incumbent and are rebalanced when one runs short. The memory a
 certification needs is known before anything is built.
 """
@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..fit.evaluator import StructureEvaluator
 from ..memory import check_memory
 from .branch_bound import (
     COUNTERS,
@@ -22,7 +23,6 @@ from .branch_bound import (
     words_for,
     workspace,
 )
-from .evaluator import StructureEvaluator
 
 __all__ = ["DEEP_FACTOR", "MAX_OPEN_BYTES", "OpenNodes", "balance", "check_certify_memory",
            "lower_bound", "settle", "setup_bytes", "share_best", "worker_bytes"]

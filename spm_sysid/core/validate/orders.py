@@ -7,14 +7,15 @@ so their criterion values compare:
    1..n and input lags delay..delay+n-1 (every input) is fitted by least squares;
    the order with the lowest criterion is proposed (BIC by default: it does not
    keep adding lags for tiny gains, as AIC tends to);
-2. **degree**: at that order, for degree 1 .. ``max_degree``, forward
-   selection (:func:`forward_selection`: at each step the candidate term that
-   lowers the criterion most, on past the last improvement by a few steps)
+2. **degree**: at that order, for degree 1 .. ``max_degree``, forward selection
+   (:func:`~spm_sysid.core.search.forward.forward_selection`: at each step the
+   candidate term that lowers the criterion most, on past the last improvement
+   by a few steps)
    estimates the best criterion reachable with that degree; the degree with
    the lowest value is proposed. It is a screening device: the GA then searches
    that space.
 
-Each space is one :class:`~spm_sysid.core.narx.problem.Problem` over the rows
+Each space is one :class:`~spm_sysid.core.fit.problem.Problem` over the rows
 every order has, so their criterion values compare.
 
 Spaces beyond ``max_terms`` candidate terms are not scanned (reported).
@@ -26,57 +27,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .criteria import get_criterion
-from .problem import Problem
-from .search import local_search
-from .terms import TermSpace
+from ..fit.criteria import get_criterion
+from ..fit.problem import Problem
+from ..model.terms import TermSpace
+from ..search.forward import forward_selection
 
-__all__ = ["OrderProposal", "forward_selection", "forward_selection_path", "propose_orders"]
-
-
-def forward_selection(evaluator, max_terms: int = 60, patience: int = 3,
-                      deadline: float | None = None) -> tuple[float, np.ndarray]:
-    """Greedy forward selection; the best criterion value found and its structure.
-
-    From the empty structure, the term whose addition scores best is added,
-    step by step (:func:`~spm_sysid.core.narx.search.local_search` with additions
-    only), continuing ``patience`` steps past the last improvement; at most
-    ``max_terms`` steps, stopping at ``deadline`` (``time.perf_counter()``).
-    For AIC and BIC the best addition is the one that lowers the SSE most.
-
-    Parameters
-    ----------
-    evaluator : StructureEvaluator
-        Scores the structures (its criterion, its columns).
-    max_terms : int
-        Most terms added.
-    patience : int
-        Additions past the last improvement before it stops.
-    deadline : float, optional
-        ``time.perf_counter()`` at which to stop with the best so far.
-    """
-    empty = np.zeros(evaluator.n_terms, dtype=bool)
-    res = local_search(evaluator.score, empty, ~evaluator.zero_columns, moves=("add",),
-                       patience=patience, max_steps=max_terms, deadline=deadline, min_steps=1)
-    return res.value, res.mask
-
-
-def forward_selection_path(evaluator, max_terms: int = 60,
-                           allowed: np.ndarray | None = None) -> np.ndarray:
-    """Every structure forward selection passes through, smallest first (masks).
-
-    The greedy additions of :func:`forward_selection`, without stopping at the
-    criterion's minimum: one structure of each size up to ``max_terms`` (the
-    small sizes a validated selection should judge too). ``allowed`` restricts
-    the terms it may add (e.g. to the linear ones).
-    """
-    path: list[np.ndarray] = []
-    empty = np.zeros(evaluator.n_terms, dtype=bool)
-    ok = ~evaluator.zero_columns if allowed is None else (allowed & ~evaluator.zero_columns)
-    local_search(evaluator.score, empty, ok, moves=("add",),
-                 patience=max_terms + 1, max_steps=max_terms,
-                 on_step=lambda mask, value: path.append(mask.copy()))
-    return np.array(path, dtype=bool).reshape(len(path), evaluator.n_terms)
+__all__ = ["OrderProposal", "propose_orders"]
 
 
 @dataclass

@@ -1,7 +1,7 @@
 """The simulation focus: structures judged by how they simulate, not by one-step error.
 
 A structure is fitted by least squares, refined on its free-run error
-(:func:`~spm_sysid.core.narx.refine.refine_simulation`) and scored by the
+(:func:`~spm_sysid.core.fit.refine.refine_simulation`) and scored by the
 criterion with the free-run SSE in place of the one-step SSE
 (:func:`simulation_value`). :class:`SimulationScorer` is that score, the one
 scorer of both selections:
@@ -20,14 +20,14 @@ import time
 import numpy as np
 
 from ..errors import DataError
+from ..fit.criteria import Criterion
+from ..fit.evaluator import key_mask, mask_key
+from ..fit.problem import Problem
+from ..fit.refine import free_run_uncertainty, refine_simulation
+from ..model.narx import NarxModel
 from ..progress import Progress, ProgressFn
-from .criteria import Criterion
-from .evaluator import key_mask, mask_key
-from .model import NarxModel
-from .problem import Problem
-from .refine import free_run_uncertainty, refine_simulation
-from .search import SearchResult, local_search
-from .selection import Scores, stress_check
+from ..search.local import SearchResult, local_search
+from .validated import Scores, stress_check
 
 __all__ = ["FINALISTS", "FOLD_STEPS", "PER_SIZE", "SEARCH_STEPS", "SimulationScorer",
            "select_for_simulation", "simulation_value", "validated_simulation"]
@@ -75,7 +75,7 @@ class SimulationScorer:
     Attributes
     ----------
     scored : dict
-        Structure key (:func:`~spm_sysid.core.narx.evaluator.mask_key`) ->
+        Structure key (:func:`~spm_sysid.core.fit.evaluator.mask_key`) ->
         (value, refined model or None); +inf for one that cannot be fitted or
         whose simulation diverges on the estimation data.
     """
@@ -176,10 +176,10 @@ def select_for_simulation(
     Each candidate structure (rows of ``candidates``, masks over the whole term
     space, e.g. the GA's best by the one-step criterion) is fitted by least
     squares, refined on its free-run error
-    (:func:`~spm_sysid.core.narx.refine.refine_simulation`) and scored by
+    (:func:`~spm_sysid.core.fit.refine.refine_simulation`) and scored by
     ``criterion`` with the free-run SSE in place of the one-step SSE (so AIC
     becomes ``N ln(SSE_sim / N) + 2k``). From the best, a local search
-    (:func:`~spm_sysid.core.narx.search.local_search`) removes or adds one term
+    (:func:`~spm_sysid.core.search.local.local_search`) removes or adds one term
     at a time (terms of the candidates; every usable term in spaces of at most
     100) while that lowers the simulation criterion. Structures whose
     simulation diverges on the estimation data are never returned.
@@ -235,7 +235,7 @@ def validated_simulation(problem, candidates, folds, crit, max_terms, report,
        run that leaves the measured range rejects the structure;
     3. the chosen (fewest terms within one standard error of the best held-out
        error) is refined to convergence on all data and must pass the guard
-       (:func:`~spm_sysid.core.narx.selection.stress_check`); otherwise the next.
+       (:func:`~spm_sysid.core.select.validated.stress_check`); otherwise the next.
     """
     u, y, segments = problem.u, problem.y, problem.segments
     scorer = SimulationScorer(problem, crit, steps=SEARCH_STEPS, max_terms=max_terms,

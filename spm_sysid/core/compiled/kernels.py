@@ -5,12 +5,12 @@ Done with numpy, every generation pays for gathering, padding to the largest
 size and a dozen library calls; here one compiled call fits the whole batch,
 each structure at its own size, and stops a factorisation at the first pivot
 that shows the structure rank-deficient. The arithmetic is the evaluator's
-(see :mod:`spm_sysid.core.narx.evaluator`): an up-looking Cholesky factor of the
+(see :mod:`spm_sysid.core.fit.evaluator`): an up-looking Cholesky factor of the
 structure's Gram sub-matrix with the target last, coefficients by back
 substitution, and, where the Gram path may not be accurate enough, one step of
 corrected semi-normal equations on the triangular factor of ``[P y]``.
 
-``numba`` compiles the kernels (:mod:`spm_sysid.core.narx.compiled`: the
+``numba`` compiles the kernels (:mod:`spm_sysid.core.compiled.registry`: the
 ahead-of-time build, else the JIT, cached on disk after the first use). It is
 a required dependency: there is one numeric path. A missing or broken numba is
 one clear error (:class:`~spm_sysid.core.errors.MissingDependencyError`) when
@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .compiled import jit, jit_exact
+from .registry import jit, jit_exact
 
 __all__ = ["GROUPED_FROM", "LANES", "cholesky_rows", "cholesky_solve", "csne_gathered", "csne_step",
            "fit_structures", "jit", "jit_exact", "pivoted_qr", "qr_structures"]
@@ -332,7 +332,7 @@ def qr_structures(r_ext, idx, offsets, rank_tol, sse, theta, bad):  # pragma: no
     """Fit the structures ``idx[offsets[b]:offsets[b + 1]]`` by Householder QR.
 
     The arbitration of structures whose Gram pivots come near ``rank_tol``
-    (:meth:`~spm_sysid.core.narx.evaluator.StructureEvaluator._qr_fit` is the
+    (:meth:`~spm_sysid.core.fit.evaluator.StructureEvaluator._qr_fit` is the
     same for one structure): the QR factor of the structure's columns of
     ``r_ext`` (upper-triangular factor of ``[P y]``, target at column m) and
     of the target. A column c of ``r_ext`` is zero below row c, so each

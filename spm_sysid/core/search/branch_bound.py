@@ -48,8 +48,8 @@ from collections import namedtuple
 
 import numpy as np
 
-from .compiled import jit
-from .kernels import cholesky_rows, csne_step
+from ..compiled.kernels import cholesky_rows, csne_step
+from ..compiled.registry import jit
 
 __all__ = ["COUNTERS", "DONE", "Data", "FULL", "Heap", "PAUSED", "Work", "expand",
            "words_for", "workspace"]

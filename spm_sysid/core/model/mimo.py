@@ -19,7 +19,7 @@ output's prediction back into every term that uses it, all outputs stepping
 together; a run that leaves an output's measured range is marked diverged
 (per output, from that sample on NaN). With simulation focus the outputs'
 coefficients are then refined jointly on that coupled free-run error
-(:mod:`spm_sysid.core.narx.coupled`).
+(:mod:`spm_sysid.core.model.coupled`).
 
 The document (``spm_sysid/narx-mimo-model``, version 1) holds one
 single-output model document (docs/model_format.md) per output; the
@@ -37,7 +37,7 @@ import numpy as np
 from ..cores import usable_cores
 from ..errors import ModelFormatError
 from ..files import atomic_write_text, read_bytes
-from .model import NarxModel, read_json_document
+from .narx import NarxModel, read_json_document
 from .terms import TermSpace
 
 __all__ = ["MIMO_SCHEMA", "MimoModel", "augmented_inputs", "in_threads", "output_space",
@@ -119,7 +119,7 @@ class MimoModel:
         Returns the simulated outputs for t = max_lag..n-1, shape (n - max_lag,
         outputs), and per output the sample where it left its measured range
         (None when it did not; NaN from there on, and in the outputs that use it).
-        Compiled (:func:`spm_sysid.core.narx.coupled.coupled_run`).
+        Compiled (:func:`spm_sysid.core.model.coupled.coupled_run`).
         """
         from .coupled import CoupledCompiled, coupled_run
 
@@ -226,7 +226,7 @@ def in_threads(fn, n: int) -> list:
         return [fn(i) for i in range(n)]
     from concurrent.futures import ThreadPoolExecutor
 
-    from .compiled import jit_available
+    from ..compiled.registry import jit_available
 
     jit_available()  # kernels on numba's JIT, which releases the GIL (0.7 s once)
 

@@ -34,13 +34,13 @@ import numpy as np
 
 from ..errors import DataError, TooFewSamplesError
 from ..memory import check_memory
+from ..model.segments import normalise_segments, usable_segments
+from ..model.terms import TermSpace, power_of_two_scale
 from .criteria import Criterion, get_criterion
 from .lstsq import DEFAULT_RANK_TOL, reference_fit
-from .segments import normalise_segments, usable_segments
-from .terms import TermSpace, power_of_two_scale
 
 if TYPE_CHECKING:
-    from .model import NarxModel
+    from ..model.narx import NarxModel
 
 __all__ = ["LARGE_SPACE", "Problem", "StructureFit", "check_magnitudes", "check_samples",
            "excluded_columns", "fit_structure", "validate_signals"]
@@ -427,8 +427,8 @@ class Problem:
         ``fit`` is the structure's :meth:`fit` when the caller has it; ``info``
         are further model fields (``criterion``, ``criterion_value``, ``metadata``).
         """
-        from .model import NarxModel
-        from .uncertainty import from_least_squares
+        from ..model.narx import NarxModel
+        from ..model.uncertainty import from_least_squares
 
         fit = self.fit(mask) if fit is None else fit
         rows = len(fit.residuals)  # all the problem's rows, or a fold's

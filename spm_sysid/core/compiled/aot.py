@@ -25,7 +25,7 @@ import shutil
 import tempfile
 from pathlib import Path
 
-from .compiled import (  # noqa: F401 - the build's status and switches, named here too
+from .registry import (  # noqa: F401 - the build's status and switches, named here too
     _FORMAT,
     KERNEL_MODULES,
     BuildStatus,
@@ -82,7 +82,7 @@ def _entry(kernel, export: str):
 def build() -> BuildStatus:
     """Build the extension from the kernels Python has called in this process.
 
-    Run after a warm-up that called every kernel (:func:`~spm_sysid.core.narx.
+    Run after a warm-up that called every kernel (:func:`~spm_sysid.core.jobs.
     warmup.compile_all`). Old builds in the same place are removed. Returns
     the status; a failure (no C compiler, a numba without pycc) is its reason.
     """

@@ -1,0 +1,4 @@
+"""Compiled kernels.
+
+The registry (numba's JIT or the ahead-of-time build), the builder, the numeric kernels.
+"""

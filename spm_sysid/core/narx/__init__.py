@@ -1,1 +1,0 @@
-"""The model and its search: terms, criteria, least squares, evaluator, GA, validation."""
