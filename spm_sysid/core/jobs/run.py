@@ -49,6 +49,8 @@ def run_job(record: Record, settings: JobSettings, *, progress: ProgressFn | Non
     Parameters, result and errors: :func:`~spm_sysid.core.jobs.single.run_single_job`
     (one output) and :func:`~spm_sysid.core.jobs.several.run_mimo_job` (several).
     """
-    job = run_mimo_job if record.n_outputs > 1 else run_single_job
-    return job(record, settings, progress=progress, progress_every=progress_every,
-               metadata=metadata)
+    if record.n_outputs > 1:  # one coupled model of several outputs
+        return run_mimo_job(record, settings, progress=progress,
+                            progress_every=progress_every, metadata=metadata)
+    return run_single_job(record, settings, progress=progress, progress_every=progress_every,
+                          metadata=metadata)
