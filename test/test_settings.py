@@ -222,3 +222,32 @@ def test_diagnostics_of_a_coupled_model_of_two_outputs():
     assert st["/n: identification (q2)"].message == "model with 2 terms"
     assert st["/n: residual cross_q1_q2"].level == WARN
     assert "/n (q1): correlation ee" in st
+
+
+def test_a_setting_added_to_the_schema_reaches_every_layer(monkeypatch, capsys):
+    """One schema entry, no other edit: the command line, the node, its YAML and the job."""
+    from spm_sysid.core import settings as schema
+    from spm_sysid.core.identify import identify_problem
+    from spm_sysid.core.jobs.settings import OPTION_GROUPS
+    from spm_sysid.tools.cli import build_parser
+
+    knob = schema.Setting("test_knob", int, 3, "a knob this test adds", "criterion",
+                          low=0, high=9)
+    monkeypatch.setattr(schema, "_LIST", [*schema._LIST, knob])
+    monkeypatch.setitem(schema.SETTINGS, "test_knob", knob)
+    assert knob.group in OPTION_GROUPS
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["identify", "--help"])
+    assert "--test-knob" in capsys.readouterr().out  # the command line offers it
+    assert knob in schema.node_settings()  # the node declares it as a parameter
+    assert "    test_knob: 3  # a knob this test adds" in schema.node_yaml()
+    job = JobSettings.from_values({"test_knob": 5})
+    assert job.test_knob == 5 and JobSettings.from_values({}).test_knob == 3  # the job
+    with pytest.raises(SettingsError, match="test_knob"):
+        JobSettings.from_values({"test_knob": 12})  # checked once, at the edge
+
+    def search(problem, *, test_knob=0, criterion="aic"):  # code that uses it: a keyword
+        return test_knob
+
+    assert search(None, **job.options_for(search)) == 5
+    assert "test_knob" not in job.options_for(identify_problem)

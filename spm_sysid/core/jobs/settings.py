@@ -15,7 +15,7 @@ from ..errors import SettingsError
 from ..fit.criteria import get_criterion
 from ..model.terms import TermSpace
 from ..search.ga import GAConfig
-from ..settings import JOB_GROUPS, check, defaults
+from ..settings import check, defaults
 
 __all__ = ["JobSettings"]
 
@@ -25,42 +25,39 @@ _GA_FIELDS = ("population_size", "generations", "crossover_prob", "mutation_prob
               "spm_fraction", "fitness", "init_terms", "mutation_per_structure", "elitism")
 
 
+#: The schema's groups whose settings a job carries as options (besides the term space
+#: and the GA): a setting added to the schema in one of them reaches every job.
+OPTION_GROUPS = ("criterion", "validation", "data")
+
+
 @dataclass(frozen=True)
 class JobSettings:
     """Everything a job needs besides the data; build it with :meth:`from_values`.
+
+    Built once, at the edge (a command's options, a node parameter or goal, the
+    Python API), from the settings schema (:mod:`spm_sysid.core.settings`), and
+    never checked again after that.
 
     Attributes
     ----------
     term_space : TermSpace
     ga : GAConfig
-    criterion : str
-        A registered criterion name (``aic``, ``bic``, ``pmic2``, ...).
-    seed : int or None
-        None: a new random seed (the schema's -1).
-    validation : str
-        ``estimation``, ``holdout`` or ``none``.
-    validation_split, correlation_lags, sample_period, gap_factor
-        See the settings schema.
+    options : dict
+        Every other job setting of the schema (groups :data:`OPTION_GROUPS`), by
+        its schema name, checked; each is also an attribute (``settings.criterion``,
+        ``settings.validation`` ...). ``criterion`` is lower case and registered;
+        ``seed`` is None for the schema's -1 (a new random seed).
     """
 
     term_space: TermSpace = field(default_factory=TermSpace)
     ga: GAConfig = field(default_factory=GAConfig)
-    criterion: str = "aic"
-    seed: int | None = None
-    validation: str = "estimation"
-    validation_split: float = 0.5
-    correlation_lags: int = 20
-    sample_period: float = 0.0
-    gap_factor: float = 1.5
-    focus: str = "prediction"
-    shortlist: int = 20
-    selection: str = "auto"
-    max_terms: int = 0
-    horizon: int = 0
-    certify: bool = False
-    certify_time_limit: float = 60.0
-    polish: bool = True
-    auto_certify_time_limit: float = 10.0
+    options: dict = field(default_factory=lambda: JobSettings.from_values({}).options)
+
+    def __getattr__(self, name: str) -> Any:
+        options = self.__dict__.get("options")
+        if name.startswith("__") or options is None or name not in options:
+            raise AttributeError(f"JobSettings has no setting {name!r}")
+        return options[name]
 
     @classmethod
     def from_values(cls, values: Mapping[str, Any], inputs: tuple[str, ...] = (),
@@ -72,39 +69,33 @@ class JobSettings:
         the number of inputs). Raises SettingsError (a ValueError) naming the first
         invalid setting.
         """
-        v = defaults(JOB_GROUPS)
+        v = defaults((*OPTION_GROUPS, "term_space", "ga"))
         v.update({k: values[k] for k in v if k in values and values[k] is not None})
-        for name in ("criterion", "seed", "validation", "validation_split",
-                     "correlation_lags", "sample_period", "gap_factor", "focus", "shortlist",
-                     "selection", "max_terms", "horizon", "certify", "certify_time_limit",
-                     "polish", "auto_certify_time_limit"):
-            v[name] = check(name, v[name])
-        criterion = v["criterion"].lower()
+        options = {name: check(name, v[name]) for name in defaults(OPTION_GROUPS)}
+        options["criterion"] = options["criterion"].lower()
         try:
-            get_criterion(criterion)
+            get_criterion(options["criterion"])
         except (KeyError, ValueError) as exc:
             raise SettingsError(str(exc).strip("'\"")) from None
+        if options["seed"] < 0:
+            options["seed"] = None
         return cls(
             term_space=TermSpace(**{k: v[k] for k in _TERM_FIELDS}, inputs=tuple(inputs),
                                  output=output),
             ga=GAConfig(**{k: v[k] for k in _GA_FIELDS}),
-            criterion=criterion,
-            seed=None if v["seed"] < 0 else v["seed"],
-            validation=v["validation"],
-            validation_split=v["validation_split"],
-            correlation_lags=v["correlation_lags"],
-            sample_period=v["sample_period"],
-            gap_factor=v["gap_factor"],
-            focus=v["focus"],
-            shortlist=v["shortlist"],
-            selection=v["selection"],
-            max_terms=v["max_terms"],
-            horizon=v["horizon"],
-            certify=v["certify"],
-            certify_time_limit=v["certify_time_limit"],
-            polish=v["polish"],
-            auto_certify_time_limit=v["auto_certify_time_limit"],
+            options=options,
         )
+
+    def options_for(self, fn) -> dict[str, Any]:
+        """The options that ``fn`` takes as keywords of the same name (its signature decides).
+
+        A setting added to the schema reaches a function of the search by its name
+        alone: the code that uses it takes a keyword of that name.
+        """
+        import inspect
+
+        params = inspect.signature(fn).parameters
+        return {k: v for k, v in self.options.items() if k in params}
 
     def for_signals(self, inputs: tuple[str, ...], output: str) -> JobSettings:
         """These settings with the term space naming a record's signals.

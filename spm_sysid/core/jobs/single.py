@@ -233,15 +233,10 @@ def run_single_job(
             report(p)
 
     problem = Problem.from_signals(u, y, space, est)
-    ident = identify_problem(problem, criterion=settings.criterion, ga=settings.ga,
-                             seed=settings.seed, focus=settings.focus,
-                             shortlist=settings.shortlist, selection=settings.selection,
-                             max_terms=settings.max_terms,
-                             certify_time_limit=(settings.certify_time_limit if settings.certify
-                                                 else None),
-                             polish=settings.polish,
-                             auto_certify_time_limit=settings.auto_certify_time_limit,
-                             progress=throttled, started=t0)
+    # every option the search takes, by its name (a new setting needs no edit here)
+    search = settings.options_for(identify_problem)
+    search["certify_time_limit"] = settings.certify_time_limit if settings.certify else None
+    ident = identify_problem(problem, ga=settings.ga, **search, progress=throttled, started=t0)
     t1 = time.perf_counter()
     model = ident.model
     validation = None
