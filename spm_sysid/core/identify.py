@@ -31,12 +31,13 @@ from .search.ga import GAConfig, GAResult, GenerationStats, run_ga
 from .search.local import polish
 from .select.simulation import select_for_simulation, validated_simulation
 from .select.validated import blocked_folds, candidate_structures, cv_scores
+from .settings import SETTINGS, check
 
 __all__ = ["FOCUS", "SELECTION", "IdentificationResult", "check_samples", "identify",
            "identify_problem", "select_for_simulation", "validate_signals"]
 
-#: What a model is selected and fitted for.
-FOCUS = ("prediction", "simulation")
+#: What a model is selected and fitted for (the schema's choices of ``focus``).
+FOCUS = SETTINGS["focus"].choices
 
 
 
@@ -143,6 +144,8 @@ def identify(
     first; the input's terms when the input equals the output):
     ``model.metadata["excluded_duplicate_terms"]`` maps each to the term it repeats.
     """
+    # the Python API is an edge: its settings are checked here, by the schema, once
+    focus, selection = check("focus", focus), check("selection", selection)
     problem = Problem.from_signals(u, y, term_space, segments)
     return identify_problem(problem, criterion=criterion, ga=ga, seed=seed, callback=callback,
                             focus=focus, shortlist=shortlist,
@@ -152,7 +155,7 @@ def identify(
 
 
 #: How a structure is chosen (see :mod:`spm_sysid.core.select.validated`).
-SELECTION = ("auto", "criterion", "validated")
+SELECTION = SETTINGS["selection"].choices
 
 #: ``auto`` validates the prediction focus too when there are fewer rows than this many
 #: per usable candidate term (where an in-sample criterion can overfit badly).
@@ -187,16 +190,14 @@ def identify_problem(
 ) -> IdentificationResult:
     """:func:`identify` on a problem already built (see there for the parameters).
 
+    Its settings are taken as checked (at the edge: :func:`identify`, a job's
+    :class:`~spm_sysid.core.jobs.settings.JobSettings`, a study's configuration).
     ``started`` is ``time.perf_counter()`` at the job's start (progress reports
     count their seconds from it; default: now). ``check_data``: run the data
     check (:mod:`spm_sysid.core.validate.excitation`) first; its warnings go into
     ``model.metadata["warnings"]``.
     """
-    crit = get_criterion(criterion)
-    if focus not in FOCUS:
-        raise ValueError(f"focus must be one of {', '.join(FOCUS)}, got {focus!r}")
-    if selection not in SELECTION:
-        raise ValueError(f"selection must be one of {', '.join(SELECTION)}, got {selection!r}")
+    crit = get_criterion(criterion)  # the name (checked at the edge) to its object, once
     started = time.perf_counter() if started is None else started
     report = progress or (lambda p: None)
     ga = ga or GAConfig()
