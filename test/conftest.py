@@ -5,6 +5,7 @@ from __future__ import annotations
 import fcntl
 import itertools
 import os
+import re
 import signal
 import sys
 from pathlib import Path
@@ -110,3 +111,71 @@ def arm_bag(robot_arm, tmp_path_factory):
 
     u, y = robot_arm
     return write_io_bag(tmp_path_factory.mktemp("bags") / "robot_arm", u, y)
+
+
+# -- a coupled system of two outputs and two inputs, known exactly (the several-output tests)
+
+TRUE = {  # known cross terms: y2 enters y1's model and y1 enters y2's
+    "y1": {"y1(t-1)": 0.5, "u1(t-1)": 0.8, "y2(t-1)": 0.2, "y1(t-1)*u1(t-1)": 0.1},
+    "y2": {"y2(t-1)": 0.4, "u2(t-1)": 0.6, "y1(t-1)": -0.3, "y2(t-1)*y1(t-1)": 0.2},
+}
+FACTOR = re.compile(r"^(\w+)\(t-(\d+)\)(?:\^(\d+))?$")
+
+
+def term_value(name: str, signals: dict, t: int) -> float:
+    """A term's value at t from its printed name (independent of the package's code)."""
+    value = 1.0
+    for part in name.split("*"):
+        m = FACTOR.match(part)
+        value *= signals[m.group(1)][t - int(m.group(2))] ** int(m.group(3) or 1)
+    return value
+
+
+def reference_simulation(coefs: dict, u: np.ndarray, Y: np.ndarray, start: int) -> np.ndarray:
+    """Plain-Python coupled free run: both outputs from their own predictions."""
+    sig = {"u1": u[:, 0], "u2": u[:, 1], "y1": Y[:, 0].copy(), "y2": Y[:, 1].copy()}
+    for t in range(start, len(Y)):
+        new = {o: sum(c * term_value(n, sig, t) for n, c in coefs[o].items()) for o in coefs}
+        sig["y1"][t], sig["y2"][t] = new["y1"], new["y2"]
+    return np.column_stack([sig["y1"], sig["y2"]])[start:]
+
+
+def two_output_system(n: int, seed: int, noise: float = 0.0):
+    rng = np.random.default_rng(seed)
+    u = rng.uniform(-1, 1, (n, 2))
+    Y = np.zeros((n, 2))
+    Y[0] = 0.1
+    Y[1:] = reference_simulation(TRUE, u, Y, 1)
+    return u, Y + noise * rng.standard_normal(Y.shape)
+
+
+def write_joint_state_bag(path, u, Y, rate_hz=100.0, topic="/joint_states"):
+    """One JointState topic: effort = the inputs, velocity = the outputs (rosbags Writer)."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from spm_sysid.core.io.bagio import typestore
+
+    store = typestore()
+    T = store.types
+    JointState, Header, Time = (T["sensor_msgs/msg/JointState"], T["std_msgs/msg/Header"],
+                                T["builtin_interfaces/msg/Time"])
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        c = w.add_connection(topic, "sensor_msgs/msg/JointState", typestore=store)
+        for k in range(len(Y)):
+            t = int(round(k * 1e9 / rate_hz)) + 1_000_000_000
+            msg = JointState(header=Header(stamp=Time(sec=t // 10**9, nanosec=t % 10**9),
+                                           frame_id="base"),
+                             name=["j1", "j2"], position=np.zeros(2),
+                             velocity=np.ascontiguousarray(Y[k]),
+                             effort=np.ascontiguousarray(u[k]))
+            w.write(c, t, store.serialize_cdr(msg, "sensor_msgs/msg/JointState"))
+    return path
+
+
+def sine_record(n: int = 400):
+    """A second-order system driven by one sine: it excites two input lags only."""
+    u = np.sin(2 * np.pi * np.arange(n) / 37)
+    y = np.zeros(n)
+    for k in range(2, n):
+        y[k] = 1.5 * y[k - 1] - 0.7 * y[k - 2] + 0.5 * u[k - 1]
+    return u, y + 1e-3 * np.random.default_rng(0).standard_normal(n)

@@ -21,7 +21,7 @@ from spm_sysid.core.search.certify import certify
 from spm_sysid.core.select.validated import blocked_folds, stress_check, surrogate_input
 from spm_sysid.core.validate.excitation import check_problem, excitation_order
 
-from .conftest import EQ1, ROOT, eq1_model
+from .conftest import EQ1, ROOT, eq1_model, sine_record
 
 
 def test_covariance_is_sigma2_inverse_gram_of_the_regressors(robot_arm):
@@ -78,15 +78,6 @@ def test_output_bands_contain_the_model_and_widen_with_noise(robot_arm):
     assert inside.mean() > 0.9 and one.diverged == 0.0
     assert free.mean_width > one.mean_width > 0  # errors accumulate when simulating
     assert output_band(m.with_coefficients(m.coefficients), u, y) is None  # no uncertainty
-
-
-def sine_record(n: int = 400):
-    """A second-order system driven by one sine: it excites two input lags only."""
-    u = np.sin(2 * np.pi * np.arange(n) / 37)
-    y = np.zeros(n)
-    for k in range(2, n):
-        y[k] = 1.5 * y[k - 1] - 0.7 * y[k - 2] + 0.5 * u[k - 1]
-    return u, y + 1e-3 * np.random.default_rng(0).standard_normal(n)
 
 
 def test_a_sine_input_excites_two_lags_and_the_check_names_the_others():

@@ -1,7 +1,6 @@
 """Several outputs: coupled NARX models (core; no ROS)."""
 
 import json
-import re
 
 import numpy as np
 import pytest
@@ -14,12 +13,9 @@ from spm_sysid.core.model.narx import NarxModel
 from spm_sysid.core.model.terms import TermSpace
 from spm_sysid.core.record import Record
 
-TRUE = {  # known cross terms: y2 enters y1's model and y1 enters y2's
-    "y1": {"y1(t-1)": 0.5, "u1(t-1)": 0.8, "y2(t-1)": 0.2, "y1(t-1)*u1(t-1)": 0.1},
-    "y2": {"y2(t-1)": 0.4, "u2(t-1)": 0.6, "y1(t-1)": -0.3, "y2(t-1)*y1(t-1)": 0.2},
-}
+from .conftest import TRUE, reference_simulation, term_value, two_output_system
+
 SPACE = TermSpace(ny=1, nu=1, degree=2, inputs=("u1", "u2"), output="y")
-FACTOR = re.compile(r"^(\w+)\(t-(\d+)\)(?:\^(\d+))?$")
 
 
 def identify_coupled(u, Y, outputs, space, **settings):
@@ -29,33 +25,6 @@ def identify_coupled(u, Y, outputs, space, **settings):
     values = {"ny": space.ny, "nu": space.nu, "degree": space.degree, "delay": space.delay,
               "constant": space.constant, **settings}
     return run_job(record, JobSettings.from_values(values))
-
-
-def term_value(name: str, signals: dict, t: int) -> float:
-    """A term's value at t from its printed name (independent of the package's code)."""
-    value = 1.0
-    for part in name.split("*"):
-        m = FACTOR.match(part)
-        value *= signals[m.group(1)][t - int(m.group(2))] ** int(m.group(3) or 1)
-    return value
-
-
-def reference_simulation(coefs: dict, u: np.ndarray, Y: np.ndarray, start: int) -> np.ndarray:
-    """Plain-Python coupled free run: both outputs from their own predictions."""
-    sig = {"u1": u[:, 0], "u2": u[:, 1], "y1": Y[:, 0].copy(), "y2": Y[:, 1].copy()}
-    for t in range(start, len(Y)):
-        new = {o: sum(c * term_value(n, sig, t) for n, c in coefs[o].items()) for o in coefs}
-        sig["y1"][t], sig["y2"][t] = new["y1"], new["y2"]
-    return np.column_stack([sig["y1"], sig["y2"]])[start:]
-
-
-def two_output_system(n: int, seed: int, noise: float = 0.0):
-    rng = np.random.default_rng(seed)
-    u = rng.uniform(-1, 1, (n, 2))
-    Y = np.zeros((n, 2))
-    Y[0] = 0.1
-    Y[1:] = reference_simulation(TRUE, u, Y, 1)
-    return u, Y + noise * rng.standard_normal(Y.shape)
 
 
 def known_model(coefs: dict = TRUE) -> MimoModel:

@@ -13,37 +13,16 @@ import numpy as np
 import pytest
 
 from spm_sysid.core.errors import DataError
-from spm_sysid.core.io.bagio import read_bag_signals, typestore, write_io_bag
+from spm_sysid.core.io.bagio import read_bag_signals, write_io_bag
 from spm_sysid.core.jobs import JobSettings, run_job
 from spm_sysid.core.jobs.several import MimoJobResult
 from spm_sysid.core.model.mimo import MimoModel, read_model_document
 from spm_sysid.core.record import DataSpec, Record, load_record
 from spm_sysid.core.stream.buffer import SampleBuffer, pair_streams
 
-from .test_mimo import TRUE, reference_simulation, two_output_system
+from .conftest import TRUE, reference_simulation, two_output_system, write_joint_state_bag
 
 SETTINGS = {"ny": 1, "nu": 1, "degree": 2, "criterion": "bic", "seed": 0}
-
-
-def write_joint_state_bag(path, u, Y, rate_hz=100.0, topic="/joint_states"):
-    """One JointState topic: effort = the inputs, velocity = the outputs (rosbags Writer)."""
-    from rosbags.rosbag2 import StoragePlugin, Writer
-
-    store = typestore()
-    T = store.types
-    JointState, Header, Time = (T["sensor_msgs/msg/JointState"], T["std_msgs/msg/Header"],
-                                T["builtin_interfaces/msg/Time"])
-    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
-        c = w.add_connection(topic, "sensor_msgs/msg/JointState", typestore=store)
-        for k in range(len(Y)):
-            t = int(round(k * 1e9 / rate_hz)) + 1_000_000_000
-            msg = JointState(header=Header(stamp=Time(sec=t // 10**9, nanosec=t % 10**9),
-                                           frame_id="base"),
-                             name=["j1", "j2"], position=np.zeros(2),
-                             velocity=np.ascontiguousarray(Y[k]),
-                             effort=np.ascontiguousarray(u[k]))
-            w.write(c, t, store.serialize_cdr(msg, "sensor_msgs/msg/JointState"))
-    return path
 
 
 def test_the_buffer_aligns_two_output_streams_and_counts_them():

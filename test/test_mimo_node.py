@@ -21,10 +21,8 @@ from spm_sysid_interfaces.msg import NarxModelSet, Prediction, Validity
 
 from spm_sysid.core.io.bagio import read_bag_signals
 
-from .conftest import ROOT
+from .conftest import ROOT, TRUE, two_output_system, write_joint_state_bag
 from .ros_harness import IdentifyClient, play_bag, start_node, stop
-from .test_mimo import TRUE, two_output_system
-from .test_mimo_io import write_joint_state_bag
 
 PARAMS = ("input_topic:=/joint_states", "input_type:=sensor_msgs/msg/JointState",
           "input_field:=effort[0],effort[1]", "input_names:=u1,u2",

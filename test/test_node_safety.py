@@ -16,9 +16,8 @@ from std_msgs.msg import String
 from spm_sysid.core.model.narx import NarxModel
 from spm_sysid.core.model.terms import TermSpace
 
-from .conftest import ROOT
+from .conftest import ROOT, sine_record
 from .ros_harness import start_node, stop
-from .test_generalisation import sine_record
 
 
 def _model_doc() -> dict:
