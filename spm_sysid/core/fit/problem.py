@@ -34,7 +34,7 @@ import numpy as np
 
 from ..errors import DataError, TooFewSamplesError
 from ..memory import check_memory
-from ..model.segments import normalise_segments, usable_segments
+from ..model.segments import normalise_segments, rows_segments, usable_segments
 from ..model.terms import TermSpace, power_of_two_scale
 from .criteria import Criterion, get_criterion
 from .lstsq import DEFAULT_RANK_TOL, reference_fit
@@ -258,7 +258,7 @@ class Problem:
         self.term_space = term_space
         self.u = term_space.inputs_2d(u)
         self.y = np.asarray(y, dtype=float)
-        self.segments = [(int(a), int(b)) for a, b in segments]
+        self.segments = normalise_segments(segments, len(self.y))  # checked here, once
         self.u_scale = np.array([power_of_two_scale(c) for c in self.u.T])
         self.y_scale = power_of_two_scale(self.y)
         self.columns, self.target = term_space.regression(self.u / self.u_scale,
@@ -292,7 +292,7 @@ class Problem:
         term_space = term_space or TermSpace()
         n = len(np.asarray(y))
         given = segments is not None
-        segs = normalise_segments(segments, n) if given else [(0, n)]
+        segs = normalise_segments(segments, n)
         segs, _, _ = usable_segments(segs, term_space.max_lag)
         if not segs:
             raise DataError(f"no segment of the data is longer than the largest lag "
@@ -461,6 +461,5 @@ def fit_structure(u: np.ndarray, y: np.ndarray, mask: np.ndarray, term_space: Te
         raise ValueError(f"mask must have {term_space.n_terms} entries, got {mask.shape}")
     if not mask.any():
         raise ValueError("cannot fit a structure with no terms")
-    problem = Problem(term_space, u, y, [(a, b) for a, b in normalise_segments(
-        segments, len(y)) if b - a > term_space.max_lag])
+    problem = Problem(term_space, u, y, rows_segments(segments, len(y), term_space.max_lag))
     return problem.model(mask, **info)

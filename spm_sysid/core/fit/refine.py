@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..model.narx import NarxModel
-from ..model.segments import normalise_segments
+from ..model.segments import rows_segments
 from ..model.simulation import divergence_bounds, free_run_sensitivities
 
 __all__ = ["Refinement", "free_run_uncertainty", "linear_radius", "linear_stability_check",
@@ -109,7 +109,7 @@ class Refinement:
 
 
 def _segments(y: np.ndarray, segments, lag0: int) -> list[tuple[int, int]]:
-    return [(a, b) for a, b in normalise_segments(segments, len(y)) if b - a > lag0]
+    return rows_segments(segments, len(y), lag0)
 
 
 def free_run_uncertainty(model: NarxModel, u: np.ndarray, y: np.ndarray,

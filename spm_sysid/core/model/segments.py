@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = [
+__all__ = ["Segments",
     "SegmentInfo",
     "describe_data",
     "segment_report",
@@ -121,20 +121,35 @@ def find_segments(stamps_ns: np.ndarray, period_ns: int | None = None,
     return SegmentInfo(bounds, period_ns, source, int(gap.sum()), missing, int(restart.sum()))
 
 
+class Segments(list):
+    """``[start, stop)`` ranges of a record of ``n`` samples, checked once.
+
+    What :func:`normalise_segments` returns (a list of pairs, as before); handed
+    to it again for the same record it is taken as checked, so the segments of
+    a problem are checked where the problem is built and nowhere after.
+    """
+
+    def __init__(self, pairs, n: int) -> None:
+        super().__init__(pairs)
+        self.n = n
+
+
 def normalise_segments(segments: Sequence[tuple[int, int]] | None, n: int
                        ) -> list[tuple[int, int]]:
     """Check ``[start, stop)`` index ranges against a record of ``n`` samples.
 
     None means one segment, the whole record. Ranges must be ordered and must not
-    overlap.
+    overlap. Returns :class:`Segments` (checked: not checked again).
 
     Raises
     ------
     ValueError
         Out-of-range, empty, unordered or overlapping ranges.
     """
+    if isinstance(segments, Segments) and segments.n == n:
+        return segments
     if segments is None:
-        return [(0, n)]
+        return Segments([(0, n)], n)
     out = []
     prev = 0
     for item in segments:
@@ -151,13 +166,31 @@ def normalise_segments(segments: Sequence[tuple[int, int]] | None, n: int
         prev = b
     if not out:
         raise ValueError("no segments given")
-    return out
+    return Segments(out, n)
+
+
+def rows_segments(segments: Sequence[tuple[int, int]] | None, n: int, max_lag: int
+                  ) -> Segments:
+    """The checked segments of a record of ``n`` samples that give regression rows.
+
+    (Longer than ``max_lag``.) Checked :class:`Segments` of this record are not
+    checked again, and the result is :class:`Segments` too.
+    """
+    if segments is not None and not len(segments):
+        return Segments([], n)  # nothing to check (a fold whose rest is empty, say)
+    return Segments([(a, b) for a, b in normalise_segments(segments, n) if b - a > max_lag],
+                    n)
 
 
 def usable_segments(bounds: Sequence[tuple[int, int]], max_lag: int
                     ) -> tuple[list[tuple[int, int]], int, int]:
-    """Segments long enough for one regression row; also (skipped count, skipped samples)."""
+    """Segments long enough for one regression row; also (skipped count, skipped samples).
+
+    Of checked :class:`Segments`, the ones kept are checked :class:`Segments` too.
+    """
     keep = [(a, b) for a, b in bounds if b - a > max_lag]
+    if isinstance(bounds, Segments) and keep:
+        keep = Segments(keep, bounds.n)
     skipped = [(a, b) for a, b in bounds if b - a <= max_lag]
     return keep, len(skipped), sum(b - a for a, b in skipped)
 

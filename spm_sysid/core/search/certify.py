@@ -50,6 +50,7 @@ from ..fit.criteria import Criterion, get_criterion
 from ..fit.evaluator import NEAR_RANK, StructureEvaluator
 from ..fit.lstsq import DEFAULT_RANK_TOL
 from ..memory import check_memory, memory_limit
+from ..model.segments import rows_segments
 from .branch_bound import (
     DONE,
     FULL,
@@ -466,13 +467,12 @@ def certify_data(
     warm-start GA: the time limit counts from there (default: now).
     """
     from ..fit.problem import Problem
-    from ..model.segments import normalise_segments
 
     ensure_compiled()  # the first use compiles; the time limit starts after
     started = time.perf_counter() if started is None else started
     n = len(np.asarray(y))
     lag = term_space.max_lag
-    segs = [(a, b) for a, b in normalise_segments(segments, n) if b - a > lag]
+    segs = rows_segments(segments, n, lag)
     check_certify_memory(max(sum(b - a - lag for a, b in segs), 0), term_space.n_terms)
     problem = Problem.from_signals(u, y, term_space, segments)
     crit = get_criterion(criterion)

@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..fit.lstsq import reference_fit
+from ..model.segments import rows_segments
 from ..model.simulation import divergence_bounds, run_model
 
 __all__ = ["FOLDS", "Fold", "Scores", "blocked_folds", "candidate_structures", "cv_scores",
@@ -97,7 +98,8 @@ def blocked_folds(problem, k: int = FOLDS) -> list[Fold]:
             for a, b in held:  # the row's window [t - lag, t] must miss the block
                 outside &= (t < a) | (t - lag >= b)
             rest = _complement(problem.segments, held, lag)
-            folds.append(Fold(outside, [(a, b) for a, b in held if b - a > lag], rest))
+            folds.append(Fold(outside, rows_segments(held, len(problem.y), lag),
+                              rows_segments(rest, len(problem.y), 0)))
         if len(folds) == k and all(f.train.sum() > 0 for f in folds):
             return folds
         k -= 1

@@ -14,7 +14,7 @@ import numpy as np
 
 from ..errors import DataError, SettingsError
 from ..model.narx import NarxModel
-from ..model.segments import normalise_segments
+from ..model.segments import rows_segments
 from ..model.uncertainty import Band, output_band
 from .correlation import CorrelationTest, correlation_tests
 
@@ -234,7 +234,7 @@ def validate_model(
     lag0 = model.term_space.max_lag
     if len(y) != len(u):
         raise DataError(f"u and y differ in length: {len(u)} and {len(y)}")
-    segments = [(a, b) for a, b in normalise_segments(segments, len(y)) if b - a > lag0]
+    segments = rows_segments(segments, len(y), lag0)
     rows = sum(b - a - lag0 for a, b in segments)
     if rows < max(3, correlation_lags + 1):
         raise DataError(f"too few samples to validate: {rows} regression rows (need at "
