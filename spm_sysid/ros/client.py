@@ -36,20 +36,30 @@ CANCEL_WAIT = 10.0
 SAY_WAITING = 3.0
 
 
-def wait_for(ready, what: str, timeout: float) -> bool:
+def wait_for(ready, what: str, timeout: float) -> None:
     """Wait up to ``timeout`` s for ``ready(seconds)``; say so on stderr after a moment.
 
     With no node running, a user learns at once that the command waits, and
-    for how long, instead of staring at a silent terminal.
+    for how long, instead of staring at a silent terminal. ``what`` names it
+    (``service /spm_sysid/clear``).
+
+    Raises
+    ------
+    TimeoutError
+        Not there within ``timeout`` seconds.
     """
     first = min(timeout, SAY_WAITING)
     if ready(first):
-        return True
-    if timeout <= first:
-        return False
-    print(f"still waiting for {what} after {first:g} s (up to {timeout - first:.0f} s more; is "
-          "sysid_node running, with the same ROS_DOMAIN_ID?) ...", file=sys.stderr, flush=True)
-    return ready(timeout - first)
+        return
+    name = what.split(" ", 1)[-1]
+    if timeout > first:
+        print(f"still waiting for {name} after {first:g} s (up to {timeout - first:.0f} s "
+              "more; is sysid_node running, with the same ROS_DOMAIN_ID?) ...",
+              file=sys.stderr, flush=True)
+        if ready(timeout - first):
+            return
+    raise TimeoutError(f"{what} is not available (is sysid_node running, with the same "
+                       "ROS_DOMAIN_ID?)")
 
 
 def set_parameters(node: Node, target: str, timeout: float = 10.0, **values) -> None:
@@ -91,10 +101,8 @@ def call_trigger(node: Node, service: str, timeout: float = 300.0) -> tuple[bool
     client = node.create_client(Trigger, service, qos_profile=REQUESTS)
     try:
         deadline = time.monotonic() + timeout
-        if not wait_for(lambda t: client.wait_for_service(timeout_sec=t), service,
-                        min(timeout, 30.0)):
-            raise TimeoutError(f"service {service} is not available (is sysid_node running, "
-                               "with the same ROS_DOMAIN_ID?)")
+        wait_for(lambda t: client.wait_for_service(timeout_sec=t), f"service {service}",
+                 min(timeout, 30.0))
         future = client.call_async(Trigger.Request())
         rclpy.spin_until_future_complete(node, future,
                                          timeout_sec=max(0.1, deadline - time.monotonic()))
@@ -157,10 +165,8 @@ def identify_goal(node: Node, action: str, overrides: dict[str, str] | None = No
                           cancel_service_qos_profile=REQUESTS)
     try:
         deadline = time.monotonic() + timeout
-        if not wait_for(lambda t: client.wait_for_server(timeout_sec=t), action,
-                        min(timeout, 30.0)):
-            raise TimeoutError(f"action {action} is not available (is sysid_node running, "
-                               "with the same ROS_DOMAIN_ID?)")
+        wait_for(lambda t: client.wait_for_server(timeout_sec=t), f"action {action}",
+                 min(timeout, 30.0))
         goal = Identify.Goal(setting_names=list(overrides),
                              setting_values=[str(v) for v in overrides.values()],
                              bag_path=bag_path)
