@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 # ROS traffic stays on this machine; each target picks its own domain.
 export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
 
-.PHONY: setup run identify test lint bench bench-sizes bench-node bench-dask bench-certify bench-generalise bench-speed bench-online bench-mimo bag experiment report clean
+.PHONY: setup run identify test lint bench bench-sizes bench-node bench-dask bench-certify bench-generalise bench-speed bench-online bench-mimo bench-accuracy bag experiment report clean
 
 INTERFACES := $(wildcard interfaces/spm_sysid_interfaces/*.* interfaces/spm_sysid_interfaces/*/*)
 
@@ -73,6 +73,11 @@ bench-certify: $(KERNELS)
 bench-speed: $(KERNELS)
 	$(BIN)/python -m pip install --quiet -e '.[bench]'
 	$(BIN)/python -m spm_sysid.bench.speed --large
+
+## Second-half free run against the linear ARX yardstick: robot arm, dryer, heat exchanger,
+## two tanks, the two-link arm (two outputs).
+bench-accuracy: $(KERNELS)
+	$(BIN)/python -m spm_sysid.bench.accuracy
 
 ## Models on data they were not fitted on: two-tank cascade, robot-arm halves, coverage.
 bench-generalise: $(KERNELS)

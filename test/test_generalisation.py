@@ -247,3 +247,36 @@ def test_the_default_simulation_focus_never_returns_a_model_that_diverges_on_new
     assert sel["held_out_mse"] is not None and sel["finalists"] >= 2
     assert sel["removed_by_guard"] >= 1  # structures that explode off the data exist here
     assert m.criterion_value is not None
+
+
+def test_the_arx_yardstick_is_plain_least_squares_and_finds_the_true_order():
+    """Against an independent fit (normal equations, a loop over the rows)."""
+    from spm_sysid.core.validate.arx import choose_arx, fit_arx, fit_percent, rmse
+
+    rng = np.random.default_rng(4)
+    n = 1500
+    u = rng.standard_normal(n)
+    y = np.zeros(n)
+    for t in range(2, n):  # an ARX(2) system with a constant, a little noise
+        y[t] = 1.2 * y[t - 1] - 0.5 * y[t - 2] + 0.7 * u[t - 1] + 0.2 * u[t - 2] + 0.3
+    y += 0.01 * rng.standard_normal(n)
+    for order in (1, 2, 3):
+        rows = []
+        for t in range(order, n):
+            rows.append([*(y[t - i] for i in range(1, order + 1)),
+                         *(u[t - i] for i in range(1, order + 1)), 1.0])
+        X = np.array(rows)
+        expected = np.linalg.solve(X.T @ X, X.T @ y[order:])
+        np.testing.assert_allclose(fit_arx(u, y, order).theta[:, 0], expected, rtol=1e-7,
+                                   atol=1e-9)
+    # regressors: y(t-1), y(t-2), u(t-1), u(t-2), then the constant
+    np.testing.assert_allclose(fit_arx(u, y, 2).theta[:, 0], [1.2, -0.5, 0.7, 0.2, 0.3],
+                               atol=0.05)
+    model = choose_arx(u[:1000], y[:1000])
+    assert model.order >= 2  # order 1 cannot simulate it
+    sim = model.simulate(u[1000:], y[1000:])
+    assert np.array_equal(sim[:model.order, 0], y[1000:1000 + model.order])  # measured start
+    assert fit_percent(y[1000:], sim, 10)[0] > 98.0 and rmse(y[1000:], sim, 10)[0] < 0.05
+    wild = fit_arx(u, y, 2)
+    wild = type(wild)(2, wild.theta * 10.0)  # an unstable model: its run diverges
+    assert np.isnan(wild.simulate(u, y)[-1, 0]) and rmse(y, wild.simulate(u, y))[0] == np.inf
