@@ -280,3 +280,32 @@ def test_the_arx_yardstick_is_plain_least_squares_and_finds_the_true_order():
     wild = fit_arx(u, y, 2)
     wild = type(wild)(2, wild.theta * 10.0)  # an unstable model: its run diverges
     assert np.isnan(wild.simulate(u, y)[-1, 0]) and rmse(y, wild.simulate(u, y))[0] == np.inf
+
+
+def test_orders_auto_finds_the_true_lags_and_degree_and_says_why():
+    from spm_sysid.core.errors import SettingsError
+    from spm_sysid.core.jobs import JobSettings, run_job
+    from spm_sysid.core.record import Record
+
+    rng = np.random.default_rng(7)
+    n = 1500
+    u = rng.uniform(-1, 1, n)
+    y = np.zeros(n)
+    for t in range(2, n):  # lags 2 and 2, degree 2
+        y[t] = (0.5 * y[t - 1] - 0.2 * y[t - 2] + 0.8 * u[t - 1] + 0.3 * u[t - 2]
+                + 0.25 * y[t - 1] * u[t - 1])
+    y += 0.002 * rng.standard_normal(n)
+    result = run_job(Record.from_samples(u, y, source="narx"),
+                     JobSettings.from_values({"orders": "auto", "criterion": "bic", "seed": 0}))
+    space = result.model.term_space
+    assert (space.ny, space.nu, space.degree) == (2, 2, 2)
+    orders = result.model.metadata["orders"]  # the document says what and why
+    assert orders["mode"] == "auto" and (orders["ny"], orders["degree"]) == (2, 2)
+    assert "order 2" in orders["reason"] and len(orders["order_scan"]) == 10
+    assert "orders from the data: ny = nu = 2, degree 2" in result.summary("lines")
+    assert set(result.model.terms) >= {"y(t-1)", "y(t-2)", "u(t-1)", "u(t-2)",
+                                        "y(t-1)*u(t-1)"}
+    both = Record.from_samples(np.column_stack([u, u]), np.column_stack([y, y[::-1]]),
+                               source="two", input_names=("a", "b"), output_names=("p", "q"))
+    with pytest.raises(SettingsError, match="orders: auto proposes the lags of one output"):
+        run_job(both, JobSettings.from_values({"orders": "auto"}))

@@ -9,12 +9,14 @@ the second half's free-run RMSE and fit for
   :mod:`spm_sysid.core.validate.arx`);
 * the default identification with the simulation focus (``--focus simulation
   --constant --criterion bic --seed 1``, the paper's space);
-* ``--orders auto`` (orders chosen from the data): not built yet, printed as such.
+* the same with ``--orders auto`` (the lags and degree proposed from the first
+  half, as ``propose-lags`` does).
 
 Records: the robot arm, the dryer and the heat exchanger (``../shared/data``;
 skipped with a line when missing), the two-tank simulator, and the two-link
 arm with two outputs (coupled free run, against a linear MIMO ARX fitted the
-same way; both focuses). Figures, not assertions.
+same way; both focuses; ``--orders auto`` is for one output). Figures, not
+assertions.
 """
 
 from __future__ import annotations
@@ -112,7 +114,10 @@ def run(args) -> None:
         model, seconds = _narx(u1, y1, base)
         print(_line("default, --focus simulation", y2, _narx_run(model, u2, y2),
                     f"{len(model.terms)} terms", seconds))
-        print(f"  {'--orders auto':<40} not built yet (issue 32)")
+        model, seconds = _narx(u1, y1, {**base, "orders": "auto"})
+        o = model.metadata["orders"]
+        print(_line(f"--orders auto (chose {o['ny']}, {o['nu']}, {o['degree']})", y2,
+                    _narx_run(model, u2, y2), f"{len(model.terms)} terms", seconds))
         sys.stdout.flush()
     tau1, q1 = two_link.record(args.samples, seed=0)
     tau2, q2 = two_link.record(args.samples, seed=1)

@@ -222,6 +222,12 @@ def run_mimo_job(record: Record, settings, *, progress: ProgressFn | None = None
 
     Parameters and errors as for :func:`~spm_sysid.core.jobs.single.run_single_job`.
     """
+    if settings.orders == "auto":
+        from ..errors import SettingsError
+
+        raise SettingsError("orders: auto proposes the lags of one output; for several "
+                            "outputs give ny, nu and degree (spm-sysid propose-lags on each "
+                            "output helps)")
     t0 = time.perf_counter()
     names = tuple(record.output_names)
     clash = set(names) & set(record.input_names)

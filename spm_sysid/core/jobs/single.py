@@ -39,7 +39,8 @@ from ..validate.validation import (
 )
 from .settings import JobSettings
 
-__all__ = ["JobResult", "describe_selection", "run_single_job", "validation_segments"]
+__all__ = ["JobResult", "choose_orders", "describe_selection", "run_single_job",
+           "validation_segments"]
 
 
 @dataclass
@@ -93,6 +94,11 @@ class JobResult:
                     f"({pol['steps']} step(s))" + (f", {cert}" if cert else ""))
         warnings = m.metadata.get("warnings") or []
         selected = describe_selection(m.metadata.get("selection"))
+        orders = m.metadata.get("orders")
+        if orders:
+            selected = (f"orders from the data: ny = nu = {orders['ny']}, degree "
+                        f"{orders['degree']} ({orders['reason']})"
+                        + (f"; {selected}" if selected else ""))
         if style == "line":
             text = (f"{m.equation()} | {crit} {value:.2f}, {len(m.term_indices)} terms, "
                     f"one-step MSE {m.mse:.4e}, {describe_data(self.data)}")
@@ -146,6 +152,42 @@ def describe_selection(doc: dict | None) -> str:
                      "left the output's range off the estimation data")
         return text
     return f"selected by the criterion on the estimation data ({doc.get('note', '')})"
+
+
+def choose_orders(record: Record, settings: JobSettings, est) -> tuple[JobSettings, dict]:
+    """``orders: auto``: the settings with the lags and degree proposed from the data, and why.
+
+    The proposal (:func:`~spm_sysid.core.validate.orders.propose_orders`) runs on
+    the longest estimation segment, with the job's criterion when it is AIC or
+    BIC (else BIC): ``ny = nu`` = the order whose full linear model scores best,
+    the degree whose forward selection scores best.
+    """
+    from dataclasses import replace
+
+    from ..validate.orders import propose_orders
+
+    a, b = max(est, key=lambda seg: seg[1] - seg[0])
+    space = settings.term_space
+    crit = settings.criterion if settings.criterion in ("aic", "bic") else "bic"
+    delay = min(space.delays)
+    try:
+        proposal = propose_orders(record.u[a:b], record.y[a:b], delay=delay, criterion=crit,
+                                  inputs=space.inputs)
+    except ValueError as exc:
+        raise DataError(f"orders: auto cannot propose lags on this data ({exc}); give ny, nu "
+                        "and degree") from None
+    n, d = proposal.order, proposal.degree
+    chosen = replace(space, ny=n, nu=n, degree=d)
+    why = {"mode": "auto", "ny": n, "nu": n, "degree": d, "criterion": proposal.criterion,
+           "samples": int(b - a),
+           "reason": f"order {n}: the full linear model of lags 1..n scores best by "
+                     f"{proposal.criterion.upper()} among 1..{len(proposal.order_scan)}; "
+                     f"degree {d}: forward selection scores best among "
+                     f"{', '.join(str(row[0]) for row in proposal.degree_scan)}",
+           "order_scan": [[int(k), float(v)] for k, v in proposal.order_scan],
+           "degree_scan": [[int(row[0]), int(row[1]), float(row[2]), int(row[3])]
+                           for row in proposal.degree_scan]}
+    return replace(settings, term_space=chosen), why
 
 
 def validation_segments(record: Record, settings: JobSettings
@@ -224,9 +266,13 @@ def run_single_job(
     report = progress or (lambda p: None)
     report(Progress("checking data", elapsed=0.0))
     settings = settings.for_signals(record.input_names, record.output_name)
-    space = settings.term_space
     u, y = record.u, record.y
     est, val, data = validation_segments(record, settings)
+    orders = None
+    if settings.orders == "auto":  # the lags and degree from the estimation data
+        settings, orders = choose_orders(record, settings, est)
+        est, val, data = validation_segments(record, settings)
+    space = settings.term_space
 
     def throttled(p: Progress) -> None:
         if p.phase != "search" or p.step % progress_every == 0 or p.step == p.total:
@@ -249,6 +295,8 @@ def run_single_job(
         store_monitor_reference(model.metadata, validation.residuals, u)
     t2 = time.perf_counter()
     seconds = {"search": t1 - t0, "validation": t2 - t1, "total": t2 - t0}
+    if orders is not None:
+        model.metadata["orders"] = orders
     model.metadata["data"] = data
     model.metadata["samples_used"] = data["used_samples"]
     model.metadata.update(record.metadata())
