@@ -161,16 +161,25 @@ def is_rosbag2_dir(path: Path) -> bool:
     return "rosbag2_bagfile_information" in head
 
 
-def _foreign_files(path: Path) -> list[str]:
-    """Entries of a bag directory that are not the bag's own files."""
+def _listed_files(path: Path) -> set[str]:
+    """The files a bag directory's ``metadata.yaml`` lists (none when it cannot be read).
+
+    Only a regular ``metadata.yaml`` is opened (a pipe would block).
+    """
     import yaml
 
-    own = {"metadata.yaml"}
+    if _kind(path / "metadata.yaml") != "a regular file":
+        return set()
     try:
-        meta = yaml.safe_load((path / "metadata.yaml").read_text())
-        own |= {str(p) for p in meta["rosbag2_bagfile_information"]["relative_file_paths"]}
+        meta = yaml.safe_load((path / "metadata.yaml").read_text(errors="replace"))
+        return {str(p) for p in meta["rosbag2_bagfile_information"]["relative_file_paths"]}
     except (OSError, yaml.YAMLError, KeyError, TypeError):
-        pass
+        return set()  # rosbags' reader names what is wrong with the metadata
+
+
+def _foreign_files(path: Path) -> list[str]:
+    """Entries of a bag directory that are not the bag's own files."""
+    own = {"metadata.yaml"} | _listed_files(path)
     out = []
     for entry in sorted(path.iterdir()):
         if entry.name in own and entry.is_file() and not entry.is_symlink():
@@ -391,18 +400,8 @@ def _check_bag_files(path: Path) -> None:
 
     A pipe named ``*.mcap`` (or the metadata) would block the reader forever.
     """
-    import yaml
-
     names = {"metadata.yaml"} | {e.name for e in path.glob("*.mcap")} | {
-        e.name for e in path.glob("*.db3")}
-    kind = _kind(path / "metadata.yaml")
-    if kind == "a regular file":
-        try:
-            meta = yaml.safe_load((path / "metadata.yaml").read_text(errors="replace"))
-            names |= {str(p) for p in meta["rosbag2_bagfile_information"]
-                      ["relative_file_paths"]}
-        except (OSError, yaml.YAMLError, KeyError, TypeError):
-            pass  # rosbags' reader names what is wrong with the metadata
+        e.name for e in path.glob("*.db3")} | _listed_files(path)
     for name in sorted(names):
         kind = _kind(path / name)
         if kind is not None and kind != "a regular file":
