@@ -283,7 +283,6 @@ def test_the_arx_yardstick_is_plain_least_squares_and_finds_the_true_order():
 
 
 def test_orders_auto_finds_the_true_lags_and_degree_and_says_why():
-    from spm_sysid.core.errors import SettingsError
     from spm_sysid.core.jobs import JobSettings, run_job
     from spm_sysid.core.record import Record
 
@@ -305,7 +304,3 @@ def test_orders_auto_finds_the_true_lags_and_degree_and_says_why():
     assert "orders from the data: ny = nu = 2, degree 2" in result.summary("lines")
     assert set(result.model.terms) >= {"y(t-1)", "y(t-2)", "u(t-1)", "u(t-2)",
                                         "y(t-1)*u(t-1)"}
-    both = Record.from_samples(np.column_stack([u, u]), np.column_stack([y, y[::-1]]),
-                               source="two", input_names=("a", "b"), output_names=("p", "q"))
-    with pytest.raises(SettingsError, match="orders: auto proposes the lags of one output"):
-        run_job(both, JobSettings.from_values({"orders": "auto"}))

@@ -30,8 +30,15 @@ from .progress import Progress, ProgressFn
 from .search.ga import GAConfig, GAResult, GenerationStats, run_ga
 from .search.local import polish
 from .select.simulation import select_for_simulation, validated_simulation
-from .select.validated import blocked_folds, candidate_structures, cv_scores
+from .select.validated import (
+    FOLDS,
+    SIMULATION_FOLDS,
+    blocked_folds,
+    candidate_structures,
+    cv_scores,
+)
 from .settings import SETTINGS, check
+from .validate.open_loop import HORIZON, open_loop_check
 
 __all__ = ["FOCUS", "SELECTION", "IdentificationResult", "check_samples", "identify",
            "identify_problem", "select_for_simulation", "validate_signals"]
@@ -185,6 +192,8 @@ def identify_problem(
     check_data: bool = True,
     polish: bool = True,
     auto_certify_time_limit: float = 10.0,
+    horizon: int = 0,
+    simulation_folds: int = SIMULATION_FOLDS,
     progress: ProgressFn | None = None,
     started: float | None = None,
 ) -> IdentificationResult:
@@ -195,7 +204,11 @@ def identify_problem(
     ``started`` is ``time.perf_counter()`` at the job's start (progress reports
     count their seconds from it; default: now). ``check_data``: run the data
     check (:mod:`spm_sysid.core.validate.excitation`) first; its warnings go into
-    ``model.metadata["warnings"]``.
+    ``model.metadata["warnings"]``. ``horizon``: the k of the k-step prediction that
+    integrating or open-loop unstable records are judged on with the simulation focus
+    (0: :data:`~spm_sysid.core.validate.open_loop.HORIZON`). ``simulation_folds``: held-out
+    blocks of the simulation focus (:data:`~spm_sysid.core.select.validated.SIMULATION_FOLDS`;
+    the accuracy benchmark measures the linear/nonlinear call with fewer).
     """
     crit = get_criterion(criterion)  # the name (checked at the edge) to its object, once
     started = time.perf_counter() if started is None else started
@@ -224,7 +237,16 @@ def identify_problem(
         )
     polished = _polish(problem, evaluator, result) if polish else None
     mode, note = _selection_mode(selection, focus, problem)
-    folds = blocked_folds(problem)
+    open_loop = None
+    if focus == "simulation":
+        open_loop = open_loop_check(problem.u, problem.y, problem.segments,
+                                    min(max(problem.term_space.ny, 2), 10))
+    k_step = None
+    if open_loop is not None and not open_loop.free_run_applies:
+        k_step = horizon or HORIZON
+        warnings.append(open_loop.reason().replace("judged on the k-step prediction",
+                                                   f"judged on the {k_step}-step prediction"))
+    folds = blocked_folds(problem, simulation_folds if focus == "simulation" else FOLDS)
     if mode == "validated" and not folds:
         mode, note = "criterion", "the record is too short for held-out blocks"
     certificate = None
@@ -254,12 +276,14 @@ def identify_problem(
            else {}),
         **({"certificate": certificate} if certificate is not None else {}),
         **({"data_check": data_check.to_dict()} if data_check is not None else {}),
+        **({"open_loop": {**open_loop.to_dict(), **({"horizon": k_step} if k_step else {})}}
+           if open_loop is not None else {}),
     }
-    simulate = focus == "simulation"
+    simulate = focus == "simulation" and k_step is None
     chosen = None
     if mode == "validated":
         model, chosen = _select_validated(problem, evaluator, folds, crit, shortlist,
-                                          max_terms, simulate, report, started)
+                                          max_terms, simulate, report, started, k_step)
         model.metadata = {**info, **model.metadata}
     elif simulate:
         candidates = problem.expand(evaluator.ranked(shortlist))
@@ -269,7 +293,7 @@ def identify_problem(
         model = problem.model(result.best_mask, criterion=crit.name,
                               criterion_value=result.best_score, metadata=info)
     model.metadata["selection"] = _generalisation(problem, folds, model, mode, note, simulate,
-                                                  chosen)
+                                                  chosen, k_step)
     warnings += _overfit_warnings(problem, model)
     if warnings:
         model.metadata["warnings"] = warnings
@@ -311,8 +335,11 @@ def _selection_mode(selection: str, focus: str, problem: Problem) -> tuple[str, 
 
 
 def _select_validated(problem, evaluator, folds, crit, shortlist, max_terms, simulate,
-                      report, started) -> tuple[NarxModel, dict]:
-    """Validated selection (see :mod:`spm_sysid.core.select.validated`); model and record."""
+                      report, started, k_step=None) -> tuple[NarxModel, dict]:
+    """Validated selection (see :mod:`spm_sysid.core.select.validated`); model and record.
+
+    ``k_step``: judge on the held-out k-step prediction (an integrating record).
+    """
     from .search.forward import forward_selection_path
 
     limit = min(60, max(1, problem.rows // AUTO_ROWS_PER_TERM))
@@ -340,7 +367,8 @@ def _select_validated(problem, evaluator, folds, crit, shortlist, max_terms, sim
     if simulate:
         return validated_simulation(problem, candidates, folds, crit, max_terms, report,
                                     started)
-    scores = cv_scores(problem, folds, candidates, simulate=False)
+    scores = cv_scores(problem, folds, candidates, simulate=k_step is not None,
+                       horizon=k_step)
     report(Progress("refinement", len(candidates), len(candidates),
                     elapsed=time.perf_counter() - started))
     i = scores.best()
@@ -353,12 +381,12 @@ def _select_validated(problem, evaluator, folds, crit, shortlist, max_terms, sim
                    "candidates": len(candidates)}
 
 
-def _generalisation(problem, folds, model, mode, note, simulate, chosen) -> dict:
+def _generalisation(problem, folds, model, mode, note, simulate, chosen, k_step=None) -> dict:
     """How the structure was chosen and how it does on held-out data (the document's)."""
-    what = "free-run" if simulate else "one-step"
+    what = f"{k_step}-step" if k_step else "free-run" if simulate else "one-step"
     out = {"method": mode, "note": note, "what": what, "folds": len(folds)}
     if chosen is None and folds:
-        sc = cv_scores(problem, folds, [model.mask], simulate)
+        sc = cv_scores(problem, folds, [model.mask], simulate or bool(k_step), horizon=k_step)
         chosen = {"held_out_mse": sc.mean[0], "held_out_stderr": sc.stderr[0]}
     if chosen:
         out.update({k: (None if isinstance(v, float) and not np.isfinite(v) else v)

@@ -34,17 +34,17 @@ from typing import Any
 
 import numpy as np
 
-from ..model.coupled import refine_coupled
 from ..model.mimo import MimoModel, augmented_inputs, in_threads, output_space
 from ..online.monitor import store_monitor_reference
 from ..progress import Progress, ProgressFn
 from ..record import Record
+from ..select.coupled import select_coupled
 from ..validate.correlation import CorrelationTest, ccf
 from ..validate.validation import metrics, validate_model
-from .single import run_single_job, validation_segments
+from .single import choose_orders, run_single_job, validation_segments
 
 __all__ = ["MimoJobResult", "couple_reports", "cross_correlation_tests", "cross_summary",
-           "run_mimo_job"]
+           "describe_coupled", "run_mimo_job"]
 
 
 @dataclass
@@ -110,25 +110,52 @@ class MimoJobResult:
                  "residual cross-correlation between outputs: " + (
                      "inside the band" if not failed else "outside the band: "
                      + ", ".join(failed)))
+        sel = self.model.metadata.get("coupled_selection") or {}
+        first = (f"WARNING: {sel['all_diverge']}; the outputs' own choices are returned and "
+                 "do not simulate coupled" if sel.get("all_diverge") else "")
         if style == "line":
             parts = [f"{name}: {r.summary('line')}" for name, r in
                      zip(self.output_names, self.outputs)]
-            return " || ".join(parts) + f" || {joint}" + (f", {cross}" if cross else "")
-        blocks = []
+            coupled = describe_coupled(sel)
+            return ((f"{first} || " if first else "") + " || ".join(parts) + f" || {joint}"
+                    + (f", {coupled}" if coupled and not first else "")
+                    + (f", {cross}" if cross else ""))
+        blocks = [first] if first else []
         for name, r in zip(self.output_names, self.outputs):
             text = r.summary("lines").replace("\n  free-run:", "\n  coupled free-run:")
             blocks.append(f"== output {name} ==\n{text}")
         refined = self.model.metadata.get("coupled_refinement")
         if refined:
             blocks.append(
-                "simulation focus: the outputs' coefficients refined jointly on the coupled "
-                f"free-run error ({refined['evaluations']} runs): normalised SSE "
+                "the outputs' coefficients refined jointly on the coupled free-run error "
+                f"({refined['evaluations']} runs): normalised SSE "
                 f"{refined['before']:.4g} -> {refined['after']:.4g}" if refined["taken"] else
-                f"simulation focus: joint refinement not taken ({refined.get('message')})")
+                f"joint refinement not taken ({refined.get('message')})")
+        coupled = describe_coupled(self.model.metadata.get("coupled_selection"))
+        if coupled:
+            blocks.append(coupled)
         blocks.append(joint)
         if self.cross_tests:
             blocks.append(cross_summary(self.cross_tests))
         return "\n".join(blocks)
+
+
+def describe_coupled(doc: dict | None) -> str:
+    """The coupled judgement in a sentence ('' when there is none)."""
+    if not doc or doc.get("all_diverge") or "chosen" not in doc:
+        return ""
+    text = (f"coupled judgement on {doc['folds']} held-out blocks: {doc['chosen']} "
+            f"({doc['fitted']})")
+    if doc.get("p_value") is not None:
+        verdict = ("better than the best linear by more than the noise"
+                   if doc.get("choice") == "nonlinear" else
+                   "not better than the best linear by more than the noise")
+        text += (f"; the best nonlinear finalist's coupled error is {doc['ratio']:.2f}x the "
+                 f"best linear's (p = {doc['p_value']:.3g}): {verdict}")
+    removed = doc.get("removed_by_guard") or []
+    if removed:
+        text += f"; {len(removed)} finalist(s) removed because their coupled run diverged"
+    return text
 
 
 def cross_correlation_tests(residuals: np.ndarray, names: tuple[str, ...],
@@ -215,6 +242,37 @@ def cross_summary(tests: list[CorrelationTest]) -> str:
     return "\n".join(lines)
 
 
+def _view(record: Record, space, names, i: int) -> Record:
+    """The record seen from output ``i``: the inputs, then the other outputs as inputs."""
+    return replace(record, u=augmented_inputs(record.u, record.y, i), y=record.y[:, i],
+                   output_name=names[i], output_names=(names[i],), input_names=space.inputs)
+
+
+def _choose_mimo_orders(record: Record, base) -> tuple[Any, dict]:
+    """``orders: auto`` for several outputs: each output's proposal, the largest kept.
+
+    Each output is seen with the inputs and the other outputs as inputs
+    (:func:`~spm_sysid.core.jobs.single.choose_orders` on that view); the one
+    space of every output takes the largest order and the largest degree.
+    """
+    names = tuple(record.output_names)
+    est, _, _ = validation_segments(record, base)
+    per = {}
+    for i, name in enumerate(names):
+        space = output_space(base.term_space, names, i)
+        _, why = choose_orders(_view(record, space, names, i),
+                               replace(base, term_space=space), est)
+        per[name] = why
+    n = max(w["ny"] for w in per.values())
+    d = max(w["degree"] for w in per.values())
+    chosen = replace(base.term_space, ny=n, nu=n, degree=d)
+    doc = {"mode": "auto", "ny": n, "nu": n, "degree": d,
+           "reason": "the largest of the outputs' proposals: " + "; ".join(
+               f"{k}: order {w['ny']}, degree {w['degree']}" for k, w in per.items()),
+           "per_output": per}
+    return replace(base, term_space=chosen, options={**base.options, "orders": "given"}), doc
+
+
 def run_mimo_job(record: Record, settings, *, progress: ProgressFn | None = None,
                  progress_every: int = 25, metadata: Mapping[str, Any] | None = None
                  ) -> MimoJobResult:
@@ -222,12 +280,6 @@ def run_mimo_job(record: Record, settings, *, progress: ProgressFn | None = None
 
     Parameters and errors as for :func:`~spm_sysid.core.jobs.single.run_single_job`.
     """
-    if settings.orders == "auto":
-        from ..errors import SettingsError
-
-        raise SettingsError("orders: auto proposes the lags of one output; for several "
-                            "outputs give ny, nu and degree (spm-sysid propose-lags on each "
-                            "output helps)")
     t0 = time.perf_counter()
     names = tuple(record.output_names)
     clash = set(names) & set(record.input_names)
@@ -237,6 +289,9 @@ def run_mimo_job(record: Record, settings, *, progress: ProgressFn | None = None
                         "(set output_names or input_names)")
     Y, u = record.y, record.u
     base = settings.for_signals(record.input_names, names[0])
+    orders = None
+    if base.orders == "auto":  # every output's proposal; the space holds the largest
+        base, orders = _choose_mimo_orders(record, base)
     lock = threading.Lock()
 
     def relay(p: Progress) -> None:
@@ -246,28 +301,33 @@ def run_mimo_job(record: Record, settings, *, progress: ProgressFn | None = None
 
     def one(i: int):
         space = output_space(base.term_space, names, i)
-        rec = replace(record, u=augmented_inputs(u, Y, i), y=Y[:, i], output_name=names[i],
-                      output_names=(names[i],), input_names=space.inputs)
-        return run_single_job(rec, replace(base, term_space=space), progress=relay,
-                       progress_every=progress_every, metadata=metadata)
+        return run_single_job(_view(record, space, names, i),
+                              replace(base, term_space=space), progress=relay,
+                              progress_every=progress_every, metadata=metadata)
 
     outputs = in_threads(one, len(names))
     seconds = {name: r.seconds.get("total", 0.0) for name, r in zip(names, outputs)}
     model = MimoModel.joined(names, tuple(record.input_names), [r.model for r in outputs])
     est, val, _ = validation_segments(record, base)
-    if settings.focus == "simulation":  # the coefficients refined jointly, coupled
-        relay(Progress("refinement", elapsed=time.perf_counter() - t0))
-        model, info = refine_coupled(model, u, Y, est)
-        model.metadata["coupled_refinement"] = info
-        if info["taken"]:
-            for i, r in enumerate(outputs):
-                r.model = model.models[i]
-                if r.report is not None:
-                    r.report = validate_model(
-                        r.model, augmented_inputs(u, Y, i), Y[:, i],
-                        correlation_lags=settings.correlation_lags,
-                        segment=settings.validation, segments=val,
-                        horizon=settings.horizon or None)
+    # the coupled judgement, in both focuses: the joined model, its joint refinement
+    # and the linear MIMO ARX structures compete on the coupled run
+    relay(Progress("refinement", elapsed=time.perf_counter() - t0))
+    chosen, account = select_coupled(model, u, Y, est)
+    if chosen is not model:
+        model = replace(chosen, metadata={**model.metadata, **chosen.metadata})
+        model.metadata["joint_criterion"] = MimoModel.joined(
+            names, model.inputs, model.models).metadata["joint_criterion"]
+        for i, r in enumerate(outputs):
+            r.model = model.models[i]
+            if r.report is not None:
+                r.report = validate_model(
+                    r.model, augmented_inputs(u, Y, i), Y[:, i],
+                    correlation_lags=settings.correlation_lags,
+                    segment=settings.validation, segments=val,
+                    horizon=settings.horizon or None)
+    model.metadata["coupled_selection"] = account
+    if orders is not None:
+        model.metadata["orders"] = orders
     cross = []
     if settings.validation != "none":
         reports = [r.report for r in outputs]

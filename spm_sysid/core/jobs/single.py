@@ -146,6 +146,16 @@ def describe_selection(doc: dict | None) -> str:
         held = doc.get("held_out_mse")
         text = (f"selected by its {doc['what']} error on {doc['folds']} held-out blocks "
                 + (f"(MSE {held:.4g})" if held is not None else ""))
+        call = doc.get("linear_or_nonlinear") or {}
+        if call.get("p_value") is not None:
+            verdict = ("simulates them better than the best linear one by more than the noise"
+                       if call["choice"] == "nonlinear" else
+                       "is not better than the best linear one by more than the noise: "
+                       "linear kept")
+            text += (f"; the nonlinear candidate's held-out error is {call['ratio']:.2f}x the "
+                     f"best linear's (p = {call['p_value']:.3g}): it {verdict}")
+        elif call.get("choice") == "linear":
+            text += "; no nonlinear finalist simulated the held-out blocks better than linear"
         removed = doc.get("removed_by_guard")
         if removed:
             text += (f"; the stability guard removed {removed} structure(s) whose simulation "

@@ -29,8 +29,11 @@ from ..progress import Progress, ProgressFn
 from ..search.local import SearchResult, local_search
 from .validated import Scores, stress_check
 
-__all__ = ["FINALISTS", "FOLD_STEPS", "PER_SIZE", "SEARCH_STEPS", "SimulationScorer",
-           "select_for_simulation", "simulation_value", "validated_simulation"]
+__all__ = ["FINALISTS", "FOLD_STEPS", "PER_SIZE", "SEARCH_STEPS", "SIGNIFICANCE",
+           "SimulationScorer", "choose_nonlinear_or_linear", "linear_masks",
+           "linear_structures", "paired_p_value",
+           "select_for_simulation", "shrink_to_hold", "simulation_value",
+           "validated_simulation"]
 
 #: Levenberg-Marquardt evaluations per move of the simulation-focused local search
 #: (warm-started from the neighbour; the winner is then refined to convergence).
@@ -41,6 +44,11 @@ FINALISTS = 8
 PER_SIZE = 2
 #: Levenberg-Marquardt evaluations of a fold's fit (from least squares on its rows).
 FOLD_STEPS = 100
+#: How a finalist's coefficients are estimated; each is judged on the held-out blocks
+#: and the better one of each structure competes: least squares, or least squares
+#: refined on the free-run error (which helps nonlinear structures most and on short
+#: records can overfit).
+ESTIMATORS = ("least squares", "refined")
 
 
 def simulation_value(criterion: Criterion, sse: float, rows: int, mask: np.ndarray,
@@ -223,57 +231,90 @@ def validated_simulation(problem, candidates, folds, crit, max_terms, report,
                          started) -> tuple[NarxModel, dict]:
     """Simulation focus, validated: screen in-sample, judge finalists on held-out blocks.
 
-    1. every candidate by the criterion of its free-run error after a short
-       refinement on all estimation data (:class:`SimulationScorer`, at most
-       :data:`SEARCH_STEPS` evaluations);
+    1. every candidate, and the full linear ARX structure of every order in the
+       space (:func:`linear_structures`), by the criterion of its free-run
+       error after a short refinement on all estimation data
+       (:class:`SimulationScorer`, at most :data:`SEARCH_STEPS` evaluations);
     2. finalists: for each highest degree (linear, quadratic, ...) the best
        screened structures of each size, up to :data:`FINALISTS` sizes spread
-       over the range (the group's best always among them) -- the held-out
-       blocks decide how large and how nonlinear a model the data support;
-       each fold fits least squares on its rows, refines on its free-run
-       error over its segments, and simulates the held-out block; a
+       over the range (the group's best always among them), and every linear
+       ARX structure; each fold fits least squares on its rows, refines on its
+       free-run error over its segments, and simulates the held-out block; a
        run that leaves the measured range rejects the structure;
-    3. the chosen (fewest terms within one standard error of the best held-out
-       error) is refined to convergence on all data and must pass the guard
-       (:func:`~spm_sysid.core.select.validated.stress_check`); otherwise the next.
+    3. the choice (:func:`choose_nonlinear_or_linear`): the best linear finalist
+       unless a nonlinear one simulates the held-out blocks better by more than
+       the noise of that comparison (a one-sided paired test over the blocks,
+       :data:`SIGNIFICANCE`); it is refined to convergence on all data and must
+       pass the guard (:func:`~spm_sysid.core.select.validated.stress_check`),
+       with its nonlinear terms shrunk if that is what it takes
+       (:func:`shrink_to_hold`); otherwise the next.
     """
     u, y, segments = problem.u, problem.y, problem.segments
     scorer = SimulationScorer(problem, crit, steps=SEARCH_STEPS, max_terms=max_terms,
                               progress=report, started=started)
-    for mask in candidates:
+    linear = linear_structures(problem)
+    for mask in list(candidates) + list(linear):
         scorer(mask)
     screened = scorer.scored
     finals = _finalists(screened, problem.term_space)
+    keys = {key for _, key in finals}
+    finals += [(screened[mask_key(m)][0], mask_key(m)) for m in linear
+               if mask_key(m) not in keys and np.isfinite(screened[mask_key(m)][0])]
     if not finals:
         raise DataError("every candidate structure's free-run simulation diverges on the "
                         "estimation data (or cannot be fitted): no model simulates")
     n = problem.term_space.n_terms
     scores = Scores()
-    for _, key in finals:
+    per_fold, estimator = [], []
+    for done, (_, key) in enumerate(finals):
         mask = key_mask(key, n)
-        values = [_fold_free_run(problem, fold, mask) for fold in folds]
-        scores.masks.append(mask)
-        if all(np.isfinite(values)):
-            scores.mean.append(float(np.mean(values)))
-            scores.stderr.append(float(np.std(values, ddof=1) / np.sqrt(len(values))))
-        else:
-            scores.mean.append(np.inf)
-            scores.stderr.append(np.inf)
-            scores.rejected += 1
-        report(Progress("refinement", len(scores.masks), len(finals),
+        both = np.array([_fold_free_run(problem, fold, mask) for fold in folds]).reshape(-1, 2)
+        rejected = False
+        for j, how in enumerate(ESTIMATORS):
+            values = list(both[:, j])
+            scores.masks.append(mask)
+            per_fold.append(values)
+            estimator.append(how)
+            if all(np.isfinite(values)):
+                scores.mean.append(float(np.mean(values)))
+                scores.stderr.append(float(np.std(values, ddof=1) / np.sqrt(len(values))))
+            else:
+                scores.mean.append(np.inf)
+                scores.stderr.append(np.inf)
+                rejected = True
+        scores.rejected += rejected
+        report(Progress("refinement", done + 1, len(finals),
                         elapsed=time.perf_counter() - started))
+    degree = np.array([len(t) for t in problem.term_space.terms])
+    order, decision = choose_nonlinear_or_linear(scores, per_fold, degree)
+    decision["estimator"] = estimator[order[0]] if order else None
     removed, reasons = scores.rejected, []
-    for i in scores.order():
+    linear_sse = _linear_free_run_sse(problem, scores, degree, screened)
+    tried = set()
+    for i in order:
         mask = scores.masks[i]
+        if (mask_key(mask), estimator[i]) in tried:
+            continue
+        tried.add((mask_key(mask), estimator[i]))
         model = screened[mask_key(mask)][1]
-        start = model.coefficients
-        final = refine_simulation(model, u, y, segments)
-        if final.success and np.isfinite(final.sse):
-            model.coefficients = final.coefficients
-        reason = stress_check(model, u, y, segments)
-        if reason and final.success:
-            model.coefficients = start
+        if estimator[i] == "least squares":  # as the held-out blocks judged it
+            model.coefficients = problem.model(mask).coefficients
+            final = None
             reason = stress_check(model, u, y, segments)
+        else:
+            start = model.coefficients
+            final = refine_simulation(model, u, y, segments)
+            if final.success and np.isfinite(final.sse):
+                model.coefficients = final.coefficients
+            reason = stress_check(model, u, y, segments)
+            if reason and final.success:
+                model.coefficients = start
+                reason = stress_check(model, u, y, segments)
+        shrunk = None
+        if reason and degree[mask].max() > 1:
+            shrunk = shrink_to_hold(model, u, y, segments, linear_sse)
+            if shrunk is not None:
+                reason = None
         if reason:
             removed += 1
             reasons.append(reason)
@@ -288,17 +329,172 @@ def validated_simulation(problem, candidates, folds, crit, max_terms, report,
         model.n_samples = problem.n_samples
         model.uncertainty = free_run_uncertainty(model, u, y, segments)
         model.metadata = {"simulation": {
-            "refinement": final.message, "free_run_sse": sse,
-            "least_squares_free_run_sse": final.sse_start,
+            "estimator": estimator[i],
+            "refinement": final.message if final is not None else "none: least squares "
+                          "simulated the held-out blocks better",
+            "free_run_sse": sse,
+            **({"least_squares_free_run_sse": final.sse_start} if final is not None else {}),
+            **({"shrunk_nonlinear_terms": shrunk} if shrunk is not None else {}),
             "criterion_meaning": f"{crit.name.upper()} of the free-run simulation error "
                                  "(SSE of the simulated output) on the estimation data"}}
+        if i != order[0]:
+            decision = {**decision, "fallback": "the chosen structure failed the guard; "
+                        f"the next by the rule has {int(mask.sum())} terms"}
         return model, {"held_out_mse": scores.mean[i], "held_out_stderr": scores.stderr[i],
                        "candidates": len(candidates), "screened": len(screened),
                        "finalists": len(finals), "removed_by_guard": removed,
+                       "linear_or_nonlinear": decision,
                        **({"guard_reasons": reasons} if reasons else {})}
     raise DataError(f"every finalist structure's simulation leaves the output's range off the "
                     f"estimation data ({removed} removed by the guard"
                     + (f": {reasons[0]}" if reasons else "") + ")")
+
+
+def linear_structures(problem) -> list[np.ndarray]:
+    """The full linear ARX structures of every order 1..max lag in the problem's space.
+
+    Order k: the constant (when the space has it), ``y(t-1) .. y(t-k)`` and each
+    input's first k lags (capped at the space's lags); only usable terms. These
+    are what a user's one-line ``arx`` fit would give, so every one of them
+    competes as a finalist.
+    """
+    return linear_masks(problem.term_space, problem.usable)
+
+
+def linear_masks(term_space, usable: np.ndarray | None = None) -> list[np.ndarray]:
+    """:func:`linear_structures` of a term space (only ``usable`` terms when given)."""
+    ts = term_space
+    lin = ts.linear
+    index = {t: i for i, t in enumerate(ts.terms)}
+    first = {}
+    for source, lag in lin:
+        first.setdefault(source, lag)
+    top = max([ts.ny] + list(ts.nus))
+    out, seen = [], set()
+    for k in range(1, top + 1):
+        mask = np.zeros(ts.n_terms, dtype=bool)
+        if ts.constant:
+            mask[index[()]] = True
+        for j, (source, lag) in enumerate(lin):
+            if lag - first[source] < k:
+                mask[index[(j,)]] = True
+        if usable is not None:
+            mask &= usable
+        key = mask_key(mask)
+        if mask.any() and key not in seen:
+            seen.add(key)
+            out.append(mask)
+    return out
+
+
+#: A nonlinear finalist replaces the best linear one only when a one-sided paired test
+#: over the held-out blocks (log ratio of the two free-run MSEs per block) rejects
+#: "no better" at this level.
+SIGNIFICANCE = 0.05
+
+
+def choose_nonlinear_or_linear(scores: Scores, per_fold: list[list[float]],
+                               degree: np.ndarray) -> tuple[list[int], dict]:
+    """The finalists in the order to try, and the account of the linear/nonlinear call.
+
+    The best linear finalist (lowest mean held-out free-run MSE) is the default.
+    A nonlinear finalist replaces it only when it simulates the held-out blocks
+    better by more than the noise of that comparison: over the blocks, the log
+    ratio ``ln(MSE_linear / MSE_nonlinear)`` has a positive mean with a one-sided
+    paired t-test p-value below :data:`SIGNIFICANCE` (blocks differ a lot in
+    level; the log ratio compares each block with itself). One nonlinear
+    finalist is tested -- the fewest terms within one standard error of the
+    best nonlinear one -- since testing each of many would pass one by chance.
+    Without a linear finalist the plain one-SE rule (:meth:`Scores.order`) decides.
+    """
+    finite = [i for i, v in enumerate(scores.mean) if np.isfinite(v)]
+    is_linear = {i: int(degree[scores.masks[i]].max()) <= 1 for i in finite}
+    linear = [i for i in finite if is_linear[i]]
+    if not linear:
+        return scores.order(), {"choice": "nonlinear", "reason": "no linear finalist "
+                                "simulated every held-out block"}
+    lin = min(linear, key=lambda i: scores.mean[i])
+    account = {"best_linear_terms": int(scores.masks[lin].sum()),
+               "best_linear_held_out_mse": scores.mean[lin],
+               "best_linear_held_out_stderr": scores.stderr[lin],
+               "blocks": len(per_fold[lin]), "significance": SIGNIFICANCE}
+    rest = sorted(finite, key=lambda i: scores.mean[i])
+    nonlinear = [i for i in rest if not is_linear[i]]
+    challenger = None
+    if nonlinear and scores.mean[nonlinear[0]] < scores.mean[lin]:
+        # the nonlinear finalist to test: the fewest terms within one SE of the best
+        # nonlinear one (one test: testing every finalist would find a "winner" by chance)
+        low = nonlinear[0]
+        near = [i for i in nonlinear if scores.mean[i] <= scores.mean[low] + scores.stderr[low]
+                and scores.mean[i] < scores.mean[lin]]
+        challenger = min(near, key=lambda i: (int(scores.masks[i].sum()), scores.mean[i]))
+        p = paired_p_value(per_fold[lin], per_fold[challenger])
+        account.update(nonlinear_terms=int(scores.masks[challenger].sum()),
+                       ratio=scores.mean[challenger] / scores.mean[lin], p_value=p)
+        if p >= SIGNIFICANCE:
+            challenger = None
+    if challenger is not None:
+        account["choice"] = "nonlinear"
+        order = [challenger, lin] + [i for i in rest if i not in (challenger, lin)]
+    else:
+        account["choice"] = "linear"
+        order = [lin] + [i for i in rest if i != lin and is_linear[i]] + nonlinear
+    return order, account
+
+
+def paired_p_value(reference: list[float], other: list[float]) -> float:
+    """One-sided paired t-test over blocks that ``other``'s errors are lower than ``reference``'s.
+
+    On the log ratio of each block's two errors (blocks differ a lot in level; the
+    ratio compares each block with itself). 0 or 1 when the ratios do not vary.
+    """
+    from scipy import stats
+
+    d = np.log(np.maximum(reference, 1e-300)) - np.log(np.maximum(other, 1e-300))
+    if len(d) < 2 or np.ptp(d) == 0:
+        return 0.0 if np.all(d > 0) else 1.0
+    return float(stats.ttest_1samp(d, 0.0, alternative="greater").pvalue)
+
+
+def _linear_free_run_sse(problem, scores: Scores, degree: np.ndarray,
+                         screened: dict) -> float:
+    """In-sample free-run SSE of the linear finalists' best screened model (inf: none)."""
+    best = np.inf
+    u, y, segments = problem.u, problem.y, problem.segments
+    for mask, mean in zip(scores.masks, scores.mean):
+        model = screened[mask_key(mask)][1]
+        if np.isfinite(mean) and degree[mask].max() <= 1 and model is not None:
+            yhat, at = model.run(u, y, None, segments)
+            if at is None:
+                e = model.measured(y, segments) - yhat
+                best = min(best, float(e @ e))
+    return best
+
+
+#: Factors the nonlinear coefficients are scaled by, in turn, when a structure fails the guard.
+SHRINK_FACTORS = (0.5, 0.25, 0.1)
+
+
+def shrink_to_hold(model: NarxModel, u, y, segments, linear_sse: float) -> float | None:
+    """Shrink the nonlinear terms that drive a divergence until the model holds; the factor.
+
+    The nonlinear coefficients are scaled by each of :data:`SHRINK_FACTORS` in
+    turn (the linear ones kept: they carry the dynamics); the first factor
+    whose model passes the guard and still simulates the estimation data better
+    than the best linear finalist (``linear_sse``) is kept. None (model unchanged) when none does.
+    """
+    degree = np.array([len(model.term_space.terms[i]) for i in model.term_indices])
+    nonlinear = degree > 1
+    start = model.coefficients.copy()
+    for factor in SHRINK_FACTORS:
+        model.coefficients = np.where(nonlinear, start * factor, start)
+        if stress_check(model, u, y, segments) is not None:
+            continue
+        e = model.measured(y, segments) - model.run(u, y, None, segments)[0]
+        if np.all(np.isfinite(e)) and float(e @ e) < linear_sse:
+            return factor
+    model.coefficients = start
+    return None
 
 
 def _finalists(screened: dict, term_space) -> list[tuple[float, bytes]]:
@@ -332,19 +528,30 @@ def _finalists(screened: dict, term_space) -> list[tuple[float, bytes]]:
     return sorted(out)
 
 
-def _fold_free_run(problem, fold, mask: np.ndarray) -> float:
-    """Held-out free-run MSE of the structure fitted and refined on the fold (inf: diverged)."""
+def _fold_free_run(problem, fold, mask: np.ndarray) -> tuple[float, float]:
+    """Held-out free-run MSE of the structure fitted on the fold: least squares, refined.
+
+    The first by least squares on the fold's rows; the second refined from it on
+    the free-run error of the fold's segments (:data:`FOLD_STEPS` evaluations).
+    inf: the run left the range; NaN: cannot be fitted.
+    """
     u, y = problem.u, problem.y
     try:
         fit = problem.fit(mask, rows=fold.train)
     except ValueError:
-        return np.nan
+        return np.nan, np.nan
     model = problem.model(mask, fit)
+
+    def held_out() -> float:
+        yhat, at = model.run(u, y, None, fold.held_out)
+        if at is not None:
+            return np.inf
+        e = model.measured(y, fold.held_out) - yhat
+        return float(np.mean(e * e))
+
+    least_squares = held_out()
     ref = refine_simulation(model, u, y, fold.train_segments, max_evaluations=FOLD_STEPS)
-    if ref.success and np.isfinite(ref.sse):
-        model.coefficients = ref.coefficients
-    yhat, at = model.run(u, y, None, fold.held_out)
-    if at is not None:
-        return np.inf
-    e = model.measured(y, fold.held_out) - yhat
-    return float(np.mean(e * e))
+    if not (ref.success and np.isfinite(ref.sse)):
+        return least_squares, least_squares
+    model.coefficients = ref.coefficients
+    return least_squares, held_out()

@@ -41,11 +41,15 @@ from ..fit.lstsq import reference_fit
 from ..model.segments import rows_segments
 from ..model.simulation import divergence_bounds, run_model
 
-__all__ = ["FOLDS", "Fold", "Scores", "blocked_folds", "candidate_structures", "cv_scores",
-           "stress_check", "surrogate_input"]
+__all__ = ["FOLDS", "SIMULATION_FOLDS", "Fold", "Scores", "blocked_folds",
+           "candidate_structures", "cv_scores", "stress_check", "surrogate_input"]
 
 #: Folds of validated selection.
 FOLDS = 3
+
+#: Folds of the simulation focus: a nonlinear structure must beat the linear ones on
+#: these blocks by more than the noise of the comparison, which needs more than three.
+SIMULATION_FOLDS = 10
 
 #: Held-out rows a block must have to be judged on.
 MIN_BLOCK_ROWS = 20
@@ -158,11 +162,15 @@ class Scores:
         return ([first] if first is not None else []) + rest
 
 
-def cv_scores(problem, folds: list[Fold], masks, simulate: bool) -> Scores:
-    """Validated scores of structures (masks over the whole term space)."""
+def cv_scores(problem, folds: list[Fold], masks, simulate: bool,
+              horizon: int | None = None) -> Scores:
+    """Validated scores of structures (masks over the whole term space).
+
+    ``simulate``: the held-out free run, or with ``horizon`` the k-step prediction.
+    """
     out = Scores()
     for mask in masks:
-        values = [_fold_mse(problem, f, mask, simulate) for f in folds]
+        values = [_fold_mse(problem, f, mask, simulate, horizon) for f in folds]
         out.masks.append(np.asarray(mask, dtype=bool))
         if not all(np.isfinite(values)):
             out.mean.append(np.inf)
@@ -175,7 +183,8 @@ def cv_scores(problem, folds: list[Fold], masks, simulate: bool) -> Scores:
     return out
 
 
-def _fold_mse(problem, fold: Fold, mask: np.ndarray, simulate: bool) -> float:
+def _fold_mse(problem, fold: Fold, mask: np.ndarray, simulate: bool,
+              horizon: int | None = None) -> float:
     """Held-out MSE of the structure fitted on the fold's training rows (inf: unusable)."""
     mask = np.asarray(mask, dtype=bool)
     train = fold.train
@@ -200,7 +209,7 @@ def _fold_mse(problem, fold: Fold, mask: np.ndarray, simulate: bool) -> float:
     bounds = divergence_bounds(y)
     sse, rows = 0.0, 0
     for a, b in fold.held_out:
-        yhat, at = run_model(model.compiled, theta, u[a:b], y[a:b], None, bounds)
+        yhat, at = run_model(model.compiled, theta, u[a:b], y[a:b], horizon, bounds)
         if at is not None:
             return np.inf
         e = y[a + lag:b] - yhat

@@ -1,0 +1,322 @@
+"""Several outputs: the coupled model judged by its coupled free run, in both focuses.
+
+Each output's own selection simulates that output with the other outputs
+*measured*. Put together, every output's simulated value feeds every other's
+terms, and a model whose outputs are each fine alone can diverge coupled. So
+the joined model competes here, as one of the finalists, on the **coupled**
+free run:
+
+* **finalists** -- the outputs' own choices put together, as they are and
+  jointly refined on the coupled free-run error
+  (:func:`~spm_sysid.core.model.coupled.refine_coupled`); and the linear MIMO
+  ARX structure of every order in the space (each output's constant, own lags,
+  the inputs' and the other outputs' lags up to that order), by least squares
+  and jointly refined;
+* **held-out blocks** (:data:`COUPLED_FOLDS`) -- each finalist's structures are
+  fitted on the rest of the estimation data (least squares; the jointly refined
+  one also refined there) and simulated coupled over the block from its first
+  samples; the error is the sum over outputs of the MSE divided by the output's
+  variance; a run that leaves an output's range rejects the finalist;
+* **choice** -- the best linear finalist, unless a nonlinear one simulates the
+  blocks better by more than the noise of that comparison
+  (:func:`~spm_sysid.core.select.simulation.paired_p_value`, the single-output
+  rule);
+* **guard** -- the chosen model, fitted on all data, must stay in range coupled,
+  driven by every segment's input, shifted, reversed and with random phases
+  (:func:`coupled_stress_check`); otherwise the next finalist.
+
+A model whose coupled free run diverges is never returned while another
+finalist does not; when every one diverges, the joined model is returned and
+the answer says so first.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from ..model.coupled import CoupledCompiled, coupled_run, refine_coupled
+from ..model.mimo import MimoModel, augmented_inputs
+from ..model.narx import NarxModel
+from ..model.segments import rows_segments
+from .simulation import SIGNIFICANCE, linear_masks, paired_p_value
+from .validated import STRESS_FACTOR, SURROGATES, _complement, _runs, surrogate_input
+
+__all__ = ["COUPLED_FOLDS", "ESTIMATORS", "JOINT_FOLD_STEPS", "coupled_folds",
+           "coupled_stress_check", "fit_least_squares", "linear_mimo", "select_coupled"]
+
+#: Held-out blocks of the coupled judgement.
+COUPLED_FOLDS = 6
+
+#: Levenberg-Marquardt evaluations of the joint refinement on a fold's rows.
+JOINT_FOLD_STEPS = 30
+
+#: How a linear finalist's coefficients are estimated: least squares (the equation
+#: error), or from there refined jointly on the coupled free-run error.
+ESTIMATORS = ("least squares", "jointly refined")
+
+#: Held-out rows a block must have.
+MIN_BLOCK_ROWS = 20
+
+
+def coupled_folds(segments: list[tuple[int, int]], n: int, lag: int, k: int = COUPLED_FOLDS
+                  ) -> list[tuple[list[tuple[int, int]], list[tuple[int, int]]]]:
+    """K contiguous blocks over the segments: (held-out ranges, training segments) each.
+
+    Fewer when the blocks would be too short; empty when not even two fit.
+    """
+    positions = np.concatenate([np.arange(a, b) for a, b in segments]) if segments \
+        else np.empty(0, dtype=int)
+    while k >= 2:
+        edges = np.linspace(0, len(positions), k + 1).round().astype(int)
+        folds = []
+        for i in range(k):
+            held = _runs(positions[edges[i]:edges[i + 1]], segments)
+            if sum(max(b - a - lag, 0) for a, b in held) < MIN_BLOCK_ROWS:
+                break
+            train = _complement(segments, held, lag)
+            if not train:
+                break
+            folds.append((rows_segments(held, n, lag), rows_segments(train, n, 0)))
+        if len(folds) == k:
+            return folds
+        k -= 1
+    return []
+
+
+def fit_least_squares(model: MimoModel, u: np.ndarray, Y: np.ndarray,
+                      segments: list[tuple[int, int]]) -> MimoModel | None:
+    """The same structures, each output's coefficients by least squares on the segments.
+
+    None when a structure cannot be fitted there (too few rows, dependent columns).
+    """
+    models = []
+    for i, m in enumerate(model.models):
+        P, t = m.term_space.regression(augmented_inputs(u, Y, i), Y[:, i], segments,
+                                       terms=m.term_indices)
+        if len(t) <= P.shape[1] or np.linalg.matrix_rank(P) < P.shape[1]:
+            return None
+        theta, *_ = np.linalg.lstsq(P, t, rcond=None)
+        models.append(replace(m, coefficients=theta, metadata=dict(m.metadata)))
+    return replace(model, models=models, metadata=dict(model.metadata))
+
+
+def linear_mimo(model: MimoModel, order: int) -> MimoModel:
+    """The linear MIMO ARX structure of ``order`` in each output's space (zero coefficients)."""
+    models = []
+    for m in model.models:
+        masks = linear_masks(m.term_space)
+        mask = masks[min(order, len(masks)) - 1]
+        idx = [int(i) for i in np.flatnonzero(mask)]
+        models.append(NarxModel(m.term_space, idx, np.zeros(len(idx))))
+    return MimoModel(model.outputs, model.inputs, models, {})
+
+
+def _scales(Y: np.ndarray, segments) -> np.ndarray:
+    rows = np.concatenate([Y[a:b] for a, b in segments])
+    v = rows.var(axis=0)
+    return np.where(v > 0, v, 1.0)
+
+
+def _held_out_error(model: MimoModel, u, Y, held, scale) -> float:
+    """Sum over outputs of the coupled free run's MSE / variance on the held-out ranges."""
+    cc = CoupledCompiled.from_models(model.models, u.shape[1])
+    thetas = [m.coefficients for m in model.models]
+    sse, rows = np.zeros(Y.shape[1]), 0
+    for a, b in held:
+        if b - a <= cc.max_lag:
+            continue
+        sim, div = coupled_run(cc, thetas, u[a:b], Y[a:b])
+        if any(d is not None for d in div) or not np.all(np.isfinite(sim)):
+            return np.inf
+        e = Y[a + cc.max_lag:b] - sim
+        sse += np.sum(e * e, axis=0)
+        rows += len(e)
+    return float(np.sum(sse / max(rows, 1) / scale)) if rows else np.nan
+
+
+def coupled_stress_check(model: MimoModel, u: np.ndarray, Y: np.ndarray,
+                         segments: list[tuple[int, int]]) -> str | None:
+    """Why the coupled model does not stay in range off the estimation data, or None.
+
+    Its coupled free run on every segment, and driven by each segment's input
+    shifted by half its length, reversed in time, and with random phases
+    (:data:`~spm_sysid.core.select.validated.SURROGATES` draws), from the segment's
+    own initial outputs, must keep every output inside its measured range widened
+    by :data:`~spm_sysid.core.select.validated.STRESS_FACTOR` spans.
+    """
+    cc = CoupledCompiled.from_models(model.models, u.shape[1])
+    thetas = [m.coefficients for m in model.models]
+    lo, hi = Y.min(axis=0), Y.max(axis=0)
+    span = np.maximum(hi - lo, 1e-300)
+    bounds = [(float(a - STRESS_FACTOR * s), float(b + STRESS_FACTOR * s))
+              for a, b, s in zip(lo, hi, span)]
+    for a, b in segments:
+        if b - a <= cc.max_lag:
+            continue
+        seg_u, seg_y = u[a:b], Y[a:b]
+        rng = np.random.default_rng(0)
+        stresses = [("the estimation input", seg_u),
+                    ("the input shifted by half its length", np.roll(seg_u, (b - a) // 2,
+                                                                     axis=0)),
+                    ("the input reversed in time", seg_u[::-1])]
+        stresses += [(f"an input with the estimation input's spectrum and random phases "
+                      f"(draw {i + 1} of {SURROGATES})", surrogate_input(seg_u, rng))
+                     for i in range(SURROGATES)]
+        for label, uu in stresses:
+            sim, div = coupled_run(cc, thetas, uu, seg_y, bounds)
+            bad = [model.outputs[i] for i, d in enumerate(div) if d is not None]
+            if bad or not np.all(np.isfinite(sim)):
+                names = ", ".join(bad) or "an output"
+                return f"its coupled simulation driven by {label} left the range of {names}"
+    return None
+
+
+def _degree(model: MimoModel) -> int:
+    return max(max((len(m.term_space.terms[i]) for i in m.term_indices), default=0)
+               for m in model.models)
+
+
+def select_coupled(joined: MimoModel, u: np.ndarray, Y: np.ndarray,
+                   segments: list[tuple[int, int]]) -> tuple[MimoModel, dict]:
+    """The finalist to return, judged on the coupled free run (see the module doc).
+
+    Parameters
+    ----------
+    joined : MimoModel
+        The outputs' own choices, put together (their coefficients as the jobs gave).
+    u, Y : ndarray
+        Inputs (n, m) and outputs (n, q) of the record.
+    segments : list of (start, stop)
+        The estimation segments.
+
+    Returns
+    -------
+    model : MimoModel
+        The choice, fitted on all estimation data.
+    account : dict
+        Finalists, their held-out errors, the linear/nonlinear call, the guard's
+        removals, and ``all_diverge`` with the reason when every finalist diverged.
+    """
+    u = np.asarray(u, dtype=float)
+    u = u[:, None] if u.ndim == 1 else u
+    Y = np.asarray(Y, dtype=float)
+    lag = joined.max_lag
+    folds = coupled_folds(segments, len(Y), lag)
+    scale = _scales(Y, segments)
+    top = max(max([m.term_space.ny] + list(m.term_space.nus)) for m in joined.models)
+    finalists: list[tuple[str, str, MimoModel]] = [("the outputs' own choices", "as chosen",
+                                                    joined)]
+    finalists.append(("the outputs' own choices", "jointly refined", joined))
+    for k in range(1, top + 1):
+        lin = linear_mimo(joined, k)
+        if not any(_same(lin, f[2]) for f in finalists):
+            finalists += [(f"linear MIMO ARX of order {k}", how, lin) for how in ESTIMATORS]
+    values: list[list[float]] = []
+    for _, how, model in finalists:
+        row = []
+        for held, train in folds:
+            fitted = fit_least_squares(model, u, Y, train)
+            if fitted is None:
+                row.append(np.nan)
+                continue
+            if how == "jointly refined":
+                fitted, _ = refine_coupled(fitted, u, Y, train, max_evaluations=JOINT_FOLD_STEPS)
+            row.append(_held_out_error(fitted, u, Y, held, scale))
+        values.append(row)
+    means = [float(np.mean(r)) if r and all(np.isfinite(r)) else np.inf for r in values]
+    stderr = [float(np.std(r, ddof=1) / np.sqrt(len(r))) if np.isfinite(m) and len(r) > 1
+              else np.inf for r, m in zip(values, means)]
+    nonlinear = [i for i, f in enumerate(finalists) if _degree(f[2]) > 1]
+    linear = [i for i in range(len(finalists)) if i not in nonlinear and np.isfinite(means[i])]
+    order = sorted((i for i in range(len(finalists)) if np.isfinite(means[i])),
+                   key=lambda i: means[i])
+    account: dict = {"folds": len(folds), "significance": SIGNIFICANCE,
+                     "finalists": [{"name": n, "fitted": h, "held_out_error": _num(m),
+                                    "held_out_stderr": _num(s)}
+                                   for (n, h, _), m, s in zip(finalists, means, stderr)]}
+    if linear:
+        lin = min(linear, key=lambda i: means[i])
+        challenger = next((i for i in order if i in nonlinear and means[i] < means[lin]), None)
+        choice = lin
+        if challenger is not None:
+            p = paired_p_value(values[lin], values[challenger])
+            account.update(nonlinear=finalists[challenger][0], ratio=means[challenger]
+                           / means[lin], p_value=p)
+            if p < SIGNIFICANCE:
+                choice = challenger
+        account["choice"] = "nonlinear" if choice in nonlinear else "linear"
+        order = [choice] + [i for i in order if i != choice]
+    removed = []
+    for i in order:
+        name, how, model = finalists[i]
+        full = _fit_full(model, how, joined, u, Y, segments)
+        if full is None:
+            continue
+        reason = coupled_stress_check(full, u, Y, segments)
+        if reason:
+            removed.append(f"{name} ({how}): {reason}")
+            continue
+        account.update(chosen=name, fitted=how, held_out_error=_num(means[i]),
+                       held_out_stderr=_num(stderr[i]))
+        if removed:
+            account["removed_by_guard"] = removed
+        return full, account
+    why = ("every finalist's coupled free run left an output's range on held-out blocks "
+           "or off the estimation data" + (f" ({removed[0]})" if removed else ""))
+    account.update(chosen="the outputs' own choices", fitted="as chosen", all_diverge=why,
+                   removed_by_guard=removed)
+    return joined, account
+
+
+def _fit_full(model: MimoModel, how: str, joined: MimoModel, u, Y, segments
+              ) -> MimoModel | None:
+    """The finalist fitted on all estimation data, each output's account filled in."""
+    if how == "as chosen":
+        return joined
+    if how == "least squares":
+        fitted = fit_least_squares(model, u, Y, segments)
+        if fitted is None:
+            return None
+    else:
+        start = joined if model is joined else fit_least_squares(model, u, Y, segments)
+        if start is None:
+            return None
+        fitted, info = refine_coupled(start, u, Y, segments)
+        fitted.metadata["coupled_refinement"] = info
+    models = [_accounted(m, t, augmented_inputs(u, Y, i), Y[:, i], segments,
+                         uncertainty=how == "least squares")
+              for i, (m, t) in enumerate(zip(fitted.models, joined.models))]
+    return replace(fitted, models=models)
+
+
+def _accounted(m: NarxModel, template: NarxModel, u_aug, y, segments, uncertainty: bool
+               ) -> NarxModel:
+    """``m`` with the criterion, MSE, samples and metadata of the output's own choice.
+
+    The criterion value is of the one-step SSE (standardised coefficients as the
+    search scores them); with ``uncertainty``, least-squares standard errors.
+    """
+    from ..fit.criteria import get_criterion
+    from ..model.uncertainty import from_jacobian
+
+    P, t = m.term_space.regression(u_aug, y, segments, terms=m.term_indices)
+    e = t - P @ m.coefficients
+    sse = float(e @ e)
+    crit = get_criterion(template.criterion or "bic")
+    beta = m.coefficients * np.linalg.norm(P, axis=0) / (float(np.linalg.norm(t)) or 1.0)
+    value = float(crit(np.array([max(sse, 1e-300)]), len(t), np.array([len(m.term_indices)]),
+                       beta[None, :])[0])
+    meta = {k: v for k, v in template.metadata.items() if k not in ("simulation",)}
+    return replace(m, criterion=crit.name, criterion_value=value, mse=sse / max(len(t), 1),
+                   n_samples=template.n_samples, metadata=meta,
+                   uncertainty=from_jacobian(P, sse) if uncertainty else m.uncertainty)
+
+
+def _same(a: MimoModel, b: MimoModel) -> bool:
+    return all(list(x.term_indices) == list(y.term_indices) for x, y in zip(a.models, b.models))
+
+
+def _num(v: float) -> float | None:
+    return float(v) if np.isfinite(v) else None

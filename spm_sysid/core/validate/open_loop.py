@@ -1,0 +1,132 @@
+"""Is the system stable in open loop? Free-run comparison only means something if it is.
+
+A system that integrates (a position driven by a velocity, a tank level fed by
+a flow) or is unstable in open loop (a ball on a beam) cannot be simulated for
+long by *any* model: a small error in the coefficients or in the initial state
+makes the free run drift away from the record, so free-run errors compare
+drifts, not models. Such records are judged on the k-step-ahead prediction
+instead (:data:`HORIZON` steps unless the job asks for another horizon).
+
+The check fits the linear ARX model of the term space's output order (least
+squares on every segment's rows, with a constant) and looks at the roots of
+its autoregressive polynomial:
+
+* **integrating** -- a real positive pole (angle below :data:`REAL_ANGLE`) whose
+  time constant ``1 / (1 - |p|)`` is longer than half the record
+  (``|p| >= 1 - 2 / N``);
+* **unstable** -- any pole with ``|p| > 1 + 2 / N``;
+* **stable** otherwise. A lightly damped resonance (a complex pair close to the
+  unit circle, as the flexible robot arm has) is stable: its free run is
+  meaningful.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["HORIZON", "OpenLoop", "REAL_ANGLE", "open_loop_check"]
+
+#: Steps ahead that integrating or unstable records are judged on (when the job sets none).
+HORIZON = 10
+
+#: A pole whose angle (radians) is below this counts as real.
+REAL_ANGLE = 0.05
+
+
+@dataclass(frozen=True)
+class OpenLoop:
+    """The verdict of :func:`open_loop_check`.
+
+    Attributes
+    ----------
+    kind : str
+        ``"stable"``, ``"integrating"`` or ``"unstable"``.
+    pole : complex
+        The deciding pole (the largest in magnitude when stable).
+    order : int
+        Order of the linear ARX model the poles come from.
+    rows : int
+        Rows it was fitted on.
+    """
+
+    kind: str
+    pole: complex
+    order: int
+    rows: int
+
+    @property
+    def free_run_applies(self) -> bool:
+        return self.kind == "stable"
+
+    def reason(self) -> str:
+        """Why free-run comparison does not apply ('' when it does)."""
+        if self.free_run_applies:
+            return ""
+        p = self.pole
+        where = (f"{p.real:.4f}" if abs(p.imag) < 1e-12
+                 else f"{abs(p):.4f} at angle {abs(np.angle(p)):.3f} rad")
+        what = ("integrates (a real pole at" if self.kind == "integrating"
+                else "is unstable in open loop (a pole of magnitude")
+        return (f"the output {what} {where} in the linear ARX model of order {self.order}, "
+                f"{self.rows} rows): the free run of any model drifts away from the record, "
+                "so free-run errors do not compare models; judged on the k-step prediction "
+                "instead")
+
+    def to_dict(self) -> dict:
+        return {"kind": self.kind, "pole": [float(self.pole.real), float(self.pole.imag)],
+                "magnitude": float(abs(self.pole)), "order": self.order, "rows": self.rows,
+                "free_run_applies": self.free_run_applies,
+                **({"reason": self.reason()} if not self.free_run_applies else {})}
+
+
+def open_loop_check(u: np.ndarray, y: np.ndarray, segments: list[tuple[int, int]],
+                    order: int) -> OpenLoop | None:
+    """The open-loop verdict of the record (None when too short to fit the ARX model).
+
+    Parameters
+    ----------
+    u : ndarray, shape (n,) or (n, inputs)
+        The inputs.
+    y : ndarray, shape (n,)
+        The output.
+    segments : list of (start, stop)
+        No row crosses a segment's border.
+    order : int
+        Output and input lags of the ARX model (at least 1).
+    """
+    u = np.asarray(u, dtype=float).reshape(len(u), -1)
+    y = np.asarray(y, dtype=float)
+    n = max(int(order), 1)
+    rows, targets = [], []
+    for a, b in segments:
+        if b - a <= n:
+            continue
+        idx = np.arange(a + n, b)
+        lagged = [y[idx - k] for k in range(1, n + 1)]
+        lagged += [u[idx - k, j] for j in range(u.shape[1]) for k in range(1, n + 1)]
+        rows.append(np.column_stack(lagged + [np.ones(len(idx))]))
+        targets.append(y[idx])
+    if not rows:
+        return None
+    X, t = np.concatenate(rows), np.concatenate(targets)
+    if len(t) <= X.shape[1] or not (np.all(np.isfinite(X)) and np.all(np.isfinite(t))):
+        return None
+    scale = np.linalg.norm(X, axis=0)
+    scale[scale == 0] = 1.0
+    theta, *_ = np.linalg.lstsq(X / scale, t, rcond=None)
+    a_coef = theta[:n] / scale[:n]
+    poles = np.roots(np.r_[1.0, -a_coef])
+    count = len(t)
+    if not len(poles):
+        return OpenLoop("stable", 0j, n, count)
+    real = poles[(np.abs(np.angle(poles)) < REAL_ANGLE)]
+    if real.size and np.max(np.abs(real)) >= 1.0 - 2.0 / count:
+        p = complex(real[np.argmax(np.abs(real))])
+        if abs(p) <= 1.0 + 2.0 / count:
+            return OpenLoop("integrating", complex(p.real, 0.0), n, count)
+    worst = complex(poles[np.argmax(np.abs(poles))])
+    if abs(worst) > 1.0 + 2.0 / count:
+        return OpenLoop("unstable", worst, n, count)
+    return OpenLoop("stable", worst, n, count)

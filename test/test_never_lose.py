@@ -1,0 +1,190 @@
+"""Never lose to linear (issue 32): linear finalists, the significance rule, open-loop
+integrators, and the coupled judgement of several outputs."""
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from spm_sysid.core.identify import identify
+from spm_sysid.core.jobs import JobSettings, run_job
+from spm_sysid.core.model.mimo import MimoModel, augmented_inputs, output_space
+from spm_sysid.core.model.narx import NarxModel
+from spm_sysid.core.model.terms import TermSpace
+from spm_sysid.core.record import Record
+from spm_sysid.core.select.coupled import coupled_stress_check, select_coupled
+from spm_sysid.core.select.simulation import linear_masks, paired_p_value
+from spm_sysid.core.select.validated import stress_check
+from spm_sysid.core.validate.open_loop import open_loop_check
+
+SPACE = TermSpace(ny=2, nu=2, degree=2, constant=True)
+
+
+def _linear_system(seed: int, n: int = 800, noise: float = 0.3):
+    """An ARX(2) system with equation noise: nothing nonlinear to find."""
+    rng = np.random.default_rng(seed)
+    u = rng.uniform(-1, 1, n)
+    e = noise * rng.standard_normal(n)
+    y = np.zeros(n)
+    for t in range(2, n):
+        y[t] = 1.2 * y[t - 1] - 0.5 * y[t - 2] + 0.7 * u[t - 1] + 0.3 * u[t - 2] + e[t]
+    return u, y
+
+
+def _nonlinear_system(seed: int, n: int = 800, noise: float = 0.05):
+    """A Hammerstein-like system with a bilinear term, output noise."""
+    rng = np.random.default_rng(seed)
+    u = rng.uniform(-1, 1, n)
+    x = np.zeros(n)
+    for t in range(2, n):
+        x[t] = (0.6 * x[t - 1] + 0.5 * u[t - 1] + 0.4 * u[t - 1] ** 2
+                - 0.2 * x[t - 1] * u[t - 1])
+    return u, x + noise * rng.standard_normal(n)
+
+
+def _degree(model) -> int:
+    return max(len(model.term_space.terms[i]) for i in model.term_indices)
+
+
+def test_the_linear_finalists_are_the_arx_structures_of_every_order():
+    ts = TermSpace(ny=3, nu=2, degree=2, constant=True)
+    names = ts.term_names()
+    got = [[names[i] for i in np.flatnonzero(m)] for m in linear_masks(ts)]
+    assert got == [["1", "y(t-1)", "u(t-1)"],
+                   ["1", "y(t-1)", "y(t-2)", "u(t-1)", "u(t-2)"],
+                   ["1", "y(t-1)", "y(t-2)", "y(t-3)", "u(t-1)", "u(t-2)"]]
+
+
+def test_the_paired_test_is_a_one_sided_t_test_on_the_log_ratios():
+    rng = np.random.default_rng(3)
+    linear = rng.uniform(1, 2, 10)
+    other = linear * rng.uniform(0.6, 1.1, 10)
+    d = np.log(linear) - np.log(other)  # independent: the t statistic by hand
+    t = d.mean() / (d.std(ddof=1) / np.sqrt(len(d)))
+    assert paired_p_value(list(linear), list(other)) == pytest.approx(
+        stats.t.sf(t, len(d) - 1), rel=1e-10)
+    assert paired_p_value([1.0, 2.0], [0.5, 1.0]) == 0.0  # better on every block, alike
+    assert paired_p_value([1.0, 2.0], [1.0, 2.0]) == 1.0
+
+
+def test_a_nonlinear_term_that_clearly_helps_is_chosen():
+    u, y = _nonlinear_system(0)
+    m = identify(u=u, y=y, term_space=SPACE, criterion="bic", seed=0,
+                 focus="simulation").model
+    call = m.metadata["selection"]["linear_or_nonlinear"]
+    assert call["choice"] == "nonlinear" and call["p_value"] < 0.05
+    assert call["ratio"] < 0.5  # held-out free-run MSE against the best linear finalist
+    assert _degree(m) == 2 and "u(t-1)^2" in m.terms
+    # and on a new record of the same system, it simulates better than linear does
+    u2, y2 = _nonlinear_system(1)
+    lin = identify(u=u, y=y, term_space=TermSpace(ny=2, nu=2, degree=1, constant=True),
+                   criterion="bic", seed=0, focus="simulation").model
+    err = [np.mean((mm.measured(y2) - mm.run(u2, y2)[0]) ** 2) for mm in (m, lin)]
+    assert err[0] < 0.5 * err[1]
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_linear_system_with_noise_gets_a_linear_model(seed):
+    u, y = _linear_system(seed)
+    m = identify(u=u, y=y, term_space=SPACE, criterion="bic", seed=0,
+                 focus="simulation").model
+    call = m.metadata["selection"]["linear_or_nonlinear"]
+    assert call["choice"] == "linear" and _degree(m) == 1, (m.terms, call)
+    assert call["blocks"] == 10  # the simulation focus judges on ten held-out blocks
+    assert {"y(t-1)", "y(t-2)", "u(t-1)", "u(t-2)"} <= set(m.terms)
+
+
+def test_an_integrating_system_is_judged_on_k_step_prediction_and_says_why():
+    rng = np.random.default_rng(5)
+    n = 1000
+    u = rng.standard_normal(n)
+    y = np.zeros(n)
+    for t in range(2, n):  # a motor position: an integrator behind a lag
+        y[t] = 1.6 * y[t - 1] - 0.6 * y[t - 2] + 0.05 * u[t - 1]
+    y += 0.001 * rng.standard_normal(n)
+    result = run_job(Record.from_samples(u, y, source="integrator"),
+                     JobSettings.from_values({"focus": "simulation", "seed": 0}))
+    m = result.model
+    loop = m.metadata["open_loop"]
+    assert loop["kind"] == "integrating" and loop["free_run_applies"] is False
+    assert loop["pole"][0] == pytest.approx(1.0, abs=0.01) and loop["horizon"] == 10
+    assert m.metadata["selection"]["what"] == "10-step"
+    text = result.summary("lines")
+    assert "integrates (a real pole at" in text
+    assert "free-run errors do not compare models; judged on the 10-step prediction" in text
+
+
+def test_the_open_loop_check_tells_resonance_from_integrator_and_instability(robot_arm):
+    u, y = robot_arm
+    stable = open_loop_check(u, y, [(0, len(y))], 10)  # lightly damped, not integrating
+    assert stable.kind == "stable" and stable.free_run_applies and abs(stable.pole) > 0.99
+    rng = np.random.default_rng(2)
+    n = 2000
+    r = rng.standard_normal(n)
+    y, u = np.zeros(n), np.zeros(n)
+    for t in range(1, n):  # a plant with a pole at 1.05, stabilised by feedback
+        y[t] = 1.05 * y[t - 1] + 0.5 * u[t - 1]
+        u[t] = -1.5 * y[t] + r[t]
+    loop = open_loop_check(u, y + 1e-4 * rng.standard_normal(n), [(0, n)], 2)
+    assert loop.kind == "unstable" and abs(loop.pole) == pytest.approx(1.05, abs=0.02)
+    assert "unstable in open loop" in loop.reason()
+
+
+def _two_outputs(n: int = 1500, seed: int = 0):
+    """A stable coupled system: each output feeds the other with gain 0.3."""
+    rng = np.random.default_rng(seed)
+    u = rng.uniform(-1, 1, (n, 2))
+    Y = np.zeros((n, 2))
+    for t in range(1, n):
+        Y[t, 0] = 0.5 * Y[t - 1, 0] + 0.3 * Y[t - 1, 1] + u[t - 1, 0]
+        Y[t, 1] = 0.4 * Y[t - 1, 1] + 0.3 * Y[t - 1, 0] + u[t - 1, 1]
+    return u, Y + 0.01 * rng.standard_normal((n, 2))
+
+
+def test_a_structure_whose_coupled_run_diverges_is_not_returned():
+    """Each output's model is stable with the other output measured (the per-output
+    guard passes), yet coupled the loop gain is 1.45 and the run diverges."""
+    u, Y = _two_outputs()
+    names, inputs = ("p", "q"), ("a", "b")
+    base = TermSpace(ny=1, nu=1, degree=1, inputs=inputs)
+    models = []
+    for i, (own, cross) in enumerate([(0.5, 1.0), (0.4, 1.0)]):
+        space = output_space(base, names, i)
+        terms = space.term_names()
+        other = names[1 - i]
+        idx = [terms.index(f"{names[i]}(t-1)"), terms.index(f"{inputs[i]}(t-1)"),
+               terms.index(f"{other}(t-1)")]
+        models.append(NarxModel(space, idx, np.array([own, 1.0, cross]), criterion="bic",
+                                criterion_value=0.0))
+    joined = MimoModel(names, inputs, models)
+    segments = [(0, len(Y))]
+    for i, m in enumerate(models):  # the per-output guard lets each through
+        assert stress_check(m, augmented_inputs(u, Y, i), Y[:, i], segments) is None
+    assert coupled_stress_check(joined, u, Y, segments) is not None
+    assert any(d is not None for d in joined.simulate(u, Y)[1])
+    chosen, account = select_coupled(joined, u, Y, segments)
+    assert chosen is not joined and account["chosen"] != "the outputs' own choices"
+    assert "all_diverge" not in account
+    sim, diverged = chosen.simulate(u, Y)
+    assert diverged == [None, None]
+    fit = 1 - (np.linalg.norm(Y[1:] - sim, axis=0)
+               / np.linalg.norm(Y[1:] - Y[1:].mean(0), axis=0))
+    assert np.all(fit > 0.95)
+    assert [m.coefficients[-1] for m in chosen.models] != [1.0, 1.0]
+    # it ranked first on the blocks (refitted there), and the coupled guard removed it
+    assert any(r.startswith("the outputs' own choices") and "coupled simulation" in r
+               for r in account["removed_by_guard"])
+
+
+def test_several_outputs_are_judged_coupled_and_orders_auto_covers_them():
+    u, Y = _two_outputs(1200, seed=1)
+    record = Record.from_samples(u, Y, source="two", input_names=("a", "b"),
+                                 output_names=("p", "q"))
+    result = run_job(record, JobSettings.from_values(  # a short search: the path, not the GA
+        {"orders": "auto", "criterion": "bic", "seed": 0, "generations": 10}))
+    doc = result.model.metadata
+    assert set(doc["orders"]["per_output"]) == {"p", "q"}
+    assert doc["orders"]["ny"] == max(w["ny"] for w in doc["orders"]["per_output"].values())
+    sel = doc["coupled_selection"]
+    assert sel["folds"] >= 2 and sel["choice"] in ("linear", "nonlinear")
+    assert result.diverged == []
+    assert "coupled judgement on" in result.summary("lines")
