@@ -64,6 +64,8 @@ def test_the_paired_test_is_a_one_sided_t_test_on_the_log_ratios():
         stats.t.sf(t, len(d) - 1), rel=1e-10)
     assert paired_p_value([1.0, 2.0], [0.5, 1.0]) == 0.0  # better on every block, alike
     assert paired_p_value([1.0, 2.0], [1.0, 2.0]) == 1.0
+    # a noise-free fit: errors at rounding level, whatever their spread, beat linear
+    assert paired_p_value([0.02, 0.03, 0.025, 0.02], [1e-30, 1e-33, 1e-31, 2e-32]) < 1e-6
 
 
 def test_a_nonlinear_term_that_clearly_helps_is_chosen():

@@ -446,11 +446,15 @@ def paired_p_value(reference: list[float], other: list[float]) -> float:
     """One-sided paired t-test over blocks that ``other``'s errors are lower than ``reference``'s.
 
     On the log ratio of each block's two errors (blocks differ a lot in level; the
-    ratio compares each block with itself). 0 or 1 when the ratios do not vary.
+    ratio compares each block with itself); errors below 1e-12 of the largest count
+    as that floor (a noise-free fit). 0 or 1 when the ratios do not vary.
     """
     from scipy import stats
 
-    d = np.log(np.maximum(reference, 1e-300)) - np.log(np.maximum(other, 1e-300))
+    # errors a million millions below the larger are rounding: a perfect fit is not
+    # "noisy" because 1e-30 and 1e-33 differ by a factor of a thousand
+    floor = max(1e-300, 1e-12 * float(np.max(np.r_[reference, other])))
+    d = np.log(np.maximum(reference, floor)) - np.log(np.maximum(other, floor))
     if len(d) < 2 or np.ptp(d) == 0:
         return 0.0 if np.all(d > 0) else 1.0
     return float(stats.ttest_1samp(d, 0.0, alternative="greater").pvalue)
