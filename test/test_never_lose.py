@@ -91,7 +91,7 @@ def test_a_linear_system_with_noise_gets_a_linear_model(seed):
                  focus="simulation").model
     call = m.metadata["selection"]["linear_or_nonlinear"]
     assert call["choice"] == "linear" and _degree(m) == 1, (m.terms, call)
-    assert call["blocks"] == 10  # the simulation focus judges on ten held-out blocks
+    assert call["blocks"] == 9  # three blocks laid three times: nine sub-blocks
     assert {"y(t-1)", "y(t-2)", "u(t-1)", "u(t-2)"} <= set(m.terms)
 
 

@@ -22,8 +22,9 @@ chosen model's held-out error with its standard error over the blocks.
 
 Then the reliability of that call (``--calls`` seeds): how often a linear
 system with noise gets a nonlinear model (it should not) and how often a
-system with a clear nonlinear term gets one (it should), with 3, 6 and 10
-held-out blocks. Figures, not assertions.
+system with a clear nonlinear term gets one (it should), and one with a faint
+nonlinear term in more noise (the power of the call), with 3 and 10
+held-out blocks, and 3 blocks laid 3 times (the default). Figures, not assertions.
 """
 
 from __future__ import annotations
@@ -100,7 +101,7 @@ def _line(label: str, y2, sim, terms: str, seconds: float) -> str:
     from ..core.validate.arx import fit_percent, rmse
 
     r, f = rmse(y2, sim, START), fit_percent(y2, sim, START)
-    rs = ", ".join("diverged" if not np.isfinite(v) else f"{v:.4g}" for v in r)
+    rs = ", ".join("diverged" if not np.isfinite(v) else f"{v:.5g}" for v in r)
     fs = ", ".join("-" if not np.isfinite(v) else f"{v:.1f}" for v in f)
     return f"  {label:<40} RMSE {rs:<20} fit % {fs:<12} {terms:<12} {seconds:6.1f} s"
 
@@ -139,9 +140,11 @@ def _systems(kind: str, seed: int, n: int = 800):
         for t in range(2, n):
             x[t] = 1.2 * x[t - 1] - 0.5 * x[t - 2] + 0.7 * u[t - 1] + 0.3 * u[t - 2] + e[t]
         return u, x
-    for t in range(2, n):  # a clear nonlinear term, output noise
-        x[t] = 0.6 * x[t - 1] + 0.5 * u[t - 1] + 0.4 * u[t - 1] ** 2 - 0.2 * x[t - 1] * u[t - 1]
-    return u, x + 0.05 * rng.standard_normal(n)
+    gain = 0.4 if kind == "nonlinear" else 0.1  # a clear nonlinear term, or a faint one
+    for t in range(2, n):
+        x[t] = (0.6 * x[t - 1] + 0.5 * u[t - 1] + gain * u[t - 1] ** 2
+                - gain / 2 * x[t - 1] * u[t - 1])
+    return u, x + (0.05 if kind == "nonlinear" else 0.1) * rng.standard_normal(n)
 
 
 def calls(seeds: int) -> None:
@@ -153,21 +156,22 @@ def calls(seeds: int) -> None:
     space = TermSpace(ny=2, nu=2, degree=2, constant=True)
     print(f"the linear/nonlinear call over {seeds} seeds (800 samples, (2, 2, 2) with a "
           "constant, BIC, simulation focus)")
-    for k in (3, 6, 10):
+    for k, repeats in ((3, 1), (10, 1), (3, 3)):
         counts = {}
-        for kind in ("linear", "nonlinear"):
+        for kind in ("linear", "nonlinear", "faint"):
             hits = 0
             for seed in range(seeds):
                 u, y = _systems(kind, seed)
                 model = identify_problem(Problem.from_signals(u, y, space), criterion="bic",
-                                         seed=0, focus="simulation",
-                                         simulation_folds=k).model
+                                         seed=0, focus="simulation", simulation_folds=k,
+                                         simulation_repeats=repeats).model
                 hits += model.metadata["selection"]["linear_or_nonlinear"]["choice"] \
                     == "nonlinear"
             counts[kind] = hits
-        print(f"  {k:2d} blocks: nonlinear model for the linear system {counts['linear']} of "
-              f"{seeds} (should be few), for the nonlinear one {counts['nonlinear']} of "
-              f"{seeds} (should be all)")
+        scheme = f"{k} blocks" + (f" laid {repeats} times" if repeats > 1 else "")
+        print(f"  {scheme:<21}: a nonlinear model for the linear system {counts['linear']} of "
+              f"{seeds} (should be few), for the clear nonlinear one {counts['nonlinear']} "
+              f"(should be all), for the faint one {counts['faint']}")
         sys.stdout.flush()
 
 

@@ -33,6 +33,7 @@ from .select.simulation import select_for_simulation, validated_simulation
 from .select.validated import (
     FOLDS,
     SIMULATION_FOLDS,
+    SIMULATION_REPEATS,
     blocked_folds,
     candidate_structures,
     cv_scores,
@@ -194,6 +195,7 @@ def identify_problem(
     auto_certify_time_limit: float = 10.0,
     horizon: int = 0,
     simulation_folds: int = SIMULATION_FOLDS,
+    simulation_repeats: int = SIMULATION_REPEATS,
     progress: ProgressFn | None = None,
     started: float | None = None,
 ) -> IdentificationResult:
@@ -206,9 +208,10 @@ def identify_problem(
     check (:mod:`spm_sysid.core.validate.excitation`) first; its warnings go into
     ``model.metadata["warnings"]``. ``horizon``: the k of the k-step prediction that
     integrating or open-loop unstable records are judged on with the simulation focus
-    (0: :data:`~spm_sysid.core.validate.open_loop.HORIZON`). ``simulation_folds``: held-out
-    blocks of the simulation focus (:data:`~spm_sysid.core.select.validated.SIMULATION_FOLDS`;
-    the accuracy benchmark measures the linear/nonlinear call with fewer).
+    (0: :data:`~spm_sysid.core.validate.open_loop.HORIZON`). ``simulation_folds``,
+    ``simulation_repeats``: held-out blocks of the simulation focus and how many times
+    they are laid (:data:`~spm_sysid.core.select.validated.SIMULATION_FOLDS`; the accuracy
+    benchmark measures the linear/nonlinear call with other schemes).
     """
     crit = get_criterion(criterion)  # the name (checked at the edge) to its object, once
     started = time.perf_counter() if started is None else started
@@ -246,7 +249,8 @@ def identify_problem(
         k_step = horizon or HORIZON
         warnings.append(open_loop.reason().replace("judged on the k-step prediction",
                                                    f"judged on the {k_step}-step prediction"))
-    folds = blocked_folds(problem, simulation_folds if focus == "simulation" else FOLDS)
+    folds = (blocked_folds(problem, simulation_folds, simulation_repeats) if focus == "simulation"
+             else blocked_folds(problem, FOLDS))
     if mode == "validated" and not folds:
         mode, note = "criterion", "the record is too short for held-out blocks"
     certificate = None

@@ -27,7 +27,7 @@ from ..fit.refine import free_run_uncertainty, refine_simulation
 from ..model.narx import NarxModel
 from ..progress import Progress, ProgressFn
 from ..search.local import SearchResult, local_search
-from .validated import Scores, stress_check
+from .validated import Scores, stress_check, sub_blocks
 
 __all__ = ["FINALISTS", "FOLD_STEPS", "PER_SIZE", "SEARCH_STEPS", "SIGNIFICANCE",
            "SimulationScorer", "choose_nonlinear_or_linear", "linear_masks",
@@ -238,9 +238,12 @@ def validated_simulation(problem, candidates, folds, crit, max_terms, report,
     2. finalists: for each highest degree (linear, quadratic, ...) the best
        screened structures of each size, up to :data:`FINALISTS` sizes spread
        over the range (the group's best always among them), and every linear
-       ARX structure; each fold fits least squares on its rows, refines on its
-       free-run error over its segments, and simulates the held-out block; a
-       run that leaves the measured range rejects the structure;
+       ARX structure; each fold fits least squares on its rows (and refines
+       that on its free-run error over its segments: both estimates compete)
+       and simulates the held-out block; the errors are gathered per sub-block
+       (:func:`~spm_sysid.core.select.validated.sub_blocks`), each a separate
+       held-out estimate; a run that leaves the measured range rejects the
+       structure;
     3. the choice (:func:`choose_nonlinear_or_linear`): the best linear finalist
        unless a nonlinear one simulates the held-out blocks better by more than
        the noise of that comparison (a one-sided paired test over the blocks,
@@ -266,12 +269,13 @@ def validated_simulation(problem, candidates, folds, crit, max_terms, report,
     n = problem.term_space.n_terms
     scores = Scores()
     per_fold, estimator = [], []
+    label = sub_blocks(problem, folds)
     for done, (_, key) in enumerate(finals):
         mask = key_mask(key, n)
-        both = np.array([_fold_free_run(problem, fold, mask) for fold in folds]).reshape(-1, 2)
+        both = [_fold_free_run(problem, fold, mask) for fold in folds]
         rejected = False
         for j, how in enumerate(ESTIMATORS):
-            values = list(both[:, j])
+            values = _sub_block_mse([b[j] for b in both], label, len(folds))
             scores.masks.append(mask)
             per_fold.append(values)
             estimator.append(how)
@@ -532,26 +536,29 @@ def _finalists(screened: dict, term_space) -> list[tuple[float, bytes]]:
     return sorted(out)
 
 
-def _fold_free_run(problem, fold, mask: np.ndarray) -> tuple[float, float]:
-    """Held-out free-run MSE of the structure fitted on the fold: least squares, refined.
+def _fold_free_run(problem, fold, mask: np.ndarray):
+    """Held-out free-run squared errors of the structure fitted on the fold.
 
-    The first by least squares on the fold's rows; the second refined from it on
-    the free-run error of the fold's segments (:data:`FOLD_STEPS` evaluations).
-    inf: the run left the range; NaN: cannot be fitted.
+    Two runs: least squares on the fold's rows, then refined from there on the
+    free-run error of the fold's segments (:data:`FOLD_STEPS` evaluations). Each
+    is ``(samples, squared errors)`` of the held-out rows, ``"diverged"`` when the
+    run left the range, or None when the structure cannot be fitted.
     """
     u, y = problem.u, problem.y
     try:
         fit = problem.fit(mask, rows=fold.train)
     except ValueError:
-        return np.nan, np.nan
+        return None, None
     model = problem.model(mask, fit)
+    lag = problem.term_space.max_lag
+    at = np.concatenate([np.arange(a + lag, b) for a, b in fold.held_out])
 
-    def held_out() -> float:
-        yhat, at = model.run(u, y, None, fold.held_out)
-        if at is not None:
-            return np.inf
+    def held_out():
+        yhat, diverged = model.run(u, y, None, fold.held_out)
+        if diverged is not None:
+            return "diverged"
         e = model.measured(y, fold.held_out) - yhat
-        return float(np.mean(e * e))
+        return at, e * e
 
     least_squares = held_out()
     ref = refine_simulation(model, u, y, fold.train_segments, max_evaluations=FOLD_STEPS)
@@ -559,3 +566,17 @@ def _fold_free_run(problem, fold, mask: np.ndarray) -> tuple[float, float]:
         return least_squares, least_squares
     model.coefficients = ref.coefficients
     return least_squares, held_out()
+
+
+def _sub_block_mse(runs, label: np.ndarray, n_sub: int) -> list[float]:
+    """Each sub-block's held-out MSE over the folds' runs (inf: a run diverged; NaN: unfit)."""
+    if any(r is None for r in runs):
+        return [np.nan] * n_sub
+    if any(isinstance(r, str) for r in runs):
+        return [np.inf] * n_sub
+    sse, count = np.zeros(n_sub), np.zeros(n_sub)
+    for at, sq in runs:
+        ids = label[at]
+        np.add.at(sse, ids, sq)
+        np.add.at(count, ids, 1)
+    return list(np.where(count > 0, sse / np.maximum(count, 1), np.nan))

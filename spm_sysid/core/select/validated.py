@@ -41,15 +41,18 @@ from ..fit.lstsq import reference_fit
 from ..model.segments import rows_segments
 from ..model.simulation import divergence_bounds, run_model
 
-__all__ = ["FOLDS", "SIMULATION_FOLDS", "Fold", "Scores", "blocked_folds",
-           "candidate_structures", "cv_scores", "stress_check", "surrogate_input"]
+__all__ = ["FOLDS", "SIMULATION_FOLDS", "SIMULATION_REPEATS", "Fold", "Scores", "blocked_folds",
+           "candidate_structures", "cv_scores", "stress_check", "sub_blocks",
+           "surrogate_input"]
 
 #: Folds of validated selection.
 FOLDS = 3
 
-#: Folds of the simulation focus: a nonlinear structure must beat the linear ones on
-#: these blocks by more than the noise of the comparison, which needs more than three.
-SIMULATION_FOLDS = 10
+#: Blocks of the simulation focus, laid :data:`SIMULATION_REPEATS` times (shifted): long
+#: blocks judge long simulations, and a nonlinear structure must beat the linear ones on
+#: the sub-blocks (:func:`sub_blocks`, 9) by more than the noise of the comparison.
+SIMULATION_FOLDS = 3
+SIMULATION_REPEATS = 3
 
 #: Held-out rows a block must have to be judged on.
 MIN_BLOCK_ROWS = 20
@@ -80,9 +83,13 @@ class Fold:
     train_segments: list[tuple[int, int]]  # the rest of the segments
 
 
-def blocked_folds(problem, k: int = FOLDS) -> list[Fold]:
+def blocked_folds(problem, k: int = FOLDS, repeats: int = 1) -> list[Fold]:
     """K contiguous held-out blocks over the problem's segments (fewer if the data are short).
 
+    With ``repeats`` R > 1, the K blocks are laid R times, each time shifted by
+    1/R of a block (a block that runs past the end wraps to the start): K * R
+    folds, every sample held out R times, in blocks as long as K alone gives
+    (long blocks judge long simulations; the repeats steady the estimate).
     Returns an empty list when not even two blocks of :data:`MIN_BLOCK_ROWS`
     held-out rows fit.
     """
@@ -91,23 +98,39 @@ def blocked_folds(problem, k: int = FOLDS) -> list[Fold]:
     while k >= 2:
         edges = np.linspace(0, len(positions), k + 1).round().astype(int)
         folds = []
-        for i in range(k):
-            block = positions[edges[i]:edges[i + 1]]
-            held = _runs(block, problem.segments)
-            rows = sum(max(b - a - lag, 0) for a, b in held)
-            if rows < MIN_BLOCK_ROWS:
-                break
-            t = problem.row_times
-            outside = np.ones(len(t), dtype=bool)
-            for a, b in held:  # the row's window [t - lag, t] must miss the block
-                outside &= (t < a) | (t - lag >= b)
-            rest = _complement(problem.segments, held, lag)
-            folds.append(Fold(outside, rows_segments(held, len(problem.y), lag),
-                              rows_segments(rest, len(problem.y), 0)))
-        if len(folds) == k and all(f.train.sum() > 0 for f in folds):
+        for r in range(repeats):
+            shift = int(round(r * len(positions) / (k * repeats)))
+            rolled = np.roll(positions, -shift)
+            for i in range(k):
+                block = np.sort(rolled[edges[i]:edges[i + 1]])
+                held = _runs(block, problem.segments)
+                rows = sum(max(b - a - lag, 0) for a, b in held)
+                if rows < MIN_BLOCK_ROWS:
+                    break
+                t = problem.row_times
+                outside = np.ones(len(t), dtype=bool)
+                for a, b in held:  # the row's window [t - lag, t] must miss the block
+                    outside &= (t < a) | (t - lag >= b)
+                rest = _complement(problem.segments, held, lag)
+                folds.append(Fold(outside, rows_segments(held, len(problem.y), lag),
+                                  rows_segments(rest, len(problem.y), 0)))
+        if len(folds) == k * repeats and all(f.train.sum() > 0 for f in folds):
             return folds
         k -= 1
     return []
+
+
+def sub_blocks(problem, folds: list[Fold]) -> np.ndarray:
+    """Each sample's sub-block: the record cut into as many equal parts as there are folds.
+
+    With repeated blocks every sub-block is held out by the same number of folds
+    and never fitted on by them, so the sub-blocks' held-out errors are separate
+    estimates, one per sub-block (-1 outside the segments).
+    """
+    label = np.full(len(problem.y), -1, dtype=int)
+    positions = np.concatenate([np.arange(a, b) for a, b in problem.segments])
+    label[positions] = np.arange(len(positions)) * len(folds) // len(positions)
+    return label
 
 
 def _complement(segments, held, lag: int) -> list[tuple[int, int]]:
@@ -126,12 +149,14 @@ def _complement(segments, held, lag: int) -> list[tuple[int, int]]:
 
 
 def _runs(block: np.ndarray, segments) -> list[tuple[int, int]]:
-    """The sample ranges of a block, split where the segments split it."""
+    """The sample ranges of a block (sorted positions), split at gaps and segment borders."""
     out = []
     for a, b in segments:
         inside = block[(block >= a) & (block < b)]
         if inside.size:
-            out.append((int(inside[0]), int(inside[-1]) + 1))
+            cuts = np.flatnonzero(np.diff(inside) != 1) + 1
+            for part in np.split(inside, cuts):
+                out.append((int(part[0]), int(part[-1]) + 1))
     return out
 
 
