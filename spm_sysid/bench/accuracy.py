@@ -125,6 +125,8 @@ def _call(model) -> str:
     if held is not None and se is not None:
         blocks = sel.get("folds", call.get("folds"))
         text += f"; held-out {held:.3g} +- {se:.2g} ({se / held:.0%}) over {blocks} blocks"
+    if call.get("fallback"):
+        text += f"; {call['fallback']}"
     loop = model.metadata.get("open_loop") if hasattr(model, "term_space") else None
     if loop and not loop.get("free_run_applies", True):
         text += f"; {loop['kind']}: judged on the {loop.get('horizon')}-step prediction"
