@@ -37,7 +37,15 @@ run: $(KERNELS)
 identify: $(KERNELS)
 	$(BIN)/spm-sysid identify --criterion aic --seed 1 --json out/model.json --plots out/figures
 
-test: $(KERNELS)
+# the report and dashboard tests run in a real headless Chromium from Debian's packages
+BROWSER := $(VENV)/.browser
+$(BROWSER):
+	command -v chromium >/dev/null || [ "$$(id -u)" != 0 ] || { apt-get update -q && \
+	  DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium; } || true
+	command -v chromium >/dev/null && touch $(BROWSER) || echo "Chromium is missing" \
+	  "(apt-get install chromium, as root): the browser tests will be skipped, and say so"
+
+test: $(KERNELS) $(BROWSER)
 	# three workers on 2 cores (most ROS tests wait on processes); tests spread one by one,
 	# the files with an expensive module fixture (Dask cluster, colcon build) kept together
 	ROS_DOMAIN_ID=62 $(BIN)/python -m pytest -q -n 3 --dist loadgroup test

@@ -27,6 +27,8 @@ setup(
         "pyyaml>=6.0",
         "numba>=0.59",
         "threadpoolctl>=3.1",
+        # the HTML report's interactive plots (--report): its JavaScript is inlined
+        "bokeh>=3.4",
     ],
     extras_require={
         # ROS 2 Jazzy from PyPI for machines without a ROS install (see README).
@@ -99,6 +101,8 @@ setup(
         # studies and batches on a Dask cluster (`--scheduler`); not needed on the robot
         "dask": ["dask>=2024.1", "distributed>=2024.1"],
         "test": [
+            # drives Debian's Chromium (make test installs it); never downloads a browser
+            "playwright>=1.40",
             "pytest>=7",
             "pytest-timeout>=2.1",
             "pytest-xdist>=3.5",

@@ -179,3 +179,27 @@ def sine_record(n: int = 400):
     for k in range(2, n):
         y[k] = 1.5 * y[k - 1] - 0.7 * y[k - 2] + 0.5 * u[k - 1]
     return u, y + 1e-3 * np.random.default_rng(0).standard_normal(n)
+
+
+def chromium_path() -> str | None:
+    """Debian's headless-capable Chromium (make test installs it when it is missing)."""
+    import shutil
+
+    return shutil.which("chromium") or shutil.which("chromium-browser")
+
+
+@pytest.fixture(scope="session")
+def browser():
+    """A real headless Chromium driven by Playwright (the system's browser, none downloaded)."""
+    sync_api = pytest.importorskip("playwright.sync_api",
+                                   reason="playwright is not installed (make test installs it)")
+    path = chromium_path()
+    if path is None:
+        pytest.skip("Chromium is not installed: apt-get install chromium (make test does it "
+                    "as root)")
+    with sync_api.sync_playwright() as p:
+        b = p.chromium.launch(executable_path=path, args=["--no-sandbox"])
+        try:
+            yield b
+        finally:
+            b.close()

@@ -223,6 +223,16 @@ _LIST = [
        "stopped (0: no limit)", "node", low=0.0, high=1e6, cli=False),
     _s("model_path", str, "", "save each model's JSON document here and publish it again "
        "at start-up (empty: don't)", "node", cli=False),
+    # -- the live dashboard (a read-only web page served by the node) --------------------
+    _s("dashboard_port", int, 0, "serve the live dashboard (monitor state, measured against "
+       "predicted, residuals, the model, progress, the last report) on this TCP port (0: "
+       "off)", "node", low=0, high=65535, cli=False, read_only=True),
+    _s("dashboard_host", str, "127.0.0.1", "address the dashboard binds (any other than a "
+       "loopback address needs dashboard_token)", "node", cli=False, read_only=True),
+    _s("dashboard_token", str, "", "token the dashboard asks for (?token=...; required when "
+       "dashboard_host is not a loopback address)", "node", cli=False, read_only=True),
+    _s("dashboard_seconds", float, 10.0, "seconds of measured and predicted samples the "
+       "dashboard shows", "node", low=0.5, high=3600.0, cli=False, read_only=True),
     # -- online: prediction, validity monitor, tracking, re-identification ----------------
     _s("monitor", bool, True, "with a current model, predict each paired sample one step "
        "ahead (~/prediction) and monitor the model's validity (~/validity)", "online",

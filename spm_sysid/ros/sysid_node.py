@@ -73,6 +73,9 @@ class SysidNode(Node):
                                    cancel_service_qos_profile=REQUESTS)
         self.create_service(Trigger, "~/clear", self._on_clear, callback_group=services,
                             qos_profile=REQUESTS)
+        self.dashboard = None
+        if p["dashboard_port"]:
+            self._start_dashboard(p)
         self.create_timer(p["diagnostics_period"], self._publish_diagnostics)
         self.create_timer(1.0, self._online_tick)
         self.get_logger().info(
@@ -80,6 +83,19 @@ class SysidNode(Node):
             f"{describe(self.params.out_channels)}; buffer of {p['buffer_capacity']} samples")
         if p["model_path"]:
             self.publisher.republish_saved(p["model_path"])
+
+    def _start_dashboard(self, p: dict) -> None:
+        """Serve the live page (``dashboard_port``); a failure is one error line, no crash."""
+        from .node.dashboard import Dashboard, DashboardError
+
+        try:
+            self.dashboard = Dashboard(self, p["dashboard_port"], p["dashboard_host"],
+                                       p["dashboard_token"], p["dashboard_seconds"])
+        except DashboardError as exc:
+            self.get_logger().error(str(exc))
+            return
+        self.online.dashboard = self.dashboard
+        self.get_logger().info(f"live dashboard at {self.dashboard.url} (read-only)")
 
     # -- services and the action ---------------------------------------------------------
     def _on_clear(self, request, response):
@@ -147,6 +163,8 @@ class SysidNode(Node):
     def _publish_result(self, result, model_path: str) -> None:
         """Save (when asked) and publish a result; then the diagnostics say so."""
         self.publisher.publish_result(result, model_path)
+        if self.dashboard is not None:
+            self.dashboard.new_result(result)
         self.identification.last_error = None
         self._publish_diagnostics()
 
@@ -179,8 +197,10 @@ class SysidNode(Node):
         self.diag_pub.publish(msg)
 
     def close(self) -> None:
-        """Stop the worker process (a running search is killed)."""
+        """Stop the worker process (a running search is killed) and the dashboard."""
         self.identification.close()
+        if self.dashboard is not None:
+            self.dashboard.close()
 
 
 def main(args: list[str] | None = None) -> int:

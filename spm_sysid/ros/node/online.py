@@ -56,6 +56,7 @@ class OnlinePart:
         self.predictions = 0
         self.model_time = time.monotonic()
         self.last_stamp: int | None = None
+        self.dashboard = None  # the live page's sample store, when the node serves one
         recorder.buffer.on_pair = self.on_pair
         node.create_timer(values()["tracking_period"], self.publish_tracked)
 
@@ -63,6 +64,8 @@ class OnlinePart:
         """A new current model: a fresh session (its monitor starts VALID)."""
         v = self.values()
         self.model_time, self.doc = time.monotonic(), doc
+        if self.dashboard is not None:
+            self.dashboard.new_model()
         if not v["monitor"]:
             self.session = None
             return
@@ -111,6 +114,8 @@ class OnlinePart:
             return
         if all(s is None for s in samples):
             return
+        if self.dashboard is not None:
+            self.dashboard.feed(names, samples)
         self.predictions += 1
         if self.predictions % self.values()["prediction_every"] == 0:
             for name, sample in zip(names, samples):

@@ -46,6 +46,7 @@ def cmd_identify(args) -> int:
     settings = job_settings(args)
     if args.plots and settings.validation == "none":
         raise UserError("--plots needs validation (--validation estimation or holdout)")
+    check_report_path(args.report)
     if args.validation_split is not None and settings.validation != "holdout":
         raise UserError("--validation-split (--split) applies to --validation holdout only "
                         "(the estimation fraction of the data)")
@@ -80,7 +81,39 @@ def cmd_identify(args) -> int:
     if args.json:
         path = model.save(args.json)
         print(f"model written to {path}")
+    if args.report:
+        from ..html_report import OutputSection, ReportContent, write_report
+
+        path = write_report(args.report, ReportContent(
+            title=f"{model.term_space.output}: identified NARX model", command=command_line(),
+            data=f"data: {record.source}, {result.estimation_samples} samples used for "
+                 "estimation", summary=result.summary("lines"),
+            notes=data_notes(result.data, model.metadata)),
+            [OutputSection(model.term_space.output, model, result.report,
+                           validation_times(record, args), result.search.history)])
+        print(f"report written to {path}")
     return 0
+
+
+def command_line() -> str:
+    """The command as typed (for a report's header)."""
+    import shlex
+    import sys
+
+    return "spm-sysid " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+
+
+def check_report_path(path) -> None:
+    """Refuse a report path that is not an .html file or whose folder cannot be made."""
+    if path is None:
+        return
+    from pathlib import Path
+
+    p = Path(path)
+    if p.suffix.lower() not in (".html", ".htm"):
+        raise UserError(f"--report writes an HTML page: give a path ending in .html, got {path}")
+    if p.is_dir():
+        raise UserError(f"--report {path} is a folder; give a file name ending in .html")
 
 
 def validation_times(record, args):
@@ -119,6 +152,18 @@ def report_several(args, record, result) -> int:
     if args.json:
         path = result.model.save(args.json)
         print(f"model written to {path}")
+    if args.report:
+        from ..html_report import OutputSection, ReportContent, write_report
+
+        times = validation_times(record, args)
+        path = write_report(args.report, ReportContent(
+            title=f"{', '.join(result.output_names)}: identified coupled NARX model",
+            command=command_line(), data=f"data: {record.source}, {len(record)} samples",
+            summary=result.summary("lines"), cross_tests=result.cross_tests,
+            notes=data_notes(result.data, result.outputs[0].model.metadata)),
+            [OutputSection(name, r.model, r.report, times, r.search.history)
+             for name, r in zip(result.output_names, result.outputs)])
+        print(f"report written to {path}")
     return 0
 
 
@@ -240,6 +285,7 @@ def cmd_validate(args) -> int:
     if args.tail is not None and not 0 < args.tail < 1:
         raise UserError(f"--tail must be between 0 and 1, got {args.tail}")
     check_outputs(args)
+    check_report_path(args.report)
     from ...core.errors import ModelFormatError
     from ...core.model.mimo import MimoModel, read_model_document
 
@@ -271,6 +317,15 @@ def cmd_validate(args) -> int:
                                     times=record.row_seconds(segments,
                                                              model.term_space.max_lag))
         print(f"figures written to {args.plots}: {', '.join(p.name for p in paths)}")
+    if args.report:
+        from ..html_report import OutputSection, ReportContent, write_report
+
+        path = write_report(args.report, ReportContent(
+            title=f"{model.term_space.output}: model {args.model} validated",
+            command=command_line(), data=f"data: {record.source}", summary=report.summary()),
+            [OutputSection(model.term_space.output, model, report,
+                           record.row_seconds(segments, model.term_space.max_lag))])
+        print(f"report written to {path}")
     return 0
 
 
@@ -355,6 +410,16 @@ def validate_several(args, model) -> int:
         paths = write_mimo_figures(reports, model.models, model.outputs, cross, args.plots,
                                    times=record.row_seconds(segments, model.max_lag))
         print(f"figures written to {args.plots}: {', '.join(p.name for p in paths)}")
+    if args.report:
+        from ..html_report import OutputSection, ReportContent, write_report
+
+        times = record.row_seconds(segments, model.max_lag)
+        path = write_report(args.report, ReportContent(
+            title=f"{', '.join(model.outputs)}: coupled model {args.model} validated",
+            command=command_line(), data=f"data: {record.source}", cross_tests=cross),
+            [OutputSection(name, m, rep, times)
+             for name, m, rep in zip(model.outputs, model.models, reports)])
+        print(f"report written to {path}")
     return 0
 
 
@@ -433,6 +498,9 @@ def add_parsers(sub) -> None:
     g = p.add_argument_group("output")
     g.add_argument("--json", metavar="PATH", help="write the model document here")
     g.add_argument("--plots", metavar="DIR", help="write validation figures here")
+    g.add_argument("--report", metavar="FILE.html",
+                   help="write one self-contained page: equation, coefficients, checks, "
+                        "interactive plots (works offline)")
     g.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_identify)
 
@@ -467,6 +535,8 @@ def add_parsers(sub) -> None:
     p.add_argument("--tail", type=float, default=None,
                    help="validate on this final fraction of the data only (e.g. 0.5)")
     p.add_argument("--plots", metavar="DIR", help="write validation figures here")
+    p.add_argument("--report", metavar="FILE.html",
+                   help="write one self-contained page of the model and this validation")
     p.add_argument("--correlation-lags", "--corr-lags", dest="correlation_lags",
                    type=schema_type("correlation_lags"),
                    default=SETTINGS["correlation_lags"].default,

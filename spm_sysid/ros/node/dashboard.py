@@ -1,0 +1,307 @@
+"""The live dashboard: a read-only web page served by the node (``dashboard_port``).
+
+``/`` is the page (:mod:`spm_sysid.tools.dashboard_page`), ``/state.json`` what it
+shows, ``/report.html`` the last identification's report
+(:mod:`spm_sysid.tools.html_report`, built on the first request after each
+identification). Only GET is answered: nothing on the page changes the node or
+the robot. The server binds ``dashboard_host`` (127.0.0.1 by default); any other
+address needs ``dashboard_token``, and every request must then carry it
+(``?token=...``). A port in use, or a non-local address without a token, is one
+error line in the log and no dashboard: the node runs on.
+
+Cost on the node: each paired sample appends one tuple per output to a bounded
+deque (:meth:`Dashboard.feed`); the server's thread builds ``/state.json`` from
+at most :data:`MAX_POINTS` points per output, four times a second per open page.
+"""
+
+from __future__ import annotations
+
+import hmac
+import ipaddress
+import json
+import math
+import threading
+import time
+from collections import deque
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from urllib.parse import parse_qs, urlsplit
+
+import numpy as np
+
+__all__ = ["MAX_POINTS", "Dashboard", "DashboardError", "is_loopback"]
+
+#: Most points per output in one ``/state.json`` (the last seconds, evenly thinned).
+MAX_POINTS = 1500
+
+
+class DashboardError(RuntimeError):
+    """The dashboard cannot start (the message says why)."""
+
+
+def is_loopback(host: str) -> bool:
+    """Whether ``host`` is a loopback address (``localhost``, 127.0.0.0/8, ::1)."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def _num(v) -> float | None:
+    v = float(v)
+    return v if math.isfinite(v) else None
+
+
+class Dashboard:
+    """The node's live page and its data.
+
+    Parameters
+    ----------
+    node
+        The :class:`~spm_sysid.ros.sysid_node.SysidNode` (read, never changed).
+    port, host, token
+        Where to serve and the token to ask for (see the module doc).
+    seconds
+        Samples shown (by their stamps).
+
+    Raises
+    ------
+    DashboardError
+        A non-local host without a token, or an address that cannot be bound.
+    """
+
+    def __init__(self, node, port: int, host: str = "127.0.0.1", token: str = "",
+                 seconds: float = 10.0) -> None:
+        if not is_loopback(host) and not token:
+            raise DashboardError(
+                f"the dashboard is not served on {host}: an address other than the "
+                "loopback (127.0.0.1) needs dashboard_token (anyone who reaches the port "
+                "could read the robot's signals)")
+        self.node, self.token, self.seconds = node, token, float(seconds)
+        # the last samples per output: (stamp_ns, measured, predicted, residual)
+        self.samples: dict[str, deque] = {}
+        self._rate = 1000.0
+        self._report: tuple[int, bytes] | None = None  # (id of the result, page)
+        self._report_lock = threading.Lock()
+        self.last_result = None
+        self.last_message: str | None = None
+        self.requests = 0
+        handler = _handler(self)
+        try:
+            self.server = ThreadingHTTPServer((host, port), handler)
+        except OSError as exc:
+            why = exc.strerror or str(exc)
+            raise DashboardError(f"the dashboard cannot listen on {host}:{port} ({why}): is "
+                                 "another node or program using that port? Choose another "
+                                 "dashboard_port") from None
+        self.server.daemon_threads = True
+        self.port = self.server.server_address[1]
+        self.host = host
+        self.thread = threading.Thread(target=self.server.serve_forever, name="dashboard",
+                                       daemon=True)
+        self.thread.start()
+
+    @property
+    def url(self) -> str:
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"http://{host}:{self.port}/" + (f"?token={self.token}" if self.token else "")
+
+    # -- the executor thread's side: as cheap as it can be --------------------------------
+    def feed(self, names, samples) -> None:
+        """Keep one paired sample's prediction per output (the online part calls this)."""
+        for name, s in zip(names, samples):
+            if s is None:
+                continue
+            d = self.samples.get(name)
+            if d is None:
+                d = self.samples[name] = deque(maxlen=self._capacity())
+            d.append((s.stamp_ns, s.measured, s.predicted, s.residual))
+
+    def _capacity(self) -> int:
+        period = float(self.node.params.values.get("sample_period") or 0.0)
+        rate = 1.0 / period if period > 0 else 2000.0  # unknown: room for 2 kHz
+        return max(100, int(self.seconds * rate * 1.2) + 10)
+
+    def new_model(self) -> None:
+        """A new model in use: the samples of the previous one are dropped."""
+        self.samples = {}
+
+    def new_result(self, result) -> None:
+        """The last identification's result (its report is built when asked for)."""
+        self.last_result = result
+        self.last_message = (time.strftime("%H:%M:%S ") + result.summary("line"))[:400]
+
+    def close(self) -> None:
+        self.server.shutdown()
+        self.server.server_close()
+
+    # -- the server thread's side ---------------------------------------------------------
+    def state(self) -> dict:
+        """What the page shows (``/state.json``)."""
+        node = self.node
+        online = node.online
+        session = online.session
+        monitor = {"state": "NO_MODEL", "reason": "no model", "samples": 0, "since": None}
+        if session is not None:
+            st = session.state
+            monitor = {"state": st.state, "reason": st.reason, "samples": int(st.samples),
+                       "since": None}
+            if session.transitions:
+                stamp = session.transitions[-1][0]
+                monitor["since"] = time.strftime("%Y-%m-%d %H:%M:%S",
+                                                 time.localtime(stamp / 1e9)) \
+                    + f".{int(stamp % 1_000_000_000) // 1_000_000:03d}"
+                monitor["since_stamp_ns"] = str(stamp)
+            else:
+                monitor["since"] = "the model was set"
+        per_output = {}
+        states = {}
+        for s in getattr(session, "sessions", [session] if session is not None else []):
+            name = s.model.term_space.output
+            states[name] = s.state
+        for name, d in list(self.samples.items()):
+            rows = list(d)
+            if rows:
+                last = rows[-1][0]
+                first = last - int(self.seconds * 1e9)
+                rows = [r for r in rows if r[0] >= first]
+            stride = max(1, -(-len(rows) // MAX_POINTS))
+            shown = rows[::-1][::stride][::-1]  # the newest sample always shown
+            resid = np.array([r[3] for r in rows], dtype=float)
+            resid = resid[np.isfinite(resid)]
+            mst = states.get(name)
+            stats = {"samples": int(len(resid)),
+                     "mean": _num(resid.mean()) if resid.size else None,
+                     "rms": _num(np.sqrt(np.mean(resid * resid))) if resid.size else None,
+                     "rms_ratio": _num(mst.rms_ratio) if mst is not None else None,
+                     "whiteness_p": _num(mst.whiteness_p) if mst is not None else None}
+            t_end = shown[-1][0] if shown else 0
+            per_output[name] = {
+                "t": [(r[0] - t_end) / 1e9 for r in shown],
+                "stamp_sec": [r[0] // 1_000_000_000 for r in shown],
+                "stamp_nanosec": [r[0] % 1_000_000_000 for r in shown],
+                "measured": [_num(r[1]) for r in shown],
+                "predicted": [_num(r[2]) for r in shown],
+                "stride": stride, "stats": stats}
+        ident = node.identification
+        progress = None
+        if ident.started is not None:
+            p = ident.progress
+            progress = {"phase": p.phase if p else "checking data",
+                        "step": int(p.step) if p else 0, "total": int(p.total) if p else 0,
+                        "best": _num(p.best) if p and p.best is not None else None,
+                        "elapsed": time.monotonic() - ident.started}
+        return {"node": node.get_fully_qualified_name(), "seconds": self.seconds,
+                "monitor": monitor, "outputs": per_output, "progress": progress,
+                "last_identification": self.last_message,
+                "model": self._model(), "report": "report.html"
+                if self.last_result is not None else None}
+
+    def _model(self) -> dict | None:
+        pub = self.node.publisher
+        model, doc = pub.model, pub.doc
+        if model is None or doc is None:
+            return None
+        from ...core.model.mimo import MimoModel
+
+        models = model.models if isinstance(model, MimoModel) else [model]
+        outputs = []
+        for m in models:
+            unc = getattr(m, "uncertainty", None)
+            outputs.append({"output": m.term_space.output, "equation": m.equation(),
+                            "terms": list(m.terms),
+                            "coefficients": [float(c) for c in m.coefficients],
+                            "standard_errors": [float(v) for v in unc.standard_errors]
+                            if unc is not None else None})
+        crit = models[0].criterion or ""
+        return {"id": str(id(doc)), "outputs": outputs,
+                "summary": f"{len(models)} output(s), {sum(len(m.terms) for m in models)} "
+                           f"terms, criterion {crit.upper()}"
+                           + (f", restored from {pub.restored_from}" if pub.restored_from
+                              else "")}
+
+    def report_page(self) -> bytes | None:
+        """The last identification's report (built once per result), or None."""
+        result = self.last_result
+        if result is None:
+            return None
+        with self._report_lock:
+            if self._report is not None and self._report[0] == id(result):
+                return self._report[1]
+            from ...tools.html_report import OutputSection, ReportContent, build_report
+
+            outputs = getattr(result, "outputs", None)
+            if outputs is not None:  # several outputs
+                sections = [OutputSection(n, r.model, r.report, None, r.search.history)
+                            for n, r in zip(result.output_names, outputs)]
+                cross = result.cross_tests
+            else:
+                sections = [OutputSection(result.model.term_space.output, result.model,
+                                          result.report, None, result.search.history)]
+                cross = []
+            page = build_report(ReportContent(
+                title="the last identification", command=self.node.get_fully_qualified_name(),
+                data=f"{result.data.get('used_samples', '?')} samples from the node's buffer",
+                summary=result.summary("lines"), cross_tests=cross), sections).encode()
+            self._report = (id(result), page)
+            return page
+
+
+def _handler(board: Dashboard):
+    page = None
+
+    class Handler(BaseHTTPRequestHandler):
+        server_version = "spm_sysid-dashboard"
+
+        def log_message(self, format, *args):  # noqa: A002 - the base class's name
+            pass  # requests are counted, not logged line by line
+
+        def _send(self, code: int, body: bytes, kind: str) -> None:
+            self.send_response(code)
+            self.send_header("Content-Type", kind)
+            self.send_header("Content-Length", str(len(body)))
+            self.send_header("Cache-Control", "no-store")
+            self.end_headers()
+            self.wfile.write(body)
+
+        def do_GET(self):  # noqa: N802 - http.server's name
+            nonlocal page
+            board.requests += 1
+            url = urlsplit(self.path)
+            if board.token:
+                given = parse_qs(url.query).get("token", [""])[0]
+                if not hmac.compare_digest(given.encode(), board.token.encode()):
+                    self._send(403, b"this dashboard needs its token: ?token=...\n",
+                               "text/plain; charset=utf-8")
+                    return
+            try:
+                if url.path in ("/", "/index.html"):
+                    if page is None:
+                        from ...tools.dashboard_page import page as make_page
+
+                        page = make_page().encode()
+                    self._send(200, page, "text/html; charset=utf-8")
+                elif url.path == "/state.json":
+                    body = json.dumps(board.state(), allow_nan=False).encode()
+                    self._send(200, body, "application/json")
+                elif url.path == "/report.html":
+                    report = board.report_page()
+                    if report is None:
+                        self._send(404, b"no identification yet\n", "text/plain; charset=utf-8")
+                    else:
+                        self._send(200, report, "text/html; charset=utf-8")
+                else:
+                    self._send(404, b"not found\n", "text/plain; charset=utf-8")
+            except (BrokenPipeError, ConnectionResetError):
+                pass
+            except Exception as exc:  # noqa: BLE001 - a failing page never stops the node
+                self._send(500, f"dashboard error: {exc}\n".encode(),
+                           "text/plain; charset=utf-8")
+
+        def _read_only(self):
+            self._send(405, b"the dashboard is read-only\n", "text/plain; charset=utf-8")
+
+        do_POST = do_PUT = do_DELETE = do_PATCH = _read_only  # noqa: N815
+
+    return Handler

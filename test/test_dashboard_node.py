@@ -1,0 +1,188 @@
+"""The live dashboard served by a real sysid_node, read by a real headless Chromium (issue 33)."""
+
+import pytest
+
+pytest.importorskip("rclpy", reason="ROS 2 is not installed here (make test installs it)")
+pytestmark = pytest.mark.ros
+
+import json
+import socket
+import subprocess
+import sys
+import time
+import urllib.error
+import urllib.request
+
+from spm_sysid_interfaces.msg import Prediction, Validity
+
+from spm_sysid.core.io.bagio import write_io_bag
+
+from .conftest import EQ1
+from .ros_harness import ROOT, play_bag, start_node, stop
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def get(url: str, method: str = "GET"):
+    """(status, body) of a request to the dashboard."""
+    try:
+        with urllib.request.urlopen(urllib.request.Request(url, method=method),
+                                    timeout=10) as r:
+            return r.status, r.read()
+    except urllib.error.HTTPError as exc:
+        return exc.code, exc.read()
+
+
+def wait_http(url: str, timeout: float = 30.0):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        try:
+            return get(url)
+        except OSError:
+            time.sleep(0.2)
+    raise AssertionError(f"nothing answers at {url}")
+
+
+def test_the_live_page_shows_validity_the_model_and_the_predictions(
+        ros_env, harness, browser, robot_arm, tmp_path):
+    u, y = robot_arm
+    arm = write_io_bag(tmp_path / "arm", u, y)
+    scaled = write_io_bag(tmp_path / "scaled", 1.5 * u, 1.5 * y)
+    port = free_port()
+    node = start_node(ros_env, "seed:=1", f"dashboard_port:={port}")
+    page = browser.new_page()
+    try:
+        harness.wait_ready()
+        base = f"http://127.0.0.1:{port}/"
+        assert wait_http(base)[0] == 200
+        page.goto(base)
+        page.wait_for_function("window.spmDashboard && spmDashboard.updates > 0")
+        assert page.inner_text("#state") == "NO_MODEL"
+        play_bag(ros_env, arm)
+        harness.wait_buffer(lambda kv: int(kv["samples"]) >= len(y))
+        res = harness.call("/spm_sysid/identify")
+        assert res.success and "8 terms" in res.message
+        page.wait_for_function("spmDashboard.state && spmDashboard.state.model && "
+                               "spmDashboard.state.monitor.state === 'VALID'", timeout=10000)
+        assert page.inner_text("#state") == "VALID"
+        terms = page.eval_on_selector_all("#model td.term", "c => c.map(x => x.textContent)")
+        assert terms == EQ1
+        origin = page.evaluate("performance.timeOrigin")
+
+        # the bag again: what the page plots equals ~/prediction at the same stamps
+        predictions = []
+        sub = harness.node.create_subscription(Prediction, "/spm_sysid/prediction",
+                                               predictions.append, 2000)
+        play_bag(ros_env, arm)
+        harness.spin_until(lambda: len(predictions) >= len(y) - 4, 30)
+        harness.node.destroy_subscription(sub)
+        sent = {p.header.stamp.sec * 10**9 + p.header.stamp.nanosec: p for p in predictions}
+        last = max(sent)
+        page.wait_for_function(
+            "(last) => { const s = spmDashboard.state.outputs.y; if (!s) return false;"
+            " const n = s.stamp_sec.length - 1;"
+            " return BigInt(s.stamp_sec[n]) * 1000000000n + BigInt(s.stamp_nanosec[n])"
+            " === BigInt(last); }", arg=str(last), timeout=10000)
+        shown = page.evaluate("spmDashboard.state.outputs.y")
+        matched = 0
+        for sec, nsec, m, p in zip(shown["stamp_sec"], shown["stamp_nanosec"],
+                                   shown["measured"], shown["predicted"]):
+            msg = sent.get(sec * 10**9 + nsec)
+            if msg is not None:
+                matched += 1
+                assert (m, p) == (msg.measured, msg.predicted)
+        assert matched >= 500, matched
+        assert page.inner_text("#state") == "VALID"
+
+        # scaled by 1.5: the page turns INVALID within 2 s of the node, without a reload
+        seen = {}
+        vsub = harness.node.create_subscription(
+            Validity, "/spm_sysid/validity",
+            lambda m: seen.setdefault("node", time.monotonic())
+            if m.state == Validity.INVALID else None, 100)
+        player = subprocess.Popen([sys.executable, "-m", "spm_sysid.ros.bag_player",
+                                   "--ros-args", "-p", f"bag:={scaled}", "-p", "rate:=10.0"],
+                                  env=ros_env, cwd=ROOT, stdout=subprocess.DEVNULL,
+                                  stderr=subprocess.DEVNULL)
+        try:
+            end = time.monotonic() + 60
+            while time.monotonic() < end and "page" not in seen:
+                harness._spin_once(0.05)
+                if page.evaluate("spmDashboard.state.monitor.state") == "INVALID":
+                    seen["page"] = time.monotonic()
+            assert player.wait(timeout=120) == 0
+        finally:
+            player.kill()
+        harness.spin_until(lambda: "node" in seen, 10)
+        harness.node.destroy_subscription(vsub)
+        assert "page" in seen and "node" in seen, seen
+        assert seen["page"] - seen["node"] <= 2.0, seen
+        assert page.evaluate("performance.timeOrigin") == origin  # never reloaded
+        assert "change detected" in page.inner_text("#reason")
+
+        # the last identification's report is linked and opens
+        href = page.get_attribute("#report-link", "href")
+        status, body = get(base + href)
+        assert status == 200 and b"the last identification" in body
+        assert b"y(t-1)" in body
+        # read-only: nothing but GET
+        assert get(base + "state.json", method="POST")[0] == 405
+        state = json.loads(get(base + "state.json")[1])
+        assert state["monitor"]["state"] == "INVALID"
+    finally:
+        page.close()
+        stop(node)
+
+
+def test_the_dashboard_refuses_an_open_bind_without_a_token_and_a_taken_port(
+        ros_env, harness, tmp_path):
+    port = free_port()
+    log = tmp_path / "open.log"
+    with open(log, "w") as f:
+        node = start_node(ros_env, f"dashboard_port:={port}", "dashboard_host:=0.0.0.0",
+                          log=f)
+        try:
+            harness.wait_ready()  # the node runs on
+            assert "needs dashboard_token" in log.read_text()
+            with pytest.raises(OSError):
+                socket.create_connection(("127.0.0.1", port), timeout=2).close()
+        finally:
+            stop(node)
+
+    # a token: asked of every request
+    first_log = tmp_path / "first.log"
+    with open(first_log, "w") as f:
+        first = start_node(ros_env, f"dashboard_port:={port}", "dashboard_token:=s3cret",
+                           log=f)
+    second_log = tmp_path / "second.log"
+    try:
+        harness.wait_ready()
+        base = f"http://127.0.0.1:{port}/"
+        status, body = wait_http(base)
+        assert status == 403 and b"needs its token" in body
+        assert get(base + "state.json?token=wrong")[0] == 403
+        assert get(base + "state.json?token=s3cret")[0] == 200
+        # a second node on the same port: one clear error line, and it keeps running
+        with open(second_log, "w") as f:
+            second = subprocess.Popen(
+                [sys.executable, "-m", "spm_sysid.ros.sysid_node", "--ros-args",
+                 "-r", "__node:=second", "-p", f"dashboard_port:={port}"],
+                env=ros_env, cwd=ROOT, stdout=f, stderr=subprocess.STDOUT)
+        try:
+            end = time.monotonic() + 60
+            while time.monotonic() < end and "cannot listen" not in second_log.read_text():
+                time.sleep(0.2)
+            text = second_log.read_text()
+            assert f"cannot listen on 127.0.0.1:{port}" in text, text
+            assert "Choose another dashboard_port" in text
+            time.sleep(1.0)
+            assert second.poll() is None  # still running: no crash
+            assert get(base + "state.json?token=s3cret")[0] == 200  # the first still serves
+        finally:
+            stop(second)
+    finally:
+        stop(first)

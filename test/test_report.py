@@ -1,0 +1,176 @@
+"""The HTML report (issue 33), opened in a real headless Chromium with no network."""
+
+import json
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from spm_sysid.core.model.narx import NarxModel
+from spm_sysid.core.model.terms import TermSpace
+
+from .conftest import ROOT, two_output_system
+
+
+def _cli(*args, cwd=ROOT):
+    return subprocess.run([sys.executable, "-m", "spm_sysid.apps.main", *args],
+                          capture_output=True, text=True, cwd=cwd, timeout=300)
+
+
+def _open_offline(browser, path):
+    """The page in a context with no network; every request it made."""
+    context = browser.new_context(offline=True, viewport={"width": 1200, "height": 900})
+    page = context.new_page()
+    requests = []
+    page.on("request", lambda r: requests.append(r.url))
+    page.goto(path.resolve().as_uri())
+    page.wait_for_function("window.Bokeh && Bokeh.documents.length > 0", timeout=20000)
+    return context, page, requests
+
+
+def _source(page, name):
+    """A plot's data (columns as lists), read from the page's Bokeh document."""
+    return page.evaluate("""(name) => {
+        const m = Bokeh.documents[0].get_model_by_name(name);
+        if (!m) { return null; }
+        const out = {};
+        const d = m.data;
+        const entries = (d instanceof Map) ? Array.from(d.entries()) : Object.entries(d);
+        for (const [k, v] of entries) {
+            out[k] = Array.from(v, x => Number.isNaN(x) ? null : x);
+        }
+        return out;
+    }""", name)
+
+
+def test_identify_report_shows_the_model_and_its_data_offline(browser, tmp_path, robot_arm):
+    report, doc_path = tmp_path / "report.html", tmp_path / "m.json"
+    r = _cli("identify", "--quiet", "--report", str(report), "--json", str(doc_path))
+    assert r.returncode == 0, r.stderr
+    assert f"report written to {report}" in r.stdout
+    assert report.stat().st_size < 5_000_000
+    doc = json.loads(doc_path.read_text())
+    model = NarxModel.from_dict(doc)
+    context, page, requests = _open_offline(browser, report)
+    try:
+        assert all(u.startswith(("file:", "data:", "blob:")) for u in requests), requests
+        assert page.inner_text("#equation-y") == model.equation()
+        values = page.eval_on_selector_all("#coefficients-y td[data-value]",
+                                           "cells => cells.map(c => c.dataset.value)")
+        # coefficient, standard error per row: every coefficient equals the document's
+        coefs = [float(v) for v in values[0::2]]
+        assert coefs == [float(c) for c in doc["coefficients"]]
+        se = np.array([float(v) for v in values[1::2]])
+        assert np.allclose(se, model.uncertainty.standard_errors, rtol=1e-12)
+        assert "certified optimal" in page.inner_text("body")
+        u, y = robot_arm
+        one = _source(page, "y/one_step")
+        lag = model.term_space.max_lag
+        assert len(one["measured"]) == len(y) - lag
+        expected = model.predict(u, y)  # independent of the page: the model's own prediction
+        for i in (0, 500, len(y) - lag - 1):
+            assert one["measured"][i] == y[lag + i]
+            assert one["predicted"][i] == pytest.approx(expected[i], rel=1e-12)
+            assert one["lower"][i] <= one["predicted"][i] <= one["upper"][i]
+        free = _source(page, "y/free_run")
+        sim, _ = model.run(u, y)
+        assert free["predicted"][700] == pytest.approx(sim[700], rel=1e-9)
+        resid = _source(page, "y/residuals")
+        assert resid["residual"][10] == pytest.approx(y[lag + 10] - expected[10], abs=1e-12)
+        ee = _source(page, "y/correlation/ee")
+        assert len(ee["lag"]) == 41 and ee["lag"][0] == -20  # lags -20..20
+        conv = _source(page, "y/convergence")
+        assert len(conv["generation"]) == doc["metadata"]["generations_run"] + 1
+        assert min(conv["best"]) == pytest.approx(doc["criterion"]["value"], abs=1e-6)
+        png = page.screenshot(full_page=True)
+    finally:
+        context.close()
+    from io import BytesIO
+
+    import matplotlib.image as mpimg
+
+    pixels = mpimg.imread(BytesIO(png), format="png")[..., :3]
+    assert pixels.std() > 0.05  # not blank
+    assert (pixels.mean(axis=2) < 0.5).mean() > 0.005  # lines and text drawn
+
+
+def test_a_report_of_a_diverged_model_opens_and_says_so(browser, tmp_path, robot_arm,
+                                                        robot_arm_path):
+    u, y = robot_arm
+    from .conftest import eq1_model
+
+    model = eq1_model(robot_arm)
+    model.coefficients = model.coefficients * 1.05  # unstable: its free run diverges
+    model.save(tmp_path / "wild.json")
+    report = tmp_path / "wild.html"
+    r = _cli("validate", str(tmp_path / "wild.json"), "--data", str(robot_arm_path),
+             "--report", str(report))
+    assert r.returncode == 0, r.stderr
+    context, page, _ = _open_offline(browser, report)
+    try:
+        text = page.inner_text("#diverged-y")
+        assert "DIVERGED at sample" in text
+        free = _source(page, "y/free_run")
+        assert free["predicted"][-1] is None  # NaN after the divergence: a gap, not a crash
+    finally:
+        context.close()
+
+
+def test_a_model_of_300_terms_renders_within_2_seconds(browser, tmp_path, robot_arm):
+    from spm_sysid.core.validate.validation import validate_model
+    from spm_sysid.tools.html_report import OutputSection, ReportContent, write_report
+
+    u, y = robot_arm
+    space = TermSpace(ny=12, nu=12, degree=2)  # 24 linear + 300 quadratic terms
+    idx = list(range(24, 324))
+    model = NarxModel(space, idx, np.full(300, 1e-6), criterion="bic", criterion_value=0.0)
+    report = validate_model(model, u, y)
+    path = write_report(tmp_path / "big.html", ReportContent(title="300 terms"),
+                        [OutputSection("y", model, report)])
+    context = browser.new_context(offline=True)
+    page = context.new_page()
+    try:
+        t0 = time.perf_counter()
+        page.goto(path.as_uri())
+        page.wait_for_function("window.Bokeh && Bokeh.documents.length > 0 && "
+                               "document.querySelectorAll('.bk-Figure, .bk-figure, "
+                               "div[data-root-id]').length > 0", timeout=20000)
+        seconds = time.perf_counter() - t0
+        rows = page.eval_on_selector_all("#coefficients-y tr", "r => r.length")
+    finally:
+        context.close()
+    assert rows == 301
+    assert seconds < 2.0, seconds
+
+
+def test_a_report_of_two_outputs_has_a_section_each_and_the_cross_correlation(
+        browser, tmp_path):
+    from spm_sysid.core.jobs import JobSettings, run_job
+    from spm_sysid.core.record import Record
+    from spm_sysid.tools.html_report import OutputSection, ReportContent, write_report
+
+    u, Y = two_output_system(600, seed=4, noise=0.01)
+    rec = Record.from_samples(u, Y, source="test", input_names=("u1", "u2"),
+                              output_names=("y1", "y2"))
+    result = run_job(rec, JobSettings.from_values({"ny": 1, "nu": 1, "seed": 0}))
+    path = write_report(tmp_path / "two.html", ReportContent(
+        title="two", cross_tests=result.cross_tests),
+        [OutputSection(n, r.model, r.report) for n, r in zip(("y1", "y2"), result.outputs)])
+    context, page, _ = _open_offline(browser, path)
+    try:
+        for i, name in enumerate(("y1", "y2")):
+            assert page.inner_text(f"#equation-{name}") == result.outputs[i].model.equation()
+            free = _source(page, f"{name}/free_run")
+            assert free["predicted"][5] == pytest.approx(
+                result.outputs[i].report.free_run[5], rel=1e-12)  # the coupled run
+        cross = _source(page, "outputs/cross/cross_y1_y2")
+        assert cross is not None and len(cross["lag"]) == 41
+    finally:
+        context.close()
+
+
+def test_report_refuses_a_path_that_is_not_html(tmp_path):
+    r = _cli("identify", "--quiet", "--report", str(tmp_path / "r.txt"))
+    assert r.returncode == 2 and "give a path ending in .html" in r.stderr
