@@ -81,12 +81,14 @@ def test_the_live_page_shows_validity_the_model_and_the_predictions(
         harness.spin_until(lambda: len(predictions) >= len(y) - 4, 30)
         harness.node.destroy_subscription(sub)
         sent = {p.header.stamp.sec * 10**9 + p.header.stamp.nanosec: p for p in predictions}
-        last = max(sent)
+        # the page keeps every stride-th sample (about 1000 a window): wait for one of the
+        # last 50 sent to be its newest
+        recent = sorted(sent)[-50]
         page.wait_for_function(
-            "(last) => { const s = spmDashboard.state.outputs.y; if (!s) return false;"
+            "(recent) => { const s = spmDashboard.state.outputs.y; if (!s) return false;"
             " const n = s.stamp_sec.length - 1;"
             " return BigInt(s.stamp_sec[n]) * 1000000000n + BigInt(s.stamp_nanosec[n])"
-            " === BigInt(last); }", arg=str(last), timeout=10000)
+            " >= BigInt(recent); }", arg=str(recent), timeout=10000)
         shown = page.evaluate("spmDashboard.state.outputs.y")
         matched = 0
         for sec, nsec, m, p in zip(shown["stamp_sec"], shown["stamp_nanosec"],
@@ -95,7 +97,7 @@ def test_the_live_page_shows_validity_the_model_and_the_predictions(
             if msg is not None:
                 matched += 1
                 assert (m, p) == (msg.measured, msg.predicted)
-        assert matched >= 500, matched
+        assert matched >= 50, (matched, shown["stride"])
         assert page.inner_text("#state") == "VALID"
 
         # scaled by 1.5: the page turns INVALID within 2 s of the node, without a reload

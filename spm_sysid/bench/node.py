@@ -11,7 +11,12 @@
    cancel latency (cancel request sent to the CANCELED result) of a long search.
 5. Online: with the model identified and monitoring and tracking on, ingest
    at ``--rate`` Hz for ``--seconds`` s again: samples lost and the node's
-   per-sample cost of prediction, monitor and tracker (from /diagnostics).
+   per-sample cost of prediction, monitor and tracker (from /diagnostics), and
+   the node process's CPU time per sample (from /proc).
+6. The live dashboard: the same online ingest on a second node started with
+   ``dashboard_port``, while a client asks for ``/state.json`` four times a
+   second as the page does: the node's CPU time per sample against step 5's
+   (the issue's bound: at most 5 % more).
 
 Prints figures; asserts nothing. ROS traffic stays on this machine.
 """
@@ -35,6 +40,33 @@ def _rss_mb(pid: int) -> float:
             if line.startswith("VmRSS:"):
                 return int(line.split()[1]) / 1024
     return float("nan")
+
+
+def _cpu_seconds(pid: int) -> float:
+    """User + system CPU seconds of a process so far (/proc/PID/stat)."""
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _online_ingest(client, pub, pid: int, rate: float, count: int) -> dict:
+    """Ingest ``count`` pairs at ``rate`` with a model monitored: losses and costs."""
+    from ..ros.client import wait_for_buffer
+
+    before = wait_for_buffer(client, lambda kv: True, 10)
+    base = int(before["received_outputs"])
+    online0 = wait_for_buffer(client, lambda kv: True, 10, status="model validity")
+    cpu0 = _cpu_seconds(pid)
+    pub(rate, count, "ramp")
+    kv = wait_for_buffer(client, lambda kv: int(kv["received_outputs"]) >= base + count, 30)
+    online = wait_for_buffer(client, lambda kv: int(kv["samples"]) >= int(
+        online0.get("samples", 0)) + count, 30, status="model validity")
+    cpu = _cpu_seconds(pid) - cpu0
+    return {"inputs": int(kv["received_inputs"]) - base,
+            "outputs": int(kv["received_outputs"]) - base,
+            "lost": base + count - int(kv["received_outputs"]),
+            "us_per_sample": float(online["microseconds_per_sample"]),
+            "cpu_us_per_sample": 1e6 * cpu / count, "tracker": online.get("tracker_updates")}
 
 
 def run(args) -> None:
@@ -125,24 +157,72 @@ def run(args) -> None:
               f"{max(cancels):.3f} s from the cancel request to the CANCELED result "
               f"({args.repeats} goals each)")
         # 5. online: ingest again with the model monitored and tracked
-        before = wait_for_buffer(client, lambda kv: True, 10)
-        base = int(before["received_outputs"])
-        online0 = wait_for_buffer(client, lambda kv: True, 10, status="model validity")
-        sent = pub(args.rate, count, "ramp")
-        kv = wait_for_buffer(client, lambda kv: int(kv["received_outputs"]) >= base + count, 30)
-        online = wait_for_buffer(client, lambda kv: int(kv["samples"]) >= int(
-            online0.get("samples", 0)) + count, 30, status="model validity")
+        plain = _online_ingest(client, pub, node.pid, args.rate, count)
         print(f"online (monitor and tracker on): {count} messages per topic at {args.rate:g} "
-              f"Hz; node received {int(kv['received_inputs']) - base} inputs, "
-              f"{int(kv['received_outputs']) - base} outputs; lost "
-              f"{base + count - int(kv['received_outputs'])}; per-sample cost (prediction, "
-              f"monitor, tracker) {float(online['microseconds_per_sample']):.1f} us mean; "
-              f"tracker updates {online['tracker_updates']}")
+              f"Hz; node received {plain['inputs']} inputs, {plain['outputs']} outputs; lost "
+              f"{plain['lost']}; per-sample cost (prediction, monitor, tracker) "
+              f"{plain['us_per_sample']:.1f} us mean; node CPU "
+              f"{plain['cpu_us_per_sample']:.1f} us per sample; tracker updates "
+              f"{plain['tracker']}")
+        if args.dashboard:  # the same name again: this node goes first
+            node.send_signal(2)
+            node.wait(20)
+            _dashboard_cost(args, env, client, pub, count, plain)
     finally:
         node.send_signal(2)
         node.wait(20)
         client.destroy_node()
         rclpy.shutdown()
+
+
+def _dashboard_cost(args, env, client, pub, count: int, plain: dict) -> None:
+    """Step 6: the same online ingest on a node serving the dashboard, a page polling."""
+    import threading
+    import urllib.request
+
+    from ..ros.client import call_trigger, wait_for_buffer
+
+    node = subprocess.Popen([sys.executable, "-m", "spm_sysid.ros.sysid_node", "--ros-args",
+                             "-r", "__node:=spm_sysid", "-p", "seed:=1", "-p", "tracking:=true",
+                             "-p", f"buffer_capacity:={args.capacity}",
+                             "-p", f"dashboard_port:={args.dashboard_port}"],
+                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
+    stop, polls, sizes = threading.Event(), [0], []
+
+    def page() -> None:  # what the page does: /state.json every 250 ms
+        url = f"http://127.0.0.1:{args.dashboard_port}/state.json"
+        while not stop.wait(0.25):
+            try:
+                with urllib.request.urlopen(url, timeout=5) as r:
+                    sizes.append(len(r.read()))
+                polls[0] += 1
+            except OSError:
+                pass
+
+    poller = threading.Thread(target=page, daemon=True)
+    try:
+        wait_for_buffer(client, lambda kv: kv.get("worker_ready") == "True", 60)
+        pub(args.fill_rate, 1024, "robot_arm")
+        wait_for_buffer(client, lambda kv: int(kv["samples"]) >= 1024, 60)
+        ok, message = call_trigger(client, "/spm_sysid/identify", 300)
+        if not ok:
+            raise RuntimeError(message)
+        poller.start()
+        with_page = _online_ingest(client, pub, node.pid, args.rate, count)
+        stop.set()
+        poller.join(5)
+        ratio = with_page["cpu_us_per_sample"] / plain["cpu_us_per_sample"]
+        print(f"dashboard: the same ingest on a node serving the dashboard, /state.json asked "
+              f"{polls[0]} times (4 a second; median {statistics.median(sizes or [0]) / 1e3:.0f}"
+              f" kB): lost {with_page['lost']}; per-sample cost "
+              f"{with_page['us_per_sample']:.1f} us; node CPU "
+              f"{with_page['cpu_us_per_sample']:.1f} us per sample against "
+              f"{plain['cpu_us_per_sample']:.1f} us without the dashboard: {ratio:.3f}x "
+              f"({100 * (ratio - 1):+.1f} %)")
+    finally:
+        stop.set()
+        node.send_signal(2)
+        node.wait(20)
 
 
 def _cancel_latency(client) -> float:
@@ -183,6 +263,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--fill-rate", type=float, default=2000.0)
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--domain", type=int, default=64)
+    p.add_argument("--no-dashboard", dest="dashboard", action="store_false",
+                   help="skip step 6 (the dashboard's cost)")
+    p.add_argument("--dashboard-port", type=int, default=8765)
     args = p.parse_args(argv)
     run(args)
     return 0

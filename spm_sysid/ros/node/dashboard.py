@@ -9,9 +9,11 @@ address needs ``dashboard_token``, and every request must then carry it
 (``?token=...``). A port in use, or a non-local address without a token, is one
 error line in the log and no dashboard: the node runs on.
 
-Cost on the node: each paired sample appends one tuple per output to a bounded
-deque (:meth:`Dashboard.feed`); the server's thread builds ``/state.json`` from
-at most :data:`MAX_POINTS` points per output, four times a second per open page.
+Cost on the node: each paired sample counts one, and every ``stride``-th
+appends one tuple per output to a bounded deque (:meth:`Dashboard.feed`; the
+stride keeps about :data:`MAX_POINTS` samples in a window, from the stamps'
+rate); the server's thread builds ``/state.json`` from those, four times a
+second per open page. The residual statistics are of the samples kept.
 """
 
 from __future__ import annotations
@@ -30,8 +32,8 @@ import numpy as np
 
 __all__ = ["MAX_POINTS", "Dashboard", "DashboardError", "is_loopback"]
 
-#: Most points per output in one ``/state.json`` (the last seconds, evenly thinned).
-MAX_POINTS = 1500
+#: About this many points per output in one ``/state.json`` (the last seconds, thinned).
+MAX_POINTS = 1000
 
 
 class DashboardError(RuntimeError):
@@ -79,9 +81,10 @@ class Dashboard:
                 "loopback (127.0.0.1) needs dashboard_token (anyone who reaches the port "
                 "could read the robot's signals)")
         self.node, self.token, self.seconds = node, token, float(seconds)
-        # the last samples per output: (stamp_ns, measured, predicted, residual)
+        # the last samples per output: (stamp_ns, measured, predicted, residual), every
+        # _stride-th sample kept so that a window holds about MAX_POINTS of them
         self.samples: dict[str, deque] = {}
-        self._rate = 1000.0
+        self._count, self._stride = 0, 1
         self._report: tuple[int, bytes] | None = None  # (id of the result, page)
         self._report_lock = threading.Lock()
         self.last_result = None
@@ -109,23 +112,32 @@ class Dashboard:
 
     # -- the executor thread's side: as cheap as it can be --------------------------------
     def feed(self, names, samples) -> None:
-        """Keep one paired sample's prediction per output (the online part calls this)."""
+        """Keep every ``stride``-th paired sample's prediction per output (the online part)."""
+        self._count += 1
+        if self._count % self._stride:
+            return
         for name, s in zip(names, samples):
             if s is None:
                 continue
             d = self.samples.get(name)
             if d is None:
-                d = self.samples[name] = deque(maxlen=self._capacity())
+                d = self.samples[name] = deque(maxlen=2 * MAX_POINTS)
             d.append((s.stamp_ns, s.measured, s.predicted, s.residual))
 
-    def _capacity(self) -> int:
-        period = float(self.node.params.values.get("sample_period") or 0.0)
-        rate = 1.0 / period if period > 0 else 2000.0  # unknown: room for 2 kHz
-        return max(100, int(self.seconds * rate * 1.2) + 10)
+    def _restride(self, rows: list) -> None:
+        """Keep about :data:`MAX_POINTS` samples per window: the stride from the stamps."""
+        if len(rows) < 20:
+            return
+        span = (rows[-1][0] - rows[0][0]) / 1e9
+        if span <= 0:
+            return
+        rate = (len(rows) - 1) * self._stride / span  # samples per second arriving
+        self._stride = max(1, math.ceil(rate * self.seconds / MAX_POINTS))
 
     def new_model(self) -> None:
         """A new model in use: the samples of the previous one are dropped."""
         self.samples = {}
+        self._count = 0
 
     def new_result(self, result) -> None:
         """The last identification's result (its report is built when asked for)."""
@@ -162,12 +174,13 @@ class Dashboard:
             states[name] = s.state
         for name, d in list(self.samples.items()):
             rows = list(d)
-            if rows:
-                last = rows[-1][0]
-                first = last - int(self.seconds * 1e9)
-                rows = [r for r in rows if r[0] >= first]
-            stride = max(1, -(-len(rows) // MAX_POINTS))
-            shown = rows[::-1][::stride][::-1]  # the newest sample always shown
+            if rows:  # the window: back from the newest while the stamps go back in order
+                first = rows[-1][0] - int(self.seconds * 1e9)
+                i = len(rows) - 1
+                while i > 0 and first <= rows[i - 1][0] <= rows[i][0]:
+                    i -= 1
+                rows = rows[i:]
+                self._restride(rows)
             resid = np.array([r[3] for r in rows], dtype=float)
             resid = resid[np.isfinite(resid)]
             mst = states.get(name)
@@ -176,14 +189,14 @@ class Dashboard:
                      "rms": _num(np.sqrt(np.mean(resid * resid))) if resid.size else None,
                      "rms_ratio": _num(mst.rms_ratio) if mst is not None else None,
                      "whiteness_p": _num(mst.whiteness_p) if mst is not None else None}
-            t_end = shown[-1][0] if shown else 0
+            t_end = rows[-1][0] if rows else 0
             per_output[name] = {
-                "t": [(r[0] - t_end) / 1e9 for r in shown],
-                "stamp_sec": [r[0] // 1_000_000_000 for r in shown],
-                "stamp_nanosec": [r[0] % 1_000_000_000 for r in shown],
-                "measured": [_num(r[1]) for r in shown],
-                "predicted": [_num(r[2]) for r in shown],
-                "stride": stride, "stats": stats}
+                "t": [(r[0] - t_end) / 1e9 for r in rows],
+                "stamp_sec": [r[0] // 1_000_000_000 for r in rows],
+                "stamp_nanosec": [r[0] % 1_000_000_000 for r in rows],
+                "measured": [_num(r[1]) for r in rows],
+                "predicted": [_num(r[2]) for r in rows],
+                "stride": self._stride, "stats": stats}
         ident = node.identification
         progress = None
         if ident.started is not None:
