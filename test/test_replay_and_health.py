@@ -366,10 +366,14 @@ def test_call_errors_go_to_stderr(ros_env):
 
 def test_the_readme_tutorial_as_written(ros_env, harness, readme_bag):
     """The README's five commands (the bag made by readme_bag): node, replay, identify, watch."""
-    node = readme_node(ros_env)
+    node = readme_node(ros_env, "dashboard_port:=8765")
     try:
         player = readme_player(ros_env)
         assert player.returncode == 0 and "delivery confirmed" in player.stderr
+        import urllib.request
+
+        with urllib.request.urlopen("http://127.0.0.1:8765/", timeout=10) as page:
+            assert b"spm_sysid live" in page.read()  # the address the README gives
         harness.wait_buffer(lambda kv: int(kv["samples"]) >= 1024, 30)
         r = subprocess.run([_script("spm-sysid"), "call", "identify", "--show-model"],
                            env=ros_env, cwd=ROOT, capture_output=True, text=True, timeout=120)
