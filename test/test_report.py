@@ -26,14 +26,15 @@ def _open_offline(browser, path):
     requests = []
     page.on("request", lambda r: requests.append(r.url))
     page.goto(path.resolve().as_uri())
-    page.wait_for_function("window.Bokeh && Bokeh.documents.length > 0", timeout=20000)
+    page.wait_for_function("window.spmReport && spmReport.ready", timeout=20000)
+    assert page.evaluate("spmReport.errors") == []
     return context, page, requests
 
 
 def _source(page, name):
-    """A plot's data (columns as lists), read from the page's Bokeh document."""
+    """A plot's data (columns as lists), read from the page's BokehJS data sources."""
     return page.evaluate("""(name) => {
-        const m = Bokeh.documents[0].get_model_by_name(name);
+        const m = spmReport.sources[name];
         if (!m) { return null; }
         const out = {};
         const d = m.data;
@@ -136,9 +137,7 @@ def test_a_model_of_300_terms_renders_within_2_seconds(browser, tmp_path, robot_
     try:
         t0 = time.perf_counter()
         page.goto(path.as_uri())
-        page.wait_for_function("window.Bokeh && Bokeh.documents.length > 0 && "
-                               "document.querySelectorAll('.bk-Figure, .bk-figure, "
-                               "div[data-root-id]').length > 0", timeout=20000)
+        page.wait_for_function("window.spmReport && spmReport.ready", timeout=20000)
         seconds = time.perf_counter() - t0
         rows = page.eval_on_selector_all("#coefficients-y tr", "r => r.length")
     finally:

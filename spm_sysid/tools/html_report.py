@@ -9,13 +9,16 @@ their bands, the residuals, the correlation tests with their confidence bands,
 and the GA's convergence. A model with several outputs gets a section per
 output and the residuals' cross-correlation.
 
-The plots are Bokeh's (a NumFOCUS project): its core JavaScript is inlined
-(about 1.3 MB; no widgets, tables or MathJax bundles), so the page makes no network
-request and works offline; Plotly's bundle is 4.8 MB alone, too much for a
-page that should stay under 5 MB with its data. Every plot's data source has a
-name (``<output>/<plot>``) so that a reader -- or a test in a browser -- can
-find the numbers behind it (``Bokeh.documents[0].get_model_by_name``); every
-coefficient cell carries the full-precision value (``data-value``).
+The plots are Bokeh's (a NumFOCUS project): BokehJS's core and plotting API
+(about 1.4 MB, read from the installed bokeh package) are inlined, so the page
+makes no network request and works offline; Plotly's bundle is 4.8 MB alone,
+too much for a page that should stay under 5 MB with its data. The data go in
+as JSON and the page's few lines draw the figures with BokehJS's own API, so
+writing a report does not import bokeh's Python side (0.5 s) nor serialise its
+models (another 0.5 s). Every plot's data source has a name
+(``<output>/<plot>``) in ``window.spmReport.sources`` so that a reader -- or a
+test in a browser -- can find the numbers behind it; every coefficient cell
+carries the full-precision value (``data-value``).
 """
 
 from __future__ import annotations
@@ -73,33 +76,37 @@ def _esc(text) -> str:
     return html.escape(str(text), quote=True)
 
 
-def _finite(a) -> np.ndarray:
-    """Float array with non-finite values as NaN (Bokeh draws NaN as a gap)."""
-    a = np.asarray(a, dtype=float)
-    return np.where(np.isfinite(a), a, np.nan)
-
-
 def _x(n: int, times) -> tuple[np.ndarray, str]:
     if times is not None and len(times) == n:
         return np.asarray(times, dtype=float), "time (s)"
     return np.arange(n, dtype=float), "sample"
 
 
-def _figure(title: str, x_label: str, y_label: str, height: int = HEIGHT, x_range=None):
-    from bokeh.plotting import figure
+class _Plots:
+    """The page's plots as data: each a figure spec the page's script draws with BokehJS."""
 
-    kw = {"x_range": x_range} if x_range is not None else {}
-    p = figure(title=title, height=height, sizing_mode="stretch_width",
-               tools="pan,box_zoom,wheel_zoom,reset,save,hover",
-               active_scroll="wheel_zoom", x_axis_label=x_label, y_axis_label=y_label, **kw)
-    p.toolbar.logo = None
-    return p
+    def __init__(self) -> None:
+        self.specs: list[dict] = []
+
+    def figure(self, title: str, x_label: str, y_label: str, height: int = HEIGHT,
+               link_x: str | None = None) -> dict:
+        spec = {"id": f"plot{len(self.specs)}", "title": title, "x_label": x_label,
+                "y_label": y_label, "height": height, "link_x": link_x, "sources": {},
+                "glyphs": [], "spans": []}
+        self.specs.append(spec)
+        return spec
 
 
-def _prediction_plots(section: OutputSection, kind: str) -> tuple[list, str]:
+def _source(spec: dict, name: str, columns: dict) -> str:
+    """Attach a named data source to a figure spec (NaN and inf as null: a gap)."""
+    spec["sources"][name] = {k: [float(v) if np.isfinite(v) else None
+                                 for v in np.asarray(col, dtype=float)]
+                             for k, col in columns.items()}
+    return name
+
+
+def _prediction_plots(plots: _Plots, section: OutputSection, kind: str) -> str:
     """Measured against one kind of prediction (with its band), the error beneath."""
-    from bokeh.models import ColumnDataSource
-
     rep = section.report
     pred = {"one_step": rep.one_step, "k_step": rep.k_step, "free_run": rep.free_run}[kind]
     m = {"one_step": rep.one_step_metrics, "k_step": rep.k_step_metrics,
@@ -107,81 +114,73 @@ def _prediction_plots(section: OutputSection, kind: str) -> tuple[list, str]:
     label = {"one_step": "one-step prediction", "k_step": f"{rep.horizon}-step prediction",
              "free_run": "free-run simulation"}[kind]
     x, x_label = _x(len(rep.measured), section.times)
-    data = {"x": x, "measured": _finite(rep.measured), "predicted": _finite(pred),
-            "error": _finite(rep.measured - pred)}
+    data = {"x": x, "measured": rep.measured, "predicted": pred,
+            "error": np.asarray(rep.measured) - np.asarray(pred)}
     band = {"one_step": rep.one_step_band, "free_run": rep.free_run_band}.get(kind)
     if band is not None:
-        data["lower"], data["upper"] = _finite(band.lower), _finite(band.upper)
-    source = ColumnDataSource(data, name=f"{section.name}/{kind}")
+        data["lower"], data["upper"] = band.lower, band.upper
     if m.get("diverged_at") is not None:
         summary = f"DIVERGED at sample {m['diverged_at']}"
     else:
         summary = (f"fit {m.get('fit_percent', float('nan')):.2f} %, max |e| "
                    f"{m.get('max_abs', float('nan')):.4g}, mean |e| "
                    f"{m.get('mean_abs', float('nan')):.4g}")
-    top = _figure(f"{section.name}: measured and {label} ({summary})", x_label, section.name)
+    top = plots.figure(f"{section.name}: measured and {label} ({summary})", x_label,
+                       section.name)
+    src = _source(top, f"{section.name}/{kind}", data)
     if band is not None:
-        top.varea("x", "lower", "upper", source=source, fill_color="#d62728", fill_alpha=0.2,
-                  legend_label=f"{band.level:.0%} band (coefficient uncertainty)")
-    top.line("x", "measured", source=source, color="black", line_width=1,
-             legend_label="measured")
-    top.line("x", "predicted", source=source, color="#d62728", line_dash="dashed",
-             line_width=1, legend_label=label)
-    top.legend.click_policy = "hide"
-    top.legend.location = "top_right"
-    err = _figure("error (measured - predicted)", x_label, "error", SMALL, x_range=top.x_range)
-    err.line("x", "error", source=source, color="#1f77b4", line_width=1)
-    return [top, err], summary
+        top["glyphs"].append({"type": "varea", "source": src, "x": "x", "y1": "lower",
+                              "y2": "upper", "color": "#d62728", "alpha": 0.2,
+                              "legend": f"{band.level:.0%} band (coefficient uncertainty)"})
+    top["glyphs"] += [
+        {"type": "line", "source": src, "x": "x", "y": "measured", "color": "black",
+         "width": 1, "legend": "measured"},
+        {"type": "line", "source": src, "x": "x", "y": "predicted", "color": "#d62728",
+         "width": 1, "dash": "dashed", "legend": label}]
+    err = plots.figure("error (measured - predicted)", x_label, "error", SMALL,
+                       link_x=top["id"])
+    err["glyphs"].append({"type": "line", "source": src, "x": "x", "y": "error",
+                          "color": "#1f77b4", "width": 1})
+    return summary
 
 
-def _residual_plot(section: OutputSection):
-    from bokeh.models import ColumnDataSource
-
-    rep = section.report
-    e = _finite(rep.residuals)
+def _residual_plot(plots: _Plots, section: OutputSection) -> None:
+    e = np.asarray(section.report.residuals, dtype=float)
     x, x_label = _x(len(e), section.times)
-    source = ColumnDataSource({"x": x, "residual": e}, name=f"{section.name}/residuals")
-    p = _figure(f"{section.name}: one-step residuals", x_label, "residual", SMALL)
-    p.scatter("x", "residual", source=source, size=2, color="#1f77b4")
-    return p
+    p = plots.figure(f"{section.name}: one-step residuals", x_label, "residual", SMALL)
+    src = _source(p, f"{section.name}/residuals", {"x": x, "residual": e})
+    p["glyphs"].append({"type": "scatter", "source": src, "x": "x", "y": "residual",
+                        "color": "#1f77b4", "size": 2})
 
 
-def _correlation_plots(name: str, tests, prefix: str = "correlation") -> list:
-    from bokeh.models import ColumnDataSource, Span
-
-    plots = []
+def _correlation_plots(plots: _Plots, name: str, tests, prefix: str = "correlation"
+                       ) -> list[str]:
+    ids = []
     for t in tests:
-        lags = np.asarray(t.lags, dtype=float)
-        source = ColumnDataSource({"lag": lags, "value": _finite(t.values)},
-                                  name=f"{name}/{prefix}/{t.name}")
         state = "inside" if t.passed else "OUTSIDE"
-        p = _figure(f"{state}: {t.fraction_inside:.0%} of lags inside the 95 % band, "
-                    f"{t.label}", "lag", "correlation", SMALL)
-        p.segment("lag", 0, "lag", "value", source=source, color="#1f77b4", line_width=2)
-        p.scatter("lag", "value", source=source, size=4, color="#1f77b4")
-        for level in (t.band, -t.band):
-            p.add_layout(Span(location=float(level), dimension="width", line_color="#d62728",
-                              line_dash="dashed"))
-        plots.append(p)
-    return plots
+        p = plots.figure(f"{state}: {t.fraction_inside:.0%} of lags inside the 95 % band, "
+                         f"{t.label}", "lag", "correlation", SMALL)
+        src = _source(p, f"{name}/{prefix}/{t.name}", {"lag": t.lags, "value": t.values})
+        p["glyphs"] += [{"type": "segment", "source": src, "x": "lag", "y": "value",
+                         "color": "#1f77b4", "width": 2},
+                        {"type": "scatter", "source": src, "x": "lag", "y": "value",
+                         "color": "#1f77b4", "size": 4}]
+        p["spans"] = [float(t.band), -float(t.band)]
+        ids.append(p["id"])
+    return ids
 
 
-def _convergence_plot(name: str, history):
-    from bokeh.models import ColumnDataSource
-
-    gen = np.array([h.generation for h in history], dtype=float)
-    best = _finite([h.best for h in history])
-    mean = _finite([h.mean for h in history])
-    source = ColumnDataSource({"generation": gen, "best": best, "mean": mean},
-                              name=f"{name}/convergence")
-    p = _figure(f"{name}: the GA's convergence, best and mean criterion per generation",
-                "generation", "criterion", SMALL + 60)
-    p.line("generation", "best", source=source, color="#d62728", line_width=2,
-           legend_label="best")
-    p.line("generation", "mean", source=source, color="#7f7f7f", line_width=1,
-           legend_label="population mean")
-    p.legend.click_policy = "hide"
-    return p
+def _convergence_plot(plots: _Plots, name: str, history) -> str:
+    p = plots.figure(f"{name}: the GA's convergence, best and mean criterion per generation",
+                     "generation", "criterion", SMALL + 60)
+    src = _source(p, f"{name}/convergence",
+                  {"generation": [h.generation for h in history],
+                   "best": [h.best for h in history], "mean": [h.mean for h in history]})
+    p["glyphs"] += [{"type": "line", "source": src, "x": "generation", "y": "best",
+                     "color": "#d62728", "width": 2, "legend": "best"},
+                    {"type": "line", "source": src, "x": "generation", "y": "mean",
+                     "color": "#7f7f7f", "width": 1, "legend": "population mean"}]
+    return p["id"]
 
 
 def _coefficient_table(section: OutputSection) -> str:
@@ -244,14 +243,105 @@ def _facts(section: OutputSection) -> str:
     return out
 
 
+#: The page's script: draws every figure spec with BokehJS's own API and keeps the data
+#: sources by name in ``window.spmReport.sources`` (for a reader, or a test).
+_DRAW = """
+(function () {
+  "use strict";
+  var specs = JSON.parse(document.getElementById("spm-plots").textContent);
+  var R = window.spmReport = { sources: {}, figures: {}, ready: false, errors: [] };
+  function column(values) { return values.map(function (v) { return v === null ? NaN : v; }); }
+  var shown = [], groups = {}, order = [];
+  specs.forEach(function (spec) {
+    try {
+      var args = { title: spec.title, height: spec.height, sizing_mode: "stretch_width",
+                   tools: "pan,box_zoom,wheel_zoom,reset", x_axis_label: spec.x_label,
+                   y_axis_label: spec.y_label };
+      if (spec.link_x && R.figures[spec.link_x]) { args.x_range = R.figures[spec.link_x].x_range; }
+      var p = Bokeh.Plotting.figure(args);
+      p.toolbar.logo = null;
+      Object.keys(spec.sources).forEach(function (name) {
+        var data = {};
+        Object.keys(spec.sources[name]).forEach(function (k) {
+          data[k] = column(spec.sources[name][k]); });
+        R.sources[name] = new Bokeh.ColumnDataSource({ data: data, name: name });
+      });
+      spec.glyphs.forEach(function (g) {
+        var src = R.sources[g.source], opts = { source: src };
+        if (g.legend) { opts.legend_label = g.legend; }
+        if (g.type === "line") {
+          opts.line_color = g.color; opts.line_width = g.width;
+          if (g.dash) { opts.line_dash = g.dash; }
+          p.line({ field: g.x }, { field: g.y }, opts);
+        } else if (g.type === "varea") {
+          opts.fill_color = g.color; opts.fill_alpha = g.alpha;
+          opts.x = { field: g.x }; opts.y1 = { field: g.y1 }; opts.y2 = { field: g.y2 };
+          p.varea(opts);
+        } else if (g.type === "scatter") {
+          opts.size = g.size; opts.fill_color = g.color; opts.line_color = g.color;
+          p.scatter({ field: g.x }, { field: g.y }, opts);
+        } else if (g.type === "segment") {
+          opts.line_color = g.color; opts.line_width = g.width;
+          opts.x0 = { field: g.x }; opts.y0 = 0; opts.x1 = { field: g.x };
+          opts.y1 = { field: g.y };
+          p.segment(opts);
+        }
+      });
+      spec.spans.forEach(function (level) {
+        p.add_layout(new Bokeh.Span({ location: level, dimension: "width",
+                                      line_color: "#d62728", line_dash: "dashed" }));
+      });
+      R.figures[spec.id] = p;
+      if (spec.link_x && R.figures[spec.link_x]) { groups[spec.link_x].push(p); }
+      else { groups[spec.id] = [p]; order.push(spec.id); }
+    } catch (e) {
+      R.errors.push(spec.id + ": " + e);
+      document.getElementById(spec.id).textContent = "this plot could not be drawn (" + e + ")";
+    }
+  });
+  // figures that share an x range are drawn together (one document each group)
+  order.forEach(function (id) {
+    try {
+      var g = groups[id];
+      var root = g.length === 1 ? g[0] : Bokeh.Plotting.gridplot(
+        g.map(function (f) { return [f]; }), { sizing_mode: "stretch_width" });
+      shown.push(Bokeh.Plotting.show(root, "#" + id));
+    } catch (e) { R.errors.push(id + ": " + e); }
+  });
+  Promise.all(shown).then(function () { R.ready = true; },
+                          function (e) { R.errors.push(String(e)); R.ready = true; });
+})();
+"""
+
+
+def _bokeh_scripts() -> str:
+    """BokehJS (its core and its plotting API), read from the installed bokeh package.
+
+    The Python package is not imported: only its two script files are read, so
+    a report costs the time to write it, not the time to import bokeh.
+    """
+    import importlib.util
+
+    spec = importlib.util.find_spec("bokeh")
+    if spec is None or spec.origin is None:
+        raise RuntimeError("the report needs bokeh (pip install bokeh): its scripts draw "
+                           "the plots")
+    base = Path(spec.origin).parent / "server" / "static" / "js"
+    return "\n".join("<script>" + (base / f).read_text(encoding="utf-8").replace(
+        "</script", "<\\/script") + "</script>" for f in ("bokeh.min.js", "bokeh-api.min.js"))
+
+
 def build_report(content: ReportContent, sections: list[OutputSection]) -> str:
     """The page's HTML (one string, scripts and data inlined)."""
-    from bokeh.embed import components
-    from bokeh.resources import Resources
+    import json
 
-    inline = Resources(mode="inline", components=["bokeh"])  # plots only: 1.3 MB
-    plots, body = {}, []
-    for i, sec in enumerate(sections):
+    plots = _Plots()
+    body = []
+
+    def div(plot_id: str, cls: str = "") -> str:
+        return f'<div id="{plot_id}"{f" class={chr(34)}{cls}{chr(34)}" if cls else ""}></div>'
+
+    for sec in sections:
         part = [f'<section class="output" id="output-{_esc(sec.name)}">'
                 + (f"<h2>Output {_esc(sec.name)}</h2>" if len(sections) > 1 else "")
                 + f'<p class="equation" id="equation-{_esc(sec.name)}">'
@@ -270,34 +360,27 @@ def build_report(content: ReportContent, sections: list[OutputSection]) -> str:
             kinds = ["one_step"] + (["k_step"] if rep.k_step is not None else []) \
                 + ["free_run"]
             for kind in kinds:
-                figs, _ = _prediction_plots(sec, kind)
-                for j, f in enumerate(figs):
-                    key = f"p{i}_{kind}_{j}"
-                    plots[key] = f
-                    part.append(f"{{{{{key}}}}}")
-            plots[f"p{i}_residuals"] = _residual_plot(sec)
-            part.append(f"{{{{p{i}_residuals}}}}")
+                first = len(plots.specs)
+                _prediction_plots(plots, sec, kind)
+                part += [div(s["id"]) for s in plots.specs[first:]]
+            _residual_plot(plots, sec)
+            part.append(div(plots.specs[-1]["id"]))
             part.append("<h3>Correlation tests</h3>")
             if rep.tests_skipped:
                 part.append(f"<p>{_esc(rep.tests_skipped)}</p>")
-            for j, f in enumerate(_correlation_plots(sec.name, rep.tests)):
-                plots[f"p{i}_corr{j}"] = f
-                part.append(f'<div class="half">{{{{p{i}_corr{j}}}}}</div>')
+            part += [div(i, "half") for i in _correlation_plots(plots, sec.name, rep.tests)]
         if sec.history:
-            plots[f"p{i}_convergence"] = _convergence_plot(sec.name, sec.history)
-            part.append(f"<h3>Search</h3>{{{{p{i}_convergence}}}}")
+            part.append("<h3>Search</h3>" + div(_convergence_plot(plots, sec.name,
+                                                                  sec.history)))
         part.append("</section>")
         body.append("\n".join(part))
     if content.cross_tests:
         body.append("<section><h2>Cross-correlation of the outputs' residuals</h2>")
-        for j, f in enumerate(_correlation_plots("outputs", content.cross_tests, "cross")):
-            plots[f"cross{j}"] = f
-            body.append(f'<div class="half">{{{{cross{j}}}}}</div>')
+        body += [div(i, "half") for i in _correlation_plots(plots, "outputs",
+                                                             content.cross_tests, "cross")]
         body.append("</section>")
-    script, divs = components(plots) if plots else ("", {})
     text = "\n".join(body)
-    for key, div in divs.items():
-        text = text.replace(f"{{{{{key}}}}}", div)
+    data = json.dumps(plots.specs, allow_nan=False).replace("</", "<\\/")
     notes = "".join(f"<li>{_esc(n)}</li>" for n in content.notes)
     summary = (f'<details><summary>What the command printed</summary><pre>'
                f"{_esc(content.summary)}</pre></details>" if content.summary else "")
@@ -305,8 +388,7 @@ def build_report(content: ReportContent, sections: list[OutputSection]) -> str:
 <html lang="en"><head><meta charset="utf-8">
 <meta name="viewport" content="width=device-width, initial-scale=1">
 <title>{_esc(content.title)}</title>
-{inline.render_js()}
-{inline.render_css()}
+{_bokeh_scripts()}
 <style>
 body {{ font-family: system-ui, sans-serif; margin: 1.5em auto; max-width: 1100px;
        padding: 0 1em; color: #222; }}
@@ -332,7 +414,8 @@ reset with the toolbar's arrows.</p>
 {f'<ul class="notes">{notes}</ul>' if notes else ""}
 {text}
 {summary}
-{script}
+<script type="application/json" id="spm-plots">{data}</script>
+<script>{_DRAW}</script>
 </body></html>
 """
 
