@@ -188,3 +188,35 @@ def test_the_dashboard_refuses_an_open_bind_without_a_token_and_a_taken_port(
             stop(second)
     finally:
         stop(first)
+
+
+def test_the_live_page_shows_every_output_of_a_coupled_model(ros_env, harness, browser,
+                                                             tmp_path):
+    from .conftest import two_output_system, write_joint_state_bag
+    from .test_mimo_node import PARAMS
+
+    u, Y = two_output_system(1200, seed=3, noise=0.001)
+    bag = write_joint_state_bag(tmp_path / "joints", u, Y)
+    port = free_port()
+    node = start_node(ros_env, *PARAMS, f"dashboard_port:={port}")
+    page = browser.new_page()
+    try:
+        harness.wait_ready()
+        play_bag(ros_env, bag)
+        harness.wait_buffer(lambda kv: int(kv["samples"]) >= len(Y))
+        assert harness.call("/spm_sysid/identify").success
+        play_bag(ros_env, bag)  # the robot runs: both outputs predicted
+        page.goto(f"http://127.0.0.1:{port}/")
+        page.wait_for_function(
+            "spmDashboard.state && spmDashboard.state.model && "
+            "Object.keys(spmDashboard.state.outputs).length === 2", timeout=20000)
+        outputs = page.eval_on_selector_all("canvas", "c => c.map(x => x.dataset.output)")
+        assert sorted(outputs) == ["y1", "y2"]
+        tables = page.eval_on_selector_all("#model table", "t => t.map(x => x.dataset.output)")
+        assert tables == ["y1", "y2"]
+        rows = page.eval_on_selector_all("#residuals tr", "r => r.length")
+        assert rows == 3  # a header and a row per output
+        assert page.inner_text("#state") in ("VALID", "DEGRADED")
+    finally:
+        page.close()
+        stop(node)
