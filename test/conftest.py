@@ -188,9 +188,13 @@ def chromium_path() -> str | None:
     return shutil.which("chromium") or shutil.which("chromium-browser")
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture
 def browser():
-    """A real headless Chromium driven by Playwright (the system's browser, none downloaded)."""
+    """A real headless Chromium driven by Playwright (the system's browser, none downloaded).
+
+    One per test: Playwright's synchronous API keeps an asyncio loop running while it
+    is open, which would break the other tests of the same worker (asyncio.run).
+    """
     sync_api = pytest.importorskip("playwright.sync_api",
                                    reason="playwright is not installed (make test installs it)")
     path = chromium_path()
