@@ -190,3 +190,25 @@ def test_several_outputs_are_judged_coupled_and_orders_auto_covers_them():
     assert sel["folds"] >= 2 and sel["choice"] in ("linear", "nonlinear")
     assert result.diverged == []
     assert "coupled judgement on" in result.summary("lines")
+
+
+def test_shrinking_the_nonlinear_terms_makes_a_diverging_model_hold():
+    """y(t) = 0.5 y(t-1) + 0.6 y(t-1) u(t-1): stable while u < 0.83; the record's input
+    reaches 2. Scaled by 0.5 the pole is 1.1 at u = 2; by 0.25 it is 0.8: kept."""
+    from spm_sysid.core.select.simulation import shrink_to_hold
+
+    ts = TermSpace(ny=1, nu=1, degree=2)
+    names = ts.term_names()
+    model = NarxModel(ts, [names.index("y(t-1)"), names.index("y(t-1)*u(t-1)")],
+                      np.array([0.5, 0.6]))
+    u = np.r_[np.full(200, 0.1), np.full(200, 2.0)]
+    y = np.r_[1.0, np.full(399, 1e-3)]
+    segments = [(0, 400)]
+    assert stress_check(model, u, y, segments) is not None
+    assert shrink_to_hold(model, u, y, segments, linear_sse=np.inf) == 0.25
+    np.testing.assert_allclose(model.coefficients, [0.5, 0.15])
+    assert stress_check(model, u, y, segments) is None
+    # not kept when it would simulate the data worse than the best linear model does
+    model.coefficients = np.array([0.5, 0.6])
+    assert shrink_to_hold(model, u, y, segments, linear_sse=0.0) is None
+    np.testing.assert_allclose(model.coefficients, [0.5, 0.6])
