@@ -41,7 +41,7 @@ from ..model.mimo import MimoModel, augmented_inputs
 from ..model.narx import NarxModel
 from ..model.segments import rows_segments
 from .simulation import SIGNIFICANCE, linear_masks, paired_p_value
-from .validated import STRESS_FACTOR, SURROGATES, _complement, _runs, surrogate_input
+from .validated import STRESS_FACTOR, _complement, _runs, stress_inputs
 
 __all__ = ["COUPLED_FOLDS", "ESTIMATORS", "JOINT_FOLD_STEPS", "coupled_folds",
            "coupled_stress_check", "fit_least_squares", "linear_mimo", "select_coupled"]
@@ -155,17 +155,8 @@ def coupled_stress_check(model: MimoModel, u: np.ndarray, Y: np.ndarray,
     for a, b in segments:
         if b - a <= cc.max_lag:
             continue
-        seg_u, seg_y = u[a:b], Y[a:b]
-        rng = np.random.default_rng(0)
-        stresses = [("the estimation input", seg_u),
-                    ("the input shifted by half its length", np.roll(seg_u, (b - a) // 2,
-                                                                     axis=0)),
-                    ("the input reversed in time", seg_u[::-1])]
-        stresses += [(f"an input with the estimation input's spectrum and random phases "
-                      f"(draw {i + 1} of {SURROGATES})", surrogate_input(seg_u, rng))
-                     for i in range(SURROGATES)]
-        for label, uu in stresses:
-            sim, div = coupled_run(cc, thetas, uu, seg_y, bounds)
+        for label, uu in stress_inputs(u[a:b]):
+            sim, div = coupled_run(cc, thetas, uu, Y[a:b], bounds)
             bad = [model.outputs[i] for i, d in enumerate(div) if d is not None]
             if bad or not np.all(np.isfinite(sim)):
                 names = ", ".join(bad) or "an output"

@@ -42,7 +42,7 @@ from ..model.segments import rows_segments
 from ..model.simulation import divergence_bounds, run_model
 
 __all__ = ["FOLDS", "SIMULATION_FOLDS", "SIMULATION_REPEATS", "Fold", "Scores", "blocked_folds",
-           "candidate_structures", "cv_scores", "stress_check", "sub_blocks",
+           "candidate_structures", "cv_scores", "stress_check", "stress_inputs", "sub_blocks",
            "surrogate_input"]
 
 #: Folds of validated selection.
@@ -267,22 +267,30 @@ def stress_check(model, u: np.ndarray, y: np.ndarray, segments) -> str | None:
     for a, b in segments:
         if b - a <= lag:
             continue
-        seg_u, seg_y = u2[a:b], y[a:b]
-        rng = np.random.default_rng(0)
-        stresses = [("the estimation input", seg_u),
-                    ("the input shifted by half its length", np.roll(seg_u, (b - a) // 2,
-                                                                     axis=0)),
-                    ("the input reversed in time", seg_u[::-1])]
-        stresses += [(f"an input with the estimation input's spectrum and random phases "
-                      f"(draw {i + 1} of {SURROGATES})", surrogate_input(seg_u, rng))
-                     for i in range(SURROGATES)]
-        for label, uu in stresses:
+        seg_y = y[a:b]
+        for label, uu in stress_inputs(u2[a:b]):
             yy = seg_y.copy()
             yy[lag:] = 0.0  # only the initial conditions are measured
             yhat, at = run_model(model.compiled, model.coefficients, uu, yy, None, bounds)
             if at is not None or not np.all(np.isfinite(yhat)):
                 return f"its simulation driven by {label} left the output's range"
     return None
+
+
+def stress_inputs(u: np.ndarray) -> list[tuple[str, np.ndarray]]:
+    """The guard's inputs for one segment's input ``u`` (n, m), each with its description.
+
+    The input itself, shifted by half its length, reversed in time, and
+    :data:`SURROGATES` random-phase inputs like it (fixed seed: repeatable).
+    """
+    rng = np.random.default_rng(0)
+    out = [("the estimation input", u),
+           ("the input shifted by half its length", np.roll(u, len(u) // 2, axis=0)),
+           ("the input reversed in time", u[::-1])]
+    out += [(f"an input with the estimation input's spectrum and random phases "
+             f"(draw {i + 1} of {SURROGATES})", surrogate_input(u, rng))
+            for i in range(SURROGATES)]
+    return out
 
 
 def surrogate_input(u: np.ndarray, rng: np.random.Generator) -> np.ndarray:
