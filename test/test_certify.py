@@ -311,3 +311,41 @@ def test_a_control_group_limit_bounds_the_memory(tmp_path):
         os.rmdir(group)
     assert r.returncode == 2, r.stderr
     assert "memory its control group may still take" in r.stderr, r.stderr
+
+
+@pytest.mark.parametrize("collinear", [False, True])
+def test_every_drop_bound_stays_below_the_true_cost_of_leaving_terms_out(collinear):
+    """drop[q] <= min over q free terms R of SSE(T - R) - SSE(T), by brute force: the
+    single costs, the q smallest theta^2 over ||H_FF||_F, and the pairs."""
+    from itertools import combinations
+
+    from spm_sysid.core.search.branch_bound import _drop_costs
+
+    for seed in range(40):
+        rng = np.random.default_rng(seed)
+        n, k, f = 40, int(rng.integers(0, 3)), int(rng.integers(2, 8))
+        t = k + f
+        X = rng.standard_normal((n, t))
+        if collinear:  # nearly equal columns and a common offset, as NARX products make
+            X = X * rng.uniform(0.01, 0.2, t) + rng.uniform(0.5, 2.0) * X[:, :1]
+        beta = rng.normal(0, 1, t) * rng.uniform(0, 1, t).round()  # some terms absent
+        y = X @ beta + rng.standard_normal(n) * rng.uniform(0.01, 1.0)
+
+        def sse(cols, X=X, y=y):
+            if not cols:
+                return float(y @ y)
+            A = X[:, list(cols)]
+            r = y - A @ np.linalg.lstsq(A, y, rcond=None)[0]
+            return float(r @ r)
+
+        L = np.linalg.cholesky(X.T @ X)
+        theta = np.linalg.lstsq(X, y, rcond=None)[0]
+        drop = np.zeros(f + 1)
+        _drop_costs(L, theta, k, f, np.zeros((f, f)), np.zeros((f, f)), np.zeros(f),
+                    np.zeros((f, f)), np.zeros((f, f)), np.zeros(f), np.zeros(f), drop,
+                    float(np.min(np.diag(L)) ** 2))
+        full = sse(range(t))
+        for q in range(1, f + 1):
+            true = min(sse([j for j in range(t) if j not in set(R)]) - full
+                       for R in combinations(range(k, t), q))
+            assert drop[q] <= true * (1 + 1e-9) + 1e-9 * full, (seed, q, drop[q], true)
