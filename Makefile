@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 # ROS traffic stays on this machine; each target picks its own domain.
 export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
 
-.PHONY: setup run identify test lint bench bench-sizes bench-node bench-dask bench-certify bench-generalise bench-speed bench-online bench-mimo bench-accuracy bag experiment report clean
+.PHONY: setup run identify test lint bench bench-sizes bench-node bench-dask bench-certify bench-certify-scale bench-generalise bench-speed bench-online bench-mimo bench-accuracy bag experiment report clean
 
 INTERFACES := $(wildcard interfaces/spm_sysid_interfaces/*.* interfaces/spm_sysid_interfaces/*/*)
 
@@ -76,6 +76,11 @@ clean:
 ## Certification: robot-arm data and records made hard on purpose, 60 s each.
 bench-certify: $(KERNELS)
 	$(BIN)/python -m spm_sysid.bench.certify
+
+## The spaces users search (164 and 454 candidates) on real records, beside SCIP's MIQP.
+bench-certify-scale: $(KERNELS)
+	$(BIN)/python -m pip install --quiet -e '.[bench]'
+	$(BIN)/python -m spm_sysid.bench.certify_scale
 
 ## Where a command's time goes; the quick command against a DEAP GA; GA and simulation times.
 bench-speed: $(KERNELS)

@@ -98,7 +98,8 @@ setup(
             "ros-jazzy-rosidl-typesupport-introspection-cpp",
         ],
         # benchmark-only: the forward-selection baseline of `spm-sysid bench-sizes --fastcan`
-        "bench": ["fastcan>=0.4", "deap>=1.4"],
+        # and SCIP, the MIQP anchor of `make bench-certify-scale`
+        "bench": ["fastcan>=0.4", "deap>=1.4", "pyscipopt>=5"],
         # studies and batches on a Dask cluster (`--scheduler`); not needed on the robot
         "dask": ["dask>=2024.1", "distributed>=2024.1"],
         "test": [

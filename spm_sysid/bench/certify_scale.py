@@ -1,0 +1,215 @@
+"""Certifying the spaces users search, beside a general MIQP solver (make bench-certify-scale).
+
+For the robot arm, the dryer and the heat exchanger (the first half of each,
+``../shared/data``; a record that is missing is skipped with a line), in the
+164-candidate space (ny = nu = 4, degree 3; BIC and AICc) and, for the robot
+arm, the 454-candidate space (ny = nu = 6, degree 3; BIC):
+
+* **ours**: the GA (seed 1) as warm start, then the branch and bound, within
+  ``--time-limit`` (``--large-time-limit`` for 454) seconds, the warm start
+  included, as ``spm-sysid certify`` runs it: status, value, lower bound, gap
+  (in the criterion's units, and as the factor ``exp(gap / N)`` by which the
+  optimum's SSE could still be smaller at the same size), seconds and the
+  process's peak memory;
+* **SCIP** (pyscipopt, the ``bench`` extra; skipped with a line when it is not
+  installed): best-subset least squares on the same scaled usable columns,
+  formulated as Bertsimas, King and Mazumder (2016) do -- ``min ||y - X b||^2``
+  with ``|b_j| <= M z_j``, ``sum z <= k``, z binary, M twice the largest
+  least-squares coefficient of the full model -- for the sizes around the size
+  of our best structure (k - 1, k, k + 1), each with the same time limit:
+  status, its best value and its lower bound turned into the criterion's units,
+  gap, seconds.
+
+Each run is its own process, so the peak memory is that run's. Figures, not
+assertions; long: about 3 x 2 x (60 + 3 x 60) s + 600 + 3 x 600 s with the
+defaults.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+__all__ = ["main"]
+
+RECORDS = (("robot arm", "robot_arm.dat"), ("dryer", "dryer.dat"),
+           ("heat exchanger", "exchanger.dat"))
+
+
+def _record(file: str):
+    """The first half of a record beside the robot-arm data, or None."""
+    from ..core.io.data import load_io
+    from .accuracy import _shared
+
+    path = _shared(file)
+    if path is None:
+        return None
+    u, y = load_io(path)
+    h = len(y) // 2
+    return u[:h], y[:h]
+
+
+def _peak_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def _ours(case: dict) -> dict:
+    """The GA, then the branch and bound (one process)."""
+    from ..core.identify import identify
+    from ..core.model.terms import TermSpace
+    from ..core.search.certify import certify_data, ensure_compiled
+
+    u, y = _record(case["file"])
+    space = TermSpace(ny=case["order"], nu=case["order"], degree=case["degree"])
+    ensure_compiled()
+    started = time.perf_counter()
+    limit = case["time_limit"]
+    res = identify(u=u, y=y, term_space=space, criterion=case["criterion"], seed=1,
+                   callback=lambda s: time.perf_counter() - started < 0.5 * limit,
+                   auto_certify_time_limit=0, polish=True)
+    cert = certify_data(u, y, term_space=space, criterion=case["criterion"],
+                        warm_start=res.model.mask, time_limit=limit, started=started)
+    rows = len(y) - space.max_lag
+    return {"status": cert.status, "value": cert.value, "bound": cert.lower_bound,
+            "gap": cert.gap, "terms": int(cert.mask.sum()), "nodes": cert.nodes,
+            "seconds": time.perf_counter() - started, "rows": rows,
+            "candidates": space.n_terms, "peak_mb": _peak_mb(), "mask": [
+                int(i) for i in np.flatnonzero(cert.mask)]}
+
+
+def _scip(case: dict) -> dict:
+    """Best-subset least squares of size ``case['k']`` by SCIP (one process)."""
+    import pyscipopt
+
+    from ..core.fit.criteria import get_criterion
+    from ..core.fit.problem import Problem
+    from ..core.model.terms import TermSpace
+
+    u, y = _record(case["file"])
+    space = TermSpace(ny=case["order"], nu=case["order"], degree=case["degree"])
+    problem = Problem.from_signals(u, y, space)
+    X = problem.columns[:, problem.usable]
+    t = problem.target
+    n, m = X.shape
+    full = np.linalg.lstsq(X, t, rcond=None)[0]
+    big_m = 2.0 * float(np.max(np.abs(full)))
+    G, c, yy = X.T @ X, X.T @ t, float(t @ t)
+    model = pyscipopt.Model()
+    model.hideOutput()
+    model.setParam("limits/time", float(case["time_limit"]))
+    b = [model.addVar(lb=-big_m, ub=big_m, name=f"b{j}") for j in range(m)]
+    z = [model.addVar(vtype="B", name=f"z{j}") for j in range(m)]
+    for j in range(m):
+        model.addCons(b[j] <= big_m * z[j])
+        model.addCons(b[j] >= -big_m * z[j])
+    model.addCons(pyscipopt.quicksum(z) <= case["k"])
+    rss = model.addVar(lb=0.0, ub=None, name="rss")
+    quad = pyscipopt.quicksum(G[i, j] * b[i] * b[j] for i in range(m) for j in range(m)
+                              if G[i, j] != 0.0)
+    model.addCons(rss >= quad - 2.0 * pyscipopt.quicksum(c[j] * b[j] for j in range(m)) + yy)
+    model.setObjective(rss, "minimize")
+    t0 = time.perf_counter()
+    model.optimize()
+    seconds = time.perf_counter() - t0
+    crit = get_criterion(case["criterion"])
+    rows = problem.rows
+
+    def value(sse_scaled: float) -> float | None:
+        if not np.isfinite(sse_scaled) or sse_scaled <= 0:
+            return None
+        sse = sse_scaled * problem.sse_scale
+        return float(crit(np.array([sse]), rows, np.array([case["k"]]), None)[0])
+
+    best = model.getObjVal() if model.getNSols() else float("inf")
+    return {"status": model.getStatus(), "k": case["k"], "value": value(best),
+            "bound": value(model.getDualbound()), "seconds": seconds, "peak_mb": _peak_mb(),
+            "rss": best * problem.sse_scale if np.isfinite(best) else None}
+
+
+def _child(kind: str, case: dict, timeout: float) -> dict:
+    p = subprocess.run([sys.executable, "-m", "spm_sysid.bench.certify_scale", "--one", kind,
+                        json.dumps(case)], capture_output=True, text=True,
+                       timeout=timeout)
+    if p.returncode != 0:
+        return {"error": (p.stderr.strip().splitlines() or ["failed"])[-1]}
+    return json.loads(p.stdout.strip().splitlines()[-1])
+
+
+def run(args) -> None:
+    try:
+        import pyscipopt  # noqa: F401
+        have_scip = not args.skip_scip
+    except ImportError:
+        have_scip = False
+        print("SCIP: pyscipopt is not installed (pip install -e '.[bench]'); its columns "
+              "are skipped")
+    cases = []
+    for name, file in RECORDS:
+        if _record(file) is None:
+            print(f"{name}: {file} not found beside the robot-arm data; skipped")
+            continue
+        for crit in ("bic", "aicc"):
+            cases.append((name, file, 4, crit, args.time_limit))
+        if name == "robot arm":
+            cases.append((name, file, 6, "bic", args.large_time_limit))
+    print("first halves; ours: GA warm start + branch and bound within the time limit "
+          "(warm start included); SCIP: best-subset MIQP of the same scaled columns per size")
+    for name, file, order, crit, limit in cases:
+        case = {"file": file, "order": order, "degree": 3, "criterion": crit,
+                "time_limit": limit}
+        ours = _child("ours", case, limit * 3 + 300)
+        if "error" in ours:
+            print(f"{name}, ({order},{order},3), {crit.upper()}: ours failed: {ours['error']}")
+            continue
+        factor = np.exp(ours["gap"] / ours["rows"])
+        print(f"{name}, ({order},{order},3), {ours['candidates']} candidates, {crit.upper()}: "
+              f"ours {ours['status']}, value {ours['value']:.2f}, bound {ours['bound']:.2f}, "
+              f"gap {ours['gap']:.2f} (the optimum's SSE at most {factor:.3g}x smaller at "
+              f"the same size), {ours['terms']} terms, {ours['nodes']} nodes, "
+              f"{ours['seconds']:.1f} s, peak {ours['peak_mb']:.0f} MB")
+        sys.stdout.flush()
+        if not have_scip:
+            continue
+        k = ours["terms"]
+        for size in (k - 1, k, k + 1):
+            if size < 1:
+                continue
+            res = _child("scip", {**case, "k": size}, limit * 3 + 300)
+            if "error" in res:
+                print(f"    SCIP k={size}: failed: {res['error']}")
+                continue
+            v, b = res["value"], res["bound"]
+            gap = (v - b) if v is not None and b is not None else float("inf")
+            print(f"    SCIP k <= {size}: {res['status']}, value "
+                  f"{'-' if v is None else f'{v:.2f}'}, bound "
+                  f"{'-' if b is None else f'{b:.2f}'}, gap {gap:.2f}, "
+                  f"{res['seconds']:.1f} s, peak {res['peak_mb']:.0f} MB")
+            sys.stdout.flush()
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--time-limit", type=float, default=60.0,
+                   help="seconds per 164-candidate run (ours, and SCIP per size)")
+    p.add_argument("--large-time-limit", type=float, default=600.0,
+                   help="seconds per 454-candidate run")
+    p.add_argument("--skip-scip", action="store_true", help="our runs only")
+    p.add_argument("--one", nargs=2, metavar=("KIND", "CASE"), help=argparse.SUPPRESS)
+    args = p.parse_args(argv)
+    if args.one:
+        kind, case = args.one
+        out = (_ours if kind == "ours" else _scip)(json.loads(case))
+        print(json.dumps(out))
+        return 0
+    run(args)
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
