@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["OutputSection", "build_report", "write_report"]
+__all__ = ["OutputSection", "ReportContent", "build_report", "write_report"]
 
 #: Plot width and heights (CSS pixels); the page is responsive in width.
 HEIGHT, SMALL = 300, 180
