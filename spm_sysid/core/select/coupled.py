@@ -41,7 +41,7 @@ from ..model.mimo import MimoModel, augmented_inputs
 from ..model.narx import NarxModel
 from ..model.segments import rows_segments
 from .simulation import SIGNIFICANCE, linear_masks, paired_p_value
-from .validated import STRESS_FACTOR, _complement, _runs, stress_inputs
+from .validated import STRESS_FACTOR, block_splits, stress_inputs
 
 __all__ = ["COUPLED_FOLDS", "ESTIMATORS", "JOINT_FOLD_STEPS", "coupled_folds",
            "coupled_stress_check", "fit_least_squares", "linear_mimo", "select_coupled"]
@@ -56,9 +56,6 @@ JOINT_FOLD_STEPS = 30
 #: error), or from there refined jointly on the coupled free-run error.
 ESTIMATORS = ("least squares", "jointly refined")
 
-#: Held-out rows a block must have.
-MIN_BLOCK_ROWS = 20
-
 
 def coupled_folds(segments: list[tuple[int, int]], n: int, lag: int, k: int = COUPLED_FOLDS
                   ) -> list[tuple[list[tuple[int, int]], list[tuple[int, int]]]]:
@@ -66,21 +63,11 @@ def coupled_folds(segments: list[tuple[int, int]], n: int, lag: int, k: int = CO
 
     Fewer when the blocks would be too short; empty when not even two fit.
     """
-    positions = np.concatenate([np.arange(a, b) for a, b in segments]) if segments \
-        else np.empty(0, dtype=int)
     while k >= 2:
-        edges = np.linspace(0, len(positions), k + 1).round().astype(int)
-        folds = []
-        for i in range(k):
-            held = _runs(positions[edges[i]:edges[i + 1]], segments)
-            if sum(max(b - a - lag, 0) for a, b in held) < MIN_BLOCK_ROWS:
-                break
-            train = _complement(segments, held, lag)
-            if not train:
-                break
-            folds.append((rows_segments(held, n, lag), rows_segments(train, n, 0)))
-        if len(folds) == k:
-            return folds
+        splits = block_splits(segments, k, 1, lag)
+        if splits and all(rest for _, rest in splits):
+            return [(rows_segments(held, n, lag), rows_segments(rest, n, 0))
+                    for held, rest in splits]
         k -= 1
     return []
 

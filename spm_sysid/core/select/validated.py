@@ -41,9 +41,9 @@ from ..fit.lstsq import reference_fit
 from ..model.segments import rows_segments
 from ..model.simulation import divergence_bounds, run_model
 
-__all__ = ["FOLDS", "SIMULATION_FOLDS", "SIMULATION_REPEATS", "Fold", "Scores", "blocked_folds",
-           "candidate_structures", "cv_scores", "stress_check", "stress_inputs", "sub_blocks",
-           "surrogate_input"]
+__all__ = ["FOLDS", "SIMULATION_FOLDS", "SIMULATION_REPEATS", "Fold", "Scores", "block_splits",
+           "blocked_folds", "candidate_structures", "cv_scores", "stress_check", "stress_inputs",
+           "sub_blocks", "surrogate_input"]
 
 #: Folds of validated selection.
 FOLDS = 3
@@ -94,30 +94,43 @@ def blocked_folds(problem, k: int = FOLDS, repeats: int = 1) -> list[Fold]:
     held-out rows fit.
     """
     lag = problem.term_space.max_lag
-    positions = np.concatenate([np.arange(a, b) for a, b in problem.segments])
+    n = len(problem.y)
+    t = problem.row_times
     while k >= 2:
-        edges = np.linspace(0, len(positions), k + 1).round().astype(int)
+        splits = block_splits(problem.segments, k, repeats, lag)
         folds = []
-        for r in range(repeats):
-            shift = int(round(r * len(positions) / (k * repeats)))
-            rolled = np.roll(positions, -shift)
-            for i in range(k):
-                block = np.sort(rolled[edges[i]:edges[i + 1]])
-                held = _runs(block, problem.segments)
-                rows = sum(max(b - a - lag, 0) for a, b in held)
-                if rows < MIN_BLOCK_ROWS:
-                    break
-                t = problem.row_times
-                outside = np.ones(len(t), dtype=bool)
-                for a, b in held:  # the row's window [t - lag, t] must miss the block
-                    outside &= (t < a) | (t - lag >= b)
-                rest = _complement(problem.segments, held, lag)
-                folds.append(Fold(outside, rows_segments(held, len(problem.y), lag),
-                                  rows_segments(rest, len(problem.y), 0)))
-        if len(folds) == k * repeats and all(f.train.sum() > 0 for f in folds):
+        for held, rest in splits or []:
+            outside = np.ones(len(t), dtype=bool)
+            for a, b in held:  # the row's window [t - lag, t] must miss the block
+                outside &= (t < a) | (t - lag >= b)
+            folds.append(Fold(outside, rows_segments(held, n, lag), rows_segments(rest, n, 0)))
+        if folds and all(f.train.sum() > 0 for f in folds):
             return folds
         k -= 1
     return []
+
+
+def block_splits(segments, k: int, repeats: int, lag: int
+                 ) -> list[tuple[list[tuple[int, int]], list[tuple[int, int]]]] | None:
+    """K contiguous blocks over the segments, laid ``repeats`` times: (held out, rest) each.
+
+    The sample ranges of each block (split at gaps and segment borders) and of
+    the rest (the parts outside the block longer than the lag). None when a
+    block has fewer than :data:`MIN_BLOCK_ROWS` held-out rows.
+    """
+    positions = np.concatenate([np.arange(a, b) for a, b in segments]) if len(segments) \
+        else np.empty(0, dtype=int)
+    edges = np.linspace(0, len(positions), k + 1).round().astype(int)
+    out = []
+    for r in range(repeats):
+        shift = int(round(r * len(positions) / (k * repeats)))
+        rolled = np.roll(positions, -shift)
+        for i in range(k):
+            held = _runs(np.sort(rolled[edges[i]:edges[i + 1]]), segments)
+            if sum(max(b - a - lag, 0) for a, b in held) < MIN_BLOCK_ROWS:
+                return None
+            out.append((held, _complement(segments, held, lag)))
+    return out
 
 
 def sub_blocks(problem, folds: list[Fold]) -> np.ndarray:
