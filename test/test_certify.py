@@ -349,3 +349,151 @@ def test_every_drop_bound_stays_below_the_true_cost_of_leaving_terms_out(colline
             true = min(sse([j for j in range(t) if j not in set(R)]) - full
                        for R in combinations(range(k, t), q))
             assert drop[q] <= true * (1 + 1e-9) + 1e-9 * full, (seed, q, drop[q], true)
+
+
+def _offset_cubic(seed: int, ny: int = 2, nu: int = 2):
+    """A cubic NARX space of a heater-like record (a level input, an output far from
+    zero): its products of nearly constant columns are nearly dependent in many ways,
+    so the search meets nodes whose free terms cannot all be factorised."""
+    rng = np.random.default_rng(seed)
+    n = 300
+    level = np.repeat(rng.uniform(0.2, 0.8, n // 20 + 1), 20)[:n]
+    u = level + 0.02 * rng.standard_normal(n)
+    x = np.zeros(n)
+    for k in range(2, n):
+        x[k] = 1.5 * x[k - 1] - 0.6 * x[k - 2] + 0.1 * (u[k - 1] - 1.2 * u[k - 1] ** 2)
+    y = 50.0 + 10.0 * x + 0.05 * rng.standard_normal(n)
+    ts = TermSpace(ny=ny, nu=nu, degree=3)
+    return ts.regression_matrix(u, y), ts.target(y)
+
+
+def _counting_heaps(monkeypatch):
+    """The search's open-node stores, kept for their counters."""
+    from spm_sysid.core.search import heaps
+
+    made, init = [], heaps.OpenNodes.__init__
+
+    def keep(self, *args, **kwargs):
+        init(self, *args, **kwargs)
+        made.append(self)
+
+    monkeypatch.setattr(heaps.OpenNodes, "__init__", keep)
+    return made
+
+
+@pytest.mark.parametrize("seed", [7, 1])
+def test_nearly_dependent_spaces_are_certified_as_brute_force_finds(monkeypatch, seed):
+    """20 candidates of a cubic space with an offset: nodes whose terms are nearly
+    dependent are bounded (span bound, exact small sizes), not passed over."""
+    from spm_sysid.core.search.branch_bound import NEAR_BRANCHES
+
+    made = _counting_heaps(monkeypatch)
+    P, t = _offset_cubic(seed)
+    P = P[:, :20]
+    for criterion in ("aic", "bic"):
+        truth, _ = _brute_force(P, t, criterion)
+        for budget in (0, None):
+            cert = certify(P, t, criterion, time_limit=120, enumeration_budget=budget,
+                           threads=1)
+            assert cert.status == "optimal"
+            assert cert.value == pytest.approx(truth, abs=1e-6)
+        assert made[-1].counts[NEAR_BRANCHES] > 0  # the case this test is for
+
+
+def test_the_bound_rises_past_the_trivial_one_where_terms_are_dependent():
+    """34 cubic candidates with an offset: 300 nodes lift the lower bound well above
+    "all terms' SSE, one term's penalty" (nodes with nearly dependent terms used to
+    keep the bound of the root and hold the search's bound there)."""
+    P, t = _offset_cubic(7)
+    ev = StructureEvaluator(P, t, "bic")
+    pen = penalty_per_size(get_criterion("bic"), ev.n, ev.n_terms, ev.max_terms)
+    r = t - P @ np.linalg.lstsq(P, t, rcond=None)[0]
+    trivial = ev.n * np.log(float(r @ r) / ev.n) + pen[1]
+    cert = certify(P, t, "bic", node_limit=300, enumeration_budget=0)
+    assert cert.status == "limit"
+    assert cert.lower_bound > trivial + 10.0, (cert.lower_bound, trivial)
+    assert cert.lower_bound <= cert.value
+
+
+@pytest.mark.parametrize("kind", ["dependent", "nearly dependent", "offset"])
+def test_span_and_small_size_bounds_stay_below_every_identifiable_structure(kind):
+    """For I <= S <= T: the span bound (a QR of T without a rank test) and the exact
+    small sizes with it as their floor are at most the SSE of every structure the
+    evaluator accepts, by brute force over all S."""
+    from itertools import combinations
+
+    from spm_sysid.core.search.branch_bound import _project_free, _small_sizes, _sse_span
+
+    for seed in range(30):
+        rng = np.random.default_rng(seed)
+        n, k, f = 40, int(rng.integers(0, 3)), int(rng.integers(3, 8))
+        t = k + f
+        X = rng.standard_normal((n, t))
+        if kind == "dependent":  # one free column a combination of two others
+            X[:, -1] = X[:, k] - 2.0 * X[:, 0 if k else 1]
+        elif kind == "nearly dependent":
+            X[:, -1] = X[:, k] + 10.0 ** rng.uniform(-7, -3) * rng.standard_normal(n)
+        else:
+            X = X * rng.uniform(0.001, 0.05, t) + 1.0
+        y = X @ rng.normal(0, 1, t) + rng.standard_normal(n) * rng.uniform(0.01, 1.0)
+        ev = StructureEvaluator(X, y, "aic")
+        R = np.ascontiguousarray(ev.factor)
+        cols = np.arange(t + 1, dtype=np.int64)
+        rows = R.shape[0]
+
+        def sse(members, R=R, t=t):
+            A = R[:, list(members)]
+            return float(np.sum((R[:, t] - A @ np.linalg.lstsq(A, R[:, t], rcond=None)[0]) ** 2))
+
+        free = range(k, t)
+        accepted = {}
+        for a in range(f + 1):
+            for A in combinations(free, a):
+                S = list(range(k)) + list(A)
+                mask = np.zeros(t, dtype=bool)
+                mask[S] = True
+                if S and np.isfinite(ev.cached_score(mask)):
+                    accepted.setdefault(a, []).append(sse(S))
+        Q, At = np.zeros((rows, t + 1)), np.zeros((rows, t + 1))
+        Sg, c = np.zeros((t, t)), np.zeros(t)
+        zz = _project_free(R, cols, k, f, t, Q, At, Sg, c)
+        span = _sse_span(R, cols, t, t, np.zeros((t + 1, rows)))
+        exact = np.zeros(f + 1)
+        _small_sizes(Sg, c, zz, f, f, exact, np.zeros((f + 1, f + 1), np.int64),
+                     np.zeros((f + 1, f + 1)), np.zeros(f + 1), np.zeros(f + 1),
+                     np.zeros(f + 1, np.int64), span)
+        for a, values in accepted.items():
+            assert span <= min(values) * (1 + 1e-12), (seed, a, span, min(values))
+            assert exact[a] <= min(values) * (1 + 1e-12), (seed, a, exact[a], min(values))
+
+
+def test_a_limited_run_bounds_the_one_step_mse_at_its_size():
+    """The certificate's one-step MSE is the residual MSE of its structure (numpy's
+    lstsq), and no structure of at most that many terms has a lower MSE than its
+    bound (brute force over all 2^14); the command line says it in a sentence."""
+    from spm_sysid.core.search.certify import describe_certificate
+
+    P, t = _problem("structured", 3)
+    worst = np.zeros(P.shape[1], dtype=bool)
+    worst[0] = True
+    cert = certify(P, t, "bic", warm_start=worst, node_limit=3, enumeration_budget=0)
+    assert cert.status == "limit"
+    A = P[:, cert.mask]
+    r = t - A @ np.linalg.lstsq(A, t, rcond=None)[0]
+    assert cert.one_step_mse == pytest.approx(float(r @ r) / len(t), rel=1e-9)
+    assert cert.mse_lower_bound == pytest.approx(
+        cert.one_step_mse * np.exp(-cert.gap / len(t)), rel=1e-9)
+    assert cert.mse_lower_bound < cert.one_step_mse
+    k = int(cert.mask.sum())
+    masks = _all_masks(P.shape[1])
+    for mask in masks[masks.sum(axis=1) <= k]:
+        B = P[:, mask]
+        e = t - B @ np.linalg.lstsq(B, t, rcond=None)[0]
+        assert float(e @ e) / len(t) >= cert.mse_lower_bound * (1 - 1e-9)
+    doc = cert.to_dict()
+    assert doc["size"] == k and doc["one_step_mse"] == cert.one_step_mse
+    text = describe_certificate(doc)
+    assert f"no structure of at most {k} terms below {cert.mse_lower_bound:.4g}" in text
+    optimal = certify(P, t, "bic")
+    assert optimal.status == "optimal"
+    assert optimal.mse_lower_bound == pytest.approx(optimal.one_step_mse)

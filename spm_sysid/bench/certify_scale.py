@@ -8,9 +8,9 @@ arm, the 454-candidate space (ny = nu = 6, degree 3; BIC):
 * **ours**: the GA (seed 1) as warm start, then the branch and bound, within
   ``--time-limit`` (``--large-time-limit`` for 454) seconds, the warm start
   included, as ``spm-sysid certify`` runs it: status, value, lower bound, gap
-  (in the criterion's units, and as the factor ``exp(gap / N)`` by which the
-  optimum's SSE could still be smaller at the same size), seconds and the
-  process's peak memory;
+  (in the criterion's units, as a share of the value, and as one-step MSE: the
+  best structure's and the least any structure of at most its size may have),
+  seconds and the process's peak memory;
 * **SCIP** (pyscipopt, the ``bench`` extra; skipped with a line when it is not
   installed): best-subset least squares on the same scaled usable columns,
   formulated as Bertsimas, King and Mazumder (2016) do -- ``min ||y - X b||^2``
@@ -79,7 +79,8 @@ def _ours(case: dict) -> dict:
     return {"status": cert.status, "value": cert.value, "bound": cert.lower_bound,
             "gap": cert.gap, "terms": int(cert.mask.sum()), "nodes": cert.nodes,
             "seconds": time.perf_counter() - started, "rows": rows,
-            "candidates": space.n_terms, "peak_mb": _peak_mb(), "mask": [
+            "candidates": space.n_terms, "peak_mb": _peak_mb(), "mse": cert.one_step_mse,
+            "mse_low": cert.mse_lower_bound, "mask": [
                 int(i) for i in np.flatnonzero(cert.mask)]}
 
 
@@ -167,11 +168,15 @@ def run(args) -> None:
         if "error" in ours:
             print(f"{name}, ({order},{order},3), {crit.upper()}: ours failed: {ours['error']}")
             continue
-        factor = np.exp(ours["gap"] / ours["rows"])
+        pct = 100.0 * ours["gap"] / abs(ours["value"]) if ours["value"] else float("nan")
+        mse, low = ours.get("mse"), ours.get("mse_low")
+        mse_text = (f"; one-step MSE {mse:.4g}, no structure of at most {ours['terms']} "
+                    f"terms below {low:.4g} ({100.0 * (1.0 - low / mse):.1f} % lower)"
+                    if mse and low is not None else "")
         print(f"{name}, ({order},{order},3), {ours['candidates']} candidates, {crit.upper()}: "
               f"ours {ours['status']}, value {ours['value']:.2f}, bound {ours['bound']:.2f}, "
-              f"gap {ours['gap']:.2f} (the optimum's SSE at most {factor:.3g}x smaller at "
-              f"the same size), {ours['terms']} terms, {ours['nodes']} nodes, "
+              f"gap {ours['gap']:.2f} ({pct:.2f} % of the value){mse_text}; "
+              f"{ours['terms']} terms, {ours['nodes']} nodes, "
               f"{ours['seconds']:.1f} s, peak {ours['peak_mb']:.0f} MB")
         sys.stdout.flush()
         if not have_scip:

@@ -48,7 +48,7 @@ from collections import namedtuple
 
 import numpy as np
 
-from ..compiled.kernels import cholesky_rows, csne_step
+from ..compiled.kernels import cholesky_rows, csne_step, householder
 from ..compiled.registry import jit
 
 __all__ = ["COUNTERS", "DONE", "Data", "FULL", "Heap", "PAUSED", "Work", "expand",
@@ -79,7 +79,7 @@ Work = namedtuple("Work", [
     "order", "L", "Lc", "piv", "Winv", "Hff", "pcost", "pairs", "Q", "At", "S", "cvec",
     "exact", "small", "chosen", "lrow", "wbuf", "gbuf", "pick", "edges", "deg", "gone",
     "theta", "theta2", "r", "g", "delta", "hdiag", "column", "drop", "prefmin", "wvals",
-    "cored"])
+    "cored", "Ht"])
 
 
 def workspace(m: int, rows: int, nw: int) -> Work:
@@ -96,7 +96,8 @@ def workspace(m: int, rows: int, nw: int) -> Work:
         lrow=z((m + 1, m + 1)), wbuf=z(m + 1), gbuf=z(m + 1), pick=z(m + 1, i64),
         edges=e(max(m * m, 1)), deg=e(m, i64), gone=z(m, np.bool_), theta=e(m + 1),
         theta2=e(m + 1), r=e(rows), g=e(m + 1), delta=e(m), hdiag=e(m), column=e(m),
-        drop=e(m + 1), prefmin=e(m + 1), wvals=e(m + 1), cored=z(m + 1, np.bool_))
+        drop=e(m + 1), prefmin=e(m + 1), wvals=e(m + 1), cored=z(m + 1, np.bool_),
+        Ht=z((m + 1, rows)))
 
 #: Drop costs (from the Gram matrix of T, relative rounding about eps * cond) count
 #: ``1 - DROP_MARGIN * eps * |T| * cond`` of themselves, cond estimated per node
@@ -106,6 +107,13 @@ DROP_MARGIN = 1e3
 #: Exact small sizes (projected explicitly, rounding about eps * SSE(I) / pivot)
 #: count their SSE less this fraction of SSE(I).
 SMALL_MARGIN = 1e-8
+
+
+#: The angle :func:`_sse_span` allows between the span of a structure that passes the
+#: rank test (squared pivots above 1e-9) and that of its columns moved by rounding:
+#: eps |T| / its smallest singular value is below 1e-8 for 400 terms when that value
+#: is a tenth of its smallest pivot.
+SPAN_ANGLE = 1e-7
 
 
 def words_for(m: int) -> int:
@@ -231,6 +239,51 @@ def _refined_sse(L, r_ext, cols, k, yi, theta, r, g):  # pragma: no cover - comp
 
 
 @jit
+def _sse_span(r_ext, cols, t, yi, Ht):  # pragma: no cover - compiled
+    """A lower bound on the SSE of every identifiable S <= T = cols[:t].
+
+    Householder QR of the gathered columns ``[r_ext[:, T] y]`` (rows of ``Ht``),
+    no pivot test, so also where T is (nearly) rank-deficient: the residual c of
+    y off every direction the columns reach. The QR is exact for columns moved
+    by about eps; the moved columns of an S that passes the rank test span
+    nearly S's span (within an angle of about eps |T| / its smallest singular
+    value), so ``c <= SSE(S) + 2 sqrt(SSE(S)) d`` with ``d`` =
+    :data:`SPAN_ANGLE` ||y||, and ``SSE(S) >= (sqrt(c + d^2) - d)^2``.
+    """
+    rows = r_ext.shape[0]
+    for j in range(t + 1):
+        src = cols[j] if j < t else yi
+        for q in range(rows):
+            Ht[j, q] = r_ext[q, src]
+    yy = 0.0
+    for q in range(rows):
+        yy += Ht[t, q] * Ht[t, q]
+    for j in range(min(t, rows)):
+        nrm2 = 0.0
+        for q in range(j, rows):
+            nrm2 += Ht[j, q] * Ht[j, q]
+        if not nrm2 > 0.0:
+            continue
+        beta, tau, scale = householder(Ht[j, j], nrm2)
+        for q in range(j + 1, rows):
+            Ht[j, q] *= scale
+        Ht[j, j] = beta
+        for c in range(j + 1, t + 1):
+            acc = Ht[c, j]
+            for q in range(j + 1, rows):
+                acc += Ht[j, q] * Ht[c, q]
+            acc *= tau
+            Ht[c, j] -= acc
+            for q in range(j + 1, rows):
+                Ht[c, q] -= acc * Ht[j, q]
+    sse = 0.0
+    for q in range(min(t, rows), rows):
+        sse += Ht[t, q] * Ht[t, q]
+    d = SPAN_ANGLE * np.sqrt(yy)
+    return (np.sqrt(sse + d * d) - d) ** 2
+
+
+@jit
 def _has_core(pcost, f, q, c, deg, gone):  # pragma: no cover - compiled
     """Whether q terms whose pairs all cost at most c may exist.
 
@@ -333,14 +386,16 @@ def _project_free(r_ext, cols, k, f, yi, Q, At, S, c):  # pragma: no cover - com
 
 
 @jit
-def _small_sizes(S, c, zz, f, amax, exact, chosen, lrow, w, gsum,
-                 pick):  # pragma: no cover - compiled
+def _small_sizes(S, c, zz, f, amax, exact, chosen, lrow, w, gsum, pick,
+                 floor_t):  # pragma: no cover - compiled
     """Exact least SSE of I + A for |A| = 0 .. amax, A among the free terms.
 
     Every A of up to amax terms is visited depth first, its factor grown one
     row at a time (``S``, ``c``, ``zz`` from :func:`_project_free`). A nearly
-    dependent set counts as a perfect fit (a safe bound). ``chosen[a, :a]``
-    receives the best A of each size (positions in F; -1 first when none).
+    dependent set, and every larger one holding it, counts as fitting down to
+    ``floor_t`` (a lower bound on SSE(T): 0, or :func:`_sse_span`'s), a safe
+    bound. ``chosen[a, :a]`` receives the best A of each size (positions in F;
+    -1 first when none).
     """
     tiny = 1e-12
     for a in range(amax + 1):
@@ -365,9 +420,9 @@ def _small_sizes(S, c, zz, f, amax, exact, chosen, lrow, w, gsum,
             lrow[depth, i] = acc / lrow[i, i]
             dd -= lrow[depth, i] * lrow[depth, i]
         size = depth + 1
-        if not dd > tiny * S[e, e]:  # dependent: as if it fitted everything
-            if zz > gsum[size]:
-                gsum[size] = zz
+        if not dd > tiny * S[e, e]:  # dependent, with all its supersets: as if they
+            for s2 in range(size, amax + 1):  # fitted down to SSE(T)
+                gsum[s2] = max(gsum[s2], zz - floor_t)
             continue
         lrow[depth, depth] = np.sqrt(dd)
         acc = c[e]
@@ -583,15 +638,18 @@ def _fit_all(data, work, t):  # pragma: no cover - compiled
 
 
 @jit
-def _bound_sizes(data, heap, work, k, f, sse_t, bound0, budget,
-                 deep_budget):  # pragma: no cover - compiled
-    """Bound every size |I| .. |T| of the node; returns (amax, safety, cut).
+def _bound_sizes(data, heap, work, k, f, sse_t, bound0, budget, deep_budget,
+                 near):  # pragma: no cover - compiled
+    """Bound every size |I| .. |T| of the node; returns (amax, safety, cut, quick).
 
     Sizes |I| .. |I| + amax exactly (their best structures offered as
     incumbents), larger ones from T down by the drop and pair bounds; amax
     grows by one where that size is the one left open and ``deep_budget``
     allows. ``cut``: no structure of the node can beat the incumbent. Leaves
     ``small``, ``drop``, ``prefmin``, ``delta``, ``pairs`` for :func:`_walk_chain`.
+    ``near``: T is nearly rank-deficient (no factor to take drop costs from; ``sse_t``
+    is found by :func:`_sse_span`): the exact small sizes and SSE(T) only, their
+    least value in ``quick``.
     """
     w = work
     t = k + f
@@ -600,12 +658,14 @@ def _bound_sizes(data, heap, work, k, f, sse_t, bound0, budget,
     m = data.gram.shape[0] - 1
     amax = max(min(2, f), _visits_for(f, budget))
     zz = _project_free(data.r_ext, w.cols, k, f, m, w.Q, w.At, w.S, w.cvec)
+    if near:
+        sse_t = _sse_span(data.r_ext, w.cols, t, m, w.Ht)
     have_drops = False
     safety = 0.0
     n_edges = 0
     while True:
         _small_sizes(w.S, w.cvec, zz, f, amax, w.exact, w.chosen, w.lrow, w.wbuf, w.gbuf,
-                     w.pick)
+                     w.pick, sse_t if near else 0.0)
         quick = np.inf
         for a in range(amax + 1):
             w.small[a] = _value(w.exact[a], k + a, n, scale, floor, pen)
@@ -621,14 +681,16 @@ def _bound_sizes(data, heap, work, k, f, sse_t, bound0, budget,
         if k + amax < t:  # larger sizes: at least SSE(T) and their penalty
             quick = min(quick, _value(sse_t, k + amax + 1, n, scale, floor, pen))
         if max(quick, bound0) >= best[0] - tol:
-            return amax, safety, True
+            return amax, safety, True, quick
         if amax == f:  # all sizes known exactly: closed if their best were offered
             closed = True
             for a in range(amax + 1):
                 if w.small[a] < best[0] - tol:
                     closed = False  # that size's best was ruled out or is pending
             if closed:
-                return amax, safety, True
+                return amax, safety, True, quick
+        if near:
+            return amax, safety, False, quick
         # --- the cost of leaving out free terms, and the bound of each size t - q
         if not have_drops:
             minpiv = 1.0
@@ -663,14 +725,14 @@ def _bound_sizes(data, heap, work, k, f, sse_t, bound0, budget,
             lowest = min(lowest, wq)
             w.prefmin[q] = lowest
         if max(bound0, w.prefmin[f]) >= best[0] - tol:
-            return amax, safety, True
+            return amax, safety, True, quick
         # the next size up still alive: enumerate it too, if affordable
         q = f - amax - 1
         if (amax < f and w.wvals[q] < best[0] - tol
                 and _visits_for(f, deep_budget) > amax):
             amax += 1
             continue
-        return amax, safety, False
+        return amax, safety, False, quick
 
 
 @jit
@@ -769,13 +831,16 @@ def expand(data, heap, work, max_pops, budget, deep_budget):  # pragma: no cover
         weak = _factorise(data, work, t)
         if 0 <= weak < k:  # rank-deficient I: nothing identifiable below this node
             continue
-        if weak >= k:  # a free term nearly dependent on the others: branch on it
+        if weak >= k:  # a free term nearly dependent on the others: bound, branch on it
             counts[NEAR_BRANCHES] += 1
-            size = _branch_on(heap, work, size, bound0, work.cols[weak])
+            _, _, cut, quick = _bound_sizes(data, heap, work, k, f, 0.0, bound0, budget,
+                                            deep_budget, True)
+            if not cut:
+                size = _branch_on(heap, work, size, max(bound0, quick), work.cols[weak])
             continue
         sse_t = _fit_all(data, work, t)
-        amax, safety, cut = _bound_sizes(data, heap, work, k, f, sse_t, bound0, budget,
-                                         deep_budget)
+        amax, safety, cut, _ = _bound_sizes(data, heap, work, k, f, sse_t, bound0, budget,
+                                            deep_budget, False)
         if cut:
             continue
         size = _walk_chain(data, heap, work, k, f, sse_t, bound0, amax, safety, size)

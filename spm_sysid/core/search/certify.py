@@ -97,6 +97,13 @@ class Certificate:
         What ran out (``limit``).
     warm_start : float or None
         The warm start's value (e.g. the GA's best).
+    one_step_mse : float or None
+        The best structure's one-step mean squared error (the data's units).
+    mse_lower_bound : float or None
+        No structure of at most as many terms has a one-step MSE below this: the
+        lower bound read at the best structure's size (``one_step_mse`` itself when
+        optimal). For AIC, AICc and BIC ``value = N ln(MSE) + pen(k)``, so it is
+        ``one_step_mse * exp(-gap / N)``.
     """
 
     status: str
@@ -109,6 +116,8 @@ class Certificate:
     reason: str | None = None
     warm_start: float | None = None
     terms: list[str] = field(default_factory=list)
+    one_step_mse: float | None = None
+    mse_lower_bound: float | None = None
 
     @property
     def gap(self) -> float:
@@ -126,7 +135,14 @@ class Certificate:
                 "lower_bound": float(self.lower_bound), "gap": float(self.gap),
                 "terms": list(self.terms), "nodes": int(self.nodes),
                 "seconds": round(float(self.seconds), 4), "bound": self.bound,
-                "reason": self.reason, "warm_start": self.warm_start}
+                "reason": self.reason, "warm_start": self.warm_start,
+                "size": int(np.count_nonzero(self.mask)),
+                "one_step_mse": _finite_or_none(self.one_step_mse),
+                "mse_lower_bound": _finite_or_none(self.mse_lower_bound)}
+
+
+def _finite_or_none(x: float | None) -> float | None:
+    return float(x) if x is not None and np.isfinite(x) else None
 
 
 def describe_certificate(doc: dict | None) -> str:
@@ -142,6 +158,10 @@ def describe_certificate(doc: dict | None) -> str:
     elif doc["status"] == "limit":
         text = (f"NOT certified ({doc['reason']}): lower bound {doc['lower_bound']:.2f}, "
                 f"gap {doc['gap']:.2f}")
+        mse, low = doc.get("one_step_mse"), doc.get("mse_lower_bound")
+        if mse and low is not None:
+            text += (f"; one-step MSE {mse:.4g}: no structure of at most {doc['size']} terms "
+                     f"below {low:.4g} (at most {100.0 * (1.0 - low / mse):.1f} % lower)")
     else:
         return f"not certifiable: {doc['reason']}"
     if doc.get("ga_value") is not None and doc["value"] < doc["ga_value"]:
@@ -359,10 +379,12 @@ def certify(
     warm_value = float(warm_value) if np.isfinite(warm_value) else None
     if time.perf_counter() >= deadline:  # the set-up used the time: nothing searched
         value = float(best_value)
-        return Certificate(status="limit", value=value, lower_bound=min(trivial, value),
+        lower = min(trivial, value)
+        return Certificate(status="limit", value=value, lower_bound=lower,
                            mask=best_full, nodes=0, seconds=time.perf_counter() - t0,
                            reason=f"time limit {time_limit:g} s (reached while setting the "
-                                  "search up)", warm_start=warm_value)
+                                  "search up)", warm_start=warm_value,
+                           **_mse_bounds(value, lower, best_full, pen, n))
 
     budget = ENUMERATION_BUDGET if enumeration_budget is None else int(enumeration_budget)
     heaps = [OpenNodes(mu, r_aug.shape[0], best_value, best_full[usable], workers,
@@ -435,9 +457,25 @@ def certify(
         # the evaluator (the GA's numbers) disagrees with the search's accurate refit
         status = "limit"
         reason = "the best structure found is near rank-deficient; the evaluator scores it higher"
-    return Certificate(status=status, value=float(value), lower_bound=min(lower, float(value)),
+    lower = min(lower, float(value))
+    return Certificate(status=status, value=float(value), lower_bound=lower,
                        mask=mask, nodes=int(nodes), seconds=time.perf_counter() - t0,
-                       reason=reason, warm_start=warm_value)
+                       reason=reason, warm_start=warm_value,
+                       **_mse_bounds(float(value), lower, mask, pen, n))
+
+
+def _mse_bounds(value: float, lower: float, mask: np.ndarray, pen: np.ndarray,
+                n: float) -> dict:
+    """The best structure's one-step MSE, and the least of any structure of its size or less.
+
+    ``value = N ln(MSE) + pen(k)`` read backwards at k = its size.
+    """
+    k = int(np.count_nonzero(mask))
+    if not (k and np.isfinite(value) and np.isfinite(pen[k])):
+        return {}
+    mse = float(np.exp((value - pen[k]) / n))
+    low = float(np.exp((lower - pen[k]) / n)) if np.isfinite(lower) else 0.0
+    return {"one_step_mse": mse, "mse_lower_bound": min(low, mse)}
 
 
 def _trivial_bound(r_aug: np.ndarray, n: float, scale: float, floor: float,

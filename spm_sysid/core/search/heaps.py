@@ -49,9 +49,9 @@ def setup_bytes(rows: int, m: int) -> float:
 
 
 def worker_bytes(rows: int, m: int) -> float:
-    """Memory of one search worker's scratch space (about 14 (m+1)^2 numbers)."""
+    """Memory of one search worker's scratch space (about 14 (m+1)^2 + 3 r (m+1) numbers)."""
     r = min(rows, m + 1)
-    return 8.0 * (14 * (m + 1) ** 2 + 2 * r * (m + 1))
+    return 8.0 * (14 * (m + 1) ** 2 + 3 * r * (m + 1))
 
 
 def check_certify_memory(rows: int, m: int) -> None:
