@@ -10,7 +10,10 @@ again:
   up-looking Cholesky. A failing pivot (squared pivot below ``rank_tol``) in I
   shows every structure of the node rank-deficient by the evaluator's own test
   (the pivot of a column can only shrink when columns are added before it), so
-  the node is dropped; a failing pivot in F is branched on (in / out).
+  the node is dropped; a failing pivot in F is branched on (in / out) after
+  the node is bounded without the factor: its small sizes exactly and larger
+  ones by :func:`_sse_span` (a QR of T with no rank test), cut when that
+  reaches the incumbent.
 * ``SSE(T)`` from the residual on the triangular factor of ``[P y]`` after one
   corrected semi-normal step (accurate where the Gram matrix is ill-conditioned).
 * **Small sizes exactly** (:func:`_project_free`, :func:`_small_sizes`): the

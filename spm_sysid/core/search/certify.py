@@ -20,7 +20,13 @@ node it bounds every size ``|I| .. |T|`` separately and takes the least:
   ``SSE(T)`` by at least the r-th smallest single-term cost, the r smallest
   ``theta^2`` over ``||H_FF||_F`` (H: the inverse Gram matrix of T), and a pair
   bound (every pair of the terms left out costs at most what they all cost;
-  a core of the graph of cheap pairs must hold them).
+  a core of the graph of cheap pairs must hold them);
+* where T's terms are nearly dependent (no factor for the drop costs): the
+  small sizes exactly and a span bound on SSE(T) (a QR without a rank test).
+
+A stopped search's gap is also read as one-step MSE: ``value = N ln(MSE) +
+pen(k)``, so no structure of at most the result's size has an MSE below
+``MSE exp(-gap / N)`` (:attr:`Certificate.mse_lower_bound`).
 
 Incumbents: the warm start (the GA's result, else forward selection), improved
 by a local search (one term added, removed or swapped), then each node's best
@@ -112,7 +118,7 @@ class Certificate:
     mask: np.ndarray
     nodes: int
     seconds: float
-    bound: str = "exact small sizes + drop and pair bounds"
+    bound: str = "exact small sizes + drop and pair bounds + span bound (nearly dependent terms)"
     reason: str | None = None
     warm_start: float | None = None
     terms: list[str] = field(default_factory=list)
