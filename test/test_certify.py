@@ -28,7 +28,7 @@ def _brute_force(P, t, criterion):
     return float(scores.min()), masks[int(np.argmin(scores))]
 
 
-def _problem(kind: str, seed: int, ny: int = 2, nu: int = 2):
+def _problem(kind: str, seed: int, ny: int = 2, nu: int = 2, degree: int = 2):
     rng = np.random.default_rng(seed)
     n = 300
     if kind == "random":  # unstructured regressors, a sparse truth
@@ -50,7 +50,7 @@ def _problem(kind: str, seed: int, ny: int = 2, nu: int = 2):
         for k in range(2, n):
             x[k] = 1.5 * x[k - 1] - 0.6 * x[k - 2] + 0.1 * (u[k - 1] - 1.2 * u[k - 1] ** 2)
         y = 50.0 + 10.0 * x + 0.05 * rng.standard_normal(n)
-        ts = TermSpace(ny=ny, nu=nu, degree=2)
+        ts = TermSpace(ny=ny, nu=nu, degree=degree)
         return ts.regression_matrix(u, y), ts.target(y)
     # structured and hard on purpose: a NARX space of a smooth (strongly correlated)
     # input with much noise, so many structures are nearly equal
@@ -351,20 +351,11 @@ def test_every_drop_bound_stays_below_the_true_cost_of_leaving_terms_out(colline
             assert drop[q] <= true * (1 + 1e-9) + 1e-9 * full, (seed, q, drop[q], true)
 
 
-def _offset_cubic(seed: int, ny: int = 2, nu: int = 2):
-    """A cubic NARX space of a heater-like record (a level input, an output far from
-    zero): its products of nearly constant columns are nearly dependent in many ways,
-    so the search meets nodes whose free terms cannot all be factorised."""
-    rng = np.random.default_rng(seed)
-    n = 300
-    level = np.repeat(rng.uniform(0.2, 0.8, n // 20 + 1), 20)[:n]
-    u = level + 0.02 * rng.standard_normal(n)
-    x = np.zeros(n)
-    for k in range(2, n):
-        x[k] = 1.5 * x[k - 1] - 0.6 * x[k - 2] + 0.1 * (u[k - 1] - 1.2 * u[k - 1] ** 2)
-    y = 50.0 + 10.0 * x + 0.05 * rng.standard_normal(n)
-    ts = TermSpace(ny=ny, nu=nu, degree=3)
-    return ts.regression_matrix(u, y), ts.target(y)
+def _offset_cubic(seed: int):
+    """The offset problem in a cubic space (34 candidates): its products of nearly
+    constant columns are nearly dependent in many ways, so the search meets nodes
+    whose free terms cannot all be factorised."""
+    return _problem("offset", seed, degree=3)
 
 
 def _counting_heaps(monkeypatch):

@@ -516,6 +516,34 @@ def qr_structures(r_ext, idx, offsets, rank_tol, sse, theta, bad):  # pragma: no
 
 
 @jit
+def reflector(At, j, nrm2):  # pragma: no cover - compiled
+    """Turn row j of ``At`` (entries j on, squared norm ``nrm2`` > 0) into its reflector.
+
+    Afterwards ``At[j, j]`` is beta and ``At[j, j+1:]`` holds v's tail (see
+    :func:`householder`); returns ``(beta, tau)``.
+    """
+    beta, tau, scale = householder(At[j, j], nrm2)
+    for q in range(j + 1, At.shape[1]):
+        At[j, q] *= scale
+    At[j, j] = beta
+    return beta, tau
+
+
+@jit
+def reflect(At, j, tau, c):  # pragma: no cover - compiled
+    """Apply the reflector in row j of ``At`` to row c (entries j on); returns At[c, j]."""
+    rows = At.shape[1]
+    acc = At[c, j]
+    for q in range(j + 1, rows):
+        acc += At[j, q] * At[c, q]
+    acc *= tau
+    At[c, j] -= acc
+    for q in range(j + 1, rows):
+        At[c, q] -= acc * At[j, q]
+    return At[c, j]
+
+
+@jit
 def pivoted_qr(At, diag, piv):  # pragma: no cover - compiled
     """Householder QR with column pivoting of A = At.T: ``|R|``'s diagonal and the order.
 
@@ -553,21 +581,10 @@ def pivoted_qr(At, diag, piv):  # pragma: no cover - compiled
             nrm2 += At[j, q] * At[j, q]
         if nrm2 == 0.0 or not nrm2 == nrm2:
             continue
-        alpha = At[j, j]
-        beta, tau, scale = householder(alpha, nrm2)
-        for q in range(j + 1, rows):
-            At[j, q] *= scale
-        At[j, j] = beta
+        beta, tau = reflector(At, j, nrm2)
         diag[j] = abs(beta)
         for c in range(j + 1, n):
-            acc = At[c, j]
-            for q in range(j + 1, rows):
-                acc += At[j, q] * At[c, q]
-            acc *= tau
-            At[c, j] -= acc
-            for q in range(j + 1, rows):
-                At[c, q] -= acc * At[j, q]
-            r = At[c, j]
+            r = reflect(At, j, tau, c)
             norms[c] -= r * r
             if norms[c] <= 1e-6 * ref[c]:  # cancellation: compute it again
                 acc = 0.0

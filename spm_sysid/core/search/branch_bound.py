@@ -51,7 +51,7 @@ from collections import namedtuple
 
 import numpy as np
 
-from ..compiled.kernels import cholesky_rows, csne_step, householder
+from ..compiled.kernels import cholesky_rows, csne_step, reflect, reflector
 from ..compiled.registry import jit
 
 __all__ = ["COUNTERS", "DONE", "Data", "FULL", "Heap", "PAUSED", "Work", "expand",
@@ -267,18 +267,9 @@ def _sse_span(r_ext, cols, t, yi, Ht):  # pragma: no cover - compiled
             nrm2 += Ht[j, q] * Ht[j, q]
         if not nrm2 > 0.0:
             continue
-        beta, tau, scale = householder(Ht[j, j], nrm2)
-        for q in range(j + 1, rows):
-            Ht[j, q] *= scale
-        Ht[j, j] = beta
+        _, tau = reflector(Ht, j, nrm2)
         for c in range(j + 1, t + 1):
-            acc = Ht[c, j]
-            for q in range(j + 1, rows):
-                acc += Ht[j, q] * Ht[c, q]
-            acc *= tau
-            Ht[c, j] -= acc
-            for q in range(j + 1, rows):
-                Ht[c, q] -= acc * Ht[j, q]
+            reflect(Ht, j, tau, c)
     sse = 0.0
     for q in range(min(t, rows), rows):
         sse += Ht[t, q] * Ht[t, q]
