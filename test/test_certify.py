@@ -488,3 +488,29 @@ def test_a_limited_run_bounds_the_one_step_mse_at_its_size():
     optimal = certify(P, t, "bic")
     assert optimal.status == "optimal"
     assert optimal.mse_lower_bound == pytest.approx(optimal.one_step_mse)
+
+
+def test_restarts_along_forward_selection_give_a_scored_better_incumbent(monkeypatch):
+    """path_incumbent polishes forward selection's structures of every 4th size: its
+    value is the evaluator's score of its mask, and no worse than any start it
+    polished (a polish only improves)."""
+    import time
+
+    from spm_sysid.core.search.certify import PATH_STRIDE, path_incumbent
+    from spm_sysid.core.search.forward import forward_selection_path
+
+    P, t = _problem("offset", 7, ny=3, nu=3)
+    ev = StructureEvaluator(P, t, "bic")
+    usable = np.flatnonzero(~ev.zero_columns)
+    mask, value = path_incumbent(ev, usable, deadline=time.perf_counter() + 60)
+    assert mask is not None and ev.cached_score(mask) == pytest.approx(value)
+    path = forward_selection_path(ev, max_terms=min(60, len(usable)))
+    starts = path[PATH_STRIDE - 1::PATH_STRIDE]
+    assert len(starts) >= 3
+    assert value <= min(ev.cached_score(s) for s in starts) + 1e-9
+    # restarting at once (not after a second), the search still proves the optimum
+    monkeypatch.setattr("spm_sysid.core.search.certify.PATH_AFTER", 0.0)
+    truth, _ = _brute_force(P[:, :18], t, "bic")
+    cert = certify(P[:, :18], t, "bic", warm_start=np.eye(18, dtype=bool)[0], time_limit=120,
+                   enumeration_budget=0)
+    assert cert.status == "optimal" and cert.value == pytest.approx(truth, abs=1e-6)

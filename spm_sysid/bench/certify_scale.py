@@ -72,7 +72,7 @@ def _ours(case: dict) -> dict:
     limit = case["time_limit"]
     res = identify(u=u, y=y, term_space=space, criterion=case["criterion"], seed=1,
                    callback=lambda s: time.perf_counter() - started < 0.5 * limit,
-                   auto_certify_time_limit=0, polish=True)
+                   auto_certify_time_limit=0, polish=True, selection="criterion")
     cert = certify_data(u, y, term_space=space, criterion=case["criterion"],
                         warm_start=res.model.mask, time_limit=limit, started=started)
     rows = len(y) - space.max_lag

@@ -29,7 +29,9 @@ pen(k)``, so no structure of at most the result's size has an MSE below
 ``MSE exp(-gap / N)`` (:attr:`Certificate.mse_lower_bound`).
 
 Incumbents: the warm start (the GA's result, else forward selection), improved
-by a local search (one term added, removed or swapped), then each node's best
+by a local search (one term added, removed or swapped); when no proof came
+within :data:`PATH_AFTER` seconds, the polish of forward selection's
+structures of every 4th size (:func:`path_incumbent`); and each node's best
 subset of each size it enumerates, refitted accurately before it counts.
 Values match the evaluator's (:class:`StructureEvaluator`, the GA's own
 numbers): candidates with a squared pivot within ``NEAR_RANK`` of the rank
@@ -231,6 +233,37 @@ def polish(ev: StructureEvaluator, mask: np.ndarray, usable: np.ndarray,
     return res.mask, res.value
 
 
+#: Seconds without a proof after which the search polishes structures along forward
+#: selection's path (every :data:`PATH_STRIDE`-th size) for better incumbents, within
+#: :data:`PATH_SHARE` of the time limit: on 164-candidate spaces a polish from the
+#: GA's best stalls in a local optimum that a start of another size escapes.
+PATH_AFTER = 1.0
+PATH_STRIDE = 4
+PATH_SHARE = 0.2
+
+
+def path_incumbent(ev: StructureEvaluator, usable: np.ndarray, *, deadline: float,
+                   seconds_each: float = 2.0) -> tuple[np.ndarray | None, float]:
+    """The best polish of forward selection's structures of every PATH_STRIDE-th size.
+
+    Restarts for the incumbent ("better incumbents early"): forward selection's
+    path (one structure per size, up to 60 terms), each 4th polished (one term
+    added, removed or swapped while that helps) until ``deadline``. Returns the
+    best mask and its value (None, inf when none finished).
+    """
+    from .forward import forward_selection_path
+
+    best_mask, best_value = None, np.inf
+    path = forward_selection_path(ev, max_terms=min(60, len(usable)))
+    for i in range(PATH_STRIDE - 1, len(path), PATH_STRIDE):
+        if time.perf_counter() >= deadline:
+            break
+        mask, value = polish(ev, path[i], usable, seconds=seconds_each, deadline=deadline)
+        if value < best_value:
+            best_mask, best_value = mask, float(value)
+    return best_mask, best_value
+
+
 _COMPILED = False
 
 
@@ -399,7 +432,7 @@ def certify(
     data = Data(gram, r_aug, pen, float(n), ev.sse_scale, ev.sse_floor, ev.rank_tol, tolerance,
                 NEAR_RANK * ev.rank_tol)
     status, reason = "optimal", None
-    chunk, last_report = 64, t0
+    chunk, last_report, restarted = 64, t0, False
     pool = ThreadPoolExecutor(workers) if workers > 1 else None
     search_start = time.perf_counter()
     # the ahead-of-time build holds the GIL: short searches run on it one heap after the
@@ -427,6 +460,15 @@ def certify(
             now = time.perf_counter()
             if all(r == DONE for r in results):  # the incumbent only improves: stays proved
                 break
+            if not restarted and now - search_start >= PATH_AFTER and node_limit is None:
+                restarted = True  # no proof yet: restarts for a better incumbent
+                mask, value = path_incumbent(
+                    ev, usable, deadline=min(deadline, now + PATH_SHARE * time_limit))
+                if mask is not None and value < heaps[0].best[0]:
+                    heaps[0].best[0] = value
+                    heaps[0].best_mask[:] = mask[usable]
+                    share_best(heaps)
+                now = time.perf_counter()
             full = [h for h, r in zip(busy, results) if r == FULL]
             if any(not h.grow() for h in full):
                 status = "limit"

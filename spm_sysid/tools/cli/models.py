@@ -246,9 +246,12 @@ def cmd_certify(args) -> int:
                 # the warm start may take half the time limit; the proof gets the rest
                 return time.perf_counter() - started < 0.5 * time_limit
 
+            # the criterion's best is the warm start (not a validated selection's
+            # choice), and the proof below is the only certification
             res = identify(u=record.u, y=record.y, term_space=space, criterion=args.criterion,
                            ga=settings.ga, seed=settings.seed, segments=segments,
-                           callback=on_generation)
+                           callback=on_generation, selection="criterion",
+                           auto_certify_time_limit=0)
             warm = res.model.mask
             stopped = (f", stopped at generation {len(res.ga.history) - 1} by half the time "
                        "limit" if res.ga.stopped_early else "")
