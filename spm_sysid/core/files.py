@@ -21,6 +21,7 @@ checked against the memory bound as it grows.
 from __future__ import annotations
 
 import errno
+import math
 import os
 import stat
 import tempfile
@@ -28,7 +29,7 @@ from pathlib import Path
 
 from .errors import DataError, FileCheckError
 
-__all__ = ["FileCheckError", "atomic_write_bytes", "atomic_write_text",
+__all__ = ["FileCheckError", "atomic_write_bytes", "atomic_write_text", "json_float",
            "check_writable_dir", "check_writable_file", "file_kind", "read_bytes",
            "resolve_destination", "same_file"]
 
@@ -217,3 +218,11 @@ def _write_in_place(path: Path, data: bytes) -> None:
 def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
     """Write ``text`` (UTF-8) to ``path`` all at once."""
     return atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def json_float(x: float | None) -> float | None:
+    """A number for a JSON document: inf and NaN (which JSON has not) become None."""
+    if x is None:
+        return None
+    x = float(x)
+    return x if math.isfinite(x) else None

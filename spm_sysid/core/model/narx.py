@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ModelFormatError
-from ..files import atomic_write_text, read_bytes
+from ..files import atomic_write_text, json_float, read_bytes
 from .segments import normalise_segments
 from .simulation import CompiledModel, divergence_bounds, run_model
 from .terms import TermSpace
@@ -236,9 +236,9 @@ class NarxModel:
             "coefficients": [float(c) for c in self.coefficients],
             "criterion": None if self.criterion is None else {
                 "name": self.criterion,
-                "value": _json_float(self.criterion_value),
+                "value": json_float(self.criterion_value),
             },
-            "mse": _json_float(self.mse),
+            "mse": json_float(self.mse),
             "n_samples": self.n_samples,
             "uncertainty": None if self.uncertainty is None else self.uncertainty.to_dict(
                 self.coefficients),
@@ -419,9 +419,3 @@ def _show(x) -> str:
     return text if len(text) <= 40 else f"{text[:12]}... ({len(text)} digits, beyond any float)"
 
 
-def _json_float(x: float | None) -> float | None:
-    """JSON has no inf/NaN: store them as null."""
-    if x is None:
-        return None
-    x = float(x)
-    return x if math.isfinite(x) else None

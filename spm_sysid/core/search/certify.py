@@ -54,6 +54,7 @@ import numpy as np
 from ..compiled.aot import build_status
 from ..compiled.registry import jit_available, jit_loaded
 from ..cores import usable_cores
+from ..files import json_float
 from ..fit.criteria import Criterion, get_criterion
 from ..fit.evaluator import NEAR_RANK, StructureEvaluator
 from ..fit.lstsq import DEFAULT_RANK_TOL
@@ -145,12 +146,8 @@ class Certificate:
                 "seconds": round(float(self.seconds), 4), "bound": self.bound,
                 "reason": self.reason, "warm_start": self.warm_start,
                 "size": int(np.count_nonzero(self.mask)),
-                "one_step_mse": _finite_or_none(self.one_step_mse),
-                "mse_lower_bound": _finite_or_none(self.mse_lower_bound)}
-
-
-def _finite_or_none(x: float | None) -> float | None:
-    return float(x) if x is not None and np.isfinite(x) else None
+                "one_step_mse": json_float(self.one_step_mse),
+                "mse_lower_bound": json_float(self.mse_lower_bound)}
 
 
 def describe_certificate(doc: dict | None) -> str:

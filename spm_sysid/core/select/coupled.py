@@ -36,6 +36,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from ..files import json_float
 from ..model.coupled import CoupledCompiled, coupled_run, refine_coupled
 from ..model.mimo import MimoModel, augmented_inputs
 from ..model.narx import NarxModel
@@ -211,8 +212,8 @@ def select_coupled(joined: MimoModel, u: np.ndarray, Y: np.ndarray,
     order = sorted((i for i in range(len(finalists)) if np.isfinite(means[i])),
                    key=lambda i: means[i])
     account: dict = {"folds": len(folds), "significance": SIGNIFICANCE,
-                     "finalists": [{"name": n, "fitted": h, "held_out_error": _num(m),
-                                    "held_out_stderr": _num(s)}
+                     "finalists": [{"name": n, "fitted": h, "held_out_error": json_float(m),
+                                    "held_out_stderr": json_float(s)}
                                    for (n, h, _), m, s in zip(finalists, means, stderr)]}
     if linear:
         lin = min(linear, key=lambda i: means[i])
@@ -236,8 +237,8 @@ def select_coupled(joined: MimoModel, u: np.ndarray, Y: np.ndarray,
         if reason:
             removed.append(f"{name} ({how}): {reason}")
             continue
-        account.update(chosen=name, fitted=how, held_out_error=_num(means[i]),
-                       held_out_stderr=_num(stderr[i]))
+        account.update(chosen=name, fitted=how, held_out_error=json_float(means[i]),
+                       held_out_stderr=json_float(stderr[i]))
         if removed:
             account["removed_by_guard"] = removed
         return full, account
@@ -296,5 +297,3 @@ def _same(a: MimoModel, b: MimoModel) -> bool:
     return all(list(x.term_indices) == list(y.term_indices) for x, y in zip(a.models, b.models))
 
 
-def _num(v: float) -> float | None:
-    return float(v) if np.isfinite(v) else None

@@ -30,6 +30,8 @@ from urllib.parse import parse_qs, urlsplit
 
 import numpy as np
 
+from ...core.files import json_float
+
 __all__ = ["MAX_POINTS", "Dashboard", "DashboardError", "is_loopback"]
 
 #: About this many points per output in one ``/state.json`` (the last seconds, thinned).
@@ -50,9 +52,6 @@ def is_loopback(host: str) -> bool:
         return False
 
 
-def _num(v) -> float | None:
-    v = float(v)
-    return v if math.isfinite(v) else None
 
 
 class Dashboard:
@@ -185,17 +184,17 @@ class Dashboard:
             resid = resid[np.isfinite(resid)]
             mst = states.get(name)
             stats = {"samples": int(len(resid)),
-                     "mean": _num(resid.mean()) if resid.size else None,
-                     "rms": _num(np.sqrt(np.mean(resid * resid))) if resid.size else None,
-                     "rms_ratio": _num(mst.rms_ratio) if mst is not None else None,
-                     "whiteness_p": _num(mst.whiteness_p) if mst is not None else None}
+                     "mean": json_float(resid.mean()) if resid.size else None,
+                     "rms": json_float(np.sqrt(np.mean(resid * resid))) if resid.size else None,
+                     "rms_ratio": json_float(mst.rms_ratio) if mst is not None else None,
+                     "whiteness_p": json_float(mst.whiteness_p) if mst is not None else None}
             t_end = rows[-1][0] if rows else 0
             per_output[name] = {
                 "t": [(r[0] - t_end) / 1e9 for r in rows],
                 "stamp_sec": [r[0] // 1_000_000_000 for r in rows],
                 "stamp_nanosec": [r[0] % 1_000_000_000 for r in rows],
-                "measured": [_num(r[1]) for r in rows],
-                "predicted": [_num(r[2]) for r in rows],
+                "measured": [json_float(r[1]) for r in rows],
+                "predicted": [json_float(r[2]) for r in rows],
                 "stride": self._stride, "stats": stats}
         ident = node.identification
         progress = None
@@ -203,7 +202,7 @@ class Dashboard:
             p = ident.progress
             progress = {"phase": p.phase if p else "checking data",
                         "step": int(p.step) if p else 0, "total": int(p.total) if p else 0,
-                        "best": _num(p.best) if p and p.best is not None else None,
+                        "best": json_float(p.best) if p and p.best is not None else None,
                         "elapsed": time.monotonic() - ident.started}
         return {"node": node.get_fully_qualified_name(), "seconds": self.seconds,
                 "monitor": monitor, "outputs": per_output, "progress": progress,
