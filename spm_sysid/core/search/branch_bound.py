@@ -642,8 +642,8 @@ def _bound_sizes(data, heap, work, k, f, sse_t, bound0, budget, deep_budget,
     allows. ``cut``: no structure of the node can beat the incumbent. Leaves
     ``small``, ``drop``, ``prefmin``, ``delta``, ``pairs`` for :func:`_walk_chain`.
     ``near``: T is nearly rank-deficient (no factor to take drop costs from; ``sse_t``
-    is found by :func:`_sse_span`): the exact small sizes and SSE(T) only, their
-    least value in ``quick``.
+    from :func:`_sse_span`): the exact small sizes and SSE(T) only, their least
+    value in ``quick``.
     """
     w = work
     t = k + f
@@ -652,8 +652,6 @@ def _bound_sizes(data, heap, work, k, f, sse_t, bound0, budget, deep_budget,
     m = data.gram.shape[0] - 1
     amax = max(min(2, f), _visits_for(f, budget))
     zz = _project_free(data.r_ext, w.cols, k, f, m, w.Q, w.At, w.S, w.cvec)
-    if near:
-        sse_t = _sse_span(data.r_ext, w.cols, t, m, w.Ht)
     have_drops = False
     safety = 0.0
     n_edges = 0
@@ -827,7 +825,8 @@ def expand(data, heap, work, max_pops, budget, deep_budget):  # pragma: no cover
             continue
         if weak >= k:  # a free term nearly dependent on the others: bound, branch on it
             counts[NEAR_BRANCHES] += 1
-            _, _, cut, quick = _bound_sizes(data, heap, work, k, f, 0.0, bound0, budget,
+            sse_t = _sse_span(data.r_ext, work.cols, t, m, work.Ht)
+            _, _, cut, quick = _bound_sizes(data, heap, work, k, f, sse_t, bound0, budget,
                                             deep_budget, True)
             if not cut:
                 size = _branch_on(heap, work, size, max(bound0, quick), work.cols[weak])
