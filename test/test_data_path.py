@@ -265,7 +265,7 @@ def test_model_file_is_written_atomically(tmp_path, robot_arm):
     (lambda d: d["term_indices"].__setitem__(0, "0"), "term_indices must be integers"),
     (lambda d: d["term_indices"].__setitem__(1, 0), "more than once"),
     (lambda d: d["term_space"].update(ny="4"), "term_space.ny must be an integer"),
-    (lambda d: d.update(metadata=[1]), "'metadata' must be an object"),
+    (lambda d: d.update(metadata=[1]), "metadata must be an object"),
 ])
 def test_malformed_model_fields_are_one_line_errors(robot_arm, tmp_path, mutate, message):
     doc = eq1_model(robot_arm).to_dict()

@@ -174,4 +174,4 @@ def test_a_report_of_two_outputs_has_a_section_each_and_the_cross_correlation(
 
 def test_report_refuses_a_path_that_is_not_html(tmp_path):
     r = _cli("identify", "--quiet", "--report", str(tmp_path / "r.txt"))
-    assert r.returncode == 2 and "give a path ending in .html" in r.stderr
+    assert r.returncode == 2 and "give a file name ending in .html" in r.stderr

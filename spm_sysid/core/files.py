@@ -25,13 +25,14 @@ import math
 import os
 import stat
 import tempfile
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 from .errors import DataError, FileCheckError
 
-__all__ = ["FileCheckError", "atomic_write_bytes", "atomic_write_text", "json_float",
-           "check_writable_dir", "check_writable_file", "file_kind", "read_bytes",
-           "resolve_destination", "same_file"]
+__all__ = ["FileCheckError", "atomic_write_bytes", "atomic_write_text", "check_destinations",
+           "check_writable_dir", "check_writable_file", "document_json", "file_kind",
+           "json_float", "json_ready", "read_bytes", "resolve_destination", "same_file"]
 
 #: Bytes read at a time from a pipe.
 _CHUNK = 1 << 22
@@ -177,15 +178,68 @@ def check_writable_file(path: str | os.PathLike, what: str = "file") -> Path:
     return real
 
 
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+def check_destinations(outputs: Mapping[str, str | os.PathLike | None],
+                       inputs: Iterable[str | os.PathLike | None] = ()) -> dict[str, Path]:
+    """One check for every file a command will write, run before any work.
+
+    Each destination (``{"--json": path, "--report": path}``; None: not asked
+    for) must be: a path; not a symbolic link (a link may name an input or a
+    file elsewhere, and the write would go through it); a regular file or
+    absent, writable, in a writable directory (:func:`check_writable_file`:
+    no pipe, device or directory); none of ``inputs``; and not the file of
+    another destination of the same run.
+
+    Returns
+    -------
+    dict
+        The destinations asked for, by label.
+
+    Raises
+    ------
+    FileCheckError
+        The first destination that fails, named by its label, and why.
+    """
+    out: dict[str, Path] = {}
+    sources = [Path(p) for p in inputs if p]
+    for what, path in outputs.items():
+        if path is None:
+            continue
+        given = Path(path)
+        if not str(path).strip():
+            raise FileCheckError(f"{what} path is empty")
+        if given.is_symlink():
+            raise FileCheckError(
+                f"{what} {given} is a symbolic link (to {os.readlink(given)}); results are "
+                "not written through links, which could name an input or a file elsewhere: "
+                "give the file's own path (nothing was changed)")
+        check_writable_file(given, what)
+        for source in sources:
+            if same_file(given, source):
+                raise FileCheckError(f"{what} {given} is the input {source}: it would be "
+                                     "overwritten; give another path (nothing was changed)")
+        for other, taken in out.items():
+            if given.absolute() == taken.absolute() or same_file(given, taken):
+                raise FileCheckError(f"{what} {given} and {other} {taken} are the same file: "
+                                     "one would overwrite the other; give two paths")
+        out[what] = given
+    return out
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes,
+                       follow_links: bool = True) -> Path:
     """Write ``data`` to ``path`` all at once (temporary file + rename).
 
     ``path`` is checked as :func:`resolve_destination` does: a symlink is
     followed (the file it names is replaced, the link stays), a device, pipe or
-    directory is refused. A file that is a mount point of its own (bind-mounted)
-    cannot be renamed over and is written in place instead. Returns ``path``.
+    directory is refused. With ``follow_links=False`` a symlink at ``path`` is
+    itself replaced by the regular file and what it named is left alone (a
+    folder of results writes only inside itself). A file that is a mount point
+    of its own (bind-mounted) cannot be renamed over and is written in place
+    instead. Returns ``path``.
     """
-    real = resolve_destination(path)
+    given = Path(path)
+    real = (given.absolute() if not follow_links and given.is_symlink()
+            else resolve_destination(path))
     real.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{real.name}.", suffix=".tmp", dir=real.parent)
     try:
@@ -215,9 +269,51 @@ def _write_in_place(path: Path, data: bytes) -> None:
         os.fsync(f.fileno())
 
 
-def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
-    """Write ``text`` (UTF-8) to ``path`` all at once."""
-    return atomic_write_bytes(path, text.encode("utf-8"))
+def atomic_write_text(path: str | os.PathLike, text: str, follow_links: bool = True) -> Path:
+    """Write ``text`` (UTF-8) to ``path`` all at once (see :func:`atomic_write_bytes`)."""
+    return atomic_write_bytes(path, text.encode("utf-8"), follow_links)
+
+
+def json_ready(value):
+    """A value as a JSON document can hold it, whatever a job put in it.
+
+    Every number that is not finite (inf, -inf, NaN: a diverged run, a scan that
+    could not be fitted, an overflow) becomes ``null``; numpy scalars and arrays
+    become numbers and lists, tuples lists. Documents are written through this
+    one function (:func:`document_json`), so a result is never lost because one
+    of its numbers has no JSON form.
+    """
+    if isinstance(value, dict):
+        return {str(k): json_ready(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_ready(v) for v in value]
+    if isinstance(value, bool) or value is None or isinstance(value, str):
+        return value
+    if isinstance(value, int):
+        return value
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    try:  # numpy scalars and arrays, without importing numpy here
+        import numpy as np
+
+        if isinstance(value, np.ndarray):
+            return json_ready(value.tolist())
+        if isinstance(value, np.bool_):
+            return bool(value)
+        if isinstance(value, np.integer):
+            return int(value)
+        if isinstance(value, np.floating):
+            return json_ready(float(value))
+    except ImportError:  # pragma: no cover - numpy is a dependency
+        pass
+    return value
+
+
+def document_json(doc, indent: int | None = 2) -> str:
+    """The one writer of JSON documents: :func:`json_ready`, then strict JSON."""
+    import json
+
+    return json.dumps(json_ready(doc), indent=indent, allow_nan=False)
 
 
 def json_float(x: float | None) -> float | None:

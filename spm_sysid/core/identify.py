@@ -23,6 +23,7 @@ import numpy as np
 from .blas import one_blas_thread
 from .errors import DataError
 from .fit.criteria import Criterion, get_criterion
+from .fit.lstsq import sse_floor
 from .fit.problem import Problem, check_samples, validate_signals
 from .model.narx import NarxModel
 from .model.terms import TermSpace
@@ -34,9 +35,9 @@ from .select.validated import (
     FOLDS,
     SIMULATION_FOLDS,
     SIMULATION_REPEATS,
-    blocked_folds,
     candidate_structures,
     cv_scores,
+    informative_folds,
 )
 from .settings import SETTINGS, check
 from .validate.open_loop import HORIZON, open_loop_check
@@ -222,7 +223,7 @@ def identify_problem(
     if check_data:
         from .validate.excitation import check_problem
 
-        data_check = check_problem(problem)
+        data_check = check_problem(problem, criterion=crit.name)
         warnings += data_check.warnings
     evaluator = problem.evaluator(crit, max_terms=max_terms)
 
@@ -233,9 +234,14 @@ def identify_problem(
 
     result = run_ga(evaluator, ga, seed=seed, callback=on_generation)
     if not np.isfinite(result.best_score):
+        from .validate.excitation import describe_glitches, glitches
+
+        glitch = describe_glitches(problem.y, glitches(problem.y, problem.segments),
+                                   problem.term_space.output)
         raise DataError(
             "no structure could be fitted: every structure the search tried has linearly "
-            "dependent regressors on this data (repeated or constant signals?)"
+            "dependent regressors on this data ("
+            + (glitch if glitch else "repeated or constant signals?") + ")"
             + (f", or more than max_terms = {max_terms} terms" if max_terms else "")
         )
     polished = _polish(problem, evaluator, result) if polish else None
@@ -249,10 +255,15 @@ def identify_problem(
         k_step = horizon or HORIZON
         warnings.append(open_loop.reason().replace("judged on the k-step prediction",
                                                    f"judged on the {k_step}-step prediction"))
-    folds = (blocked_folds(problem, simulation_folds, simulation_repeats) if focus == "simulation"
-             else blocked_folds(problem, FOLDS))
+    folds, fold_note = (informative_folds(problem, simulation_folds, simulation_repeats)
+                        if focus == "simulation" else informative_folds(problem, FOLDS))
     if mode == "validated" and not folds:
-        mode, note = "criterion", "the record is too short for held-out blocks"
+        mode, note = "criterion", fold_note
+        if selection != "criterion" and "excitation" in fold_note:
+            warnings.append(f"judged by the criterion on all the data, not on held-out "
+                            f"blocks: {fold_note}")
+    elif fold_note:
+        note = f"{note}; {fold_note}"
     certificate = None
     if certify_time_limit is None and auto_certify_time_limit > 0:
         from .search.certify import CERTIFIABLE
@@ -402,7 +413,10 @@ def _generalisation(problem, folds, model, mode, note, simulate, chosen, k_step=
         in_sample = model.mse
     out["in_sample_mse"] = in_sample
     held = out.get("held_out_mse")
-    out["ratio"] = (held / in_sample if held is not None and in_sample else None)
+    # errors at rounding level (an exact fit) have no meaningful ratio: the floor counts
+    floor = sse_floor(float(np.linalg.norm(problem.target)) * problem.y_scale) / problem.rows
+    out["ratio"] = (max(held, floor) / max(in_sample, floor)
+                    if held is not None and in_sample is not None else None)
     return out
 
 

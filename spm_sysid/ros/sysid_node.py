@@ -24,7 +24,7 @@ from spm_sysid_interfaces.srv import GetModel
 from std_srvs.srv import Trigger
 
 from ..core.progress import Progress
-from ..core.stream.diagnostics import diagnostic_statuses, online_status
+from ..core.stream.diagnostics import dashboard_status, diagnostic_statuses, online_status
 from .common import LATCHED, REQUESTS, run_node
 from .node.identification import Code, Identification
 from .node.online import OnlinePart
@@ -95,7 +95,7 @@ class SysidNode(Node):
             self.get_logger().error(str(exc))
             return
         self.online.dashboard = self.dashboard
-        self.get_logger().info(f"live dashboard at {self.dashboard.url} (read-only)")
+        self.get_logger().info(self.dashboard.describe())
 
     # -- services and the action ---------------------------------------------------------
     def _on_clear(self, request, response):
@@ -189,6 +189,10 @@ class SysidNode(Node):
         statuses.append(online_status(self.get_fully_qualified_name(), self.online.session,
                                       {**self.reidentify.counts,
                                        "online_errors": self.online.errors}))
+        board = self.dashboard
+        if board is not None:
+            statuses.append(dashboard_status(self.get_fully_qualified_name(), board.url,
+                                             board.requests, dict(board.counts)))
         msg = DiagnosticArray(status=[DiagnosticStatus(
             level=bytes([s.level]), name=s.name, message=s.message, hardware_id="spm_sysid",
             values=[KeyValue(key=k, value=v) for k, v in s.values.items()])

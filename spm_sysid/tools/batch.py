@@ -176,11 +176,14 @@ def _several_row(path: str, record, result, t0: float, model_path) -> tuple[dict
 def run_batch(inputs: Sequence[str], out: str | Path, values: dict, *,
               per_input: dict | None = None, scheduler: str | None = None, workers: int = 0,
               progress: Callable[[int, int], None] | None = None,
-              force: bool = False) -> list[dict]:
+              force: bool = False, note: Callable[[str], None] | None = None) -> list[dict]:
     """Identify every input; write the models and the summary; return the rows in input order.
 
     ``values`` are settings by schema name (and data options, see
     :data:`DATA_KEYS`); ``per_input`` the YAML mapping (see the module doc).
+    ``note`` is told what the user should know beside the rows (an earlier
+    batch's model files removed because this one did not write them again).
+    A model that cannot be written makes its input's row an error; the others go on.
 
     Raises
     ------
@@ -190,7 +193,7 @@ def run_batch(inputs: Sequence[str], out: str | Path, values: dict, *,
     SettingsError
         A per-input setting that is unknown or invalid (before any work).
     """
-    from ..core.files import atomic_write_text
+    from ..core.files import atomic_write_text, document_json
     from ..core.jobs import JobSettings
 
     out = Path(out)
@@ -205,10 +208,15 @@ def run_batch(inputs: Sequence[str], out: str | Path, values: dict, *,
     out.mkdir(parents=True, exist_ok=True)
     count = [0]
 
+    failed_writes: dict[str, str] = {}
+
     def on_done(outcome) -> None:
         if outcome.ok:  # the model lands here, wherever the job ran
             row, doc = outcome.result
-            atomic_write_text(row["model"], json.dumps(doc, indent=2, allow_nan=False) + "\n")
+            try:  # a link in OUT is replaced by the file, never written through
+                atomic_write_text(row["model"], document_json(doc) + "\n", follow_links=False)
+            except (OSError, ValueError) as exc:
+                failed_writes[row["model"]] = f"the model could not be written ({exc})"
         count[0] += 1
         if progress:
             progress(count[0], len(tasks))
@@ -218,17 +226,39 @@ def run_batch(inputs: Sequence[str], out: str | Path, values: dict, *,
     rows = []
     for key, (path, _, _, _) in tasks.items():
         o = outcomes[key]
-        if o.ok:
+        if o.ok and o.result[0]["model"] not in failed_writes:
             rows.append(o.result[0])
         else:
+            error = o.error if not o.ok else failed_writes[o.result[0]["model"]]
             rows.append({"input": path, "samples": None, "terms": None, "criterion": None,
                          "value": None, "one_step_fit": None, "free_run_fit": None,
-                         "status": f"error: {o.error}", "seconds": None, "model": None})
-    write_summary(rows, out)
+                         "status": f"error: {error}", "seconds": None, "model": None})
     written = {Path(r["model"]).name for r in rows if r.get("model")} | set(SUMMARY_FILES)
+    stale = remove_stale(out, own - written - {MANIFEST})
+    write_summary(rows, out)
     atomic_write_text(out / MANIFEST, json.dumps(
-        {"written_by": "spm-sysid batch", "files": sorted(own | written)}, indent=2) + "\n")
+        {"written_by": "spm-sysid batch", "files": sorted(written)}, indent=2) + "\n",
+        follow_links=False)
+    if stale and note:
+        note(f"removed {len(stale)} model file(s) of the earlier batch in {out} that this "
+             f"one did not write again: {', '.join(stale)}")
     return rows
+
+
+def remove_stale(out: Path, names: set[str]) -> list[str]:
+    """Remove an earlier batch's model files that this batch did not write again.
+
+    A summary must not stand beside models it does not list. Only names the
+    earlier batch's manifest lists are removed (never anything else), and a link
+    is removed, not what it names. Returns the names removed.
+    """
+    removed = []
+    for name in sorted(names):
+        p = out / name
+        if p.is_symlink() or p.is_file():
+            p.unlink()
+            removed.append(name)
+    return removed
 
 
 def _earlier_files(out: Path) -> set[str]:
@@ -298,13 +328,18 @@ def check_destinations(out: Path, inputs: Sequence[str], models: Sequence[Path],
 
 
 def write_summary(rows: Sequence[dict], out: Path) -> list[Path]:
-    """``summary.csv`` and ``summary.md`` in ``out``."""
-    with open(out / "summary.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=BATCH_COLUMNS)
-        w.writeheader()
-        for r in rows:
-            w.writerow(r)
-    (out / "summary.md").write_text(summary_table(rows))
+    """``summary.csv`` and ``summary.md`` in ``out`` (regular files: a link there is replaced)."""
+    import io
+
+    from ..core.files import atomic_write_text
+
+    text = io.StringIO(newline="")
+    w = csv.DictWriter(text, fieldnames=BATCH_COLUMNS)
+    w.writeheader()
+    for r in rows:
+        w.writerow(r)
+    atomic_write_text(out / "summary.csv", text.getvalue(), follow_links=False)
+    atomic_write_text(out / "summary.md", summary_table(rows), follow_links=False)
     return [out / "summary.csv", out / "summary.md"]
 
 

@@ -219,8 +219,9 @@ def _facts(section: OutputSection) -> str:
         crit = m.criterion.upper() + (" (simulation)" if meta.get("focus") == "simulation"
                                       else "")
         value = "" if m.criterion_value is None else f" = {m.criterion_value:.2f}"
-        items.append(f"<li><b>criterion</b> {_esc(crit)}{_esc(value)}, {len(m.terms)} terms"
-                     + (f", {m.n_samples} samples" if m.n_samples else "") + "</li>")
+        items.append(f"<li><b>criterion</b> {_esc(crit)}{_esc(value)}, {_esc(len(m.terms))} "
+                     "terms" + (f", {_esc(m.n_samples)} samples" if m.n_samples else "")
+                     + "</li>")
     cert = describe_certificate(meta.get("certificate"))
     if cert:
         items.append(f"<li><b>certification</b> {_esc(cert)}</li>")
@@ -229,8 +230,8 @@ def _facts(section: OutputSection) -> str:
         items.append(f"<li><b>selection</b> {_esc(sel)}</li>")
     orders = meta.get("orders")
     if orders:
-        items.append(f"<li><b>orders</b> ny = nu = {orders['ny']}, degree {orders['degree']}: "
-                     f"{_esc(orders.get('reason', ''))}</li>")
+        items.append(f"<li><b>orders</b> ny = nu = {_esc(orders['ny'])}, degree "
+                     f"{_esc(orders['degree'])}: {_esc(orders.get('reason') or '')}</li>")
     check = describe_check(meta.get("data_check"))  # starts "data check: ..."
     if check:
         head, _, rest = check.partition(":")
@@ -353,9 +354,9 @@ def build_report(content: ReportContent, sections: list[OutputSection]) -> str:
         else:
             if rep.diverged_at is not None:
                 part.append(f'<p class="diverged" id="diverged-{_esc(sec.name)}">The free-run '
-                            f"simulation DIVERGED at sample {rep.diverged_at}: the model does "
-                            "not describe the system there.</p>")
-            part.append(f"<h3>Validation ({_esc(rep.segment)} data, {rep.n_samples} "
+                            f"simulation DIVERGED at sample {_esc(rep.diverged_at)}: the model "
+                            "does not describe the system there.</p>")
+            part.append(f"<h3>Validation ({_esc(rep.segment)} data, {_esc(rep.n_samples)} "
                         "samples)</h3>")
             kinds = ["one_step"] + (["k_step"] if rep.k_step is not None else []) \
                 + ["free_run"]
@@ -422,9 +423,12 @@ reset with the toolbar's arrows.</p>
 
 def write_report(path: str | Path, content: ReportContent,
                  sections: list[OutputSection]) -> Path:
-    """Write the page (:func:`build_report`); the path written."""
-    path = Path(path)
-    if path.parent and not path.parent.exists():
-        path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(build_report(content, sections), encoding="utf-8")
-    return path
+    """Write the page (:func:`build_report`) all at once; the path written.
+
+    The caller checks the destination first (the command line's one check of its
+    outputs, :func:`spm_sysid.core.files.check_destinations`); the page goes to a
+    temporary file that then replaces the path, so a reader never sees half a page.
+    """
+    from ..core.files import atomic_write_text
+
+    return atomic_write_text(path, build_report(content, sections))

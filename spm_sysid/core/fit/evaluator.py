@@ -4,7 +4,8 @@ A GA run scores tens of thousands of chromosomes, most of them repeats. The
 :class:`StructureEvaluator` therefore
 
 * keys every structure by its bit pattern and never fits a structure twice in a
-  run (a dictionary cache);
+  run (a dictionary cache, bounded: past :func:`cache_capacity` entries, a share
+  of the memory bound, it keeps its better half and the best of every size);
 * shares work across structures: the Gram matrix of all candidate columns and
   the target, ``[P y]^T [P y]``, is formed once (columns scaled to unit norm).
   A structure's least-squares fit is then a Cholesky factorisation of its
@@ -93,6 +94,33 @@ def key_mask(key: bytes, n_terms: int) -> np.ndarray:
     return np.unpackbits(np.frombuffer(key, dtype=np.uint8))[:n_terms].astype(bool)
 
 
+#: Bytes one cached score takes besides its key (the bytes object's header, the float,
+#: the dictionary's slot), measured with tracemalloc on CPython 3.11.
+CACHE_ENTRY_BYTES = 140
+
+#: The share of the memory bound the cache of scores may take.
+CACHE_SHARE = 0.1
+
+#: Entries the cache keeps at least (a bound of a few MB still leaves room for a GA run)
+#: and at most.
+CACHE_ENTRIES = (20_000, 2_000_000)
+
+
+def cache_capacity(n_terms: int) -> int:
+    """Scores the cache may hold: :data:`CACHE_SHARE` of the memory bound, within limits."""
+    from ..memory import memory_limit
+
+    limit, _ = memory_limit()
+    per_entry = CACHE_ENTRY_BYTES + (n_terms + 7) // 8
+    low, high = CACHE_ENTRIES
+    return int(max(low, min(high, CACHE_SHARE * limit / per_entry)))
+
+
+#: Bytes a batch's fit works in at a time (its index arrays, about 8 per term and
+#: structure); larger batches are fitted slice by slice.
+FIT_SLICE_BYTES = 8 << 20
+
+
 class StructureEvaluator:
     """Scores structures on one data set with one criterion; cached and batched.
 
@@ -132,6 +160,9 @@ class StructureEvaluator:
         Structures actually fitted (cache misses).
     lookups : int
         Structures asked for, including repeats.
+    cache_capacity : int
+        Scores the cache holds at most (:func:`cache_capacity`); past it the
+        better half is kept (:attr:`pruned` counts the scores let go).
     """
 
     def __init__(
@@ -169,9 +200,12 @@ class StructureEvaluator:
 
     def _reset(self) -> None:
         self._cache: dict[bytes, float] = {}
+        self._best_of_size: dict[int, tuple[float, bytes]] = {}
         self._best = np.inf  # best settled value (see evaluate)
         self.evaluations = 0
         self.lookups = 0
+        self.pruned = 0
+        self.cache_capacity = cache_capacity(self.n_terms)
 
     def with_criterion(self, criterion: str | Criterion,
                        max_terms: int | None = None) -> StructureEvaluator:
@@ -209,7 +243,22 @@ class StructureEvaluator:
             values = self.evaluate(masks[rows])
             cache.update(zip(todo.keys(), values.tolist()))
             self.evaluations += len(rows)
-        return np.fromiter((cache[k] for k in keys.tolist()), dtype=float, count=len(keys))
+            best = self._best_of_size
+            for key, size, value in zip(todo.keys(), masks[rows].sum(axis=1).tolist(),
+                                        values.tolist()):
+                if np.isfinite(value) and (size not in best or value < best[size][0]):
+                    best[size] = (value, key)
+        out = np.fromiter((cache[k] for k in keys.tolist()), dtype=float, count=len(keys))
+        if len(cache) > self.cache_capacity:
+            self._prune()
+        return out
+
+    def _prune(self) -> None:
+        """Keep the better half of the cache (the best of every size is kept apart)."""
+        keep = sorted(self._cache.items(), key=lambda item: item[1])
+        keep = keep[:self.cache_capacity // 2]
+        self.pruned += len(self._cache) - len(keep)
+        self._cache = dict(keep)
 
     def ranked(self, count: int) -> np.ndarray:
         """The ``count`` best distinct structures scored so far, best first (masks).
@@ -226,13 +275,7 @@ class StructureEvaluator:
 
     def best_per_size(self) -> np.ndarray:
         """The best-scoring structure of every size scored so far, by size (masks)."""
-        best: dict[int, tuple[float, bytes]] = {}
-        for key, value in self._cache.items():
-            if not np.isfinite(value):
-                continue
-            size = int(np.unpackbits(np.frombuffer(key, dtype=np.uint8)).sum())
-            if size not in best or value < best[size][0]:
-                best[size] = (value, key)
+        best = self._best_of_size
         if not best:
             return np.zeros((0, self.n_terms), dtype=bool)
         keys = [best[k][1] for k in sorted(best)]
@@ -302,7 +345,14 @@ class StructureEvaluator:
         """
         # lexicographic order of the term lists: neighbours share factorised prefixes
         order = np.lexsort(~masks.T[::-1]) if len(masks) > 1 else np.arange(len(masks))
-        sse, beta, bad, near = self._fit_sorted(masks[order], arbitrate, all_near)
+        # in slices of bounded memory (a polish's neighbourhood of a large space holds tens
+        # of thousands of structures); each structure is factorised the same way in any slice
+        step = max(1, FIT_SLICE_BYTES // (8 * (masks.shape[1] + 1)))
+        parts = [self._fit_sorted(masks[order[i:i + step]], arbitrate, all_near)
+                 for i in range(0, len(order), step)] or [
+            self._fit_sorted(masks[order], arbitrate, all_near)]
+        sse, bad, near = (np.concatenate([p[j] for p in parts]) for j in (0, 2, 3))
+        beta = None if parts[0][1] is None else np.concatenate([p[1] for p in parts])
         back = np.empty_like(order)
         back[order] = np.arange(len(order))
         return (sse[back], None if beta is None else beta[back], bad[back], near[back])

@@ -298,10 +298,12 @@ class Problem:
             raise DataError(f"no segment of the data is longer than the largest lag "
                             f"({term_space.max_lag}): nothing to fit")
         u, y = validate_signals(u, y, term_space, segs if given else None)
+        name = term_space.output
         if not np.any(y):
-            raise DataError("the output y is zero throughout: there is nothing to identify")
+            raise DataError(f"the output {name} is zero throughout: there is nothing to "
+                            "identify")
         if np.all(y == y[0]):  # a stuck sensor: y(t) = y(t-1) would "fit" it exactly
-            raise DataError(f"the output y is constant ({y[0]:g} throughout; a stuck or "
+            raise DataError(f"the output {name} is constant ({y[0]:g} throughout; a stuck or "
                             "disconnected sensor?): there is nothing to identify")
         rows = sum(b - a - term_space.max_lag for a, b in segs)
         m = term_space.n_terms

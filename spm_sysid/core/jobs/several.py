@@ -318,7 +318,16 @@ def run_mimo_job(record: Record, settings, *, progress: ProgressFn | None = None
         model.metadata["joint_criterion"] = MimoModel.joined(
             names, model.inputs, model.models).metadata["joint_criterion"]
         for i, r in enumerate(outputs):
+            own = r.model.metadata.get("selection")
             r.model = model.models[i]
+            # the account describes the model returned, not the output's own choice
+            r.model.metadata["selection"] = {
+                "method": "coupled", "what": "coupled free-run",
+                "folds": int(account.get("folds") or 0), "chosen": account.get("chosen"),
+                "fitted": account.get("fitted"),
+                "held_out_mse": account.get("held_out_error"),
+                "note": "chosen with the other outputs by the coupled judgement",
+                **({"own_choice": own} if own else {})}
             if r.report is not None:
                 r.report = validate_model(
                     r.model, augmented_inputs(u, Y, i), Y[:, i],

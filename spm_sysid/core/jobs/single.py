@@ -142,6 +142,10 @@ def describe_selection(doc: dict | None) -> str:
     """How the structure was chosen, in a few words ('' when the document has nothing)."""
     if not doc:
         return ""
+    if doc.get("method") == "coupled":
+        return (f"chosen with the other outputs on their coupled free run over "
+                f"{doc['folds']} held-out blocks: {doc.get('chosen')} ({doc.get('fitted')}); "
+                "this output's own selection was not kept")
     if doc.get("method") == "validated":
         held = doc.get("held_out_mse")
         text = (f"selected by its {doc['what']} error on {doc['folds']} held-out blocks "

@@ -28,7 +28,6 @@ single-output document is unchanged and still what one output gives.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -36,7 +35,8 @@ import numpy as np
 
 from ..cores import usable_cores
 from ..errors import ModelFormatError
-from ..files import atomic_write_text, read_bytes
+from ..files import atomic_write_text, document_json, json_ready
+from .metadata import check_mimo_metadata
 from .narx import NarxModel, read_json_document
 from .terms import TermSpace
 
@@ -176,9 +176,11 @@ class MimoModel:
 
     # -- the document ------------------------------------------------------------------
     def to_dict(self) -> dict:
-        return {"schema": MIMO_SCHEMA, "schema_version": MIMO_SCHEMA_VERSION,
-                "outputs": list(self.outputs), "inputs": list(self.inputs),
-                "models": [m.to_dict() for m in self.models], "metadata": self.metadata}
+        """The document (non-finite numbers as ``null``, as every document)."""
+        return json_ready({"schema": MIMO_SCHEMA, "schema_version": MIMO_SCHEMA_VERSION,
+                           "outputs": list(self.outputs), "inputs": list(self.inputs),
+                           "models": [m.to_dict() for m in self.models],
+                           "metadata": self.metadata})
 
     @classmethod
     def from_dict(cls, doc: dict) -> MimoModel:
@@ -188,23 +190,34 @@ class MimoModel:
         if isinstance(version, bool) or version != MIMO_SCHEMA_VERSION:  # true is not 1
             raise ModelFormatError(f"several-output model version "
                                    f"{doc.get('schema_version')!r} is not supported")
+        for key in ("outputs", "inputs", "models"):
+            value = doc.get(key)
+            if not isinstance(value, list) or (key != "models" and not all(
+                    isinstance(v, str) for v in value)):
+                raise ModelFormatError(f"{key!r} must be a list" + (
+                    " of names" if key != "models" else " of model documents"))
         outputs, inputs = tuple(doc["outputs"]), tuple(doc["inputs"])
-        models = [NarxModel.from_dict(d) for d in doc["models"]]
+        models = []
+        for i, d in enumerate(doc["models"]):
+            try:
+                models.append(NarxModel.from_dict(d))
+            except ModelFormatError as exc:
+                raise ModelFormatError(f"models[{i}]: {exc}") from None
         if len(models) != len(outputs) or len(outputs) < 2:
             raise ModelFormatError("a several-output model needs one model per output (>= 2)")
         for i, m in enumerate(models):
             others = tuple(o for j, o in enumerate(outputs) if j != i)
             if m.term_space.output != outputs[i] or m.term_space.inputs != inputs + others:
                 raise ModelFormatError(f"model {i} does not belong to output {outputs[i]!r}")
-        return cls(outputs, inputs, models, dict(doc.get("metadata") or {}))
+        return cls(outputs, inputs, models, dict(check_mimo_metadata(doc.get("metadata") or {})))
 
     def save(self, path: str | Path) -> Path:
-        atomic_write_text(path, json.dumps(self.to_dict(), indent=2, allow_nan=False) + "\n")
+        atomic_write_text(path, document_json(self.to_dict()) + "\n")
         return Path(path)
 
     @classmethod
     def load(cls, path: str | Path) -> MimoModel:
-        return cls.from_dict(json.loads(read_bytes(path)))
+        return cls.from_dict(read_json_document(path))
 
 
 def fit_percent(y: np.ndarray, yhat: np.ndarray) -> float | None:

@@ -18,7 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ModelFormatError
-from ..files import atomic_write_text, json_float, read_bytes
+from ..files import atomic_write_text, json_float, json_ready, read_bytes
+from .metadata import check_metadata
 from .segments import normalise_segments
 from .simulation import CompiledModel, divergence_bounds, run_model
 from .terms import TermSpace
@@ -222,10 +223,14 @@ class NarxModel:
 
     # -- persistence --------------------------------------------------------------------
     def to_dict(self) -> dict:
-        """The versioned JSON document (see ``docs/model_format.md``)."""
+        """The versioned JSON document (see ``docs/model_format.md``).
+
+        Ready for JSON whatever the metadata holds: a number that is not finite
+        is ``null`` (:func:`~spm_sysid.core.files.json_ready`).
+        """
         from ... import __version__
 
-        return {
+        return json_ready({
             "schema": MODEL_SCHEMA,
             "schema_version": MODEL_SCHEMA_VERSION,
             "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
@@ -243,7 +248,7 @@ class NarxModel:
             "uncertainty": None if self.uncertainty is None else self.uncertainty.to_dict(
                 self.coefficients),
             "metadata": self.metadata,
-        }
+        })
 
     @classmethod
     def from_dict(cls, doc: dict) -> NarxModel:
@@ -318,9 +323,7 @@ class NarxModel:
                                           else _is_number(value) and value >= 0):
                 raise ModelFormatError(f"{key!r} must be a number >= 0 or null, got "
                                        f"{_show(value)}")
-        metadata = doc.get("metadata") or {}
-        if not isinstance(metadata, dict):
-            raise ModelFormatError("'metadata' must be an object")
+        metadata = check_metadata(doc.get("metadata") or {})
         uncertainty = None
         if version >= 3 and doc.get("uncertainty") is not None:
             try:

@@ -43,6 +43,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..model.metadata import check_monitor
+
 __all__ = ["DEGRADED_P", "DEGRADED_RMS", "H_MEAN", "H_VARIANCE", "MonitorReference",
            "MonitorState", "ValidityMonitor", "fit_whitening", "store_monitor_reference"]
 
@@ -228,39 +230,17 @@ class MonitorReference:
     @classmethod
     def from_dict(cls, doc) -> MonitorReference:
         """Read :meth:`to_dict`'s output; ValueError naming what is wrong."""
-        def number(value, what: str, low: float = 0.0, positive: bool = False) -> float:
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not (
-                    math.isfinite(value) and value >= low and (value > 0 or not positive)):
-                raise ValueError(f"monitor.{what} must be a finite number >= {low:g}, got "
-                                 f"{value!r}")
-            return float(value)
-
         if not isinstance(doc, dict) or doc.get("version") != REFERENCE_VERSION:
             raise ValueError(f"monitor reference of an unknown format (version must be "
                              f"{REFERENCE_VERSION})")
-        ar = doc.get("whitening_ar")
-        if not isinstance(ar, list) or len(ar) > 100:
-            raise ValueError("monitor.whitening_ar must be a list of at most 100 numbers")
-        coefficients = tuple(number(a, "whitening_ar", low=-math.inf) for a in ar)
-        rows = doc.get("windows")
-        if not isinstance(rows, list):
-            raise ValueError("monitor.windows must be a list")
-        table = {}
-        for row in rows:
-            if not isinstance(row, dict) or not isinstance(row.get("window"), int) or \
-                    isinstance(row.get("window"), bool) or row["window"] < 2:
-                raise ValueError("monitor.windows: each row needs an integer window >= 2")
-            table[row["window"]] = (number(row.get("ljung_box_max"), "ljung_box_max"),
-                                    number(row.get("rms_ratio_max"), "rms_ratio_max"))
-        samples = doc.get("samples")
-        if not isinstance(samples, int) or isinstance(samples, bool) or samples < 2:
-            raise ValueError("monitor.samples must be an integer >= 2")
+        check_monitor(doc)  # types, and only values that residuals can give
+        table = {int(w["window"]): (float(w["ljung_box_max"]), float(w["rms_ratio_max"]))
+                 for w in doc["windows"]}
         spread = doc.get("input_std")
-        return cls(number(doc.get("sigma"), "sigma", positive=True), coefficients,
-                   number(doc.get("innovation_sd"), "innovation_sd", positive=True),
-                   number(doc.get("cusum_mean_max"), "cusum_mean_max"),
-                   number(doc.get("cusum_variance_max"), "cusum_variance_max"), table, samples,
-                   None if spread is None else number(spread, "input_std", positive=True))
+        return cls(float(doc["sigma"]), tuple(float(a) for a in doc["whitening_ar"]),
+                   float(doc["innovation_sd"]), float(doc["cusum_mean_max"]),
+                   float(doc["cusum_variance_max"]), table, int(doc["samples"]),
+                   None if spread is None else float(spread) or None)
 
 
 def store_monitor_reference(metadata: dict, residuals: np.ndarray,

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..fit.evaluator import StructureEvaluator
+from ..fit.evaluator import CACHE_ENTRY_BYTES, StructureEvaluator, cache_capacity
 from ..memory import check_memory
 from .branch_bound import (
     COUNTERS,
@@ -24,7 +24,8 @@ from .branch_bound import (
     workspace,
 )
 
-__all__ = ["DEEP_FACTOR", "MAX_OPEN_BYTES", "OpenNodes", "balance", "check_certify_memory",
+__all__ = ["DEEP_FACTOR", "MAX_OPEN_BYTES", "OpenNodes", "balance", "cache_bytes",
+           "check_certify_memory",
            "lower_bound", "settle", "setup_bytes", "share_best", "worker_bytes"]
 
 
@@ -62,8 +63,13 @@ def check_certify_memory(rows: int, m: int) -> None:
     MemoryLimitError
         The set-up plus one search worker would exceed the bound.
     """
-    check_memory(setup_bytes(rows, m) + worker_bytes(rows, m),
+    check_memory(setup_bytes(rows, m) + worker_bytes(rows, m) + cache_bytes(m),
                  f"certifying {m} candidate terms on {rows} rows")
+
+
+def cache_bytes(m: int) -> float:
+    """Memory the evaluator's cache of scores may take (it is bounded: :func:`cache_capacity`)."""
+    return float(cache_capacity(m) * (CACHE_ENTRY_BYTES + (m + 7) // 8))
 
 
 def settle(ev: StructureEvaluator, usable: np.ndarray, rows: np.ndarray, best: np.ndarray,

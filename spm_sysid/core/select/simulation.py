@@ -22,6 +22,7 @@ import numpy as np
 from ..errors import DataError
 from ..fit.criteria import Criterion
 from ..fit.evaluator import key_mask, mask_key
+from ..fit.lstsq import sse_floor
 from ..fit.problem import Problem
 from ..fit.refine import free_run_uncertainty, refine_simulation
 from ..model.narx import NarxModel
@@ -53,11 +54,16 @@ ESTIMATORS = ("least squares", "refined")
 
 def simulation_value(criterion: Criterion, sse: float, rows: int, mask: np.ndarray,
                      coefficients: np.ndarray, problem: Problem) -> float:
-    """The criterion with the free-run SSE (standardised coefficients as for one-step)."""
+    """The criterion with the free-run SSE (standardised coefficients as for one-step).
+
+    An SSE below rounding (:func:`~spm_sysid.core.fit.lstsq.sse_floor`) counts as the
+    floor, as for one-step errors: exact fits score alike and the fewest terms win.
+    """
     beta = np.zeros((1, problem.term_space.n_terms))
     y_norm = float(np.linalg.norm(problem.target)) * problem.y_scale or 1.0
     beta[0, mask] = coefficients * problem.column_norms[mask] / y_norm
-    v = float(criterion(np.array([max(sse, 1e-300)]), rows, np.array([mask.sum()]), beta)[0])
+    sse = max(sse, sse_floor(y_norm), 1e-300)
+    v = float(criterion(np.array([sse]), rows, np.array([mask.sum()]), beta)[0])
     return v if np.isfinite(v) else np.inf
 
 

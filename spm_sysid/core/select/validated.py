@@ -41,9 +41,10 @@ from ..fit.lstsq import reference_fit
 from ..model.segments import rows_segments
 from ..model.simulation import divergence_bounds, run_model
 
-__all__ = ["FOLDS", "SIMULATION_FOLDS", "SIMULATION_REPEATS", "Fold", "Scores", "block_splits",
-           "blocked_folds", "candidate_structures", "cv_scores", "stress_check", "stress_inputs",
-           "sub_blocks", "surrogate_input"]
+__all__ = ["FOLDS", "MIN_FOLD_EXCITATION", "SIMULATION_FOLDS", "SIMULATION_REPEATS", "Fold",
+           "Scores", "block_splits", "blocked_folds", "candidate_structures", "cv_scores",
+           "fold_excitation", "informative_folds", "interleaved_folds", "stress_check",
+           "stress_inputs", "sub_blocks", "surrogate_input"]
 
 #: Folds of validated selection.
 FOLDS = 3
@@ -67,6 +68,11 @@ STRESS_FACTOR = 2.0
 #: Random-phase inputs (same amplitude spectrum as the estimation input) per segment in
 #: the guard, drawn with a fixed seed so that a selection is repeatable.
 SURROGATES = 4
+
+#: Each fold's rows must excite the linear terms at least this well, per row, as all rows
+#: do (:func:`fold_excitation`): real records give 0.65-1.0 in contiguous blocks, a step test
+#: 0-0.07 (and 0.21-0.35 in interleaved blocks).
+MIN_FOLD_EXCITATION = 0.2
 
 
 @dataclass(frozen=True)
@@ -110,6 +116,113 @@ def blocked_folds(problem, k: int = FOLDS, repeats: int = 1) -> list[Fold]:
     return []
 
 
+def informative_folds(problem, k: int = FOLDS, repeats: int = 1
+                      ) -> tuple[list[Fold], str]:
+    """Held-out folds whose training rows each see the input's excitation; how they lie.
+
+    Contiguous blocks first (:func:`blocked_folds`: long blocks judge long
+    simulations). When a fold's rows do not excite the linear terms as the
+    record does (:func:`fold_excitation` below :data:`MIN_FOLD_EXCITATION`: the
+    input changes in one place, as in a step test), the record is cut into
+    shorter blocks dealt to the folds in turn (:func:`interleaved_folds`), so
+    that each fold fits on part of every transient and is judged on the rest.
+    When even that fails, no folds, and the reason.
+
+    Returns
+    -------
+    folds : list of Fold
+        Empty when the record cannot be folded.
+    note : str
+        '' for contiguous blocks; else how the folds lie, or why there are none.
+    """
+    folds = blocked_folds(problem, k, repeats)
+    if not folds:
+        return [], "the record is too short for held-out blocks"
+    share = fold_excitation(problem, folds)
+    if share >= MIN_FOLD_EXCITATION:
+        return folds, ""
+    for pieces in INTERLEAVED_PIECES:
+        alt = interleaved_folds(problem, k, pieces)
+        if alt and fold_excitation(problem, alt) >= MIN_FOLD_EXCITATION:
+            size = len(problem.y) // (k * pieces)
+            return alt, (f"held-out blocks of about {size} samples dealt to {k} folds in turn: "
+                         f"in contiguous blocks a fold kept {share:.0%} of the input's "
+                         "excitation (the input changes in few places, e.g. a step test)")
+    return [], ("the record cannot be cut into held-out blocks that each leave the input's "
+                f"excitation to fit on (a fold keeps {share:.0%} of it: the input changes in "
+                "one place, e.g. a step test)")
+
+
+#: Blocks per fold tried, in turn, when contiguous blocks leave a fold without excitation.
+INTERLEAVED_PIECES = (4, 8, 16, 32)
+
+
+def interleaved_folds(problem, k: int, pieces: int) -> list[Fold]:
+    """K folds of ``pieces`` short blocks each: the record's k * pieces blocks dealt in turn.
+
+    Empty when a block would hold no more rows than the largest lag plus
+    :data:`MIN_BLOCK_ROWS` / ``pieces`` (too short to judge a simulation on).
+    """
+    lag = problem.term_space.max_lag
+    n = len(problem.y)
+    positions = np.concatenate([np.arange(a, b) for a, b in problem.segments])
+    edges = np.linspace(0, len(positions), k * pieces + 1).round().astype(int)
+    if np.min(np.diff(edges)) <= lag + max(MIN_BLOCK_ROWS // pieces, 2):
+        return []
+    t = problem.row_times
+    folds = []
+    for i in range(k):
+        block = np.sort(np.concatenate([positions[edges[j]:edges[j + 1]]
+                                        for j in range(i, k * pieces, k)]))
+        held = _runs(block, problem.segments)
+        outside = np.ones(len(t), dtype=bool)
+        for a, b in held:
+            outside &= (t < a) | (t - lag >= b)
+        if not outside.any():
+            return []
+        rest = _complement(problem.segments, held, lag)
+        folds.append(Fold(outside, rows_segments(held, n, lag), rows_segments(rest, n, 0)))
+    return folds
+
+
+#: Directions of the linear terms that the record excites at least this much (relative to
+#: the most excited) are the ones a fold must see too.
+EXCITED_DIRECTIONS = 1e-3
+
+
+def fold_excitation(problem, folds: list[Fold]) -> float:
+    """How well the worst fold's training rows excite the linear terms, relative to all rows.
+
+    The linear terms' columns (unit RMS) span directions the record excites;
+    those excited at least :data:`EXCITED_DIRECTIONS` as much as the most
+    excited one must be excited by each fold's rows too. The measure is the
+    smallest ratio, over those directions, of the energy per row on the fold's
+    rows to that on all rows (the smallest generalised eigenvalue): about 1 when
+    a fold sees the input vary as the whole record does, near 0 when the input
+    changes only inside the held-out block (a step test: the block with the
+    step holds out all the information about the input's effect, and a fit on
+    the rest cannot find it). See :data:`MIN_FOLD_EXCITATION`.
+    """
+    degree = np.array([len(t) for t in problem.term_space.terms])
+    X = problem.columns[:, (degree <= 1) & problem.usable]
+    if not folds or X.shape[1] == 0:
+        return 1.0
+    rms = np.sqrt(np.mean(X * X, axis=0))
+    X = X[:, rms > 0] / rms[rms > 0]
+    w, V = np.linalg.eigh(X.T @ X / len(X))
+    keep = w >= EXCITED_DIRECTIONS * w[-1]
+    if not keep.any():
+        return 1.0
+    Z = (X @ V[:, keep]) / np.sqrt(w[keep])  # the excited directions, whitened on all rows
+    worst = 1.0
+    for f in folds:
+        rows = Z[f.train]
+        if not len(rows):
+            return 0.0
+        worst = min(worst, float(np.linalg.eigvalsh(rows.T @ rows / len(rows))[0]))
+    return max(worst, 0.0) ** 0.5
+
+
 def block_splits(segments, k: int, repeats: int, lag: int
                  ) -> list[tuple[list[tuple[int, int]], list[tuple[int, int]]]] | None:
     """K contiguous blocks over the segments, laid ``repeats`` times: (held out, rest) each.
@@ -138,10 +251,19 @@ def sub_blocks(problem, folds: list[Fold]) -> np.ndarray:
 
     With repeated blocks every sub-block is held out by the same number of folds
     and never fitted on by them, so the sub-blocks' held-out errors are separate
-    estimates, one per sub-block (-1 outside the segments).
+    estimates, one per sub-block (-1 outside the segments). When each sample is
+    held out by one fold only (interleaved folds), its sub-block is that fold.
     """
     label = np.full(len(problem.y), -1, dtype=int)
+    held = np.zeros(len(problem.y), dtype=int)
+    for i, fold in enumerate(folds):
+        for a, b in fold.held_out:
+            label[a:b] = i
+            held[a:b] += 1
+    if held.max(initial=0) <= 1:  # each sample held out once (interleaved): by its fold
+        return label
     positions = np.concatenate([np.arange(a, b) for a, b in problem.segments])
+    label[:] = -1
     label[positions] = np.arange(len(positions)) * len(folds) // len(positions)
     return label
 

@@ -9,7 +9,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-__all__ = ["ERROR", "OK", "WARN", "Status", "diagnostic_statuses"]
+__all__ = ["ERROR", "OK", "WARN", "Status", "dashboard_status", "diagnostic_statuses",
+           "online_status"]
 
 OK, WARN, ERROR = 0, 1, 2
 
@@ -169,6 +170,22 @@ def _model_statuses(name: str, ident: str, model: dict, restored_from: str | Non
             ("inside the 95 % band" if t["passed"] else "outside the 95 % band")
             + f" ({t['fraction_inside']:.0%} of lags inside)", _values(t)))
     return statuses
+
+
+def dashboard_status(name: str, url: str, requests: int, counts: dict) -> Status:
+    """The live page's status: its address (never the token), requests, what was refused.
+
+    ``counts``: connections refused over the cap, connection errors (timed out,
+    reset), requests with a wrong token, requests whose Host is not the
+    loopback's. Any of them makes the status WARN: somebody tried and was turned away.
+    """
+    turned_away = {k: v for k, v in counts.items() if v}
+    message = f"serving {url}, {requests} request(s)"
+    if turned_away:
+        message += "; " + ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in
+                                    turned_away.items())
+    return Status(WARN if turned_away else OK, f"{name}: dashboard", message,
+                  _values({"url": url, "requests": requests, **counts}))
 
 
 def online_status(name: str, session, auto: dict) -> Status:

@@ -32,7 +32,7 @@ from ..compiled.kernels import pivoted_qr
 from ..errors import DataError
 
 __all__ = ["COLLINEAR_LIMIT", "DataCheck", "check_problem", "describe_check",
-           "excitation_order"]
+           "describe_glitches", "excitation_order", "glitches"]
 
 #: Relative eigenvalue below which an autocorrelation matrix is singular.
 PE_TOL = 1e-8
@@ -49,6 +49,50 @@ SHOWN_TERMS = 20
 #: Spaces with more usable candidates than this skip the collinearity scan (its
 #: pivoted QR costs O(M^3)).
 COLLINEAR_LIMIT = 600
+
+
+#: A sample further from the median than this many times the 99th percentile of the
+#: distances is a glitch (a spike, a wrong unit, a bad read).
+GLITCH_FACTOR = 50.0
+
+
+def glitches(y: np.ndarray, segments=None, limit: int = 5) -> list[int]:
+    """The samples of ``y`` far outside the rest (at most ``limit``, the worst first).
+
+    A sample counts when its distance from the median is more than
+    :data:`GLITCH_FACTOR` times the 99th percentile of all distances: one spike
+    of 1e4 in a signal of unit size, never a step, a saturation or a sine.
+    Signals that do not vary on 99 % of their samples have no glitches.
+    """
+    y = np.asarray(y, dtype=float)
+    if segments:
+        index = np.concatenate([np.arange(a, b) for a, b in segments])
+    else:
+        index = np.arange(len(y))
+    x = y[index]
+    if len(x) < 100 or not np.all(np.isfinite(x)):
+        return []
+    d = np.abs(x - np.median(x))
+    ref = float(np.quantile(d, 0.99))
+    if not ref > 0:
+        return []
+    far = np.flatnonzero(d > GLITCH_FACTOR * ref)
+    if len(far) > max(1, len(x) // 1000):  # many: part of the signal, not a glitch
+        return []
+    return [int(index[i]) for i in far[np.argsort(-d[far])][:limit]]
+
+
+def describe_glitches(y: np.ndarray, at: list[int], name: str = "y") -> str:
+    """The glitches of :func:`glitches` in words ('' when none)."""
+    if not at:
+        return ""
+    d = np.abs(np.asarray(y, dtype=float) - np.median(y))
+    ref = float(np.quantile(d, 0.99))
+    shown = ", ".join(f"sample {i}: {y[i]:.6g}" for i in at[:3])
+    return (f"the output {name} has {len(at)} sample(s) far outside the rest ({shown}; "
+            f"{d[at[0]] / ref:.0f} times the 99th percentile of its distance from the "
+            "median): a glitch (a spike, a bad read)? It dominates any least-squares fit: "
+            "remove it, or split the record there")
 
 
 def excitation_order(u: np.ndarray, segments, max_order: int) -> int:
@@ -150,8 +194,11 @@ def describe_check(doc: dict | None) -> str:
     return text
 
 
-def check_problem(problem, rank_tol: float = 1e-9) -> DataCheck:
+def check_problem(problem, rank_tol: float = 1e-9, criterion: str | None = None) -> DataCheck:
     """Check what the problem's data can identify (see the module doc).
+
+    ``criterion``: the name of the criterion the search will use (its warnings say
+    what suits it).
 
     Raises
     ------
@@ -183,17 +230,24 @@ def check_problem(problem, rank_tol: float = 1e-9) -> DataCheck:
         usable_names = [names[i] for i in np.flatnonzero(problem.usable)]
         weak = [usable_names[piv[j]] for j in range(len(diag)) if diag[j] ** 2 < rank_tol]
         check.collinear_terms = sorted(weak, key=usable_names.index)
-    _warn(check, problem)
+    _warn(check, problem, criterion)
     return check
 
 
-def _warn(check: DataCheck, problem) -> None:
+def _warn(check: DataCheck, problem, criterion: str | None = None) -> None:
     ts = problem.term_space
     w = check.warnings
+    glitch = describe_glitches(problem.y, glitches(problem.y, problem.segments), ts.output)
+    if glitch:  # first: it explains the warnings after it
+        w.append(glitch)
     if check.rows_per_candidate < ROWS_PER_TERM:
+        strong = criterion in ("bic", "aicc")
         w.append(f"{check.rows} rows for {check.usable} candidate terms (fewer than "
-                 f"{ROWS_PER_TERM} per candidate): a criterion with a weak penalty (AIC) may "
-                 "select far too many terms; prefer BIC or AICc, max_terms, or fewer lags")
+                 f"{ROWS_PER_TERM} per candidate): "
+                 + (f"even {criterion.upper()} may select too many terms; prefer max_terms, "
+                    "fewer lags or selection: validated" if strong else
+                    f"a criterion with a weak penalty ({(criterion or 'AIC').upper()}) may "
+                    "select far too many terms; prefer BIC or AICc, max_terms, or fewer lags"))
     for name, order in check.excitation.items():
         need = check.lags[name]
         if order == 0 and need:
@@ -218,3 +272,4 @@ def _warn(check: DataCheck, problem) -> None:
     y = problem.y
     if np.ptp(y) == 0:
         w.append(f"the output {ts.output} is constant")
+

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["HORIZON", "OpenLoop", "REAL_ANGLE", "open_loop_check"]
+__all__ = ["HORIZON", "OpenLoop", "REAL_ANGLE", "independent_columns", "open_loop_check"]
 
 #: Steps ahead that integrating or unstable records are judged on (when the job sets none).
 HORIZON = 10
@@ -81,6 +81,26 @@ class OpenLoop:
                 **({"reason": self.reason()} if not self.free_run_applies else {})}
 
 
+#: A column whose part not explained by the columns before it is below this share of its
+#: norm repeats them (an input equal or proportional to the output, a constant signal).
+DEPENDENT = 1e-9
+
+
+def independent_columns(X: np.ndarray) -> np.ndarray:
+    """The columns of X (unit norm) that the columns before them do not explain, in order.
+
+    The output's lags come first, so an input that repeats the output (``u == y``,
+    an output that is twice another) is dropped, not the output's own lags: the
+    poles are then the output's, not a split of one signal's coefficients between
+    two names (which reads as a pole beyond 1 for a stable record).
+    """
+    from scipy.linalg import qr
+
+    r = qr(X, mode="r")[0]
+    diag = np.abs(np.diag(r))
+    return np.flatnonzero(diag > DEPENDENT * max(float(diag.max(initial=0.0)), 1.0))
+
+
 def open_loop_check(u: np.ndarray, y: np.ndarray, segments: list[tuple[int, int]],
                     order: int) -> OpenLoop | None:
     """The open-loop verdict of the record (None when too short to fit the ARX model).
@@ -115,7 +135,9 @@ def open_loop_check(u: np.ndarray, y: np.ndarray, segments: list[tuple[int, int]
         return None
     scale = np.linalg.norm(X, axis=0)
     scale[scale == 0] = 1.0
-    theta, *_ = np.linalg.lstsq(X / scale, t, rcond=None)
+    keep = independent_columns(X / scale)
+    theta = np.zeros(X.shape[1])
+    theta[keep], *_ = np.linalg.lstsq(X[:, keep] / scale[keep], t, rcond=None)
     a_coef = theta[:n] / scale[:n]
     poles = np.roots(np.r_[1.0, -a_coef])
     count = len(t)

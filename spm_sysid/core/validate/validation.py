@@ -28,9 +28,11 @@ def metrics(y: np.ndarray, yhat: np.ndarray, diverged_at: int | None = None
 
     ``fit_percent`` is the normalised-RMSE fit MATLAB's ``compare`` reports:
     ``100 * (1 - ||y - yhat|| / ||y - mean(y)||)``; 100 is perfect, and it can be
-    negative (worse than the mean). A run that diverged (``diverged_at``, a
-    sample index, or any non-finite prediction) has no error metrics: they are
-    NaN and ``diverged_at`` says where it left the range (never ``inf``).
+    negative (worse than the mean); NaN (``null`` in documents) when the output does
+    not vary beyond the rounding of its mean (a fit has no meaning there). A run that
+    diverged (``diverged_at``, a sample index, or any non-finite prediction) has no
+    error metrics: they are NaN and ``diverged_at`` says where it left the range
+    (never ``inf``).
     """
     y = np.asarray(y, dtype=float)
     yhat = np.asarray(yhat, dtype=float)
@@ -42,7 +44,10 @@ def metrics(y: np.ndarray, yhat: np.ndarray, diverged_at: int | None = None
         return {"mse": nan, "rmse": nan, "max_abs": nan, "mean_abs": nan,
                 "fit_percent": nan, "diverged_at": int(diverged_at)}
     spread = np.linalg.norm(y - y.mean())
-    fit = 100.0 * (1.0 - np.linalg.norm(e) / spread) if spread > 0 else float("nan")
+    # an output that does not vary (beyond rounding of its mean) has no fit: not -7e16 %
+    level = np.linalg.norm(y)
+    fit = (100.0 * (1.0 - np.linalg.norm(e) / spread) if spread > 1e-12 * level and spread > 0
+           else float("nan"))
     mse = float(np.mean(e**2))
     return {
         "mse": mse,
@@ -59,8 +64,11 @@ def describe_metrics(label: str, m: dict) -> str:
     if m.get("diverged_at") is not None:
         return (f"  {label}: DIVERGED at sample {m['diverged_at']} (left the measured "
                 f"output's range; no error metrics)")
+    fit = m.get("fit_percent")
+    fit = (f"fit {fit:.2f} %" if fit is not None and np.isfinite(fit) else
+           "no fit % (the output does not vary here)")
     return (f"  {label}: MSE {m['mse']:.4e}, max |e| {m['max_abs']:.4g}, "
-            f"mean |e| {m['mean_abs']:.4g}, fit {m['fit_percent']:.2f} %")
+            f"mean |e| {m['mean_abs']:.4g}, {fit}")
 
 
 @dataclass

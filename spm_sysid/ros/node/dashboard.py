@@ -4,10 +4,21 @@
 shows, ``/report.html`` the last identification's report
 (:mod:`spm_sysid.tools.html_report`, built on the first request after each
 identification). Only GET is answered: nothing on the page changes the node or
-the robot. The server binds ``dashboard_host`` (127.0.0.1 by default); any other
-address needs ``dashboard_token``, and every request must then carry it
-(``?token=...``). A port in use, or a non-local address without a token, is one
-error line in the log and no dashboard: the node runs on.
+the robot. The server binds ``dashboard_host`` (127.0.0.1 by default; an IPv6
+address such as ``::1`` too); any other address than the loopback needs
+``dashboard_token``, and every request must then carry it (``?token=...``). The
+token is never logged nor published: the log gives the address without it.
+Without a token, only requests whose ``Host`` names the loopback are answered
+(a page elsewhere cannot reach the node through DNS rebinding). A port in use,
+or a non-local address without a token, is one error line in the log and no
+dashboard: the node runs on.
+
+Clients cannot take the node's resources: at most :data:`MAX_CONNECTIONS`
+connections are served at once (a connection past it is closed at once and
+counted), and each must send its request within :data:`REQUEST_TIMEOUT`
+seconds (idle or slow connections are closed and counted). A client that
+resets its connection is counted, never a traceback in the log
+(:attr:`Dashboard.counts`, also on ``/diagnostics``).
 
 Cost on the node: each paired sample counts one, and every ``stride``-th
 appends one tuple per output to a bounded deque (:meth:`Dashboard.feed`; the
@@ -18,10 +29,12 @@ second per open page. The residual statistics are of the samples kept.
 
 from __future__ import annotations
 
+import errno
 import hmac
 import ipaddress
 import json
 import math
+import socket
 import threading
 import time
 from collections import deque
@@ -32,10 +45,20 @@ import numpy as np
 
 from ...core.files import json_float
 
-__all__ = ["MAX_POINTS", "Dashboard", "DashboardError", "is_loopback"]
+__all__ = ["MAX_CONNECTIONS", "MAX_POINTS", "REQUEST_TIMEOUT", "Dashboard", "DashboardError",
+           "describe_stamp", "host_name", "is_loopback"]
 
 #: About this many points per output in one ``/state.json`` (the last seconds, thinned).
 MAX_POINTS = 1000
+
+#: Connections served at once; one more is closed at once (and counted).
+MAX_CONNECTIONS = 32
+
+#: Seconds a connection has to send its request, and for each read or write after.
+REQUEST_TIMEOUT = 5.0
+
+#: A stamp further than this from the node's clock is the data's own time (a bag's).
+WALL_CLOCK_SPAN_NS = 86_400 * 10**9
 
 
 class DashboardError(RuntimeError):
@@ -50,6 +73,48 @@ def is_loopback(host: str) -> bool:
         return ipaddress.ip_address(host).is_loopback
     except ValueError:
         return False
+
+
+def host_name(header: str) -> str:
+    """The host of a ``Host`` header, without its port (``[::1]:80`` -> ``::1``)."""
+    header = header.strip().lower()
+    if header.startswith("["):
+        return header[1:header.find("]")] if "]" in header else header[1:]
+    return header.rsplit(":", 1)[0] if header.count(":") == 1 else header
+
+
+class _Server(ThreadingHTTPServer):
+    """The HTTP server, bounded: a slot per connection, errors counted, IPv4 or IPv6."""
+
+    daemon_threads = True
+    request_queue_size = 64  # a burst waits in the kernel's queue (no descriptor of ours)
+
+    def __init__(self, address, handler, board: Dashboard) -> None:
+        self.address_family = socket.AF_INET6 if ":" in address[0] else socket.AF_INET
+        self.board = board
+        self.slots = threading.BoundedSemaphore(MAX_CONNECTIONS)
+        super().__init__(address, handler)
+
+    def process_request(self, request, client_address) -> None:
+        if not self.slots.acquire(blocking=False):  # full: refuse now, keep nothing open
+            self.board.counts["refused"] += 1
+            self.shutdown_request(request)
+            return
+        try:
+            super().process_request(request, client_address)
+        except BaseException:
+            self.slots.release()
+            raise
+
+    def process_request_thread(self, request, client_address) -> None:
+        try:
+            super().process_request_thread(request, client_address)
+        finally:
+            self.slots.release()
+
+    def handle_error(self, request, client_address) -> None:
+        """A connection that failed (reset, timed out): counted, no traceback."""
+        self.board.counts["connection_errors"] += 1
 
 
 
@@ -89,15 +154,20 @@ class Dashboard:
         self.last_result = None
         self.last_message: str | None = None
         self.requests = 0
+        #: what clients did that was not served: refused (over the cap), timed out or reset
+        #: (connection errors), wrong token, a Host that is not the loopback's
+        self.counts = {"refused": 0, "connection_errors": 0, "forbidden": 0, "bad_host": 0}
         handler = _handler(self)
         try:
-            self.server = ThreadingHTTPServer((host, port), handler)
+            self.server = _Server((host, port), handler, self)
         except OSError as exc:
             why = exc.strerror or str(exc)
-            raise DashboardError(f"the dashboard cannot listen on {host}:{port} ({why}): is "
-                                 "another node or program using that port? Choose another "
-                                 "dashboard_port") from None
-        self.server.daemon_threads = True
+            hint = ("is another node or program using that port? Choose another "
+                    "dashboard_port" if exc.errno == errno.EADDRINUSE else
+                    "is it an address of this machine? (IPv4 such as 127.0.0.1, or IPv6 "
+                    "such as ::1)")
+            raise DashboardError(f"the dashboard cannot listen on {host}:{port} ({why}): "
+                                 f"{hint}") from None
         self.port = self.server.server_address[1]
         self.host = host
         self.thread = threading.Thread(target=self.server.serve_forever, name="dashboard",
@@ -106,8 +176,16 @@ class Dashboard:
 
     @property
     def url(self) -> str:
+        """The page's address, without the token (which is never logged)."""
         host = f"[{self.host}]" if ":" in self.host else self.host
-        return f"http://{host}:{self.port}/" + (f"?token={self.token}" if self.token else "")
+        return f"http://{host}:{self.port}/"
+
+    def describe(self) -> str:
+        """The log line's words: where, and how to open it (never the token itself)."""
+        if self.token:
+            return (f"live dashboard at {self.url} (read-only; open it with ?token= and the "
+                    "value of the dashboard_token parameter)")
+        return f"live dashboard at {self.url} (read-only)"
 
     # -- the executor thread's side: as cheap as it can be --------------------------------
     def feed(self, names, samples) -> None:
@@ -141,7 +219,7 @@ class Dashboard:
     def new_result(self, result) -> None:
         """The last identification's result (its report is built when asked for)."""
         self.last_result = result
-        self.last_message = (time.strftime("%H:%M:%S ") + result.summary("line"))[:400]
+        self.last_message = time.strftime("%H:%M:%S ") + result.summary("line")
 
     def close(self) -> None:
         self.server.shutdown()
@@ -160,9 +238,7 @@ class Dashboard:
                        "since": None}
             if session.transitions:
                 stamp = session.transitions[-1][0]
-                monitor["since"] = time.strftime("%Y-%m-%d %H:%M:%S",
-                                                 time.localtime(stamp / 1e9)) \
-                    + f".{int(stamp % 1_000_000_000) // 1_000_000:03d}"
+                monitor["since"] = describe_stamp(stamp)
                 monitor["since_stamp_ns"] = str(stamp)
             else:
                 monitor["since"] = "the model was set"
@@ -260,14 +336,75 @@ class Dashboard:
             return page
 
 
+def describe_stamp(stamp_ns: int, now_ns: int | None = None) -> str:
+    """A sample's stamp in words: the node's local time, or the data's own time.
+
+    Stamps near the node's clock are a date and time (24 h); stamps far from it
+    (a bag replayed with its recorded stamps, a simulator's clock from zero) are
+    the data's time in seconds, said to be so.
+    """
+    now_ns = time.time_ns() if now_ns is None else now_ns
+    if abs(now_ns - stamp_ns) < WALL_CLOCK_SPAN_NS:
+        return (time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(stamp_ns / 1e9))
+                + f".{int(stamp_ns % 1_000_000_000) // 1_000_000:03d}")
+    return f"{stamp_ns / 1e9:.3f} s in the data's time (its stamps, e.g. a replayed bag's)"
+
+
 def _handler(board: Dashboard):
     page = None
 
     class Handler(BaseHTTPRequestHandler):
         server_version = "spm_sysid-dashboard"
+        timeout = REQUEST_TIMEOUT  # each read and write on the connection
+
+        def setup(self):
+            super().setup()
+            # the whole request (line and headers) within REQUEST_TIMEOUT, however slowly
+            # it trickles in: then the connection is closed
+            self._deadline = threading.Timer(REQUEST_TIMEOUT, self._expire)
+            self._deadline.daemon = True
+            self._deadline.start()
+
+        def _expire(self):
+            board.counts["connection_errors"] += 1
+            try:
+                self.connection.shutdown(socket.SHUT_RDWR)
+            except OSError:
+                pass
+
+        def parse_request(self):
+            ok = super().parse_request()
+            self._deadline.cancel()
+            return ok
+
+        def finish(self):
+            self._deadline.cancel()
+            try:
+                super().finish()
+            except OSError:  # the client went away while the answer was flushed
+                board.counts["connection_errors"] += 1
 
         def log_message(self, format, *args):  # noqa: A002 - the base class's name
             pass  # requests are counted, not logged line by line
+
+        def _allowed(self, url) -> bool:
+            """The token when one is set; else a Host that names the loopback."""
+            if board.token:
+                given = parse_qs(url.query).get("token", [""])[0]
+                if not hmac.compare_digest(given.encode(), board.token.encode()):
+                    board.counts["forbidden"] += 1
+                    self._send(403, b"this dashboard needs its token: ?token=... (the "
+                               b"node's dashboard_token parameter)\n",
+                               "text/plain; charset=utf-8")
+                    return False
+                return True
+            host = self.headers.get("Host")
+            if host is not None and not is_loopback(host_name(host)):
+                board.counts["bad_host"] += 1
+                self._send(421, b"this dashboard answers requests to the loopback only "
+                           b"(Host: localhost or 127.0.0.1)\n", "text/plain; charset=utf-8")
+                return False
+            return True
 
         def _send(self, code: int, body: bytes, kind: str) -> None:
             self.send_response(code)
@@ -281,12 +418,8 @@ def _handler(board: Dashboard):
             nonlocal page
             board.requests += 1
             url = urlsplit(self.path)
-            if board.token:
-                given = parse_qs(url.query).get("token", [""])[0]
-                if not hmac.compare_digest(given.encode(), board.token.encode()):
-                    self._send(403, b"this dashboard needs its token: ?token=...\n",
-                               "text/plain; charset=utf-8")
-                    return
+            if not self._allowed(url):
+                return
             try:
                 if url.path in ("/", "/index.html"):
                     if page is None:
@@ -305,8 +438,8 @@ def _handler(board: Dashboard):
                         self._send(200, report, "text/html; charset=utf-8")
                 else:
                     self._send(404, b"not found\n", "text/plain; charset=utf-8")
-            except (BrokenPipeError, ConnectionResetError):
-                pass
+            except OSError:  # reset, broken pipe, timed out: the client went away
+                board.counts["connection_errors"] += 1
             except Exception as exc:  # noqa: BLE001 - a failing page never stops the node
                 self._send(500, f"dashboard error: {exc}\n".encode(),
                            "text/plain; charset=utf-8")

@@ -10,7 +10,6 @@ type of the model read from its document.
 
 from __future__ import annotations
 
-import json
 import os
 
 import numpy as np
@@ -20,7 +19,7 @@ from spm_sysid_interfaces.msg import NarxModelSet
 from spm_sysid_interfaces.msg import ValidationReport as ValidationReportMsg
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
 
-from ...core.files import atomic_write_text
+from ...core.files import atomic_write_text, document_json
 from ...core.model.mimo import MimoModel, read_model_document
 from ..common import LATCHED
 from ..typed import model_message, model_set_message, report_message
@@ -67,7 +66,7 @@ class ModelPublisher:
         doc = result.model.to_dict()
         if model_path:
             try:
-                atomic_write_text(model_path, json.dumps(doc, indent=2, allow_nan=False) + "\n")
+                atomic_write_text(model_path, document_json(doc) + "\n")
             except (OSError, ValueError) as exc:
                 raise SaveFailedError(f"the model could not be saved to {model_path} ({exc}); "
                                       "nothing was published") from None
@@ -96,7 +95,7 @@ class ModelPublisher:
         models_msg = model_set_message(doc, residuals, stamp)
         model_msg = None if several else model_message(doc, stamp)
         report_msg = None if several else report_message(doc, residuals, stamp)
-        self.model_pub.publish(String(data=json.dumps(doc, allow_nan=False)))
+        self.model_pub.publish(String(data=document_json(doc, indent=None)))
         parts = ([(f"{o}: ", m) for o, m in zip(doc["outputs"], doc["models"])] if several
                  else [("", doc)])
         terms = [f"{prefix}{t}" for prefix, m in parts for t in m["terms"]]
@@ -137,4 +136,4 @@ class ModelPublisher:
         if self.model_msg is not None:  # one output
             answer.model, answer.report = self.model_msg, self.report_msg
         answer.models = self.models_msg
-        answer.document = json.dumps(self.doc, allow_nan=False)
+        answer.document = document_json(self.doc, indent=None)

@@ -105,6 +105,14 @@ def run(parser: argparse.ArgumentParser, argv: list[str] | None = None) -> int:
     except (UserError, DataError, ValueError, OSError, MissingDependencyError) as exc:
         print(f"error: {exc}", file=sys.stderr)  # ModelFormatError etc. are ValueErrors
         return 2
+    except MemoryError:  # an allocation the machine refused (ulimit -v, a container)
+        from ...core.memory import format_bytes, memory_limit
+
+        limit, source = memory_limit()
+        print(f"error: out of memory: the machine refused an allocation (the memory bound is "
+              f"{format_bytes(limit)}, {source}); use fewer candidate terms or less data, or "
+              "set SPM_SYSID_MAX_MEMORY to what this machine can give", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130

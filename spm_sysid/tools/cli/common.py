@@ -12,13 +12,13 @@ from __future__ import annotations
 import argparse
 
 from ...core.errors import SettingsError
-from ...core.files import check_writable_dir, check_writable_file
+from ...core.files import check_writable_dir
 from ...core.settings import BAG_OPTIONS, SETTINGS, check
 
 __all__ = ["JOB_TITLES", "PER_INPUT", "Parser", "UserError", "add_data_options",
            "add_schema_options", "announce_compile", "check_correlation_lags_option",
-           "check_outputs", "data_spec", "job_settings", "load", "positive_int", "read_yaml",
-           "schema_type", "seed_type"]
+           "check_outputs", "check_report_name", "data_spec", "job_settings", "load",
+           "positive_int", "read_yaml", "schema_type", "seed_type"]
 
 
 class UserError(Exception):
@@ -212,24 +212,44 @@ def read_yaml(path: str, option: str):
 
 
 def check_outputs(args) -> None:
-    """Check --json and --plots destinations before any work (a search must not be lost).
+    """Check every destination before any work (a search must not be lost, nor an input).
 
-    A destination that is one of the inputs (``--json`` naming the ``--data`` file)
-    is refused: the recording would be overwritten by the model.
+    ``--json`` and ``--report`` go through one check
+    (:func:`~spm_sysid.core.files.check_destinations`): not an input (``--data``,
+    the model validated), not each other, not a link, a regular file or absent,
+    writable. ``--report`` must also name an HTML page; ``--plots`` a directory
+    that can be written.
     """
-    from ...core.files import same_file
+    from ...core.errors import FileCheckError
+    from ...core.files import check_destinations
 
     data = getattr(args, "data", None) or []
-    inputs = [p for p in ([data] if isinstance(data, str) else data)
-              + [getattr(args, "model", None)] if p]
-    if getattr(args, "json", None):
-        check_writable_file(args.json, "--json")
-        for p in inputs:
-            if same_file(args.json, p):
-                raise UserError(f"--json {args.json} is the input {p}: it would be "
-                                "overwritten; give another path")
+    inputs = ([data] if isinstance(data, str) else list(data)) + [
+        getattr(args, "model", None), getattr(args, "bag", None)]
+    report = getattr(args, "report", None)
+    if report is not None:
+        check_report_name(report)
+    try:
+        check_destinations({"--json": getattr(args, "json", None), "--report": report},
+                           inputs)
+    except FileCheckError as exc:
+        raise UserError(str(exc)) from None
     if getattr(args, "plots", None):
         check_writable_dir(args.plots, "--plots directory")
+
+
+def check_report_name(path) -> None:
+    """A report is an HTML page: a file name ending in .html (or .htm)."""
+    from pathlib import Path
+
+    p = Path(path)
+    if p.name.lower() in (".html", ".htm") or not p.name:
+        raise UserError(f"--report {path} has no file name: give one such as report.html")
+    if p.suffix.lower() not in (".html", ".htm"):
+        raise UserError(f"--report writes an HTML page: give a file name ending in .html (or "
+                        f".htm), got {path}")
+    if p.is_dir():
+        raise UserError(f"--report {path} is a folder; give a file name ending in .html")
 
 
 def check_correlation_lags_option(corr_lags: int, rows: int) -> None:

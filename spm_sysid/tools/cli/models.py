@@ -46,7 +46,6 @@ def cmd_identify(args) -> int:
     settings = job_settings(args)
     if args.plots and settings.validation == "none":
         raise UserError("--plots needs validation (--validation estimation or holdout)")
-    check_report_path(args.report)
     if args.validation_split is not None and settings.validation != "holdout":
         raise UserError("--validation-split (--split) applies to --validation holdout only "
                         "(the estimation fraction of the data)")
@@ -101,19 +100,6 @@ def command_line() -> str:
     import sys
 
     return "spm-sysid " + " ".join(shlex.quote(a) for a in sys.argv[1:])
-
-
-def check_report_path(path) -> None:
-    """Refuse a report path that is not an .html file or whose folder cannot be made."""
-    if path is None:
-        return
-    from pathlib import Path
-
-    p = Path(path)
-    if p.suffix.lower() not in (".html", ".htm"):
-        raise UserError(f"--report writes an HTML page: give a path ending in .html, got {path}")
-    if p.is_dir():
-        raise UserError(f"--report {path} is a folder; give a file name ending in .html")
 
 
 def validation_times(record, args):
@@ -196,10 +182,9 @@ def data_notes(account: dict, metadata: dict) -> list[str]:
 
 
 def cmd_certify(args) -> int:
-    import json
     import time
 
-    from ...core.files import atomic_write_text
+    from ...core.files import atomic_write_text, document_json
     from ...core.identify import identify
     from ...core.search.certify import (
         CERTIFIABLE,
@@ -274,7 +259,7 @@ def cmd_certify(args) -> int:
     if args.json:
         doc = {**doc, "criterion": args.criterion, "source": record.source,
                "term_space": space.to_dict()}
-        path = atomic_write_text(args.json, json.dumps(doc, indent=2, allow_nan=False) + "\n")
+        path = atomic_write_text(args.json, document_json(doc) + "\n")
         print(f"certificate written to {path}")
     return 0
 
@@ -288,7 +273,6 @@ def cmd_validate(args) -> int:
     if args.tail is not None and not 0 < args.tail < 1:
         raise UserError(f"--tail must be between 0 and 1, got {args.tail}")
     check_outputs(args)
-    check_report_path(args.report)
     from ...core.errors import ModelFormatError
     from ...core.model.mimo import MimoModel, read_model_document
 

@@ -162,7 +162,7 @@ def cmd_batch(args) -> int:
         rows = run_batch(args.input, args.out, values, per_input=per_input,
                          scheduler=args.scheduler, workers=args.workers or 0,
                          progress=(lambda i, n: bar.update(1)) if bar else None,
-                         force=args.force)
+                         force=args.force, note=lambda text: print(f"note: {text}"))
     except (OSError, RuntimeError) as exc:
         raise UserError(str(exc)) from None
     finally:
