@@ -16,7 +16,7 @@ def test_make_run_pipeline_prints_both_foci(ros_env, tmp_path):
                        capture_output=True, text=True, env=ros_env, timeout=300, cwd=ROOT)
     assert r.returncode == 0, r.stderr + r.stdout
     out = r.stdout
-    assert "[4/6] sysid_node buffered 1024 paired samples" in out
+    assert "[4/7] sysid_node buffered 1024 paired samples" in out
     assert "~/identify (focus prediction, the paper's): y(t) = 3.158y(t-1)" in out
     assert "AIC -10744.78" in out and "free-run fit 11.1 %" in out
     # the node certifies by default (AIC, 44 terms, the criterion's choice)

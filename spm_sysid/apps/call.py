@@ -111,22 +111,26 @@ def watch_validity(node: Node, topic: str, seconds: float, every: float = 1.0) -
     For users without the ``ros2`` command line. Returns 0, or 2 when no message
     arrived at all (no node, or another ROS_DOMAIN_ID).
     """
+    from collections import deque
+
     from spm_sysid_interfaces.msg import Validity
 
-    got: list = []
+    got: deque = deque(maxlen=1)  # the latest message
     sub = node.create_subscription(Validity, topic, got.append, LATCHED)
-    shown, last, t_shown = 0, None, -math.inf
+    last, tick = None, time.monotonic()
     try:
         end = time.monotonic() + seconds
         while time.monotonic() < end:
-            rclpy.spin_once(node, timeout_sec=0.1)
-            if len(got) == shown:
+            rclpy.spin_once(node, timeout_sec=0.05)
+            if not got:
                 continue
-            msg, shown = got[-1], len(got)
-            now = time.monotonic()
-            if msg.state_name != last or now - t_shown >= every:
+            msg, now = got[-1], time.monotonic()
+            # each change at once; else the latest, on a clock of its own (the node's
+            # messages come about once a second too, and would drift against it)
+            if msg.state_name != last or now >= tick:
                 print(validity_line(msg), flush=True)
-                last, t_shown = msg.state_name, now
+                last = msg.state_name
+                tick = max(tick + every, now + 0.5 * every) if now >= tick else now + every
     except KeyboardInterrupt:
         pass
     finally:

@@ -56,9 +56,9 @@ def run(args) -> int:
     if args.force_bag or not (bag / "metadata.yaml").exists():
         record = load_record(DataSpec.from_values({}, data=args.data))
         write_io_bag(bag, record.u, record.y, rate_hz=args.bag_rate, overwrite=True)
-        print(f"[1/6] wrote bag {bag} from {record.source} ({len(record)} samples per topic)")
+        print(f"[1/7] wrote bag {bag} from {record.source} ({len(record)} samples per topic)")
     else:
-        print(f"[1/6] using bag {bag}")
+        print(f"[1/7] using bag {bag}")
     signals = read_bag_signals(bag)
     expected = len(signals.y)
 
@@ -80,7 +80,7 @@ def run(args) -> int:
              "-p", f"criterion:={args.criterion}", "-p", f"seed:={args.seed}",
              "-p", f"model_path:={(out / 'model.json').resolve()}"],
             stdout=node_log, stderr=subprocess.STDOUT, env=env)
-        print(f"[2/6] started sysid_node (pid {node_proc.pid}, ROS_DOMAIN_ID {args.domain}, "
+        print(f"[2/7] started sysid_node (pid {node_proc.pid}, ROS_DOMAIN_ID {args.domain}, "
               f"log {out / 'sysid_node.log'})")
         ident = client.create_client(Trigger,
                                      "/spm_sysid/identify")
@@ -99,17 +99,17 @@ def run(args) -> int:
             capture_output=True, text=True, env=env, timeout=600)
         if player.returncode != 0:
             raise PipelineError(f"bag_player failed: {player.stderr.strip()}")
-        print(f"[3/6] replayed {bag} at {args.rate:g}x in {time.monotonic() - t0:.1f} s")
+        print(f"[3/7] replayed {bag} at {args.rate:g}x in {time.monotonic() - t0:.1f} s")
         have = int(wait_for_buffer(client, lambda kv: int(kv["samples"]) >= expected,
                                    15.0).get("samples", 0))
         if have < expected:
             raise PipelineError(f"the node buffered {have} of {expected} samples")
-        print(f"[4/6] sysid_node buffered {have} paired samples")
+        print(f"[4/7] sysid_node buffered {have} paired samples")
 
         ok, message = call_trigger(client, "/spm_sysid/identify", timeout=600.0)
         if not ok:
             raise PipelineError(f"~/identify refused: {message}")
-        print(f"[5/6] ~/identify (focus prediction, the paper's): {message}")
+        print(f"[5/7] ~/identify (focus prediction, the paper's): {message}")
         doc = wait_for_model(client, "/spm_sysid/model")
         if doc is None:
             raise PipelineError("no model on /spm_sysid/model")
@@ -119,7 +119,7 @@ def run(args) -> int:
         ok, message = call_trigger(client, "/spm_sysid/identify", timeout=600.0)
         if not ok:
             raise PipelineError(f"~/identify (focus simulation) refused: {message}")
-        print(f"[5/6] ~/identify (focus simulation): {message}")
+        print(f"[6/7] ~/identify (focus simulation): {message}")
         doc_sim = wait_for_model(client, "/spm_sysid/model")
         if doc_sim is None or doc_sim.get("metadata", {}).get("focus") != "simulation":
             raise PipelineError("no simulation-focused model on /spm_sysid/model")
@@ -133,7 +133,7 @@ def run(args) -> int:
     from ..core.validate.validation import validate_model
     from ..tools.plots import write_model_figures
 
-    print("[6/6] models (published on /spm_sysid/model), validated on the replayed data:")
+    print("[7/7] models (published on /spm_sysid/model), validated on the replayed data:")
     for name, document, path in (("prediction", doc, out / "model.json"),
                                  ("simulation", doc_sim, out / "model_simulation.json")):
         model = NarxModel.from_dict(document)  # the node saved it (model_path)

@@ -55,7 +55,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 
 from ..core.errors import BagError
 from ..core.io.bagio import open_bag
-from .common import message_class, run_node
+from .common import asks_for_help, message_class, run_node
 
 __all__ = ["BagPlayer", "main"]
 
@@ -253,8 +253,22 @@ def _finish(node: BagPlayer, interrupted: bool) -> int:
     return 3
 
 
+BAG_PLAYER_USAGE = """usage: bag_player --ros-args -p bag:=PATH [-p rate:=1.0] [-p loop:=true] ...
+
+Replays a rosbag2 bag (MCAP) onto its topics with the recorded timing, at
+rate times real time, and says how many messages it published per topic.
+Parameters: bag, rate, start_delay, loop, topics, remap, qos_depth,
+wait_for_subscribers, wait_timeout, settle_time (docs/ros.md, "bag_player").
+
+  bag_player --ros-args -p bag:=bags/robot_arm -p rate:=10.0
+"""
+
+
 def main(args: list[str] | None = None) -> int:
     """Run the player until the bag ends (or forever with ``loop``); see the exit statuses."""
+    if asks_for_help(args):
+        print(BAG_PLAYER_USAGE, end="")
+        return 0
     return run_node(BagPlayer, until=lambda node: node.finished.is_set(), errors=(BagError,),
                     finish=_finish, args=args)
 

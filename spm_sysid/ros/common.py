@@ -17,7 +17,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 
 from ..core.errors import BagError
 
-__all__ = ["LATCHED", "RELIABLE_KEEP_ALL", "REQUESTS", "message_class", "run_node"]
+__all__ = ["LATCHED", "RELIABLE_KEEP_ALL", "REQUESTS", "asks_for_help", "message_class", "run_node"]
 
 #: Latched: reliable + transient-local, depth 1; a late subscriber gets the last message.
 LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
@@ -70,6 +70,13 @@ def _spin_resilient(executor, node: Node) -> None:
                     f"a callback raised {type(exc).__name__}: {exc} ({where.filename}:"
                     f"{where.lineno}); the node goes on (callback_errors "
                     f"{node.callback_errors} in /diagnostics)")
+
+
+def asks_for_help(args: list[str] | None) -> bool:
+    """``-h`` or ``--help`` before any ``--ros-args`` (ROS's own arguments come after it)."""
+    argv = sys.argv[1:] if args is None else list(args)
+    before = argv[:argv.index("--ros-args")] if "--ros-args" in argv else argv
+    return any(a in ("-h", "--help") for a in before)
 
 
 def run_node(build: Callable[[], Node], *, until: Callable[[Node], bool] | None = None,

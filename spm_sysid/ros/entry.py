@@ -14,9 +14,29 @@ from ..core.errors import MissingDependencyError
 
 __all__ = ["sysid_node"]
 
+SYSID_NODE_USAGE = """usage: sysid_node [--ros-args [-p NAME:=VALUE ...] [--params-file FILE]]
+
+The spm_sysid node: records an input and an output topic into a buffer, identifies a
+NARX model when asked (the ~/identify action or Trigger service), publishes it latched
+on ~/model, ~/narx_model and ~/coefficients, then predicts every new sample and says
+whether the model still holds (~/validity, /diagnostics). Ctrl-C ends it.
+
+  sysid_node --ros-args --params-file config/sysid_node.yaml -p dashboard_port:=8765
+
+Its parameters, with defaults and allowed values, are in config/sysid_node.yaml
+(`spm-sysid settings --yaml` prints them, `spm-sysid settings` as a table); the
+interface is in docs/ros_interface.md. Every process that starts ROS should set
+ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST and its own ROS_DOMAIN_ID.
+"""
+
 
 def sysid_node(args: list[str] | None = None) -> int:
-    """``sysid_node``: :func:`spm_sysid.ros.sysid_node.main`."""
+    """``sysid_node``: :func:`spm_sysid.ros.sysid_node.main`; ``--help`` prints the usage."""
+    from .common import asks_for_help
+
+    if asks_for_help(args):
+        print(SYSID_NODE_USAGE, end="")
+        return 0
     try:
         from ..core.compiled.aot import prefer_jit
         from ..core.compiled.registry import require_kernels

@@ -24,7 +24,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+#: Criteria whose penalty depends on the number of terms only: their optimum over all
+#: structures can be certified (:mod:`spm_sysid.core.search.certify`).
+CERTIFIABLE = ("aic", "aicc", "bic")
+
 __all__ = [
+    "CERTIFIABLE",
     "CRITERIA",
     "Criterion",
     "aic",

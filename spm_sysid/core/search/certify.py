@@ -55,7 +55,7 @@ from ..compiled.aot import build_status
 from ..compiled.registry import jit_available, jit_loaded
 from ..cores import usable_cores
 from ..files import json_float
-from ..fit.criteria import Criterion, get_criterion
+from ..fit.criteria import CERTIFIABLE, Criterion, get_criterion
 from ..fit.evaluator import NEAR_RANK, StructureEvaluator
 from ..fit.lstsq import DEFAULT_RANK_TOL
 from ..memory import check_memory, memory_limit
@@ -79,8 +79,6 @@ from .local import polish as search_polish
 __all__ = ["CERTIFIABLE", "Certificate", "certify", "certify_data", "check_certify_memory",
            "describe_certificate", "ensure_compiled", "penalty_per_size", "search_is_compiled"]
 
-#: Criteria whose penalty depends on the number of terms only (certifiable).
-CERTIFIABLE = ("aic", "aicc", "bic")
 
 
 @dataclass

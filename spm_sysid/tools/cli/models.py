@@ -477,6 +477,7 @@ def cmd_compile(args) -> int:
 
 def add_parsers(sub) -> None:
     """Register ``identify``, ``certify``, ``validate`` and ``propose-lags``."""
+    from ...core.fit.criteria import CERTIFIABLE
     from ...core.settings import SETTINGS
 
     p = sub.add_parser("identify", help="select and fit a NARX model on data")
@@ -496,12 +497,14 @@ def add_parsers(sub) -> None:
     p.set_defaults(func=cmd_compile)
 
     p = sub.add_parser("certify", help="prove the best structure of the whole term space "
-                       "(branch and bound; AIC, BIC), or bound the gap")
+                       "(branch and bound; AIC, AICc, BIC), or bound the gap")
     add_data_options(p)
     add_schema_options(p, ("term_space", "ga"))
     g = p.add_argument_group("certification")
-    g.add_argument("--criterion", default="bic", choices=("aic", "bic"),
-                   help="criterion to certify (default bic)")
+    g.add_argument("--criterion", default=SETTINGS["criterion"].default,
+                   choices=CERTIFIABLE,
+                   help=f"criterion to certify (default {SETTINGS['criterion'].default}, as "
+                        "identify's: after identify, certify proves the model it showed)")
     g.add_argument("--seed", type=seed_type, default=1, help="seed of the warm-start GA run")
     g.add_argument("--no-ga", action="store_true",
                    help="warm-start from forward selection instead of a GA run")
