@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 # ROS traffic stays on this machine; each target picks its own domain.
 export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
 
-.PHONY: setup run identify test lint bench bench-sizes bench-node bench-dask bench-certify bench-certify-scale bench-generalise bench-speed bench-online bench-mimo bench-accuracy bag experiment report clean
+.PHONY: setup run identify test test-quick lint bench bench-sizes bench-node bench-dask bench-certify bench-certify-scale bench-generalise bench-speed bench-online bench-mimo bench-accuracy bag experiment report clean
 
 INTERFACES := $(wildcard interfaces/spm_sysid_interfaces/*.* interfaces/spm_sysid_interfaces/*/*)
 
@@ -49,6 +49,10 @@ test: $(KERNELS) $(BROWSER)
 	# three workers on 2 cores (most ROS tests wait on processes); tests spread one by one,
 	# the files with an expensive module fixture (Dask cluster, colcon build) kept together
 	ROS_DOMAIN_ID=62 $(BIN)/python -m pytest -q -n 3 --dist loadgroup test
+
+## The tests without those marked slow (each over about 15 s): a quicker check while working.
+test-quick: $(KERNELS) $(BROWSER)
+	ROS_DOMAIN_ID=62 $(BIN)/python -m pytest -q -n 3 --dist loadgroup -m "not slow" test
 
 lint: $(KERNELS)
 	$(BIN)/ruff check .

@@ -15,7 +15,8 @@ BIN = os.path.dirname(sys.executable)
 
 
 #: one worker runs this file (its module fixture is expensive to make twice)
-pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("dask")]
+#: a study may wait 600 s for its runs on a busy machine: the limit says so
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("dask"), pytest.mark.timeout(900)]
 
 
 @pytest.fixture(scope="module")

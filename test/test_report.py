@@ -124,14 +124,14 @@ def test_a_model_of_300_terms_renders_every_row(browser, tmp_path, robot_arm):
     """A large model's page is drawn whole and without errors (how fast is a figure for
     a benchmark, not an assertion: a busy machine must not fail this test)."""
     from spm_sysid.core.validate.validation import validate_model
-    from spm_sysid.tools.html_report import OutputSection, ReportContent, write_report
+    from spm_sysid.tools.html_report import OutputSection, ReportContent, write_model_report
 
     u, y = robot_arm
     space = TermSpace(ny=12, nu=12, degree=2)  # 24 linear + 300 quadratic terms
     idx = list(range(24, 324))
     model = NarxModel(space, idx, np.full(300, 1e-6), criterion="bic", criterion_value=0.0)
     report = validate_model(model, u, y)
-    path = write_report(tmp_path / "big.html", ReportContent(title="300 terms"),
+    path = write_model_report(tmp_path / "big.html", ReportContent(title="300 terms"),
                         [OutputSection("y", model, report)])
     context = browser.new_context(offline=True)
     page = context.new_page()
@@ -150,13 +150,13 @@ def test_a_report_of_two_outputs_has_a_section_each_and_the_cross_correlation(
         browser, tmp_path):
     from spm_sysid.core.jobs import JobSettings, run_job
     from spm_sysid.core.record import Record
-    from spm_sysid.tools.html_report import OutputSection, ReportContent, write_report
+    from spm_sysid.tools.html_report import OutputSection, ReportContent, write_model_report
 
     u, Y = two_output_system(600, seed=4, noise=0.01)
     rec = Record.from_samples(u, Y, source="test", input_names=("u1", "u2"),
                               output_names=("y1", "y2"))
     result = run_job(rec, JobSettings.from_values({"ny": 1, "nu": 1, "seed": 0}))
-    path = write_report(tmp_path / "two.html", ReportContent(
+    path = write_model_report(tmp_path / "two.html", ReportContent(
         title="two", cross_tests=result.cross_tests),
         [OutputSection(n, r.model, r.report) for n, r in zip(("y1", "y2"), result.outputs)])
     context, page, _ = _open_offline(browser, path)

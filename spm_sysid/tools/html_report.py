@@ -30,7 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["OutputSection", "ReportContent", "build_report", "write_report"]
+from .pages import read_page_file, render_page
+
+__all__ = ["OutputSection", "ReportContent", "build_report", "verdict", "write_model_report"]
 
 #: Plot width and heights (CSS pixels); the page is responsive in width.
 HEIGHT, SMALL = 300, 180
@@ -127,6 +129,7 @@ def _prediction_plots(plots: _Plots, section: OutputSection, kind: str) -> str:
                    f"{m.get('mean_abs', float('nan')):.4g}")
     top = plots.figure(f"{section.name}: measured and {label} ({summary})", x_label,
                        section.name)
+    top["y_range"] = _signal_range(rep.measured, pred)
     src = _source(top, f"{section.name}/{kind}", data)
     if band is not None:
         top["glyphs"].append({"type": "varea", "source": src, "x": "x", "y1": "lower",
@@ -144,6 +147,21 @@ def _prediction_plots(plots: _Plots, section: OutputSection, kind: str) -> str:
     return summary
 
 
+def _signal_range(*signals) -> list[float] | None:
+    """The y range of the signals (finite values, 5 % margin).
+
+    A band's spread (the coefficient uncertainty of a free run can be ten times
+    the signal) is clipped to it.
+    """
+    values = np.concatenate([np.asarray(s, dtype=float).ravel() for s in signals])
+    values = values[np.isfinite(values)]
+    if not values.size:
+        return None
+    lo, hi = float(values.min()), float(values.max())
+    pad = 0.05 * (hi - lo) or 0.5 * abs(hi) or 1.0
+    return [lo - pad, hi + pad]
+
+
 def _residual_plot(plots: _Plots, section: OutputSection) -> None:
     e = np.asarray(section.report.residuals, dtype=float)
     x, x_label = _x(len(e), section.times)
@@ -157,9 +175,11 @@ def _correlation_plots(plots: _Plots, name: str, tests, prefix: str = "correlati
                        ) -> list[str]:
     ids = []
     for t in tests:
-        state = "inside" if t.passed else "OUTSIDE"
-        p = plots.figure(f"{state}: {t.fraction_inside:.0%} of lags inside the 95 % band, "
-                         f"{t.label}", "lag", "correlation", SMALL)
+        state = "passed" if t.passed else "OUTSIDE"
+        # short enough for half the page's width: the symbol, the verdict, the share
+        symbol = t.label.split("  ")[-1]
+        p = plots.figure(f"{symbol}: {state}, {t.fraction_inside:.0%} of lags in the band",
+                         "lag", "correlation", SMALL)
         src = _source(p, f"{name}/{prefix}/{t.name}", {"lag": t.lags, "value": t.values})
         p["glyphs"] += [{"type": "segment", "source": src, "x": "lag", "y": "value",
                          "color": "#1f77b4", "width": 2},
@@ -181,6 +201,38 @@ def _convergence_plot(plots: _Plots, name: str, history) -> str:
                     {"type": "line", "source": src, "x": "generation", "y": "mean",
                      "color": "#7f7f7f", "width": 1, "legend": "population mean"}]
     return p["id"]
+
+
+def verdict(section: OutputSection) -> tuple[str, str]:
+    """(kind, sentence): what the fits say, in one line, and what to try next.
+
+    ``kind`` is ``good``, ``caution`` or ``bad`` (the box's colour).
+    """
+    rep, meta = section.report, section.model.metadata or {}
+    one = rep.one_step_metrics.get("fit_percent")
+    free = rep.free_run_metrics.get("fit_percent")
+    failed = [t.name for t in rep.tests if not t.passed]
+    focus = meta.get("focus", "prediction")
+    if rep.diverged_at is not None:
+        return "bad", (f"The free-run simulation diverges (at sample {rep.diverged_at}): the "
+                       "model predicts one step ahead but cannot be simulated. Next: "
+                       "--focus simulation, which chooses and fits the model on its "
+                       "simulation error.")
+    if one is None or free is None or not (np.isfinite(one) and np.isfinite(free)):
+        return "caution", "The fits could not be computed on these data (see below)."
+    fits = f"One-step fit {one:.1f} %, free-run fit {free:.1f} %"
+    if one - free > 20 and focus == "prediction":
+        return "caution", (f"{fits}: each one-step prediction starts from measured outputs, "
+                           "so its errors never add up; simulated from its own outputs the "
+                           "model drifts. It was chosen for one-step prediction (the paper's "
+                           "criterion). For simulation or control design, try --focus "
+                           "simulation (or more lags: spm-sysid propose-lags).")
+    if failed:
+        return "caution", (f"{fits}; the residuals are correlated ({', '.join(failed)} "
+                           "outside the band): the model misses some dynamics. Next: more "
+                           "lags (spm-sysid propose-lags) or a higher degree.")
+    return "good", f"{fits}; the residuals pass the correlation tests: the model describes " \
+        "these data."
 
 
 def _coefficient_table(section: OutputSection) -> str:
@@ -244,77 +296,6 @@ def _facts(section: OutputSection) -> str:
     return out
 
 
-#: The page's script: draws every figure spec with BokehJS's own API and keeps the data
-#: sources by name in ``window.spmReport.sources`` (for a reader, or a test).
-_DRAW = """
-(function () {
-  "use strict";
-  var specs = JSON.parse(document.getElementById("spm-plots").textContent);
-  var R = window.spmReport = { sources: {}, figures: {}, ready: false, errors: [] };
-  function column(values) { return values.map(function (v) { return v === null ? NaN : v; }); }
-  var shown = [], groups = {}, order = [];
-  specs.forEach(function (spec) {
-    try {
-      var args = { title: spec.title, height: spec.height, sizing_mode: "stretch_width",
-                   tools: "pan,box_zoom,wheel_zoom,reset", x_axis_label: spec.x_label,
-                   y_axis_label: spec.y_label };
-      if (spec.link_x && R.figures[spec.link_x]) { args.x_range = R.figures[spec.link_x].x_range; }
-      var p = Bokeh.Plotting.figure(args);
-      p.toolbar.logo = null;
-      Object.keys(spec.sources).forEach(function (name) {
-        var data = {};
-        Object.keys(spec.sources[name]).forEach(function (k) {
-          data[k] = column(spec.sources[name][k]); });
-        R.sources[name] = new Bokeh.ColumnDataSource({ data: data, name: name });
-      });
-      spec.glyphs.forEach(function (g) {
-        var src = R.sources[g.source], opts = { source: src };
-        if (g.legend) { opts.legend_label = g.legend; }
-        if (g.type === "line") {
-          opts.line_color = g.color; opts.line_width = g.width;
-          if (g.dash) { opts.line_dash = g.dash; }
-          p.line({ field: g.x }, { field: g.y }, opts);
-        } else if (g.type === "varea") {
-          opts.fill_color = g.color; opts.fill_alpha = g.alpha;
-          opts.x = { field: g.x }; opts.y1 = { field: g.y1 }; opts.y2 = { field: g.y2 };
-          p.varea(opts);
-        } else if (g.type === "scatter") {
-          opts.size = g.size; opts.fill_color = g.color; opts.line_color = g.color;
-          p.scatter({ field: g.x }, { field: g.y }, opts);
-        } else if (g.type === "segment") {
-          opts.line_color = g.color; opts.line_width = g.width;
-          opts.x0 = { field: g.x }; opts.y0 = 0; opts.x1 = { field: g.x };
-          opts.y1 = { field: g.y };
-          p.segment(opts);
-        }
-      });
-      spec.spans.forEach(function (level) {
-        p.add_layout(new Bokeh.Span({ location: level, dimension: "width",
-                                      line_color: "#d62728", line_dash: "dashed" }));
-      });
-      R.figures[spec.id] = p;
-      if (spec.link_x && R.figures[spec.link_x]) { groups[spec.link_x].push(p); }
-      else { groups[spec.id] = [p]; order.push(spec.id); }
-    } catch (e) {
-      R.errors.push(spec.id + ": " + e);
-      document.getElementById(spec.id).textContent = "this plot could not be drawn (" + e + ")";
-    }
-  });
-  // figures that share an x range are drawn together (one document each group)
-  order.forEach(function (id) {
-    try {
-      var g = groups[id];
-      var root = g.length === 1 ? g[0] : Bokeh.Plotting.gridplot(
-        g.map(function (f) { return [f]; }), { sizing_mode: "stretch_width" });
-      shown.push(Bokeh.Plotting.show(root, "#" + id));
-    } catch (e) { R.errors.push(id + ": " + e); }
-  });
-  Promise.all(shown).then(function () { R.ready = true; },
-                          function (e) { R.errors.push(String(e)); R.ready = true; });
-})();
-"""
-
-
 def _bokeh_scripts() -> str:
     """BokehJS (its core and its plotting API), read from the installed bokeh package.
 
@@ -352,6 +333,9 @@ def build_report(content: ReportContent, sections: list[OutputSection]) -> str:
         if rep is None:
             part.append("<p>No validation was run (validation: none).</p>")
         else:
+            kind, sentence = verdict(sec)
+            part.insert(1, f'<p class="verdict {kind}" id="verdict-{_esc(sec.name)}">'
+                        f"{_esc(sentence)}</p>")
             if rep.diverged_at is not None:
                 part.append(f'<p class="diverged" id="diverged-{_esc(sec.name)}">The free-run '
                             f"simulation DIVERGED at sample {_esc(rep.diverged_at)}: the model "
@@ -385,44 +369,16 @@ def build_report(content: ReportContent, sections: list[OutputSection]) -> str:
     notes = "".join(f"<li>{_esc(n)}</li>" for n in content.notes)
     summary = (f'<details><summary>What the command printed</summary><pre>'
                f"{_esc(content.summary)}</pre></details>" if content.summary else "")
-    return f"""<!DOCTYPE html>
-<html lang="en"><head><meta charset="utf-8">
-<meta name="viewport" content="width=device-width, initial-scale=1">
-<title>{_esc(content.title)}</title>
-{_bokeh_scripts()}
-<style>
-body {{ font-family: system-ui, sans-serif; margin: 1.5em auto; max-width: 1100px;
-       padding: 0 1em; color: #222; }}
-.equation {{ font-family: ui-monospace, monospace; background: #f4f4f4; padding: .6em;
-            overflow-x: auto; }}
-table.coefficients {{ border-collapse: collapse; font-size: 90%; }}
-table.coefficients td, table.coefficients th {{ border-bottom: 1px solid #ddd;
-  padding: .2em .8em; text-align: right; }}
-td.term {{ text-align: left; font-family: ui-monospace, monospace; }}
-td.zero {{ color: #b00; }}
-.small {{ font-size: 85%; color: #555; }}
-.warnings {{ background: #fff4e5; border-left: 4px solid #f0a020; padding: .3em 1em; }}
-.diverged {{ background: #fde8e8; border-left: 4px solid #c00; padding: .5em 1em;
-            font-weight: bold; }}
-.half {{ display: inline-block; width: 49%; vertical-align: top; }}
-@media (max-width: 800px) {{ .half {{ width: 100%; }} }}
-</style></head>
-<body>
-<h1>{_esc(content.title)}</h1>
-<p class="small">{_esc(content.command)}<br>{_esc(content.data)}<br>
-written {_esc(time.strftime("%Y-%m-%d %H:%M:%S"))} by spm_sysid; pan and zoom with the mouse,
-reset with the toolbar's arrows.</p>
-{f'<ul class="notes">{notes}</ul>' if notes else ""}
-{text}
-{summary}
-<script type="application/json" id="spm-plots">{data}</script>
-<script>{_DRAW}</script>
-</body></html>
-"""
+    return render_page(
+        "report.html", title=_esc(content.title), bokeh=_bokeh_scripts(),
+        command=_esc(content.command), data=_esc(content.data),
+        written=_esc(time.strftime("%Y-%m-%d %H:%M:%S")),
+        notes=f'<ul class="notes">{notes}</ul>' if notes else "", body=text,
+        summary=summary, plots=data, draw=read_page_file("report.js"))
 
 
-def write_report(path: str | Path, content: ReportContent,
-                 sections: list[OutputSection]) -> Path:
+def write_model_report(path: str | Path, content: ReportContent,
+                       sections: list[OutputSection]) -> Path:
     """Write the page (:func:`build_report`) all at once; the path written.
 
     The caller checks the destination first (the command line's one check of its

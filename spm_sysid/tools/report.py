@@ -8,7 +8,7 @@ from pathlib import Path
 
 from .experiment import ExperimentConfig, RunRecord, SettingSummary, summary_table
 
-__all__ = ["PAPER_REACH_COUNTS", "write_report"]
+__all__ = ["PAPER_REACH_COUNTS", "write_study_report"]
 
 #: Runs (of 15) that reached the best model in the paper, section 3.1:
 #: (criterion, population) -> (with SPM 0.15, plain GA s = 0).
@@ -98,7 +98,7 @@ def _timing(records: Sequence[RunRecord], elapsed: float, resumed: int) -> str:
     return f"{len(records)} runs in {elapsed:.1f} s ({run_time:.1f} s of run time)"
 
 
-def write_report(records: Sequence[RunRecord], rows: Sequence[SettingSummary],
+def write_study_report(records: Sequence[RunRecord], rows: Sequence[SettingSummary],
                  config: ExperimentConfig, results_dir: Path, report_dir: Path,
                  elapsed: float, source: str, resumed: int = 0) -> Path:
     """Write ``report.md`` (and copy its figure) into ``report_dir``.

@@ -81,9 +81,9 @@ def cmd_identify(args) -> int:
         path = model.save(args.json)
         print(f"model written to {path}")
     if args.report:
-        from ..html_report import OutputSection, ReportContent, write_report
+        from ..html_report import OutputSection, ReportContent, write_model_report
 
-        path = write_report(args.report, ReportContent(
+        path = write_model_report(args.report, ReportContent(
             title=f"{model.term_space.output}: identified NARX model", command=command_line(),
             data=f"data: {record.source}, {result.estimation_samples} samples used for "
                  "estimation", summary=result.summary("lines"),
@@ -139,10 +139,10 @@ def report_several(args, record, result) -> int:
         path = result.model.save(args.json)
         print(f"model written to {path}")
     if args.report:
-        from ..html_report import OutputSection, ReportContent, write_report
+        from ..html_report import OutputSection, ReportContent, write_model_report
 
         times = validation_times(record, args)
-        path = write_report(args.report, ReportContent(
+        path = write_model_report(args.report, ReportContent(
             title=f"{', '.join(result.output_names)}: identified coupled NARX model",
             command=command_line(), data=f"data: {record.source}, {len(record)} samples",
             summary=result.summary("lines"), cross_tests=result.cross_tests,
@@ -305,9 +305,9 @@ def cmd_validate(args) -> int:
                                                              model.term_space.max_lag))
         print(f"figures written to {args.plots}: {', '.join(p.name for p in paths)}")
     if args.report:
-        from ..html_report import OutputSection, ReportContent, write_report
+        from ..html_report import OutputSection, ReportContent, write_model_report
 
-        path = write_report(args.report, ReportContent(
+        path = write_model_report(args.report, ReportContent(
             title=f"{model.term_space.output}: model {args.model} validated",
             command=command_line(), data=f"data: {record.source}", summary=report.summary()),
             [OutputSection(model.term_space.output, model, report,
@@ -398,10 +398,10 @@ def validate_several(args, model) -> int:
                                    times=record.row_seconds(segments, model.max_lag))
         print(f"figures written to {args.plots}: {', '.join(p.name for p in paths)}")
     if args.report:
-        from ..html_report import OutputSection, ReportContent, write_report
+        from ..html_report import OutputSection, ReportContent, write_model_report
 
         times = record.row_seconds(segments, model.max_lag)
-        path = write_report(args.report, ReportContent(
+        path = write_model_report(args.report, ReportContent(
             title=f"{', '.join(model.outputs)}: coupled model {args.model} validated",
             command=command_line(), data=f"data: {record.source}", cross_tests=cross),
             [OutputSection(name, m, rep, times)

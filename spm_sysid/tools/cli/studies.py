@@ -127,9 +127,9 @@ def cmd_experiment(args) -> int:
               "--resume runs only what is missing", file=sys.stderr)
         return 1
     if args.report:
-        from ..report import write_report
+        from ..report import write_study_report
 
-        path = write_report(records, rows, config, args.out, args.report, elapsed, source,
+        path = write_study_report(records, rows, config, args.out, args.report, elapsed, source,
                             records.resumed)
         print(f"report written to {path}")
     return 0
