@@ -23,12 +23,14 @@ from spm_sysid.ros.sysid_node import LATCHED
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def start_node(env, *params, params_file=None, log=None, schema_defaults=False):
+def start_node(env, *params, params_file=None, log=None, schema_defaults=False,
+               open_files=None):
     """Start sysid_node as its own process.
 
     Diagnostics come every 0.2 s unless a test sets the period or asks for the
     schema's defaults (the harness waits on them), so a test does not idle a
-    second per wait.
+    second per wait. ``open_files``: the process's limit of file descriptors
+    (``ulimit -n``), as a small robot computer or a container may set it.
     """
     args = [sys.executable, "-m", "spm_sysid.ros.sysid_node", "--ros-args"]
     if (params_file is None and not schema_defaults
@@ -38,8 +40,14 @@ def start_node(env, *params, params_file=None, log=None, schema_defaults=False):
         args += ["-p", p]
     if params_file:
         args += ["--params-file", str(params_file)]
+    def limit():
+        import resource
+
+        resource.setrlimit(resource.RLIMIT_NOFILE, (open_files, open_files))
+
     return subprocess.Popen(args, env=env, stdout=log or subprocess.DEVNULL,
-                            stderr=subprocess.STDOUT, cwd=ROOT)
+                            stderr=subprocess.STDOUT, cwd=ROOT,
+                            preexec_fn=limit if open_files else None)
 
 
 stop = stop_process

@@ -7,10 +7,12 @@ pytestmark = pytest.mark.ros
 
 import json
 import socket
+import struct
 import subprocess
 import sys
 import time
 import urllib.error
+import urllib.parse
 import urllib.request
 
 from spm_sysid_interfaces.msg import Prediction, Validity
@@ -61,7 +63,7 @@ def test_the_live_page_shows_validity_the_model_and_the_predictions(
         assert wait_http(base)[0] == 200
         page.goto(base)
         page.wait_for_function("window.spmDashboard && spmDashboard.updates > 0")
-        assert page.inner_text("#state") == "NO_MODEL"
+        assert page.inner_text("#state") == "NO MODEL"
         play_bag(ros_env, arm)
         harness.wait_buffer(lambda kv: int(kv["samples"]) >= len(y))
         res = harness.call("/spm_sysid/identify")
@@ -210,8 +212,12 @@ def test_the_live_page_shows_every_output_of_a_coupled_model(ros_env, harness, b
         page.wait_for_function(
             "spmDashboard.state && spmDashboard.state.model && "
             "Object.keys(spmDashboard.state.outputs).length === 2", timeout=20000)
-        outputs = page.eval_on_selector_all("canvas", "c => c.map(x => x.dataset.output)")
+        outputs = page.eval_on_selector_all("canvas.signals",
+                                            "c => c.map(x => x.dataset.output)")
         assert sorted(outputs) == ["y1", "y2"]
+        residuals = page.eval_on_selector_all("canvas.residual",
+                                              "c => c.map(x => x.dataset.output)")
+        assert sorted(residuals) == ["y1", "y2"]
         tables = page.eval_on_selector_all("#model table", "t => t.map(x => x.dataset.output)")
         assert tables == ["y1", "y2"]
         rows = page.eval_on_selector_all("#residuals tr", "r => r.length")
@@ -220,3 +226,117 @@ def test_the_live_page_shows_every_output_of_a_coupled_model(ros_env, harness, b
     finally:
         page.close()
         stop(node)
+
+
+def _idle(host: str, port: int, count: int) -> list:
+    """``count`` connections that send nothing (closed by the caller)."""
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    out = []
+    for _ in range(count):
+        s = socket.socket(family, socket.SOCK_STREAM)
+        s.settimeout(10)
+        s.connect((host, port))
+        out.append(s)
+    return out
+
+
+def test_hundreds_of_idle_clients_never_take_the_nodes_descriptors(
+        ros_env, harness, robot_arm, tmp_path):
+    """Under ulimit -n 256: 600 connections that send nothing, then the node still answers."""
+    from spm_sysid_interfaces.action import Identify
+
+    from .ros_harness import IdentifyClient
+
+    u, y = robot_arm
+    bag = write_io_bag(tmp_path / "arm", u, y)
+    port = free_port()
+    log = tmp_path / "node.log"
+    with open(log, "w") as f:
+        node = start_node(ros_env, "seed:=1", f"dashboard_port:={port}", log=f,
+                          open_files=256)
+    idle = []
+    try:
+        harness.wait_ready()
+        play_bag(ros_env, bag)
+        harness.wait_buffer(lambda kv: int(kv["samples"]) >= len(y))
+        assert wait_http(f"http://127.0.0.1:{port}/state.json")[0] == 200
+        idle = _idle("127.0.0.1", port, 600)  # each held a thread and a descriptor before
+        client = IdentifyClient(harness)
+        answer = client.get_model()
+        assert answer.available is False and "no model yet" in answer.message
+        status, result = client.result(client.send(criterion="bic"))
+        assert result.error_code == Identify.Result.NONE, result.message
+        assert len(client.get_model().models.models) == 1
+        # the idle ones are closed by the node within its request timeout
+        end = time.monotonic() + 15
+        closed = 0
+        for s in idle[:50]:
+            try:
+                closed += s.recv(1) == b""
+            except OSError:
+                closed += 1
+            if time.monotonic() > end:
+                break
+        assert closed == 50
+        for s in idle:
+            s.close()
+        idle = []
+        # a client that resets its connection: counted, no traceback in the log
+        rst = socket.create_connection(("127.0.0.1", port))
+        rst.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+        rst.send(b"GET /state.json HTTP/1.1\r\nHost: 127.0.0.1\r\n")
+        rst.close()
+        # a page of another site (DNS rebinding) is refused: no token, so the Host counts
+        req = urllib.request.Request(f"http://127.0.0.1:{port}/state.json",
+                                     headers={"Host": "attacker.example"})
+        with pytest.raises(urllib.error.HTTPError) as exc:
+            urllib.request.urlopen(req, timeout=10)
+        assert exc.value.code == 421
+        assert get(f"http://localhost:{port}/state.json")[0] == 200
+
+        def board():
+            return harness.statuses().get("dashboard", (None, "", {}))
+
+        assert harness.spin_until(lambda: board()[2].get("bad_host") == "1", 10)
+        level, message, values = board()
+        assert int(values["refused"]) > 0 and "refused" in message and level == 1
+    finally:
+        for s in idle:
+            s.close()
+        stop(node)
+    text = log.read_text()
+    assert "Traceback" not in text and "Too many open files" not in text, text[-3000:]
+
+
+def test_a_token_is_never_logged_and_an_ipv6_dashboard_closes_silent_clients(
+        ros_env, harness, tmp_path):
+    token = "Sup3r Secret/+?"  # the issue's token: URL-encoded in the page's address
+    port = free_port()
+    log = tmp_path / "node.log"
+    with open(log, "w") as f:
+        node = start_node(ros_env, f"dashboard_port:={port}", "dashboard_host:='::'",
+                          f"dashboard_token:={token}", log=f)
+    try:
+        harness.wait_ready()
+        quoted = urllib.parse.quote(token)
+        base = f"http://[::1]:{port}/"
+        assert wait_http(base)[0] == 403
+        assert get(f"{base}state.json?token={quoted}")[0] == 200
+        silent = _idle("::1", port, 100)
+        t0 = time.monotonic()
+        for s in silent:
+            try:
+                s.recv(1)
+            except OSError:
+                pass
+        held = time.monotonic() - t0
+        for s in silent:
+            s.close()
+        assert held < 30, held  # held 80 s and more before (no request timeout)
+        assert get(f"{base}state.json?token={quoted}")[0] == 200
+    finally:
+        stop(node)
+    text = log.read_text()
+    assert f"live dashboard at http://[::]:{port}/" in text, text
+    assert "dashboard_token parameter" in text
+    assert token not in text and quoted not in text and "Secret" not in text

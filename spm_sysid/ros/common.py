@@ -103,7 +103,16 @@ def run_node(build: Callable[[], Node], *, until: Callable[[Node], bool] | None 
     args : list of str, optional
         Command-line arguments for ``rclpy.init``.
     """
-    rclpy.init(args=args)
+    from rclpy._rclpy_pybind11 import RCLError
+
+    try:
+        rclpy.init(args=args)
+    except RCLError as exc:  # e.g. -p dashboard_host:=:: (YAML reads "::" otherwise)
+        why = str(exc).split("Error:", 1)[-1].split(", at ")[0].strip()
+        print(f"error: ROS cannot read the command line's arguments ({why}); a value YAML "
+              "reads as something else must be quoted, e.g. -p 'dashboard_host:=\"::\"'",
+              file=sys.stderr)
+        return 2
     executor = SingleThreadedExecutor()
     node = None
     interrupted = False
