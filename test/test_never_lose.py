@@ -190,6 +190,13 @@ def test_several_outputs_are_judged_coupled_and_orders_auto_covers_them():
     assert sel["folds"] >= 2 and sel["choice"] in ("linear", "nonlinear")
     assert result.diverged == []
     assert "coupled judgement on" in result.summary("lines")
+    # each output's account describes the model returned, not its own (replaced) choice
+    for name, out in zip(("p", "q"), result.outputs):
+        own = out.model.metadata["selection"]
+        if sel["chosen"] != "the outputs' own choices":
+            assert own["method"] == "coupled" and own["chosen"] == sel["chosen"]
+            text = result.summary("lines").split(f"== output {name} ==")[1]
+            assert "this output's own selection was not kept" in text
 
 
 def test_shrinking_the_nonlinear_terms_makes_a_diverging_model_hold():

@@ -24,16 +24,33 @@ def _model_doc() -> dict:
     return NarxModel(TermSpace(ny=1, nu=1, degree=1), [0, 1], np.array([0.5, 0.1])).to_dict()
 
 
-@pytest.mark.parametrize("kind", ["nested", "huge", "nan"])
+_BLINDING = {  # fields the node reads, crafted: /diagnostics raised, the monitor was blind
+    "skipped": {"validation": {"correlation_tests_skipped": 5}},
+    "monitor": {"monitor": {"version": 1, "samples": 1000, "sigma": 0.1, "innovation_sd": 0.1,
+                            "whitening_ar": [], "cusum_mean_max": 1e300,
+                            "cusum_variance_max": 1e300,
+                            "windows": [{"window": 50, "ljung_box_max": 1e300,
+                                         "rms_ratio_max": 1e300}]}},
+}
+
+
+@pytest.mark.parametrize("kind", ["nested", "huge", "nan", *_BLINDING])
 def test_a_bad_model_path_file_does_not_stop_the_node(ros_env, harness, tmp_path, kind):
-    """Deeply nested JSON (RecursionError), 10**400 (OverflowError), NaN: exit 1 before."""
+    """Deeply nested JSON (RecursionError), 10**400 (OverflowError), NaN: exit 1 before.
+
+    Fields the node reads, of the wrong type or beyond what residuals can give: every
+    diagnostics tick raised (nothing on /diagnostics), or the monitor stayed VALID at
+    343 times the identification's residual RMS.
+    """
     path = tmp_path / "model.json"
     if kind == "nested":
         path.write_text("[" * 100_000 + "]" * 100_000)
     elif kind == "huge":
         path.write_text(json.dumps(_model_doc()).replace("0.5", "1" + "0" * 400, 1))
-    else:
+    elif kind == "nan":
         path.write_text(json.dumps({**_model_doc(), "metadata": {"x": float("nan")}}))
+    else:
+        path.write_text(json.dumps({**_model_doc(), "metadata": _BLINDING[kind]}))
     before = path.read_bytes()
     log = open(tmp_path / "node.log", "w")
     node = start_node(ros_env, f"model_path:={path}", log=log)
@@ -46,6 +63,8 @@ def test_a_bad_model_path_file_does_not_stop_the_node(ros_env, harness, tmp_path
     text = (tmp_path / "node.log").read_text()
     assert "holds no readable model" in text and "nothing re-published" in text
     assert "Traceback" not in text and path.read_bytes() == before
+    if kind in _BLINDING:
+        assert f"metadata.{next(iter(_BLINDING[kind]))}" in text, text
 
 
 def test_a_topic_name_ros_refuses_is_one_error_line(ros_env):

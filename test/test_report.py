@@ -114,8 +114,43 @@ def test_a_report_of_a_diverged_model_opens_and_says_so(browser, tmp_path, robot
     try:
         text = page.inner_text("#diverged-y")
         assert "DIVERGED at sample" in text
+        assert "try --focus simulation" in page.inner_text("#verdict-y").replace(
+            "Next: --focus", "try --focus")
         free = _source(page, "y/free_run")
         assert free["predicted"][-1] is None  # NaN after the divergence: a gap, not a crash
+    finally:
+        context.close()
+
+
+def test_the_page_says_what_the_fits_mean_and_shows_the_signals_not_the_band(
+        browser, tmp_path, robot_arm):
+    """Eq. (1): 98 % one step, 11 % free run, a free-run band ten times the signal."""
+    from spm_sysid.core.validate.validation import validate_model
+    from spm_sysid.tools.html_report import OutputSection, ReportContent, write_model_report
+
+    from .conftest import eq1_model
+
+    u, y = robot_arm
+    model = eq1_model(robot_arm)
+    report = validate_model(model, u, y)
+    band = report.free_run_band
+    assert band.upper.max() - band.lower.min() > 5 * np.ptp(y)  # the case of the review
+    path = write_model_report(tmp_path / "r.html", ReportContent(title="eq. 1"),
+                              [OutputSection("y", model, report)])
+    context, page, _ = _open_offline(browser, path)
+    try:
+        verdict = page.inner_text("#verdict-y")
+        assert verdict.startswith("One-step fit 98.1 %, free-run fit 11.1 %")
+        assert "--focus simulation" in verdict
+        ranges = page.evaluate("""Object.values(spmReport.figures).filter(
+            f => f.title.text.indexOf("free-run simulation") >= 0).map(
+            f => [f.y_range.start, f.y_range.end])""")
+        assert len(ranges) == 1
+        low, high = ranges[0]
+        assert low <= y.min() and high >= y.max() and high - low < 1.2 * np.ptp(y)
+        titles = page.evaluate("Object.values(spmReport.figures).map(f => f.title.text)")
+        tests = [t for t in titles if "of lags in the band" in t]
+        assert len(tests) == 5 and max(len(t) for t in tests) <= 50, tests
     finally:
         context.close()
 
