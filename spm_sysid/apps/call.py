@@ -116,7 +116,7 @@ def watch_validity(node: Node, topic: str, seconds: float, every: float = 1.0) -
     from spm_sysid_interfaces.msg import Validity
 
     got: deque = deque(maxlen=1)  # the latest message
-    sub = node.create_subscription(Validity, topic, got.append, LATCHED)
+    sub = node.create_subscription(Validity, topic, lambda m: got.append(m), LATCHED)
     last, tick = None, time.monotonic()
     try:
         end = time.monotonic() + seconds
@@ -127,10 +127,11 @@ def watch_validity(node: Node, topic: str, seconds: float, every: float = 1.0) -
             msg, now = got[-1], time.monotonic()
             # each change at once; else the latest, on a clock of its own (the node's
             # messages come about once a second too, and would drift against it)
-            if msg.state_name != last or now >= tick:
+            changed = msg.state_name != last
+            if changed or now >= tick:
                 print(validity_line(msg), flush=True)
                 last = msg.state_name
-                tick = max(tick + every, now + 0.5 * every) if now >= tick else now + every
+                tick = now + every if changed else max(tick + every, now + 0.5 * every)
     except KeyboardInterrupt:
         pass
     finally:
