@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .blas import one_blas_thread
+from .defaults import AUTO_CERTIFY_TERMS, MAX_JUDGED_TERMS, OVERFIT_RATIO, ROWS_PER_TERM
 from .errors import DataError
 from .fit.criteria import Criterion, get_criterion
 from .fit.lstsq import sse_floor
@@ -168,14 +169,7 @@ SELECTION = SETTINGS["selection"].choices
 
 #: ``auto`` validates the prediction focus too when there are fewer rows than this many
 #: per usable candidate term (where an in-sample criterion can overfit badly).
-AUTO_ROWS_PER_TERM = 10
-
-#: A held-out error this many times the in-sample error is reported as overfitting.
-OVERFIT_RATIO = 3.0
-
-#: Spaces of at most this many usable terms are certified after the GA by default
-#: (``auto_certify_time_limit``).
-AUTO_CERTIFY_TERMS = 120
+AUTO_ROWS_PER_TERM = ROWS_PER_TERM
 
 
 @one_blas_thread()
@@ -357,7 +351,7 @@ def _select_validated(problem, evaluator, folds, crit, shortlist, max_terms, sim
     """
     from .search.forward import forward_selection_path
 
-    limit = min(60, max(1, problem.rows // AUTO_ROWS_PER_TERM))
+    limit = min(MAX_JUDGED_TERMS, max(1, problem.rows // ROWS_PER_TERM))
     degree = np.array([len(t) for t in problem.term_space.terms])[problem.usable]
 
     def forward() -> np.ndarray:
@@ -424,10 +418,10 @@ def _overfit_warnings(problem, model) -> list[str]:
     """Warnings when the model may fit noise: its size, its held-out error."""
     out = []
     k, rows = len(model.term_indices), problem.rows
-    if k > rows / 10:
-        out.append(f"{k} terms from {rows} rows (more than one term per 10 rows): the model "
-                   "may fit noise; prefer BIC or AICc, max_terms, fewer lags, or "
-                   "selection: validated")
+    if k > rows / ROWS_PER_TERM:
+        out.append(f"{k} terms from {rows} rows (more than one term per {ROWS_PER_TERM} "
+                   "rows): the model may fit noise; prefer BIC or AICc, max_terms, fewer "
+                   "lags, or selection: validated")
     sel = model.metadata.get("selection") or {}
     ratio = sel.get("ratio")
     if ratio is not None and ratio > OVERFIT_RATIO:

@@ -25,6 +25,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from .defaults import AUTO_CERTIFY_TERMS, ROWS_PER_TERM
 from .errors import SettingsError
 
 __all__ = ["SETTINGS", "Setting", "check", "check_all", "defaults", "node_settings", "parse_text",
@@ -133,7 +134,8 @@ _LIST = [
        cli=False, node=False),
     # -- criterion and seed ----------------------------------------------------------------
     _s("criterion", str, "aic", "information criterion: aic, aicc (small-sample AIC), bic, "
-       "pmic2 (or a registered name); with fewer than 10 rows per candidate term prefer bic "
+       f"pmic2 (or a registered name); with fewer than {ROWS_PER_TERM} rows per candidate "
+       "term prefer bic "
        "or aicc (aic's weak penalty admits far too many terms)", "criterion"),
     _s("seed", int, -1, "random seed; -1: a new random seed each run", "criterion", low=-1,
        high=2**31 - 1),
@@ -151,7 +153,8 @@ _LIST = [
        "proposals)", "criterion", choices=("given", "auto")),
     _s("selection", str, "auto", "how the structure is chosen: criterion (on the estimation "
        "data, the paper's), validated (by its error on held-out blocks; docs/method.md), or "
-       "auto (validated for focus simulation, and for prediction with fewer than 10 rows per "
+       f"auto (validated for focus simulation, and for prediction with fewer than "
+       f"{ROWS_PER_TERM} rows per "
        "candidate term)", "criterion", choices=("auto", "criterion", "validated")),
     _s("max_terms", int, 0, "largest number of terms a model may have (0: no limit)",
        "criterion", low=0, high=100_000),
@@ -161,7 +164,8 @@ _LIST = [
        "paper's study, which measures the GA alone)", "criterion"),
     _s("auto_certify_time_limit", float, 10.0, "seconds of certification after every GA "
        "with aic, aicc or bic whose structure is chosen by the criterion (focus prediction) "
-       "on spaces of at most 120 usable terms: the answer then says certified optimal or "
+       f"on spaces of at most {AUTO_CERTIFY_TERMS} usable terms: the answer then says "
+       "certified optimal or "
        "gives the gap (0: off)", "criterion", low=0.0, high=86_400.0),
     _s("certify", bool, False, "after the GA, prove its result the best of all structures "
        "by branch and bound (aic, bic), or report the gap (docs/method.md)", "criterion"),

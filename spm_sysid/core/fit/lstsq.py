@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..defaults import SSE_FLOOR_RELATIVE
 from ..model.uncertainty import solve_upper
 from .criteria import Criterion, get_criterion
 
@@ -20,9 +21,6 @@ __all__ = ["DEFAULT_RANK_TOL", "FitResult", "reference_fit", "reference_score", 
            "sse_floor"]
 
 DEFAULT_RANK_TOL = 1e-9
-
-#: Residuals below this fraction of the target's norm are rounding, not fit.
-SSE_FLOOR_RELATIVE = 1e3 * np.finfo(float).eps
 
 
 def sse_floor(target_norm: float) -> float:

@@ -29,11 +29,10 @@ from statistics import NormalDist
 
 import numpy as np
 
+from ..defaults import LEVEL
+
 __all__ = ["Band", "Uncertainty", "from_jacobian", "from_least_squares", "output_band",
            "solve_upper", "t_quantile"]
-
-#: Confidence level of the intervals written into model documents.
-LEVEL = 0.95
 
 
 #: Degrees of freedom from which :func:`t_quantile` uses its expansion.

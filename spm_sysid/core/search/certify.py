@@ -54,6 +54,7 @@ import numpy as np
 from ..compiled.aot import build_status
 from ..compiled.registry import jit_available, jit_loaded
 from ..cores import usable_cores
+from ..defaults import MAX_JUDGED_TERMS
 from ..files import json_float
 from ..fit.criteria import CERTIFIABLE, Criterion, get_criterion
 from ..fit.evaluator import NEAR_RANK, StructureEvaluator
@@ -249,7 +250,7 @@ def path_incumbent(ev: StructureEvaluator, usable: np.ndarray, *, deadline: floa
     from .forward import forward_selection_path
 
     best_mask, best_value = None, np.inf
-    path = forward_selection_path(ev, max_terms=min(60, len(usable)))
+    path = forward_selection_path(ev, max_terms=min(MAX_JUDGED_TERMS, len(usable)))
     for i in range(PATH_STRIDE - 1, len(path), PATH_STRIDE):
         if time.perf_counter() >= deadline:
             break
@@ -405,7 +406,8 @@ def certify(
     if warm_start is None:
         from .forward import forward_selection
 
-        _, warm_start = forward_selection(ev, max_terms=min(60, mu), deadline=deadline)
+        _, warm_start = forward_selection(ev, max_terms=min(MAX_JUDGED_TERMS, mu),
+                                          deadline=deadline)
     warm = np.asarray(warm_start, dtype=bool)
     warm_value = ev.cached_score(warm) if warm.any() else np.inf
     best_full, best_value = polish(ev, warm, usable, seconds=min(5.0, 0.1 * time_limit),

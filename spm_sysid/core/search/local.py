@@ -27,6 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..defaults import POLISH_FLIPS, POLISH_KICKS, POLISH_STRUCTURES, POLISH_TERMS
+
 __all__ = ["MOVES", "POLISH_STRUCTURES", "PolishResult", "SearchResult", "local_search",
            "neighbours", "polish"]
 
@@ -188,18 +190,6 @@ def local_search(
                 return SearchResult(best, best_value, steps, scored, "patience")
 
 
-#: Structures the polish after the GA may score (a count, not seconds: the same seed
-#: gives the same result on any machine).
-POLISH_STRUCTURES = 50_000
-#: Structures of more terms than this cost more to fit (about k^2): the polish of a
-#: structure of k terms scores at most POLISH_STRUCTURES * (POLISH_TERMS / k)^2 of them,
-#: so a large model's polish does not take many times its GA's time.
-POLISH_TERMS = 20
-#: Kicks of the iterated local search after the first local optimum (within the budget).
-POLISH_KICKS = 1000
-#: Terms a kick flips: from POLISH_FLIPS[0] to POLISH_FLIPS[1] - 1 (the GA's best and the
-#: optimum typically differ in 8-11 terms when the GA misses: a kick must reach that far).
-POLISH_FLIPS = (4, 12)
 #: A kicked structure whose add/remove descent ends within this of the best so far is
 #: searched with swaps too (swaps cost k (n - k) structures a step: only for the promising).
 POLISH_SLACK = 2.0

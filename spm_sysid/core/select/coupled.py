@@ -36,6 +36,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from ..defaults import COUPLED_FOLDS, JOINT_FOLD_STEPS
 from ..files import json_float
 from ..model.coupled import CoupledCompiled, coupled_run, refine_coupled
 from ..model.mimo import MimoModel, augmented_inputs
@@ -46,12 +47,6 @@ from .validated import STRESS_FACTOR, block_splits, stress_inputs
 
 __all__ = ["COUPLED_FOLDS", "ESTIMATORS", "JOINT_FOLD_STEPS", "coupled_folds",
            "coupled_stress_check", "fit_least_squares", "linear_mimo", "select_coupled"]
-
-#: Held-out blocks of the coupled judgement.
-COUPLED_FOLDS = 6
-
-#: Levenberg-Marquardt evaluations of the joint refinement on a fold's rows.
-JOINT_FOLD_STEPS = 30
 
 #: How a linear finalist's coefficients are estimated: least squares (the equation
 #: error), or from there refined jointly on the coupled free-run error.

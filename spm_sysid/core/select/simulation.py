@@ -19,6 +19,7 @@ import time
 
 import numpy as np
 
+from ..defaults import FINALISTS, FOLD_STEPS, PER_SIZE, SEARCH_STEPS, SHRINK_FACTORS, SIGNIFICANCE
 from ..errors import DataError
 from ..fit.criteria import Criterion
 from ..fit.evaluator import key_mask, mask_key
@@ -36,15 +37,6 @@ __all__ = ["FINALISTS", "FOLD_STEPS", "PER_SIZE", "SEARCH_STEPS", "SIGNIFICANCE"
            "select_for_simulation", "shrink_to_hold", "simulation_value",
            "validated_simulation"]
 
-#: Levenberg-Marquardt evaluations per move of the simulation-focused local search
-#: (warm-started from the neighbour; the winner is then refined to convergence).
-SEARCH_STEPS = 30
-#: Structure sizes judged on held-out blocks after the in-sample screening (simulation),
-#: and structures of each size.
-FINALISTS = 8
-PER_SIZE = 2
-#: Levenberg-Marquardt evaluations of a fold's fit (from least squares on its rows).
-FOLD_STEPS = 100
 #: How a finalist's coefficients are estimated; each is judged on the held-out blocks
 #: and the better one of each structure competes: least squares, or least squares
 #: refined on the free-run error (which helps nonlinear structures most and on short
@@ -397,11 +389,6 @@ def linear_masks(term_space, usable: np.ndarray | None = None) -> list[np.ndarra
     return out
 
 
-#: A nonlinear finalist replaces the best linear one only when a one-sided paired test
-#: over the held-out blocks (log ratio of the two free-run MSEs per block) rejects
-#: "no better" at this level.
-SIGNIFICANCE = 0.05
-
 
 def choose_nonlinear_or_linear(scores: Scores, per_fold: list[list[float]],
                                degree: np.ndarray) -> tuple[list[int], dict]:
@@ -484,9 +471,6 @@ def _linear_free_run_sse(problem, scores: Scores, degree: np.ndarray,
                 best = min(best, float(e @ e))
     return best
 
-
-#: Factors the nonlinear coefficients are scaled by, in turn, when a structure fails the guard.
-SHRINK_FACTORS = (0.5, 0.25, 0.1)
 
 
 def shrink_to_hold(model: NarxModel, u, y, segments, linear_sse: float) -> float | None:

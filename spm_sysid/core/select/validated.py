@@ -37,6 +37,19 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..defaults import (
+    EXCITED_DIRECTIONS,
+    FOLDS,
+    INTERLEAVED_PIECES,
+    MAX_CANDIDATES,
+    MIN_BLOCK_ROWS,
+    MIN_FOLD_EXCITATION,
+    ONE_SE,
+    SIMULATION_FOLDS,
+    SIMULATION_REPEATS,
+    STRESS_FACTOR,
+    SURROGATES,
+)
 from ..fit.lstsq import reference_fit
 from ..model.segments import rows_segments
 from ..model.simulation import divergence_bounds, run_model
@@ -45,34 +58,6 @@ __all__ = ["FOLDS", "MIN_FOLD_EXCITATION", "SIMULATION_FOLDS", "SIMULATION_REPEA
            "Scores", "block_splits", "blocked_folds", "candidate_structures", "cv_scores",
            "fold_excitation", "informative_folds", "interleaved_folds", "stress_check",
            "stress_inputs", "sub_blocks", "surrogate_input"]
-
-#: Folds of validated selection.
-FOLDS = 3
-
-#: Blocks of the simulation focus, laid :data:`SIMULATION_REPEATS` times (shifted): long
-#: blocks judge long simulations, and a nonlinear structure must beat the linear ones on
-#: the sub-blocks (:func:`sub_blocks`, 9) by more than the noise of the comparison.
-SIMULATION_FOLDS = 3
-SIMULATION_REPEATS = 3
-
-#: Held-out rows a block must have to be judged on.
-MIN_BLOCK_ROWS = 20
-
-#: Structures within this many standard errors of the best held-out error count as
-#: equally good; the one with the fewest terms among them is chosen.
-ONE_SE = 1.0
-
-#: A stressed simulation may leave the measured output's range by this many spans.
-STRESS_FACTOR = 2.0
-
-#: Random-phase inputs (same amplitude spectrum as the estimation input) per segment in
-#: the guard, drawn with a fixed seed so that a selection is repeatable.
-SURROGATES = 4
-
-#: Each fold's rows must excite the linear terms at least this well, per row, as all rows
-#: do (:func:`fold_excitation`): real records give 0.65-1.0 in contiguous blocks, a step test
-#: 0-0.07 (and 0.21-0.35 in interleaved blocks).
-MIN_FOLD_EXCITATION = 0.2
 
 
 @dataclass(frozen=True)
@@ -153,9 +138,6 @@ def informative_folds(problem, k: int = FOLDS, repeats: int = 1
                 "one place, e.g. a step test)")
 
 
-#: Blocks per fold tried, in turn, when contiguous blocks leave a fold without excitation.
-INTERLEAVED_PIECES = (4, 8, 16, 32)
-
 
 def interleaved_folds(problem, k: int, pieces: int) -> list[Fold]:
     """K folds of ``pieces`` short blocks each: the record's k * pieces blocks dealt in turn.
@@ -184,10 +166,6 @@ def interleaved_folds(problem, k: int, pieces: int) -> list[Fold]:
         folds.append(Fold(outside, rows_segments(held, n, lag), rows_segments(rest, n, 0)))
     return folds
 
-
-#: Directions of the linear terms that the record excites at least this much (relative to
-#: the most excited) are the ones a fold must see too.
-EXCITED_DIRECTIONS = 1e-3
 
 
 def fold_excitation(problem, folds: list[Fold]) -> float:
@@ -452,7 +430,7 @@ def surrogate_input(u: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 
 
 def candidate_structures(problem, evaluator, shortlist: int, forward: Callable | None = None,
-                         max_candidates: int = 60) -> np.ndarray:
+                         max_candidates: int = MAX_CANDIDATES) -> np.ndarray:
     """Masks (whole term space) to judge: the short-list, a ladder of sizes, forward path.
 
     ``forward`` returns forward selection's path (masks over the usable columns).

@@ -29,31 +29,15 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..compiled.kernels import pivoted_qr
+from ..defaults import COLLINEAR_LIMIT, CONDITION_WARN, GLITCH_FACTOR, PE_TOL, ROWS_PER_TERM
 from ..errors import DataError
 
 __all__ = ["COLLINEAR_LIMIT", "DataCheck", "check_problem", "describe_check",
            "describe_glitches", "excitation_order", "glitches"]
 
-#: Relative eigenvalue below which an autocorrelation matrix is singular.
-PE_TOL = 1e-8
-
-#: Rows per candidate term below which the search may select too many terms.
-ROWS_PER_TERM = 10
-
-#: Condition number of the unit-norm candidate matrix above which a warning is given.
-CONDITION_WARN = 1e8
-
 #: Terms named on one line of the report (the document lists them all).
 SHOWN_TERMS = 20
 
-#: Spaces with more usable candidates than this skip the collinearity scan (its
-#: pivoted QR costs O(M^3)).
-COLLINEAR_LIMIT = 600
-
-
-#: A sample further from the median than this many times the 99th percentile of the
-#: distances is a glitch (a spike, a wrong unit, a bad read).
-GLITCH_FACTOR = 50.0
 
 
 def glitches(y: np.ndarray, segments=None, limit: int = 5) -> list[int]:

@@ -26,13 +26,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..defaults import DEPENDENT, HORIZON, REAL_ANGLE
+
 __all__ = ["HORIZON", "OpenLoop", "REAL_ANGLE", "independent_columns", "open_loop_check"]
-
-#: Steps ahead that integrating or unstable records are judged on (when the job sets none).
-HORIZON = 10
-
-#: A pole whose angle (radians) is below this counts as real.
-REAL_ANGLE = 0.05
 
 
 @dataclass(frozen=True)
@@ -80,10 +76,6 @@ class OpenLoop:
                 "free_run_applies": self.free_run_applies,
                 **({"reason": self.reason()} if not self.free_run_applies else {})}
 
-
-#: A column whose part not explained by the columns before it is below this share of its
-#: norm repeats them (an input equal or proportional to the output, a constant signal).
-DEPENDENT = 1e-9
 
 
 def independent_columns(X: np.ndarray) -> np.ndarray:

@@ -1,0 +1,160 @@
+"""Every tuning constant of the identification, in one place, each with its reason.
+
+In the spirit of python-control's ``config.defaults``: the numbers that decide
+how a structure is searched, judged, guarded and certified live here, not in the
+modules that use them (those import them by name). Help texts that quote one
+(the settings schema, warnings) are written from here too, so a number is
+changed once. Settings a user chooses (the schema, :mod:`spm_sysid.core.settings`)
+are not here: these are the engine's own.
+
+Budgets are in work, not seconds, where a result should not depend on the
+machine's speed (the polish counts structures scored); time limits are where a
+user asked for one (``certify_time_limit``, ``job_timeout``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+# -- the data and the candidate matrix --------------------------------------------------
+
+#: Rows per usable candidate term below which an in-sample criterion can overfit badly:
+#: the data check warns, ``selection: auto`` validates, and no structure of more than
+#: one term per this many rows is judged on held-out blocks.
+ROWS_PER_TERM = 10
+
+#: A model of more terms than one per ``ROWS_PER_TERM`` rows is warned about, and
+#: validated selection judges no structure larger than this many terms either
+#: (forward selection's path, the restarts of the certification's incumbent).
+MAX_JUDGED_TERMS = 60
+
+#: Relative eigenvalue below which an input's autocorrelation matrix is singular.
+PE_TOL = 1e-8
+
+#: Condition number of the unit-norm candidate matrix above which the data check warns.
+CONDITION_WARN = 1e8
+
+#: Spaces with more usable candidates skip the data check's collinearity scan (O(M^3)).
+COLLINEAR_LIMIT = 600
+
+#: A sample further from the median than this many 99th percentiles of the distances
+#: is a glitch (a spike, a wrong unit, a bad read).
+GLITCH_FACTOR = 50.0
+
+#: Squared relative pivot below which a term is a combination of the others: a term
+#: reproduced by the others to within a relative residual of about 3e-5.
+RANK_TOL = 1e-9
+
+#: SSE below which a fit is exact to rounding, relative to the target's norm squared:
+#: exact fits then score alike and the fewest terms win.
+SSE_FLOOR_RELATIVE = 1e3 * np.finfo(float).eps
+
+# -- the search -------------------------------------------------------------------------
+
+#: Structures the polish after the GA may score (a count, not seconds: the same seed
+#: gives the same result on any machine).
+POLISH_STRUCTURES = 50_000
+#: Structures of more terms than this cost more to fit (about k^2): the polish of a
+#: structure of k terms scores at most POLISH_STRUCTURES * (POLISH_TERMS / k)^2 of them,
+#: so a large model's polish does not take many times its GA's time.
+POLISH_TERMS = 20
+#: Kicks of the iterated local search after the first local optimum (within the budget).
+POLISH_KICKS = 1000
+#: Terms a kick flips: from POLISH_FLIPS[0] to POLISH_FLIPS[1] - 1 (the GA's best and the
+#: optimum typically differ in 8-11 terms when the GA misses: a kick must reach that far).
+POLISH_FLIPS = (4, 12)
+
+#: Spaces of at most this many usable terms are certified after the GA by default.
+AUTO_CERTIFY_TERMS = 120
+
+# -- choosing on held-out blocks ----------------------------------------------------------
+
+#: Held-out blocks of validated selection (focus prediction).
+FOLDS = 3
+
+#: Blocks of the simulation focus, laid SIMULATION_REPEATS times (shifted): long blocks
+#: judge long simulations, and a nonlinear structure must beat the linear ones on the
+#: sub-blocks (9) by more than the noise of the comparison.
+SIMULATION_FOLDS = 3
+SIMULATION_REPEATS = 3
+
+#: Structures judged on held-out blocks at most (the GA's best, a ladder of sizes and
+#: forward selection's path share them).
+MAX_CANDIDATES = 60
+
+#: Held-out rows a block must have to be judged on.
+MIN_BLOCK_ROWS = 20
+
+#: Each fold's rows must excite the linear terms at least this well, per row, as all rows
+#: do: real records give 0.65-1.0 in contiguous blocks, a step test 0-0.07 (and
+#: 0.21-0.35 in interleaved blocks).
+MIN_FOLD_EXCITATION = 0.2
+
+#: Directions of the linear terms the record excites at least this much (relative to the
+#: most excited) are the ones each fold must see too.
+EXCITED_DIRECTIONS = 1e-3
+
+#: Blocks per fold tried, in turn, when contiguous blocks leave a fold without excitation.
+INTERLEAVED_PIECES = (4, 8, 16, 32)
+
+#: Structures within this many standard errors of the best held-out error count as
+#: equally good; the one with the fewest terms among them is chosen.
+ONE_SE = 1.0
+
+#: A held-out error this many times the in-sample error is reported as overfitting.
+OVERFIT_RATIO = 3.0
+
+#: A nonlinear finalist replaces the best linear one only when a one-sided paired test
+#: over the held-out blocks (log ratio of the two free-run MSEs per block) rejects "no
+#: better" at this level: one test, so that many finalists cannot pass one by chance.
+SIGNIFICANCE = 0.05
+
+# -- the simulation focus ---------------------------------------------------------------
+
+#: Levenberg-Marquardt evaluations per move of the simulation-focused search and of the
+#: in-sample screening (warm-started; the winner is refined to convergence).
+SEARCH_STEPS = 30
+
+#: Structure sizes judged on held-out blocks after the screening, and structures per size.
+FINALISTS = 8
+PER_SIZE = 2
+
+#: Levenberg-Marquardt evaluations of a fold's fit (from least squares on its rows).
+FOLD_STEPS = 100
+
+#: The k of the k-step prediction that integrating or unstable records are judged on.
+HORIZON = 10
+
+#: A pole whose angle (radians) is below this counts as real (the open-loop check).
+REAL_ANGLE = 0.05
+
+#: A column whose part not explained by the columns before it is below this share of its
+#: norm repeats them (the open-loop check drops it before it reads the poles).
+DEPENDENT = 1e-9
+
+# -- the stability guard ----------------------------------------------------------------
+
+#: A stressed simulation may leave the measured output's range by this many spans.
+STRESS_FACTOR = 2.0
+
+#: Random-phase inputs per segment in the guard (fixed seed: a selection is repeatable).
+SURROGATES = 4
+
+#: Factors the nonlinear coefficients are scaled by, in turn, when a structure fails the
+#: guard (the linear ones kept: they carry the dynamics).
+SHRINK_FACTORS = (0.5, 0.25, 0.1)
+
+#: A free run leaves the measured output's range by this many spans: it diverged.
+DIVERGENCE_FACTOR = 10.0
+
+# -- several outputs --------------------------------------------------------------------
+
+#: Held-out blocks of the coupled judgement, and Levenberg-Marquardt evaluations of a
+#: fold's joint refinement.
+COUPLED_FOLDS = 6
+JOINT_FOLD_STEPS = 30
+
+# -- uncertainty ------------------------------------------------------------------------
+
+#: Confidence level of the intervals and bands.
+LEVEL = 0.95
