@@ -18,7 +18,8 @@ from spm_sysid.core.model.narx import NarxModel
 from spm_sysid.core.model.terms import TermSpace
 from spm_sysid.core.model.uncertainty import output_band
 from spm_sysid.core.search.certify import certify
-from spm_sysid.core.select.validated import blocked_folds, stress_check, surrogate_input
+from spm_sysid.core.select.folds import blocked_folds
+from spm_sysid.core.select.guard import stress_check, surrogate_input
 from spm_sysid.core.validate.excitation import check_problem, excitation_order
 
 from .conftest import EQ1, ROOT, eq1_model, sine_record

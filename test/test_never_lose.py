@@ -11,9 +11,10 @@ from spm_sysid.core.model.mimo import MimoModel, augmented_inputs, output_space
 from spm_sysid.core.model.narx import NarxModel
 from spm_sysid.core.model.terms import TermSpace
 from spm_sysid.core.record import Record
+from spm_sysid.core.select.call import paired_p_value
 from spm_sysid.core.select.coupled import coupled_stress_check, select_coupled
-from spm_sysid.core.select.simulation import linear_masks, paired_p_value
-from spm_sysid.core.select.validated import stress_check
+from spm_sysid.core.select.guard import stress_check
+from spm_sysid.core.select.simulation import linear_masks
 from spm_sysid.core.validate.open_loop import open_loop_check
 
 SPACE = TermSpace(ny=2, nu=2, degree=2, constant=True)
@@ -202,7 +203,7 @@ def test_several_outputs_are_judged_coupled_and_orders_auto_covers_them():
 def test_shrinking_the_nonlinear_terms_makes_a_diverging_model_hold():
     """y(t) = 0.5 y(t-1) + 0.6 y(t-1) u(t-1): stable while u < 0.83; the record's input
     reaches 2. Scaled by 0.5 the pole is 1.1 at u = 2; by 0.25 it is 0.8: kept."""
-    from spm_sysid.core.select.simulation import shrink_to_hold
+    from spm_sysid.core.select.guard import shrink_to_hold
 
     ts = TermSpace(ny=1, nu=1, degree=2)
     names = ts.term_names()
@@ -212,10 +213,10 @@ def test_shrinking_the_nonlinear_terms_makes_a_diverging_model_hold():
     y = np.r_[1.0, np.full(399, 1e-3)]
     segments = [(0, 400)]
     assert stress_check(model, u, y, segments) is not None
-    assert shrink_to_hold(model, u, y, segments, linear_sse=np.inf) == 0.25
-    np.testing.assert_allclose(model.coefficients, [0.5, 0.15])
-    assert stress_check(model, u, y, segments) is None
+    factor, coefficients = shrink_to_hold(model, u, y, segments, linear_sse=np.inf)
+    assert factor == 0.25
+    np.testing.assert_allclose(coefficients, [0.5, 0.15])
+    np.testing.assert_allclose(model.coefficients, [0.5, 0.6])  # the model given is kept
+    assert stress_check(model.with_coefficients(coefficients), u, y, segments) is None
     # not kept when it would simulate the data worse than the best linear model does
-    model.coefficients = np.array([0.5, 0.6])
     assert shrink_to_hold(model, u, y, segments, linear_sse=0.0) is None
-    np.testing.assert_allclose(model.coefficients, [0.5, 0.6])

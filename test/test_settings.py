@@ -224,30 +224,74 @@ def test_diagnostics_of_a_coupled_model_of_two_outputs():
     assert "/n (q1): correlation ee" in st
 
 
-def test_a_setting_added_to_the_schema_reaches_every_layer(monkeypatch, capsys):
-    """One schema entry, no other edit: the command line, the node, its YAML and the job."""
+def test_a_setting_added_to_the_schema_reaches_the_command_line_the_node_and_its_yaml(
+        monkeypatch, capsys):
+    """One schema entry: the command line offers it, the node declares it, the YAML has it."""
     from spm_sysid.core import settings as schema
-    from spm_sysid.core.identify import identify_problem
-    from spm_sysid.core.jobs.settings import OPTION_GROUPS
     from spm_sysid.tools.cli import build_parser
 
     knob = schema.Setting("test_knob", int, 3, "a knob this test adds", "criterion",
                           low=0, high=9)
     monkeypatch.setattr(schema, "_LIST", [*schema._LIST, knob])
     monkeypatch.setitem(schema.SETTINGS, "test_knob", knob)
-    assert knob.group in OPTION_GROUPS
     with pytest.raises(SystemExit):
         build_parser().parse_args(["identify", "--help"])
     assert "--test-knob" in capsys.readouterr().out  # the command line offers it
     assert knob in schema.node_settings()  # the node declares it as a parameter
     assert "    test_knob: 3  # a knob this test adds" in schema.node_yaml()
-    job = JobSettings.from_values({"test_knob": 5})
-    assert job.test_knob == 5 and JobSettings.from_values({}).test_knob == 3  # the job
-    with pytest.raises(SettingsError, match="test_knob"):
-        JobSettings.from_values({"test_knob": 12})  # checked once, at the edge
 
-    def search(problem, *, test_knob=0, criterion="aic"):  # code that uses it: a keyword
-        return test_knob
 
-    assert search(None, **job.options_for(search)) == 5
-    assert "test_knob" not in job.options_for(identify_problem)
+def test_the_typed_settings_hold_every_job_setting_of_the_schema_and_no_other():
+    """A setting added to the schema must be a typed field (else this fails): none is
+    passed on by a keyword that happens to have its name."""
+    from dataclasses import fields
+
+    from spm_sysid.core.jobs.settings import JOB_FIELDS
+    from spm_sysid.core.options import SearchOptions
+    from spm_sysid.core.settings import JOB_GROUPS, SETTINGS
+
+    held = [n for names in JOB_FIELDS.values() for n in names]
+    assert len(held) == len(set(held))
+    assert set(held) == {n for n, st in SETTINGS.items() if st.group in JOB_GROUPS}
+    for f in fields(SearchOptions):
+        if f.name in SETTINGS and f.name != "seed":
+            assert f.default == SETTINGS[f.name].default, f.name
+    with pytest.raises(AttributeError):
+        JobSettings().no_such_setting  # noqa: B018 - no name matching any more
+
+
+def _non_default(name: str):
+    from spm_sysid.core.settings import SETTINGS
+
+    st = SETTINGS[name]
+    if st.choices:
+        return next(c for c in st.choices if c != st.default)
+    if st.kind is bool:
+        return not st.default
+    if name == "seed":
+        return 7
+    return st.kind(st.low if st.low is not None and st.low != st.default else st.default + 1)
+
+
+def test_every_search_setting_reaches_a_studys_runs(robot_arm):
+    """Each search setting of the schema (a new one included) set in a study reaches the
+    options its runs search with; and one run shows it end to end."""
+    from spm_sysid.core.options import SEARCH_SETTINGS
+    from spm_sysid.tools.experiment import ExperimentConfig, run_experiment
+
+    # a study refuses certify; grids the criterion; seeds each run from its own first seed
+    skip = {"certify", "auto_certify_time_limit", "criterion", "seed"}
+    for name in SEARCH_SETTINGS:
+        if name in skip:
+            continue
+        value = _non_default(name)
+        config = ExperimentConfig(criteria=["bic"], populations=[20], spm_fractions=[0.0],
+                                  runs=1, **{name: value})
+        search = config.job("bic", 20, 0.0).search
+        assert getattr(search, name) == value, name
+    u, y = robot_arm
+    config = ExperimentConfig(criteria=["bic"], populations=[20], spm_fractions=[0.0],
+                              runs=2, generations=5, init_terms=4.0, max_terms=5,
+                              certify_reference=False, workers=1)
+    records = run_experiment(u, y, config)
+    assert len(records) == 2 and all(r.n_terms <= 5 for r in records), records.failures

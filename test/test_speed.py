@@ -12,6 +12,7 @@ from spm_sysid.bench.certify import CASES
 from spm_sysid.core.fit.problem import Problem
 from spm_sysid.core.identify import identify, identify_problem
 from spm_sysid.core.model.terms import TermSpace
+from spm_sysid.core.options import SearchOptions
 from spm_sysid.core.search.local import local_search
 
 from .conftest import EQ1, ROOT
@@ -106,9 +107,10 @@ def test_the_polish_never_worsens_the_ga_and_is_a_local_optimum(case, criterion)
     problem = Problem.from_signals(u, y, TermSpace())
     for seed in (1, 2):
         kw = dict(criterion=criterion, seed=seed, auto_certify_time_limit=0,
-                  selection="criterion", check_data=False)
-        alone = identify_problem(problem, polish=False, **kw).model
-        polished = identify_problem(problem, **kw).model
+                  selection="criterion")
+        alone = identify_problem(problem, SearchOptions(polish=False, **kw),
+                                 check_data=False).model
+        polished = identify_problem(problem, SearchOptions(**kw), check_data=False).model
         doc = polished.metadata["polish"]
         assert doc["ga_value"] == pytest.approx(alone.criterion_value, abs=1e-9)
         assert polished.criterion_value <= alone.criterion_value + 1e-9
@@ -123,10 +125,10 @@ def test_the_polish_never_worsens_the_ga_and_is_a_local_optimum(case, criterion)
 def test_the_polish_budget_is_a_count_so_results_repeat():
     u, y = CASES["ar-0.90"]()
     problem = Problem.from_signals(u, y, TermSpace())
-    a = identify_problem(problem, criterion="aic", seed=3, auto_certify_time_limit=0,
-                         selection="criterion").model
-    b = identify_problem(problem, criterion="aic", seed=3, auto_certify_time_limit=0,
-                         selection="criterion").model
+    options = SearchOptions(criterion="aic", seed=3, auto_certify_time_limit=0,
+                            selection="criterion")
+    a = identify_problem(problem, options).model
+    b = identify_problem(problem, options).model
     assert a.terms == b.terms and a.metadata["polish"] == b.metadata["polish"]
     from spm_sysid.core.search.local import POLISH_STRUCTURES
 

@@ -8,15 +8,11 @@ see the input's effect and the simulation focus lost the model).
 import numpy as np
 import pytest
 
+from spm_sysid.core.defaults import MIN_FOLD_EXCITATION
 from spm_sysid.core.fit.problem import Problem
 from spm_sysid.core.identify import identify
 from spm_sysid.core.model.terms import TermSpace
-from spm_sysid.core.select.validated import (
-    MIN_FOLD_EXCITATION,
-    blocked_folds,
-    fold_excitation,
-    informative_folds,
-)
+from spm_sysid.core.select.folds import blocked_folds, fold_excitation, informative_folds
 
 EXACT = ["y(t-1)", "u(t-1)"]
 

@@ -154,6 +154,7 @@ def calls(seeds: int) -> None:
     from ..core.fit.problem import Problem
     from ..core.identify import identify_problem
     from ..core.model.terms import TermSpace
+    from ..core.options import SearchOptions
 
     space = TermSpace(ny=2, nu=2, degree=2, constant=True)
     print(f"the linear/nonlinear call over {seeds} seeds (800 samples, (2, 2, 2) with a "
@@ -164,9 +165,9 @@ def calls(seeds: int) -> None:
             hits = 0
             for seed in range(seeds):
                 u, y = _systems(kind, seed)
-                model = identify_problem(Problem.from_signals(u, y, space), criterion="bic",
-                                         seed=0, focus="simulation", simulation_folds=k,
-                                         simulation_repeats=repeats).model
+                model = identify_problem(Problem.from_signals(u, y, space), SearchOptions(
+                    criterion="bic", seed=0, focus="simulation", simulation_folds=k,
+                    simulation_repeats=repeats)).model
                 hits += model.metadata["selection"]["linear_or_nonlinear"]["choice"] \
                     == "nonlinear"
             counts[kind] = hits

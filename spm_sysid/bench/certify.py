@@ -145,6 +145,7 @@ def reach(cases: list[str], criteria: list[str], seeds: int, time_limit: float,
     from ..core.fit.problem import Problem
     from ..core.identify import identify_problem
     from ..core.model.terms import TermSpace
+    from ..core.options import SearchOptions
     from ..core.search.certify import certify
 
     print(f"\nGA (paper settings) alone and with the polish, seeds {first_seed}.."
@@ -165,9 +166,9 @@ def reach(cases: list[str], criteria: list[str], seeds: int, time_limit: float,
                 runs = {}
                 for polish in (False, True):
                     t0 = time.perf_counter()
-                    res = identify_problem(problem, criterion=crit, seed=seed, polish=polish,
-                                           auto_certify_time_limit=0, selection="criterion",
-                                           check_data=False)
+                    res = identify_problem(problem, SearchOptions(
+                        criterion=crit, seed=seed, polish=polish, auto_certify_time_limit=0,
+                        selection="criterion"), check_data=False)
                     runs[polish] = (res.model.criterion_value, time.perf_counter() - t0)
                 ga_hits += runs[False][0] <= opt.value + 1e-6
                 polish_hits += runs[True][0] <= opt.value + 1e-6

@@ -219,11 +219,8 @@ def _one_run(task: tuple) -> RunRecord:
     problem, config = _WORKER["problem"], _WORKER["config"]
     job = config.job(criterion, population, spm)
     t0 = time.perf_counter()
-    ident = identify_problem(problem, criterion=job.criterion, ga=job.ga, seed=seed,
-                             focus=job.focus, shortlist=job.shortlist, selection=job.selection,
-                             max_terms=job.max_terms, check_data=False, polish=job.polish,
-                             auto_certify_time_limit=job.auto_certify_time_limit,
-                             certify_time_limit=job.certify_time_limit if job.certify else None)
+    # the cell's settings, every one of them (a setting added to the schema reaches here)
+    ident = identify_problem(problem, job.search.with_seed(seed), ga=job.ga, check_data=False)
     model = ident.model
     seconds = time.perf_counter() - t0
     free = metrics(model.measured(problem.y, problem.segments),

@@ -30,6 +30,7 @@ CERTIFIABLE = ("aic", "aicc", "bic")
 
 __all__ = [
     "CERTIFIABLE",
+    "standardised_value",
     "CRITERIA",
     "Criterion",
     "aic",
@@ -183,3 +184,18 @@ def get_criterion(criterion: str | Criterion | Callable[..., float]) -> Criterio
     if callable(criterion):
         return _from_scalar(criterion)
     raise TypeError(f"criterion must be a name, a Criterion or a callable, got {criterion!r}")
+
+
+def standardised_value(criterion: Criterion, sse: float, rows: int, k: int,
+                       beta: np.ndarray) -> float:
+    """The criterion of one structure of ``k`` terms: its SSE, its coefficients standardised.
+
+    ``beta`` (1, n) holds the coefficients scaled as the search scores them (each
+    by its column's norm over the target's norm; zeros for terms not in the
+    structure, or the structure's own only): criteria that weigh coefficients
+    (PMIC2) see the same numbers whatever estimated them. The caller floors the
+    SSE as its errors need. Not finite: +inf.
+    """
+    v = float(criterion(np.array([sse]), rows, np.array([k]),
+                        np.atleast_2d(np.asarray(beta, dtype=float)))[0])
+    return v if np.isfinite(v) else np.inf

@@ -1,23 +1,29 @@
-"""A job's settings: one frozen object built once, at the edge, from the settings schema.
+"""A job's settings: one frozen, typed object built once, at the edge, from the schema.
 
-:class:`JobSettings` is what a job needs besides the data (term space, GA,
-criterion, validation, selection, certification); it is checked once when
-built (:meth:`JobSettings.from_values`) and nothing after it checks again.
+:class:`JobSettings` is what a job needs besides the data: the term space, the GA,
+the search (:class:`~spm_sysid.core.options.SearchOptions`), how the orders are
+chosen, the validation and the data's timeline. It is checked once when built
+(:meth:`JobSettings.from_values`) and nothing after it checks again. Every
+field has the name of its setting in the schema (:mod:`spm_sysid.core.settings`);
+a test holds the two against each other, so a setting added to the schema must
+be added here (and reaches every caller), and none is passed on by a name that
+happens to match.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
 from ..errors import SettingsError
 from ..fit.criteria import get_criterion
 from ..model.terms import TermSpace
+from ..options import SEARCH_SETTINGS, SearchOptions
 from ..search.ga import GAConfig
-from ..settings import check, defaults
+from ..settings import SETTINGS, check
 
-__all__ = ["JobSettings"]
+__all__ = ["JOB_FIELDS", "JobSettings"]
 
 
 _TERM_FIELDS = ("ny", "nu", "degree", "delay", "constant")
@@ -25,39 +31,48 @@ _GA_FIELDS = ("population_size", "generations", "crossover_prob", "mutation_prob
               "spm_fraction", "fitness", "init_terms", "mutation_per_structure", "elitism")
 
 
-#: The schema's groups whose settings a job carries as options (besides the term space
-#: and the GA): a setting added to the schema in one of them reaches every job.
-OPTION_GROUPS = ("criterion", "validation", "data")
-
-
 @dataclass(frozen=True)
 class JobSettings:
     """Everything a job needs besides the data; build it with :meth:`from_values`.
-
-    Built once, at the edge (a command's options, a node parameter or goal, the
-    Python API), from the settings schema (:mod:`spm_sysid.core.settings`), and
-    never checked again after that.
 
     Attributes
     ----------
     term_space : TermSpace
     ga : GAConfig
-    options : dict
-        Every other job setting of the schema (groups :data:`OPTION_GROUPS`), by
-        its schema name, checked; each is also an attribute (``settings.criterion``,
-        ``settings.validation`` ...). ``criterion`` is lower case and registered;
-        ``seed`` is None for the schema's -1 (a new random seed).
+    search : SearchOptions
+        How the structure is searched, chosen and fitted.
+    orders : str
+        ``given`` or ``auto`` (the lags and degree proposed from the data).
+    validation, validation_split, correlation_lags : see the schema
+    sample_period, gap_factor : see the schema
     """
 
     term_space: TermSpace = field(default_factory=TermSpace)
     ga: GAConfig = field(default_factory=GAConfig)
-    options: dict = field(default_factory=lambda: JobSettings.from_values({}).options)
+    search: SearchOptions = field(default_factory=SearchOptions)
+    orders: str = SETTINGS["orders"].default
+    validation: str = SETTINGS["validation"].default
+    validation_split: float = SETTINGS["validation_split"].default
+    correlation_lags: int = SETTINGS["correlation_lags"].default
+    sample_period: float = SETTINGS["sample_period"].default
+    gap_factor: float = SETTINGS["gap_factor"].default
 
-    def __getattr__(self, name: str) -> Any:
-        options = self.__dict__.get("options")
-        if name.startswith("__") or options is None or name not in options:
-            raise AttributeError(f"JobSettings has no setting {name!r}")
-        return options[name]
+    # the search's settings the rest of a job reads too (read-only views)
+    @property
+    def criterion(self) -> str:
+        return self.search.criterion
+
+    @property
+    def seed(self) -> int | None:
+        return self.search.seed
+
+    @property
+    def focus(self) -> str:
+        return self.search.focus
+
+    @property
+    def horizon(self) -> int:
+        return self.search.horizon
 
     @classmethod
     def from_values(cls, values: Mapping[str, Any], inputs: tuple[str, ...] = (),
@@ -69,33 +84,27 @@ class JobSettings:
         the number of inputs). Raises SettingsError (a ValueError) naming the first
         invalid setting.
         """
-        v = defaults((*OPTION_GROUPS, "term_space", "ga"))
-        v.update({k: values[k] for k in v if k in values and values[k] is not None})
-        options = {name: check(name, v[name]) for name in defaults(OPTION_GROUPS)}
-        options["criterion"] = options["criterion"].lower()
+        given = {k: v for k, v in values.items() if v is not None}
+
+        def value(name: str):
+            return check(name, given[name]) if name in given else SETTINGS[name].default
+
+        def raw(name: str):  # the term space and the GA check their own (nu per input ...)
+            return given.get(name, SETTINGS[name].default)
+
+        search = SearchOptions.from_values({**{k: value(k) for k in SEARCH_SETTINGS},
+                                            **{k: given[k] for k in ("simulation_folds",
+                                                                     "simulation_repeats")
+                                               if k in given}})
         try:
-            get_criterion(options["criterion"])
+            get_criterion(search.criterion)
         except (KeyError, ValueError) as exc:
             raise SettingsError(str(exc).strip("'\"")) from None
-        if options["seed"] < 0:
-            options["seed"] = None
+        own = {f.name: value(f.name) for f in fields(cls) if f.name in SETTINGS}
         return cls(
-            term_space=TermSpace(**{k: v[k] for k in _TERM_FIELDS}, inputs=tuple(inputs),
+            term_space=TermSpace(**{k: raw(k) for k in _TERM_FIELDS}, inputs=tuple(inputs),
                                  output=output),
-            ga=GAConfig(**{k: v[k] for k in _GA_FIELDS}),
-            options=options,
-        )
-
-    def options_for(self, fn) -> dict[str, Any]:
-        """The options that ``fn`` takes as keywords of the same name (its signature decides).
-
-        A setting added to the schema reaches a function of the search by its name
-        alone: the code that uses it takes a keyword of that name.
-        """
-        import inspect
-
-        params = inspect.signature(fn).parameters
-        return {k: v for k, v in self.options.items() if k in params}
+            ga=GAConfig(**{k: raw(k) for k in _GA_FIELDS}), search=search, **own)
 
     def for_signals(self, inputs: tuple[str, ...], output: str) -> JobSettings:
         """These settings with the term space naming a record's signals.
@@ -106,8 +115,6 @@ class JobSettings:
             Per-input settings (``nu``, ``delay``) that do not fit the number of
             inputs.
         """
-        from dataclasses import replace
-
         if (tuple(inputs), output) == (self.term_space.inputs, self.term_space.output):
             return self
         try:
@@ -115,3 +122,8 @@ class JobSettings:
         except ValueError as exc:
             raise SettingsError(str(exc)) from None
         return replace(self, term_space=space)
+
+
+#: Every job setting of the schema, by where :class:`JobSettings` keeps it.
+JOB_FIELDS = {"term_space": _TERM_FIELDS, "ga": _GA_FIELDS, "search": SEARCH_SETTINGS,
+              "job": tuple(f.name for f in fields(JobSettings) if f.name in SETTINGS)}

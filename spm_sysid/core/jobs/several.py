@@ -65,6 +65,9 @@ class MimoJobResult:
         The data account (as a single-output job gives it).
     seconds : dict
         ``total`` and per output.
+    times : ndarray or None
+        Seconds of the reports' rows (from the record's stamps), as the job chose
+        them; None without stamps or validation.
     """
 
     model: MimoModel
@@ -72,6 +75,7 @@ class MimoJobResult:
     cross_tests: list[CorrelationTest]
     data: dict
     seconds: dict = field(default_factory=dict)
+    times: np.ndarray | None = None
 
     @property
     def output_names(self) -> tuple[str, ...]:
@@ -270,7 +274,7 @@ def _choose_mimo_orders(record: Record, base) -> tuple[Any, dict]:
            "reason": "the largest of the outputs' proposals: " + "; ".join(
                f"{k}: order {w['ny']}, degree {w['degree']}" for k, w in per.items()),
            "per_output": per}
-    return replace(base, term_space=chosen, options={**base.options, "orders": "given"}), doc
+    return replace(base, term_space=chosen, orders="given"), doc
 
 
 def run_mimo_job(record: Record, settings, *, progress: ProgressFn | None = None,
@@ -353,4 +357,5 @@ def run_mimo_job(record: Record, settings, *, progress: ProgressFn | None = None
     seconds["total"] = time.perf_counter() - t0
     model.metadata["identify_seconds"] = round(seconds["total"], 4)
     model.metadata.update(metadata or {})
-    return MimoJobResult(model, outputs, cross, data, seconds)
+    times = record.row_seconds(val, model.max_lag) if settings.validation != "none" else None
+    return MimoJobResult(model, outputs, cross, data, seconds, times)

@@ -62,6 +62,12 @@ class JobResult:
         Samples the fit used.
     seconds : dict
         ``search``, ``validation`` and ``total`` wall-clock seconds.
+    validation_segments : list of (start, stop)
+        The samples the report validated on (as the job chose them: with
+        ``orders: auto`` the lags, and so the rows, are the chosen space's).
+    times : ndarray or None
+        Seconds of the report's rows (from the record's stamps), None without
+        stamps or validation.
     """
 
     model: NarxModel
@@ -70,6 +76,8 @@ class JobResult:
     data: dict
     estimation_samples: int
     seconds: dict = field(default_factory=dict)
+    validation_segments: list = field(default_factory=list)
+    times: np.ndarray | None = None
 
     @property
     def residuals(self) -> np.ndarray:
@@ -171,37 +179,16 @@ def describe_selection(doc: dict | None) -> str:
 def choose_orders(record: Record, settings: JobSettings, est) -> tuple[JobSettings, dict]:
     """``orders: auto``: the settings with the lags and degree proposed from the data, and why.
 
-    The proposal (:func:`~spm_sysid.core.validate.orders.propose_orders`) runs on
-    the longest estimation segment, with the job's criterion when it is AIC or
-    BIC (else BIC): ``ny = nu`` = the order whose full linear model scores best,
-    the degree whose forward selection scores best.
+    The proposal runs on the longest estimation segment
+    (:func:`~spm_sysid.core.validate.orders.orders_from_data`).
     """
     from dataclasses import replace
 
-    from ..validate.orders import propose_orders
+    from ..validate.orders import orders_from_data
 
-    a, b = max(est, key=lambda seg: seg[1] - seg[0])
-    space = settings.term_space
-    crit = settings.criterion if settings.criterion in ("aic", "bic") else "bic"
-    delay = min(space.delays)
-    try:
-        proposal = propose_orders(record.u[a:b], record.y[a:b], delay=delay, criterion=crit,
-                                  inputs=space.inputs)
-    except ValueError as exc:
-        raise DataError(f"orders: auto cannot propose lags on this data ({exc}); give ny, nu "
-                        "and degree") from None
-    n, d = proposal.order, proposal.degree
-    chosen = replace(space, ny=n, nu=n, degree=d)
-    why = {"mode": "auto", "ny": n, "nu": n, "degree": d, "criterion": proposal.criterion,
-           "samples": int(b - a),
-           "reason": f"order {n}: the full linear model of lags 1..n scores best by "
-                     f"{proposal.criterion.upper()} among 1..{len(proposal.order_scan)}; "
-                     f"degree {d}: forward selection scores best among "
-                     f"{', '.join(str(row[0]) for row in proposal.degree_scan)}",
-           "order_scan": [[int(k), float(v)] for k, v in proposal.order_scan],
-           "degree_scan": [[int(row[0]), int(row[1]), float(row[2]), int(row[3])]
-                           for row in proposal.degree_scan]}
-    return replace(settings, term_space=chosen), why
+    space, why = orders_from_data(record.u, record.y, est, settings.term_space,
+                                  settings.criterion)
+    return replace(settings, term_space=space), why
 
 
 def validation_segments(record: Record, settings: JobSettings
@@ -293,10 +280,8 @@ def run_single_job(
             report(p)
 
     problem = Problem.from_signals(u, y, space, est)
-    # every option the search takes, by its name (a new setting needs no edit here)
-    search = settings.options_for(identify_problem)
-    search["certify_time_limit"] = settings.certify_time_limit if settings.certify else None
-    ident = identify_problem(problem, ga=settings.ga, **search, progress=throttled, started=t0)
+    ident = identify_problem(problem, settings.search, ga=settings.ga, progress=throttled,
+                             started=t0)
     t1 = time.perf_counter()
     model = ident.model
     validation = None
@@ -316,5 +301,7 @@ def run_single_job(
     model.metadata.update(record.metadata())
     model.metadata["identify_seconds"] = round(seconds["total"], 4)
     model.metadata.update(metadata or {})
+    times = record.row_seconds(val, space.max_lag) if validation is not None else None
     return JobResult(model=model, report=validation, search=ident.ga, data=data,
-                     estimation_samples=problem.n_samples, seconds=seconds)
+                     estimation_samples=problem.n_samples, seconds=seconds,
+                     validation_segments=list(val), times=times)

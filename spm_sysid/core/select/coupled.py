@@ -17,10 +17,10 @@ free run:
   one also refined there) and simulated coupled over the block from its first
   samples; the error is the sum over outputs of the MSE divided by the output's
   variance; a run that leaves an output's range rejects the finalist;
-* **choice** -- the best linear finalist, unless a nonlinear one simulates the
-  blocks better by more than the noise of that comparison
-  (:func:`~spm_sysid.core.select.simulation.paired_p_value`, the single-output
-  rule);
+* **choice** -- the one linear/nonlinear call of single-output selection
+  (:func:`~spm_sysid.core.select.call.linear_or_nonlinear`): the best linear
+  finalist, unless a nonlinear one simulates the blocks better by more than the
+  noise of that comparison;
 * **guard** -- the chosen model, fitted on all data, must stay in range coupled,
   driven by every segment's input, shifted, reversed and with random phases
   (:func:`coupled_stress_check`); otherwise the next finalist.
@@ -36,21 +36,25 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..defaults import COUPLED_FOLDS, JOINT_FOLD_STEPS
+from ..defaults import COUPLED_FOLDS, JOINT_FOLD_STEPS, SIGNIFICANCE, STRESS_FACTOR
 from ..files import json_float
+from ..fit.criteria import get_criterion, standardised_value
 from ..model.coupled import CoupledCompiled, coupled_run, refine_coupled
 from ..model.mimo import MimoModel, augmented_inputs
 from ..model.narx import NarxModel
 from ..model.segments import rows_segments
-from .simulation import SIGNIFICANCE, linear_masks, paired_p_value
-from .validated import STRESS_FACTOR, block_splits, stress_inputs
+from .call import linear_or_nonlinear
+from .folds import block_splits
+from .guard import stress_inputs
+from .scores import mean_and_stderr
+from .simulation import linear_masks
 
-__all__ = ["COUPLED_FOLDS", "ESTIMATORS", "JOINT_FOLD_STEPS", "coupled_folds",
+__all__ = ["COUPLED_ESTIMATORS", "COUPLED_FOLDS", "JOINT_FOLD_STEPS", "coupled_folds",
            "coupled_stress_check", "fit_least_squares", "linear_mimo", "select_coupled"]
 
 #: How a linear finalist's coefficients are estimated: least squares (the equation
 #: error), or from there refined jointly on the coupled free-run error.
-ESTIMATORS = ("least squares", "jointly refined")
+COUPLED_ESTIMATORS = ("least squares", "jointly refined")
 
 
 def coupled_folds(segments: list[tuple[int, int]], n: int, lag: int, k: int = COUPLED_FOLDS
@@ -147,6 +151,24 @@ def coupled_stress_check(model: MimoModel, u: np.ndarray, Y: np.ndarray,
     return None
 
 
+def _fold_errors(model: MimoModel, how: str, folds, u, Y, scale) -> list[float]:
+    """The finalist's coupled held-out error on each fold (NaN: not fitted there)."""
+    row = []
+    for held, train in folds:
+        fitted = fit_least_squares(model, u, Y, train)
+        if fitted is None:
+            row.append(np.nan)
+            continue
+        if how == "jointly refined":
+            fitted, _ = refine_coupled(fitted, u, Y, train, max_evaluations=JOINT_FOLD_STEPS)
+        row.append(_held_out_error(fitted, u, Y, held, scale))
+    return row
+
+
+def _terms(model: MimoModel) -> int:
+    return sum(len(m.term_indices) for m in model.models)
+
+
 def _degree(model: MimoModel) -> int:
     return max(max((len(m.term_space.terms[i]) for i in m.term_indices), default=0)
                for m in model.models)
@@ -186,42 +208,22 @@ def select_coupled(joined: MimoModel, u: np.ndarray, Y: np.ndarray,
     for k in range(1, top + 1):
         lin = linear_mimo(joined, k)
         if not any(_same(lin, f[2]) for f in finalists):
-            finalists += [(f"linear MIMO ARX of order {k}", how, lin) for how in ESTIMATORS]
-    values: list[list[float]] = []
-    for _, how, model in finalists:
-        row = []
-        for held, train in folds:
-            fitted = fit_least_squares(model, u, Y, train)
-            if fitted is None:
-                row.append(np.nan)
-                continue
-            if how == "jointly refined":
-                fitted, _ = refine_coupled(fitted, u, Y, train, max_evaluations=JOINT_FOLD_STEPS)
-            row.append(_held_out_error(fitted, u, Y, held, scale))
-        values.append(row)
-    means = [float(np.mean(r)) if r and all(np.isfinite(r)) else np.inf for r in values]
-    stderr = [float(np.std(r, ddof=1) / np.sqrt(len(r))) if np.isfinite(m) and len(r) > 1
-              else np.inf for r, m in zip(values, means)]
-    nonlinear = [i for i, f in enumerate(finalists) if _degree(f[2]) > 1]
-    linear = [i for i in range(len(finalists)) if i not in nonlinear and np.isfinite(means[i])]
-    order = sorted((i for i in range(len(finalists)) if np.isfinite(means[i])),
-                   key=lambda i: means[i])
+            finalists += [(f"linear MIMO ARX of order {k}", how, lin)
+                          for how in COUPLED_ESTIMATORS]
+    values = [_fold_errors(model, how, folds, u, Y, scale) for _, how, model in finalists]
+    means, stderr = zip(*(mean_and_stderr(r) for r in values)) if values else ((), ())
     account: dict = {"folds": len(folds), "significance": SIGNIFICANCE,
                      "finalists": [{"name": n, "fitted": h, "held_out_error": json_float(m),
                                     "held_out_stderr": json_float(s)}
                                    for (n, h, _), m, s in zip(finalists, means, stderr)]}
-    if linear:
-        lin = min(linear, key=lambda i: means[i])
-        challenger = next((i for i in order if i in nonlinear and means[i] < means[lin]), None)
-        choice = lin
-        if challenger is not None:
-            p = paired_p_value(values[lin], values[challenger])
-            account.update(nonlinear=finalists[challenger][0], ratio=means[challenger]
-                           / means[lin], p_value=p)
-            if p < SIGNIFICANCE:
-                choice = challenger
-        account["choice"] = "nonlinear" if choice in nonlinear else "linear"
-        order = [choice] + [i for i in order if i != choice]
+    call = linear_or_nonlinear(means, stderr, [_terms(f[2]) for f in finalists],
+                               [_degree(f[2]) <= 1 for f in finalists], values)
+    order = call.order
+    if call.linear is not None:
+        if call.challenger is not None:
+            account.update(nonlinear=finalists[call.challenger][0], ratio=call.ratio,
+                           p_value=call.p_value)
+        account["choice"] = call.choice
     removed = []
     for i in order:
         name, how, model = finalists[i]
@@ -272,16 +274,17 @@ def _accounted(m: NarxModel, template: NarxModel, u_aug, y, segments, uncertaint
     The criterion value is of the one-step SSE (standardised coefficients as the
     search scores them); with ``uncertainty``, least-squares standard errors.
     """
-    from ..fit.criteria import get_criterion
     from ..model.uncertainty import from_jacobian
 
+    if template.criterion is None:
+        raise ValueError(f"the model of {template.term_space.output} has no criterion")
     P, t = m.term_space.regression(u_aug, y, segments, terms=m.term_indices)
     e = t - P @ m.coefficients
     sse = float(e @ e)
-    crit = get_criterion(template.criterion or "bic")
+    crit = get_criterion(template.criterion)
     beta = m.coefficients * np.linalg.norm(P, axis=0) / (float(np.linalg.norm(t)) or 1.0)
-    value = float(crit(np.array([max(sse, 1e-300)]), len(t), np.array([len(m.term_indices)]),
-                       beta[None, :])[0])
+    value = standardised_value(crit, max(sse, 1e-300), len(t), len(m.term_indices),
+                               beta[None, :])
     meta = {k: v for k, v in template.metadata.items() if k not in ("simulation",)}
     return replace(m, criterion=crit.name, criterion_value=value, mse=sse / max(len(t), 1),
                    n_samples=template.n_samples, metadata=meta,

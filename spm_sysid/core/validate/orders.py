@@ -32,7 +32,7 @@ from ..fit.problem import Problem
 from ..model.terms import TermSpace
 from ..search.forward import forward_selection
 
-__all__ = ["OrderProposal", "propose_orders"]
+__all__ = ["OrderProposal", "orders_from_data", "propose_orders"]
 
 
 @dataclass
@@ -116,3 +116,41 @@ def propose_orders(u: np.ndarray, y: np.ndarray, *, max_order: int = 10, max_deg
         degrees.append((d, space.n_terms, value, int(mask.sum())))
     degree = min(degrees, key=lambda item: item[2])[0] if degrees else 1
     return OrderProposal(order, degree, crit.name, scan, degrees, skipped)
+
+
+def orders_from_data(u: np.ndarray, y: np.ndarray, segments, space: TermSpace,
+                     criterion: str) -> tuple[TermSpace, dict]:
+    """``orders: auto``: the space with the lags and degree proposed from the data, and why.
+
+    The proposal (:func:`propose_orders`) runs on the longest of ``segments``, with
+    ``criterion`` when it is AIC or BIC (else BIC): ``ny = nu`` = the order whose
+    full linear model scores best, the degree whose forward selection scores best.
+
+    Raises
+    ------
+    DataError
+        No proposal can be made on these data.
+    """
+    from dataclasses import replace
+
+    from ..errors import DataError
+
+    a, b = max(segments, key=lambda seg: seg[1] - seg[0])
+    crit = criterion if criterion in ("aic", "bic") else "bic"
+    try:
+        proposal = propose_orders(u[a:b], y[a:b], delay=min(space.delays), criterion=crit,
+                                  inputs=space.inputs)
+    except ValueError as exc:
+        raise DataError(f"orders: auto cannot propose lags on this data ({exc}); give ny, nu "
+                        "and degree") from None
+    n, d = proposal.order, proposal.degree
+    why = {"mode": "auto", "ny": n, "nu": n, "degree": d, "criterion": proposal.criterion,
+           "samples": int(b - a),
+           "reason": f"order {n}: the full linear model of lags 1..n scores best by "
+                     f"{proposal.criterion.upper()} among 1..{len(proposal.order_scan)}; "
+                     f"degree {d}: forward selection scores best among "
+                     f"{', '.join(str(row[0]) for row in proposal.degree_scan)}",
+           "order_scan": [[int(k), float(v)] for k, v in proposal.order_scan],
+           "degree_scan": [[int(row[0]), int(row[1]), float(row[2]), int(row[3])]
+                           for row in proposal.degree_scan]}
+    return replace(space, ny=n, nu=n, degree=d), why

@@ -3,11 +3,12 @@
 ========================  ==================================================  ===========
 command                   what it does                                        module
 ========================  ==================================================  ===========
-``identify``              select and fit a model on data (the main job)       ``models``
-``certify``               prove the best structure of the space, or the gap   ``models``
-``validate``              validate a saved model on data                      ``models``
-``check-data``            can the data identify the space? (excitation ...)   ``models``
-``propose-lags``          propose lags and degree from the data               ``models``
+``identify``              select and fit a model on data (the main job)       ``identify``
+``certify``               prove the best structure of the space, or the gap   ``certify``
+``validate``              validate a saved model on data                      ``validate``
+``check-data``            can the data identify the space? (excitation ...)   ``checks``
+``propose-lags``          propose lags and degree from the data               ``checks``
+``compile``               compile the numeric kernels ahead                   ``checks``
 ``experiment``            the paper's study: SPM vs plain GA                  ``studies``
 ``batch``                 one model per input, here or on a Dask cluster      ``studies``
 ``make-bag``              a data file as a rosbag2 MCAP bag                   ``data``
@@ -18,7 +19,8 @@ command                   what it does                                        mo
 :mod:`spm_sysid.apps.main` adds ``call`` (the ROS node's client) and the
 benchmarks ``bench`` and ``bench-sizes`` (:mod:`spm_sysid.bench.commands`). Shared pieces
 (options from the settings schema, loading data, checking destinations) are in
-:mod:`.common`, progress bars in :mod:`.progress`. Every failure a user can
+:mod:`.common`, what identify and validate write in :mod:`.outputs`, progress bars in
+:mod:`.progress`. Every failure a user can
 cause ends with one ``error: ...`` line and exit status 2, never a traceback.
 """
 
@@ -35,7 +37,7 @@ import argparse  # noqa: E402
 import sys  # noqa: E402
 
 from ...core.errors import DataError, MissingDependencyError  # noqa: E402
-from . import data, models, studies  # noqa: E402
+from . import certify, checks, data, identify, studies, validate  # noqa: E402
 from .common import Parser, UserError  # noqa: E402
 
 __all__ = ["UserError", "build_parser", "main", "run"]
@@ -58,7 +60,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"spm-sysid {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=Parser)
-    models.add_parsers(sub)
+    identify.add_parser(sub)
+    certify.add_parser(sub)
+    validate.add_parser(sub)
+    checks.add_parsers(sub)
     studies.add_parsers(sub)
     data.add_parsers(sub)
     p = sub.add_parser("settings", help="every setting: default, allowed values, where")

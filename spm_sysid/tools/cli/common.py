@@ -18,7 +18,7 @@ from ...core.settings import BAG_OPTIONS, SETTINGS, check
 __all__ = ["JOB_TITLES", "PER_INPUT", "Parser", "UserError", "add_data_options",
            "add_schema_options", "announce_compile", "check_correlation_lags_option",
            "check_outputs", "check_report_name", "data_spec", "job_settings", "load",
-           "positive_int", "read_yaml", "schema_type", "seed_type"]
+           "positive_int", "read_yaml", "schema_type", "seed_type", "usable_segments"]
 
 
 class UserError(Exception):
@@ -209,6 +209,19 @@ def read_yaml(path: str, option: str):
         where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""
         problem = " ".join(str(getattr(exc, "problem", None) or exc).split())
         raise UserError(f"{option} {path} is not valid YAML{where}: {problem}") from None
+
+
+def usable_segments(record, max_lag: int) -> list[tuple[int, int]]:
+    """The record's segments longer than ``max_lag`` (one error line when there are none)."""
+    from ...core.model.segments import usable_segments as usable
+
+    info = record.segment_info()
+    bounds, _, _ = usable(info.bounds, max_lag)
+    if not bounds:
+        raise UserError(f"{record.source}: no contiguous segment is longer than the largest "
+                        f"lag ({max_lag}); {len(record)} samples in {len(info.bounds)} "
+                        "segment(s)")
+    return bounds
 
 
 def check_outputs(args) -> None:

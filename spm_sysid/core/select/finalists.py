@@ -1,0 +1,324 @@
+"""Validated selection for simulation: screen, judge finalists on held-out blocks, guard.
+
+1. **Screen** every candidate, and the full linear ARX structure of every order
+   in the space, by the criterion of its free-run error after a short
+   refinement on all estimation data (:class:`~.simulation.SimulationScorer`).
+2. **Finalists**: for each highest degree (linear, quadratic, ...) the best
+   screened structures of each size, up to
+   :data:`~spm_sysid.core.defaults.FINALISTS` sizes spread over the range (the
+   group's best always among them), and every linear ARX structure.
+3. **Judge** each finalist on the held-out blocks twice (:data:`ESTIMATORS`):
+   each fold fits least squares on its rows, and that refined on its free-run
+   error; the errors are gathered per sub-block
+   (:func:`~spm_sysid.core.select.folds.sub_blocks`), each a separate held-out
+   estimate; a run that leaves the measured range rejects the finalist.
+4. **Choose** with the one linear/nonlinear call
+   (:func:`~spm_sysid.core.select.call.linear_or_nonlinear`).
+5. **Finish**: the choice is fitted on all data (least squares, or refined to
+   convergence) and must pass the guard
+   (:func:`~spm_sysid.core.select.guard.stress_check`), with its nonlinear
+   terms shrunk if that is what it takes; otherwise the next by the call.
+
+No model of the screening is changed: each step makes its own.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ..defaults import FINALISTS, FOLD_STEPS, PER_SIZE, SEARCH_STEPS, SIGNIFICANCE
+from ..errors import DataError
+from ..fit.evaluator import key_mask, mask_key
+from ..fit.refine import free_run_uncertainty, refine_simulation
+from ..model.narx import NarxModel
+from ..progress import Progress
+from .call import Call, linear_or_nonlinear
+from .folds import sub_blocks
+from .guard import shrink_to_hold, stress_check
+from .scores import Scores, mean_and_stderr
+from .simulation import SimulationScorer, linear_structures, simulation_value
+
+__all__ = ["ESTIMATORS", "FoldRun", "validated_simulation"]
+
+#: How a finalist's coefficients are estimated on a fold; each is judged on the held-out
+#: blocks and competes: least squares, or least squares refined on the free-run error
+#: (which helps nonlinear structures most and on short records can overfit).
+ESTIMATORS = ("least squares", "refined")
+
+
+@dataclass(frozen=True)
+class FoldRun:
+    """A structure's held-out free run on one fold.
+
+    ``at`` and ``squared``: the held-out samples and the squared errors there;
+    ``diverged_at``: the sample where the run left the measured range; neither:
+    the structure cannot be fitted on the fold's rows.
+    """
+
+    at: np.ndarray | None = None
+    squared: np.ndarray | None = None
+    diverged_at: int | None = None
+
+    @property
+    def fitted(self) -> bool:
+        return self.at is not None or self.diverged_at is not None
+
+
+def fold_runs(problem, fold, mask: np.ndarray) -> tuple[FoldRun, FoldRun]:
+    """The held-out runs of the structure fitted on the fold, one per estimator.
+
+    Least squares on the fold's rows, then refined from there on the free-run
+    error of the fold's segments (:data:`~spm_sysid.core.defaults.FOLD_STEPS`
+    evaluations); a refinement that fails judges the least-squares fit twice.
+    """
+    u, y = problem.u, problem.y
+    try:
+        fit = problem.fit(mask, rows=fold.train)
+    except ValueError:
+        return FoldRun(), FoldRun()
+    model = problem.model(mask, fit)
+    lag = problem.term_space.max_lag
+    at = np.concatenate([np.arange(a + lag, b) for a, b in fold.held_out])
+
+    def held_out(m: NarxModel) -> FoldRun:
+        yhat, diverged = m.run(u, y, None, fold.held_out)
+        if diverged is not None:
+            return FoldRun(diverged_at=int(diverged))
+        e = m.measured(y, fold.held_out) - yhat
+        return FoldRun(at, e * e)
+
+    least_squares = held_out(model)
+    ref = refine_simulation(model, u, y, fold.train_segments, max_evaluations=FOLD_STEPS)
+    if not (ref.success and np.isfinite(ref.sse)):
+        return least_squares, least_squares
+    return least_squares, held_out(model.with_coefficients(ref.coefficients))
+
+
+def sub_block_errors(runs: list[FoldRun], label: np.ndarray, n_sub: int) -> list[float]:
+    """Each sub-block's held-out MSE over the folds' runs (inf: a run diverged; NaN: unfit)."""
+    if not all(r.fitted for r in runs):
+        return [np.nan] * n_sub
+    if any(r.diverged_at is not None for r in runs):
+        return [np.inf] * n_sub
+    sse, count = np.zeros(n_sub), np.zeros(n_sub)
+    for r in runs:
+        ids = label[r.at]
+        np.add.at(sse, ids, r.squared)
+        np.add.at(count, ids, 1)
+    return list(np.where(count > 0, sse / np.maximum(count, 1), np.nan))
+
+
+def finalists(screened: dict, term_space) -> list[tuple[float, bytes]]:
+    """The best screened structures of each size (:data:`PER_SIZE`), sizes spread, by degree.
+
+    Structures are grouped by their highest degree (linear, quadratic, ...):
+    in-sample, a nonlinear structure nearly always beats a linear one of the
+    same size, yet off the estimation data the linear one often simulates
+    better, so each group sends its own finalists to the held-out blocks. In
+    each group at most :data:`FINALISTS` sizes, spread on a log scale (small
+    models are cheap to overlook and often what the data support), the group's
+    best among them.
+    """
+    n_terms = term_space.n_terms
+    degree = np.array([len(t) for t in term_space.terms])
+    groups: dict[int, dict[int, list[tuple[float, bytes]]]] = {}
+    for key, (value, _) in screened.items():
+        if np.isfinite(value):
+            mask = key_mask(key, n_terms)
+            by_size = groups.setdefault(int(degree[mask].max()), {})
+            by_size.setdefault(int(mask.sum()), []).append((value, key))
+    out = []
+    for by_size in groups.values():
+        sizes = sorted(by_size)
+        if len(sizes) > FINALISTS:
+            best_size = min(sizes, key=lambda k: min(by_size[k])[0])
+            targets = np.geomspace(sizes[0], sizes[-1], FINALISTS - 1)
+            spread = {min(sizes, key=lambda k: abs(np.log(k) - np.log(t))) for t in targets}
+            sizes = sorted(spread | {best_size})
+        out += [item for k in sizes for item in sorted(by_size[k])[:PER_SIZE]]
+    return sorted(out)
+
+
+@dataclass
+class Judged:
+    """The finalists' held-out errors: one entry per finalist and estimator."""
+
+    scores: Scores
+    blocks: list[list[float]]
+    estimator: list[str]
+
+
+class ValidatedSimulation:
+    """Validated selection for simulation on one problem (see the module doc).
+
+    Parameters
+    ----------
+    problem, folds, criterion, max_terms, report, started
+        The problem, its held-out folds, the criterion, the size limit (0: none),
+        the progress callback and the job's start time.
+    """
+
+    def __init__(self, problem, folds, criterion, max_terms, report, started) -> None:
+        self.problem, self.folds, self.crit = problem, folds, criterion
+        self.report, self.started = report, started
+        self.scorer = SimulationScorer(problem, criterion, steps=SEARCH_STEPS,
+                                       max_terms=max_terms, progress=report, started=started)
+        self.degree = np.array([len(t) for t in problem.term_space.terms])
+
+    def screen(self, candidates) -> list[tuple[float, bytes]]:
+        """Step 1 and 2: every candidate and linear structure scored; the finalists."""
+        linear = linear_structures(self.problem)
+        for mask in list(candidates) + list(linear):
+            self.scorer(mask)
+        screened = self.scorer.scored
+        finals = finalists(screened, self.problem.term_space)
+        keys = {key for _, key in finals}
+        finals += [(screened[mask_key(m)][0], mask_key(m)) for m in linear
+                   if mask_key(m) not in keys and np.isfinite(screened[mask_key(m)][0])]
+        if not finals:
+            raise DataError("every candidate structure's free-run simulation diverges on "
+                            "the estimation data (or cannot be fitted): no model simulates")
+        return finals
+
+    def judge(self, finals: list[tuple[float, bytes]]) -> Judged:
+        """Step 3: each finalist and estimator on the held-out sub-blocks."""
+        n = self.problem.term_space.n_terms
+        label = sub_blocks(self.problem, self.folds)
+        out = Judged(Scores(), [], [])
+        for done, (_, key) in enumerate(finals):
+            mask = key_mask(key, n)
+            both = [fold_runs(self.problem, fold, mask) for fold in self.folds]
+            rejected = False
+            for j, how in enumerate(ESTIMATORS):
+                values = sub_block_errors([b[j] for b in both], label, len(self.folds))
+                mean, stderr = mean_and_stderr(values)
+                out.scores.masks.append(mask)
+                out.scores.mean.append(mean)
+                out.scores.stderr.append(stderr)
+                out.blocks.append(values)
+                out.estimator.append(how)
+                rejected |= not np.isfinite(mean)
+            out.scores.rejected += rejected
+            self.report(Progress("refinement", done + 1, len(finals),
+                                 elapsed=time.perf_counter() - self.started))
+        return out
+
+    def choose(self, judged: Judged) -> tuple[Call, dict]:
+        """Step 4: the linear/nonlinear call, and its account for the document."""
+        s = judged.scores
+        call = linear_or_nonlinear(
+            s.mean, s.stderr, [int(m.sum()) for m in s.masks],
+            [int(self.degree[m].max()) <= 1 for m in s.masks], judged.blocks)
+        if call.linear is None:
+            account = {"choice": "nonlinear", "reason": "no linear finalist simulated every "
+                       "held-out block"}
+        else:
+            lin = call.linear
+            account = {"best_linear_terms": int(s.masks[lin].sum()),
+                       "best_linear_held_out_mse": s.mean[lin],
+                       "best_linear_held_out_stderr": s.stderr[lin],
+                       "blocks": len(judged.blocks[lin]), "significance": SIGNIFICANCE}
+            if call.challenger is not None:
+                account.update(nonlinear_terms=int(s.masks[call.challenger].sum()),
+                               ratio=call.ratio, p_value=call.p_value)
+            account["choice"] = call.choice
+        account["estimator"] = judged.estimator[call.order[0]] if call.order else None
+        return call, account
+
+    def linear_sse(self, judged: Judged) -> float:
+        """In-sample free-run SSE of the best screened linear finalist (inf: none)."""
+        best = np.inf
+        u, y, segments = self.problem.u, self.problem.y, self.problem.segments
+        for mask, mean in zip(judged.scores.masks, judged.scores.mean):
+            model = self.scorer.scored[mask_key(mask)][1]
+            if np.isfinite(mean) and self.degree[mask].max() <= 1 and model is not None:
+                yhat, at = model.run(u, y, None, segments)
+                if at is None:
+                    e = model.measured(y, segments) - yhat
+                    best = min(best, float(e @ e))
+        return best
+
+    def fit_all(self, mask: np.ndarray, estimator: str):
+        """Step 5: the finalist fitted on all data as it was judged; (model, refinement, why).
+
+        ``why`` is the guard's reason when the model does not hold (None: it does).
+        """
+        problem = self.problem
+        u, y, segments = problem.u, problem.y, problem.segments
+        screened = self.scorer.scored[mask_key(mask)][1]
+        if estimator == "least squares":  # as the held-out blocks judged it
+            model = screened.with_coefficients(problem.model(mask).coefficients)
+            return model, None, stress_check(model, u, y, segments)
+        final = refine_simulation(screened, u, y, segments)
+        model = screened.with_coefficients(screened.coefficients)
+        if final.success and np.isfinite(final.sse):
+            model = screened.with_coefficients(final.coefficients)
+        why = stress_check(model, u, y, segments)
+        if why and final.success:  # the refinement may be what left the range
+            model = screened.with_coefficients(screened.coefficients)
+            why = stress_check(model, u, y, segments)
+        return model, final, why
+
+    def finish(self, model: NarxModel, mask, estimator, final, shrunk) -> NarxModel:
+        """The returned model's criterion, errors, uncertainty and account."""
+        problem, crit = self.problem, self.crit
+        u, y, segments = problem.u, problem.y, problem.segments
+        e = model.measured(y, segments) - model.run(u, y, None, segments)[0]
+        sse = float(e @ e)
+        one_step = model.residuals(u, y, segments)
+        model = replace(model, criterion=crit.name, n_samples=problem.n_samples,
+                        mse=float(one_step @ one_step) / len(one_step),
+                        criterion_value=simulation_value(crit, sse, problem.rows, mask,
+                                                         model.coefficients, problem))
+        model.uncertainty = free_run_uncertainty(model, u, y, segments)
+        model.metadata = {"simulation": {
+            "estimator": estimator,
+            "refinement": final.message if final is not None else "none: least squares "
+                          "simulated the held-out blocks better",
+            "free_run_sse": sse,
+            **({"least_squares_free_run_sse": final.sse_start} if final is not None else {}),
+            **({"shrunk_nonlinear_terms": shrunk} if shrunk is not None else {}),
+            "criterion_meaning": f"{crit.name.upper()} of the free-run simulation error "
+                                 "(SSE of the simulated output) on the estimation data"}}
+        return model
+
+
+def validated_simulation(problem, candidates, folds, crit, max_terms, report,
+                         started) -> tuple[NarxModel, dict]:
+    """Simulation focus, validated (see the module doc): the model and its account."""
+    job = ValidatedSimulation(problem, folds, crit, max_terms, report, started)
+    finals = job.screen(candidates)
+    judged = job.judge(finals)
+    call, decision = job.choose(judged)
+    s, linear_sse = judged.scores, job.linear_sse(judged)
+    removed, reasons, tried = s.rejected, [], set()
+    for i in call.order:
+        mask, how = s.masks[i], judged.estimator[i]
+        if (mask_key(mask), how) in tried:
+            continue
+        tried.add((mask_key(mask), how))
+        model, final, why = job.fit_all(mask, how)
+        shrunk = None
+        if why and job.degree[mask].max() > 1:
+            held = shrink_to_hold(model, problem.u, problem.y, problem.segments, linear_sse)
+            if held is not None:
+                shrunk, coefficients = held
+                model, why = model.with_coefficients(coefficients), None
+        if why:
+            removed += 1
+            reasons.append(why)
+            continue
+        if i != call.order[0]:
+            decision = {**decision, "fallback": "the chosen structure failed the guard; "
+                        f"the next by the rule has {int(mask.sum())} terms"}
+        return job.finish(model, mask, how, final, shrunk), {
+            "held_out_mse": s.mean[i], "held_out_stderr": s.stderr[i],
+            "candidates": len(candidates), "screened": len(job.scorer.scored),
+            "finalists": len(finals), "removed_by_guard": removed,
+            "linear_or_nonlinear": decision, **({"guard_reasons": reasons} if reasons else {})}
+    raise DataError(f"every finalist structure's simulation leaves the output's range off "
+                    f"the estimation data ({removed} removed by the guard"
+                    + (f": {reasons[0]}" if reasons else "") + ")")

@@ -1,0 +1,241 @@
+"""Held-out blocks of a record: where a structure is fitted and where it is judged.
+
+The estimation samples (all segments, in order) are cut into K contiguous
+blocks (:func:`blocked_folds`, laid R times shifted for the simulation focus).
+Fold i fits on the rows whose whole regression window lies outside block i and
+is judged on block i, simulated from the block's own first samples (time series
+are not shuffled: neighbouring samples are not independent). A fold must see the
+input vary as the record does (:func:`fold_excitation`); when the input changes
+in few places (a step test), short blocks are dealt to the folds in turn
+(:func:`interleaved_folds`), and a record that cannot be folded says so
+(:func:`informative_folds`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..defaults import (
+    EXCITED_DIRECTIONS,
+    FOLDS,
+    INTERLEAVED_PIECES,
+    MIN_BLOCK_ROWS,
+    MIN_FOLD_EXCITATION,
+)
+from ..model.segments import rows_segments
+
+__all__ = ["Fold", "block_splits", "blocked_folds", "fold_excitation", "informative_folds",
+           "interleaved_folds", "sub_blocks"]
+
+
+@dataclass(frozen=True)
+class Fold:
+    """One fold: what to fit on and the held-out segments to judge on.
+
+    ``train`` marks the problem's rows whose regression window misses the held-out
+    block; ``train_segments`` are the same data as sample ranges (the segments
+    with the block cut out), for fits on the free-run error.
+    """
+
+    train: np.ndarray                      # bool over the problem's rows
+    held_out: list[tuple[int, int]]        # sample ranges [start, stop), simulated from start
+    train_segments: list[tuple[int, int]]  # the rest of the segments
+
+
+def blocked_folds(problem, k: int = FOLDS, repeats: int = 1) -> list[Fold]:
+    """K contiguous held-out blocks over the problem's segments (fewer if the data are short).
+
+    With ``repeats`` R > 1, the K blocks are laid R times, each time shifted by
+    1/R of a block (a block that runs past the end wraps to the start): K * R
+    folds, every sample held out R times, in blocks as long as K alone gives
+    (long blocks judge long simulations; the repeats steady the estimate).
+    Returns an empty list when not even two blocks of :data:`MIN_BLOCK_ROWS`
+    held-out rows fit.
+    """
+    lag = problem.term_space.max_lag
+    n = len(problem.y)
+    t = problem.row_times
+    while k >= 2:
+        splits = block_splits(problem.segments, k, repeats, lag)
+        folds = []
+        for held, rest in splits or []:
+            outside = np.ones(len(t), dtype=bool)
+            for a, b in held:  # the row's window [t - lag, t] must miss the block
+                outside &= (t < a) | (t - lag >= b)
+            folds.append(Fold(outside, rows_segments(held, n, lag), rows_segments(rest, n, 0)))
+        if folds and all(f.train.sum() > 0 for f in folds):
+            return folds
+        k -= 1
+    return []
+
+
+def informative_folds(problem, k: int = FOLDS, repeats: int = 1
+                      ) -> tuple[list[Fold], str]:
+    """Held-out folds whose training rows each see the input's excitation; how they lie.
+
+    Contiguous blocks first (:func:`blocked_folds`: long blocks judge long
+    simulations). When a fold's rows do not excite the linear terms as the
+    record does (:func:`fold_excitation` below :data:`MIN_FOLD_EXCITATION`: the
+    input changes in one place, as in a step test), the record is cut into
+    shorter blocks dealt to the folds in turn (:func:`interleaved_folds`), so
+    that each fold fits on part of every transient and is judged on the rest.
+    When even that fails, no folds, and the reason.
+
+    Returns
+    -------
+    folds : list of Fold
+        Empty when the record cannot be folded.
+    note : str
+        '' for contiguous blocks; else how the folds lie, or why there are none.
+    """
+    folds = blocked_folds(problem, k, repeats)
+    if not folds:
+        return [], "the record is too short for held-out blocks"
+    share = fold_excitation(problem, folds)
+    if share >= MIN_FOLD_EXCITATION:
+        return folds, ""
+    for pieces in INTERLEAVED_PIECES:
+        alt = interleaved_folds(problem, k, pieces)
+        if alt and fold_excitation(problem, alt) >= MIN_FOLD_EXCITATION:
+            size = len(problem.y) // (k * pieces)
+            return alt, (f"held-out blocks of about {size} samples dealt to {k} folds in turn: "
+                         f"in contiguous blocks a fold kept {share:.0%} of the input's "
+                         "excitation (the input changes in few places, e.g. a step test)")
+    return [], ("the record cannot be cut into held-out blocks that each leave the input's "
+                f"excitation to fit on (a fold keeps {share:.0%} of it: the input changes in "
+                "one place, e.g. a step test)")
+
+
+def interleaved_folds(problem, k: int, pieces: int) -> list[Fold]:
+    """K folds of ``pieces`` short blocks each: the record's k * pieces blocks dealt in turn.
+
+    Empty when a block would hold no more rows than the largest lag plus
+    :data:`MIN_BLOCK_ROWS` / ``pieces`` (too short to judge a simulation on).
+    """
+    lag = problem.term_space.max_lag
+    n = len(problem.y)
+    positions = np.concatenate([np.arange(a, b) for a, b in problem.segments])
+    edges = np.linspace(0, len(positions), k * pieces + 1).round().astype(int)
+    if np.min(np.diff(edges)) <= lag + max(MIN_BLOCK_ROWS // pieces, 2):
+        return []
+    t = problem.row_times
+    folds = []
+    for i in range(k):
+        block = np.sort(np.concatenate([positions[edges[j]:edges[j + 1]]
+                                        for j in range(i, k * pieces, k)]))
+        held = _runs(block, problem.segments)
+        outside = np.ones(len(t), dtype=bool)
+        for a, b in held:
+            outside &= (t < a) | (t - lag >= b)
+        if not outside.any():
+            return []
+        rest = _complement(problem.segments, held, lag)
+        folds.append(Fold(outside, rows_segments(held, n, lag), rows_segments(rest, n, 0)))
+    return folds
+
+
+def fold_excitation(problem, folds: list[Fold]) -> float:
+    """How well the worst fold's training rows excite the linear terms, relative to all rows.
+
+    The linear terms' columns (unit RMS) span directions the record excites;
+    those excited at least :data:`EXCITED_DIRECTIONS` as much as the most
+    excited one must be excited by each fold's rows too. The measure is the
+    smallest ratio, over those directions, of the energy per row on the fold's
+    rows to that on all rows (the smallest generalised eigenvalue): about 1 when
+    a fold sees the input vary as the whole record does, near 0 when the input
+    changes only inside the held-out block (a step test: the block with the
+    step holds out all the information about the input's effect, and a fit on
+    the rest cannot find it). See :data:`MIN_FOLD_EXCITATION`.
+    """
+    degree = np.array([len(t) for t in problem.term_space.terms])
+    X = problem.columns[:, (degree <= 1) & problem.usable]
+    if not folds or X.shape[1] == 0:
+        return 1.0
+    rms = np.sqrt(np.mean(X * X, axis=0))
+    X = X[:, rms > 0] / rms[rms > 0]
+    w, V = np.linalg.eigh(X.T @ X / len(X))
+    keep = w >= EXCITED_DIRECTIONS * w[-1]
+    if not keep.any():
+        return 1.0
+    Z = (X @ V[:, keep]) / np.sqrt(w[keep])  # the excited directions, whitened on all rows
+    worst = 1.0
+    for f in folds:
+        rows = Z[f.train]
+        if not len(rows):
+            return 0.0
+        worst = min(worst, float(np.linalg.eigvalsh(rows.T @ rows / len(rows))[0]))
+    return max(worst, 0.0) ** 0.5
+
+
+def block_splits(segments, k: int, repeats: int, lag: int
+                 ) -> list[tuple[list[tuple[int, int]], list[tuple[int, int]]]] | None:
+    """K contiguous blocks over the segments, laid ``repeats`` times: (held out, rest) each.
+
+    The sample ranges of each block (split at gaps and segment borders) and of
+    the rest (the parts outside the block longer than the lag). None when a
+    block has fewer than :data:`MIN_BLOCK_ROWS` held-out rows.
+    """
+    positions = np.concatenate([np.arange(a, b) for a, b in segments]) if len(segments) \
+        else np.empty(0, dtype=int)
+    edges = np.linspace(0, len(positions), k + 1).round().astype(int)
+    out = []
+    for r in range(repeats):
+        shift = int(round(r * len(positions) / (k * repeats)))
+        rolled = np.roll(positions, -shift)
+        for i in range(k):
+            held = _runs(np.sort(rolled[edges[i]:edges[i + 1]]), segments)
+            if sum(max(b - a - lag, 0) for a, b in held) < MIN_BLOCK_ROWS:
+                return None
+            out.append((held, _complement(segments, held, lag)))
+    return out
+
+
+def sub_blocks(problem, folds: list[Fold]) -> np.ndarray:
+    """Each sample's sub-block: the record cut into as many equal parts as there are folds.
+
+    With repeated blocks every sub-block is held out by the same number of folds
+    and never fitted on by them, so the sub-blocks' held-out errors are separate
+    estimates, one per sub-block (-1 outside the segments). When each sample is
+    held out by one fold only (interleaved folds), its sub-block is that fold.
+    """
+    label = np.full(len(problem.y), -1, dtype=int)
+    held = np.zeros(len(problem.y), dtype=int)
+    for i, fold in enumerate(folds):
+        for a, b in fold.held_out:
+            label[a:b] = i
+            held[a:b] += 1
+    if held.max(initial=0) <= 1:  # each sample held out once (interleaved): by its fold
+        return label
+    positions = np.concatenate([np.arange(a, b) for a, b in problem.segments])
+    label[:] = -1
+    label[positions] = np.arange(len(positions)) * len(folds) // len(positions)
+    return label
+
+
+def _complement(segments, held, lag: int) -> list[tuple[int, int]]:
+    """The parts of the segments outside the held-out ranges (longer than the lag)."""
+    out = []
+    for a, b in segments:
+        cuts = sorted((max(c, a), min(d, b)) for c, d in held if c < b and d > a)
+        start = a
+        for c, d in cuts:
+            if c - start > lag:
+                out.append((start, c))
+            start = max(start, d)
+        if b - start > lag:
+            out.append((start, b))
+    return out
+
+
+def _runs(block: np.ndarray, segments) -> list[tuple[int, int]]:
+    """The sample ranges of a block (sorted positions), split at gaps and segment borders."""
+    out = []
+    for a, b in segments:
+        inside = block[(block >= a) & (block < b)]
+        if inside.size:
+            cuts = np.flatnonzero(np.diff(inside) != 1) + 1
+            for part in np.split(inside, cuts):
+                out.append((int(part[0]), int(part[-1]) + 1))
+    return out

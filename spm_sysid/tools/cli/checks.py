@@ -1,0 +1,94 @@
+"""``check-data``, ``propose-lags`` and ``compile``: what the data and the machine can do."""
+
+from __future__ import annotations
+
+from .common import (
+    UserError,
+    add_data_options,
+    add_schema_options,
+    job_settings,
+    load,
+    positive_int,
+    schema_type,
+    usable_segments,
+)
+
+__all__ = ["add_parsers", "cmd_check_data", "cmd_compile", "cmd_propose_lags"]
+
+
+def cmd_check_data(args) -> int:
+    from ...core.fit.problem import Problem
+    from ...core.validate.excitation import check_problem
+
+    settings = job_settings(args)
+    record = load(args)
+    settings = settings.for_signals(record.input_names, record.output_name)
+    space = settings.term_space
+    segments = usable_segments(record, space.max_lag)
+    problem = Problem.from_signals(record.u, record.y, space, segments)
+    print(f"data: {record.source}, {len(record)} samples in {len(segments)} segment(s); "
+          f"term space ny={space.ny}, nu={space.nu}, degree={space.degree}, "
+          f"delay={space.delay}{', constant' if space.constant else ''}")
+    check = check_problem(problem)  # a hopeless space is refused (DataError: one line)
+    print("\n".join(check.lines()))
+    if not check.warnings:
+        print("no warning: the data can identify this space")
+    return 0
+
+
+def cmd_propose_lags(args) -> int:
+    from ...core.validate.orders import propose_orders
+
+    record = load(args)
+    info = record.segment_info()
+    if info.gaps or len(info.bounds) > 1:
+        raise UserError(f"{record.source} has gaps or several records; propose lags on one "
+                        "contiguous record")
+    proposal = propose_orders(record.u, record.y, max_order=args.max_order,
+                              max_degree=args.max_degree, delay=args.delay,
+                              criterion=args.criterion, inputs=record.input_names)
+    print(f"data: {record.source}, {len(record)} samples")
+    print(proposal.summary())
+    n, d = proposal.order, proposal.degree
+    print(f"proposal: --ny {n} --nu {n} --degree {d} --delay {args.delay}")
+    return 0
+
+
+def cmd_compile(args) -> int:
+    from ...core.jobs.warmup import compile_all, kernels_are_cached
+
+    before = kernels_are_cached()
+    seconds, status = compile_all(report=lambda text: print(text, flush=True))
+    print(f"kernels {'loaded from the cache' if before else 'compiled and cached'} in "
+          f"{seconds:.1f} s")
+    if status:
+        print(f"ahead-of-time extension: {status.path}")
+    else:
+        print(f"no ahead-of-time extension ({status.reason}): commands load numba's JIT "
+              "(about 0.7 s more each)")
+    return 0
+
+
+def add_parsers(sub) -> None:
+    """Register ``check-data``, ``propose-lags`` and ``compile``."""
+    p = sub.add_parser("compile", help="compile the numeric kernels ahead of their first use "
+                       "(make setup runs it)")
+    p.set_defaults(func=cmd_compile)
+
+    p = sub.add_parser("check-data", help="can these data identify this space? excitation, "
+                       "conditioning, terms that cannot be identified")
+    add_data_options(p)
+    add_schema_options(p, ("term_space",))
+    p.set_defaults(func=cmd_check_data)
+
+    p = sub.add_parser("propose-lags", help="propose lags and degree from the data")
+    add_data_options(p, bag=True)
+    p.add_argument("--max-order", type=positive_int, default=10,
+                   help="largest lag order (default 10)")
+    p.add_argument("--max-degree", type=positive_int, default=3,
+                   help="largest degree (default 3)")
+    p.add_argument("--delay", type=schema_type("delay"), default=1,
+                   help="input delay of the candidates (default 1)")
+    p.add_argument("--criterion", choices=("aic", "bic"), default="bic",
+                   help="criterion of both scans (default bic)")
+    p.set_defaults(func=cmd_propose_lags)

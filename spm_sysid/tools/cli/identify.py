@@ -1,0 +1,121 @@
+"""``spm-sysid identify``: select and fit a model on data, validate it, write what is asked."""
+
+from __future__ import annotations
+
+from ...core.errors import SettingsError
+from .common import (
+    UserError,
+    add_data_options,
+    add_schema_options,
+    announce_compile,
+    as_option,
+    check_outputs,
+    job_settings,
+    load,
+)
+from .outputs import Written, write_outputs
+from .progress import PhaseBars
+
+__all__ = ["add_parser", "cmd_identify", "data_notes"]
+
+
+def cmd_identify(args) -> int:
+    from ...core.jobs import run_job
+
+    settings = job_settings(args)
+    if args.plots and settings.validation == "none":
+        raise UserError("--plots needs validation (--validation estimation or holdout)")
+    if args.validation_split is not None and settings.validation != "holdout":
+        raise UserError("--validation-split (--split) applies to --validation holdout only "
+                        "(the estimation fraction of the data)")
+    check_outputs(args)
+    record = load(args, several=True)
+    announce_compile()
+    bars = PhaseBars(not args.quiet)
+    try:
+        result = run_job(record, settings, progress=bars, progress_every=1)
+    except SettingsError as exc:  # a setting that depends on the data (correlation_lags)
+        raise UserError(as_option(exc)) from None
+    finally:
+        bars.close()
+    several = record.n_outputs > 1
+    first = result.outputs[0].model if several else result.model
+    if several:
+        print(f"data: {record.source}, {len(record)} samples, outputs "
+              f"{', '.join(record.output_names)} (one coupled model: each output's terms may "
+              "use the other outputs' past)")
+    else:
+        print(f"data: {record.source}, {result.estimation_samples} samples used for "
+              "estimation")
+    _print_checks(result.data, first.metadata)
+    print(result.summary("lines"))
+    write_outputs(args, _written(record, result, several))
+    return 0
+
+
+def _print_checks(account: dict, metadata: dict) -> None:
+    from ...core.validate.excitation import describe_check
+
+    check = describe_check(metadata.get("data_check"))
+    if check:
+        print(check)
+    for note in data_notes(account, metadata):
+        print(f"note: {note}")
+
+
+def _written(record, result, several: bool) -> Written:
+    """What ``identify`` writes: the model, a section per output with the job's own rows."""
+    from ..html_report import OutputSection
+
+    notes = data_notes(result.data, (result.outputs[0] if several else result).model.metadata)
+    if several:
+        return Written(result.model, [
+            OutputSection(name, r.model, r.report, result.times, r.search.history)
+            for name, r in zip(result.output_names, result.outputs)], result.cross_tests,
+            f"{', '.join(result.output_names)}: identified coupled NARX model",
+            f"data: {record.source}, {len(record)} samples", result.summary("lines"), notes)
+    model = result.model
+    return Written(model, [OutputSection(model.term_space.output, model, result.report,
+                                         result.times, result.search.history)], [],
+                   f"{model.term_space.output}: identified NARX model",
+                   f"data: {record.source}, {result.estimation_samples} samples used for "
+                   "estimation", result.summary("lines"), notes)
+
+
+def data_notes(account: dict, metadata: dict) -> list[str]:
+    """What a user should know about the data an identification used."""
+    from ...core.model.segments import describe_data
+
+    notes = []
+    if account["gaps"] or account["rejected_samples"] or account["unpaired_samples"]:
+        notes.append(f"the data has gaps; used {describe_data(account)}; no regression row "
+                     "crosses a gap")
+    elif account["segments"] > 1:  # several records, or stamps that went back
+        notes.append(f"the data comes in {account['segments']} parts (records or restarts); "
+                     f"used {describe_data(account)}; no regression row crosses from one to "
+                     "the next")
+    excluded = metadata.get("excluded_zero_terms")
+    if excluded:
+        notes.append(f"{len(excluded)} candidate term(s) are zero on this data and were left "
+                     f"out of the search (e.g. {excluded[0]}); is the input zero?")
+    repeats = metadata.get("excluded_duplicate_terms")
+    if repeats:
+        term, first = next(iter(repeats.items()))
+        notes.append(f"{len(repeats)} candidate term(s) repeat an earlier term on this data "
+                     f"and were left out of the search (e.g. {term} is proportional to "
+                     f"{first}); is an input constant, or equal to another signal?")
+    return notes
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("identify", help="select and fit a NARX model on data")
+    add_data_options(p)
+    add_schema_options(p, ("term_space", "ga", "criterion", "validation"))
+    g = p.add_argument_group("output")
+    g.add_argument("--json", metavar="PATH", help="write the model document here")
+    g.add_argument("--plots", metavar="DIR", help="write validation figures here")
+    g.add_argument("--report", metavar="FILE.html",
+                   help="write one self-contained page: equation, coefficients, checks, "
+                        "interactive plots (works offline)")
+    g.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_identify)

@@ -1,0 +1,164 @@
+"""``spm-sysid validate``: a saved model, of one output or several, on any data."""
+
+from __future__ import annotations
+
+import argparse
+
+from .common import (
+    UserError,
+    add_data_options,
+    check_correlation_lags_option,
+    check_outputs,
+    load,
+    schema_type,
+    usable_segments,
+)
+from .outputs import Written, write_outputs
+
+__all__ = ["add_parser", "cmd_validate", "load_by_names"]
+
+
+def cmd_validate(args) -> int:
+    from ...core.errors import ModelFormatError
+    from ...core.model.mimo import MimoModel, read_model_document
+
+    if args.tail is not None and not 0 < args.tail < 1:
+        raise UserError(f"--tail must be between 0 and 1, got {args.tail}")
+    check_outputs(args)
+    try:
+        model, _ = read_model_document(args.model)
+    except ModelFormatError as exc:
+        raise UserError(str(exc)) from None
+    if isinstance(model, MimoModel):
+        return _validate_several(args, model)
+    return _validate_one(args, model)
+
+
+def _validate_one(args, model) -> int:
+    from ...core.validate.validation import validate_model
+    from ..html_report import OutputSection
+
+    record = load_by_names(args, model.term_space.inputs, (model.term_space.output,))
+    segments = validated_segments(args, record, model.term_space.max_lag)
+    print(f"model: {args.model}")
+    print(model.equation())
+    print(model.coefficient_table())
+    for w in model.metadata.get("warnings") or []:
+        print(f"warning (from identification): {w}")
+    print(f"data: {record.source}" + (f", last {args.tail:.0%}" if args.tail is not None
+                                      else ""))
+    report = validate_model(model, record.u, record.y, correlation_lags=args.correlation_lags,
+                            segment="holdout" if args.tail is not None else "supplied",
+                            segments=segments, horizon=args.horizon or None)
+    model.metadata["validation"] = report.to_dict()
+    print(report.summary())
+    times = record.row_seconds(segments, model.term_space.max_lag)
+    write_outputs(args, Written(None, [OutputSection(model.term_space.output, model, report,
+                                                     times)], [],
+                                f"{model.term_space.output}: model {args.model} validated",
+                                f"data: {record.source}", report.summary()))
+    return 0
+
+
+def _validate_several(args, model) -> int:
+    """A coupled model of several outputs.
+
+    Each output's report with the coupled free run, the residuals'
+    cross-correlation, a panel per output.
+    """
+    from ...core.jobs.several import couple_reports, cross_summary
+    from ...core.model.mimo import augmented_inputs
+    from ...core.validate.validation import validate_model
+    from ..html_report import OutputSection
+
+    record = load_by_names(args, model.inputs, model.outputs, several=True)
+    if record.output_names != model.outputs or record.n_inputs != len(model.inputs):
+        raise UserError(f"the model has outputs {', '.join(model.outputs)} and "
+                        f"{len(model.inputs)} input(s); the data has outputs "
+                        f"{', '.join(record.output_names)} and {record.n_inputs} input(s) "
+                        "(give --output " + ",".join(model.outputs) + " and the inputs in "
+                        "the model's order)")
+    u, Y = record.u, record.y
+    segments = validated_segments(args, record, model.max_lag)
+    print(f"model: {args.model} (outputs {', '.join(model.outputs)}, coupled)")
+    print(f"data: {record.source}" + (f", last {args.tail:.0%}" if args.tail is not None
+                                      else ""))
+    reports = [validate_model(m, augmented_inputs(u, Y, i), Y[:, i],
+                              correlation_lags=args.correlation_lags,
+                              segment="holdout" if args.tail is not None else "supplied",
+                              segments=segments, horizon=args.horizon or None)
+               for i, m in enumerate(model.models)]
+    cross = couple_reports(model, u, Y, segments, reports, args.correlation_lags)
+    for name, m, rep in zip(model.outputs, model.models, reports):
+        print(f"== output {name} ==")
+        print(m.equation())
+        print(rep.summary().replace("free-run:", "coupled free-run:"))
+    if cross:
+        print(cross_summary(cross))
+    times = record.row_seconds(segments, model.max_lag)
+    write_outputs(args, Written(None, [OutputSection(name, m, rep, times) for name, m, rep in
+                                       zip(model.outputs, model.models, reports)], cross,
+                                f"{', '.join(model.outputs)}: coupled model {args.model} "
+                                "validated", f"data: {record.source}"))
+    return 0
+
+
+def load_by_names(args, inputs, outputs, several: bool = False):
+    """The data, its columns chosen by the model's signal names when the options do not.
+
+    A model identified on columns ``tau``, ``acc`` validates on a file's columns of
+    those names; a file without them (no header, other names) is read in its
+    default layout, and a note says so.
+    """
+    from ...core.errors import DataError
+
+    default = {"u", "y"} | {f"u{i}" for i in range(1, 10)} | {f"y{i}" for i in range(1, 10)}
+    given = getattr(args, "inputs", None) or getattr(args, "output_column", None)
+    if given or getattr(args, "data", None) is None or set(inputs) | set(outputs) <= default:
+        return load(args, several)
+    named = argparse.Namespace(**{**vars(args), "inputs": list(inputs),
+                                  "output_column": ",".join(outputs)})
+    try:
+        record = load(named, several)
+    except DataError as exc:
+        if "no column" not in str(exc):
+            raise
+        print(f"note: the data has no columns named as the model's signals "
+              f"({', '.join(inputs)} -> {', '.join(outputs)}); its columns are read in the "
+              "default layout (choose them with --inputs and --output)")
+        return load(args, several)
+    print(f"note: columns chosen by the model's signal names: inputs {', '.join(inputs)}, "
+          f"output {', '.join(outputs)}")
+    return record
+
+
+def validated_segments(args, record, lag0: int) -> list[tuple[int, int]]:
+    """The segments ``validate`` runs on: the usable ones, their last ``--tail``."""
+    from ...core.validate.validation import split_segments
+
+    segments = usable_segments(record, lag0)
+    if args.tail is not None:
+        _, segments = split_segments(segments, len(record), 1.0 - args.tail, lag0)
+    check_correlation_lags_option(args.correlation_lags,
+                                  sum(b - a - lag0 for a, b in segments))
+    return segments
+
+
+def add_parser(sub) -> None:
+    from ...core.settings import SETTINGS
+
+    p = sub.add_parser("validate", help="validate a saved model on data")
+    p.add_argument("model", metavar="MODEL.json")
+    add_data_options(p)
+    p.add_argument("--tail", type=float, default=None,
+                   help="validate on this final fraction of the data only (e.g. 0.5)")
+    p.add_argument("--plots", metavar="DIR", help="write validation figures here")
+    p.add_argument("--report", metavar="FILE.html",
+                   help="write one self-contained page of the model and this validation")
+    p.add_argument("--correlation-lags", "--corr-lags", dest="correlation_lags",
+                   type=schema_type("correlation_lags"),
+                   default=SETTINGS["correlation_lags"].default,
+                   help=SETTINGS["correlation_lags"].help)
+    p.add_argument("--horizon", type=schema_type("horizon"), default=0, metavar="K",
+                   help="also report K-step-ahead prediction (0: only one-step and free-run)")
+    p.set_defaults(func=cmd_validate)
