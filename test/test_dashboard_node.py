@@ -229,6 +229,16 @@ def test_the_live_page_shows_every_output_of_a_coupled_model(ros_env, harness, b
         stop(node)
 
 
+def _closed_by_server(s: socket.socket) -> bool:
+    """The server closed the connection (an empty read or a reset), before our long timeout."""
+    try:
+        return s.recv(1) == b""
+    except ConnectionResetError:
+        return True
+    except TimeoutError:
+        return False
+
+
 def _idle(host: str, port: int, count: int) -> list:
     """``count`` connections that send nothing (closed by the caller)."""
     family = socket.AF_INET6 if ":" in host else socket.AF_INET
@@ -268,17 +278,10 @@ def test_hundreds_of_idle_clients_never_take_the_nodes_descriptors(
         status, result = client.result(client.send(criterion="bic"))
         assert result.error_code == Identify.Result.NONE, result.message
         assert len(client.get_model().models.models) == 1
-        # the idle ones are closed by the node within its request timeout
-        end = time.monotonic() + 15
-        closed = 0
+        # the idle ones are closed by the node (refused, or at its request timeout)
         for s in idle[:50]:
-            try:
-                closed += s.recv(1) == b""
-            except OSError:
-                closed += 1
-            if time.monotonic() > end:
-                break
-        assert closed == 50
+            s.settimeout(60)
+        assert all(_closed_by_server(s) for s in idle[:50])
         for s in idle:
             s.close()
         idle = []
@@ -324,16 +327,12 @@ def test_a_token_is_never_logged_and_an_ipv6_dashboard_closes_silent_clients(
         assert wait_http(base)[0] == 403
         assert get(f"{base}state.json?token={quoted}")[0] == 200
         silent = _idle("::1", port, 100)
-        t0 = time.monotonic()
         for s in silent:
-            try:
-                s.recv(1)
-            except OSError:
-                pass
-        held = time.monotonic() - t0
+            s.settimeout(60)  # held 80 s and more before (no request timeout)
+        closed = [_closed_by_server(s) for s in silent]
         for s in silent:
             s.close()
-        assert held < 30, held  # held 80 s and more before (no request timeout)
+        assert all(closed)
         assert get(f"{base}state.json?token={quoted}")[0] == 200
     finally:
         stop(node)

@@ -88,7 +88,8 @@ def test_the_executables_print_their_usage_and_do_not_start():
 def test_a_stamp_is_the_nodes_clock_or_said_to_be_the_datas():
     import time
 
-    from spm_sysid.ros.node.dashboard import describe_stamp, host_name
+    from spm_sysid.ros.node.dashboard import describe_stamp
+    from spm_sysid.ros.node.dashboard_server import host_name
 
     now = time.time_ns()
     assert describe_stamp(now, now).startswith(time.strftime("%Y-%m-%d"))

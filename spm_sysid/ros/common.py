@@ -17,7 +17,8 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 
 from ..core.errors import BagError
 
-__all__ = ["LATCHED", "RELIABLE_KEEP_ALL", "REQUESTS", "asks_for_help", "message_class", "run_node"]
+__all__ = ["LATCHED", "RELIABLE_KEEP_ALL", "REQUESTS", "CallbackErrors", "asks_for_help",
+           "message_class", "run_node"]
 
 #: Latched: reliable + transient-local, depth 1; a late subscriber gets the last message.
 LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
@@ -52,24 +53,37 @@ def message_class(msgtype: str):
 LOGGED_CALLBACK_ERRORS = 10
 
 
-def _spin_resilient(executor, node: Node) -> None:
-    """Spin until shut down; a callback that raises is logged and counted, not fatal."""
-    import traceback
+class CallbackErrors:
+    """Callbacks that raised while a node spun: counted (``count``), the first ones logged.
 
-    node.callback_errors = 0
+    A node that reports them (``/diagnostics``) owns one as ``callback_errors``;
+    :func:`run_node` counts into it.
+    """
+
+    def __init__(self, logger) -> None:
+        self.logger, self.count = logger, 0
+
+    def __call__(self, exc: BaseException) -> None:
+        import traceback
+
+        self.count += 1
+        if self.count <= LOGGED_CALLBACK_ERRORS:
+            where = traceback.extract_tb(exc.__traceback__)[-1]
+            self.logger.error(
+                f"a callback raised {type(exc).__name__}: {exc} ({where.filename}:"
+                f"{where.lineno}); the node goes on (callback_errors {self.count} in "
+                "/diagnostics)")
+
+
+def _spin_resilient(executor, errors: CallbackErrors) -> None:
+    """Spin until shut down; a callback that raises is logged and counted, not fatal."""
     while rclpy.ok():
         try:
             executor.spin_once(timeout_sec=0.5)
         except (KeyboardInterrupt, ExternalShutdownException):
             raise
         except Exception as exc:  # noqa: BLE001 - one bad callback must not stop the node
-            node.callback_errors += 1
-            if node.callback_errors <= LOGGED_CALLBACK_ERRORS:
-                where = traceback.extract_tb(exc.__traceback__)[-1]
-                node.get_logger().error(
-                    f"a callback raised {type(exc).__name__}: {exc} ({where.filename}:"
-                    f"{where.lineno}); the node goes on (callback_errors "
-                    f"{node.callback_errors} in /diagnostics)")
+            errors(exc)
 
 
 def asks_for_help(args: list[str] | None) -> bool:
@@ -94,7 +108,8 @@ def run_node(build: Callable[[], Node], *, until: Callable[[Node], bool] | None 
         Spin until ``until(node)`` is true (a tool that ends; an exception of
         ``errors`` in a callback ends it with one ``error:`` line). Default: spin
         until shut down (a node that runs next to a robot): a callback that
-        raises is logged, counted in ``node.callback_errors`` and the node goes on.
+        raises is logged, counted in the node's own :class:`CallbackErrors`
+        (``node.callback_errors``, when it has one) and the node goes on.
     errors : tuple of exception types
         What ``build`` may raise for a user's mistake (bad parameters).
     finish : callable, optional
@@ -121,7 +136,9 @@ def run_node(build: Callable[[], Node], *, until: Callable[[Node], bool] | None 
         node = build()
         executor.add_node(node)
         if until is None:
-            _spin_resilient(executor, node)
+            errors_of = getattr(node, "callback_errors", None)
+            _spin_resilient(executor, errors_of if isinstance(errors_of, CallbackErrors)
+                            else CallbackErrors(node.get_logger()))
             interrupted = not rclpy.ok()
         else:
             while rclpy.ok() and not until(node):

@@ -25,7 +25,7 @@ from std_srvs.srv import Trigger
 
 from ..core.progress import Progress
 from ..core.stream.diagnostics import dashboard_status, diagnostic_statuses, online_status
-from .common import LATCHED, REQUESTS, run_node
+from .common import LATCHED, REQUESTS, CallbackErrors, run_node
 from .node.identification import Code, Identification
 from .node.online import OnlinePart
 from .node.parameters import NodeParameters, parameter_descriptor
@@ -42,6 +42,7 @@ class SysidNode(Node):
 
     def __init__(self) -> None:
         super().__init__("spm_sysid")
+        self.callback_errors = CallbackErrors(self.get_logger())  # run_node counts into it
         self.params = NodeParameters(self)
         p = self.params.values
         self.recorder = Recorder(self, p, self.params.channels, self.params.out_channels)
@@ -73,7 +74,7 @@ class SysidNode(Node):
                                    cancel_service_qos_profile=REQUESTS)
         self.create_service(Trigger, "~/clear", self._on_clear, callback_group=services,
                             qos_profile=REQUESTS)
-        self.dashboard = None
+        self.dashboard = self.dashboard_server = None
         if p["dashboard_port"]:
             self._start_dashboard(p)
         self.create_timer(p["diagnostics_period"], self._publish_diagnostics)
@@ -86,16 +87,30 @@ class SysidNode(Node):
 
     def _start_dashboard(self, p: dict) -> None:
         """Serve the live page (``dashboard_port``); a failure is one error line, no crash."""
-        from .node.dashboard import Dashboard, DashboardError
+        from .node.dashboard import STATUS_PERIOD, Dashboard
+        from .node.dashboard_server import DashboardError, DashboardServer
 
+        board = Dashboard(p["dashboard_seconds"])
         try:
-            self.dashboard = Dashboard(self, p["dashboard_port"], p["dashboard_host"],
-                                       p["dashboard_token"], p["dashboard_seconds"])
+            self.dashboard_server = DashboardServer(board, p["dashboard_port"],
+                                                    p["dashboard_host"], p["dashboard_token"])
         except DashboardError as exc:
             self.get_logger().error(str(exc))
             return
-        self.online.dashboard = self.dashboard
-        self.get_logger().info(self.dashboard.describe())
+        self.dashboard = self.online.dashboard = board
+        self._update_dashboard()
+        self.create_timer(STATUS_PERIOD, self._update_dashboard)
+        self.get_logger().info(self.dashboard_server.describe())
+
+    def _update_dashboard(self) -> None:
+        """The dashboard's snapshot of the node (read-only to its server's threads)."""
+        from .node.dashboard import node_status
+
+        ident, pub = self.identification, self.publisher
+        self.dashboard.update(node_status(
+            self.get_fully_qualified_name(), self.online.session,
+            None if ident.started is None else (ident.progress, ident.started),
+            pub.model, pub.doc, pub.restored_from))
 
     # -- services and the action ---------------------------------------------------------
     def _on_clear(self, request, response):
@@ -184,15 +199,15 @@ class SysidNode(Node):
                 ident.progress or Progress("checking data"), time.monotonic() - ident.started),
             last_error=ident.last_error, model=self.publisher.doc,
             restored_from=self.publisher.restored_from,
-            callback_errors=getattr(self, "callback_errors", 0),
+            callback_errors=self.callback_errors.count,
             worker_failure=worker.start_failure)
         statuses.append(online_status(self.get_fully_qualified_name(), self.online.session,
                                       {**self.reidentify.counts,
                                        "online_errors": self.online.errors}))
-        board = self.dashboard
-        if board is not None:
-            statuses.append(dashboard_status(self.get_fully_qualified_name(), board.url,
-                                             board.requests, dict(board.counts)))
+        server = self.dashboard_server
+        if server is not None:
+            statuses.append(dashboard_status(self.get_fully_qualified_name(), server.url,
+                                             server.requests, dict(server.counts)))
         msg = DiagnosticArray(status=[DiagnosticStatus(
             level=bytes([s.level]), name=s.name, message=s.message, hardware_id="spm_sysid",
             values=[KeyValue(key=k, value=v) for k, v in s.values.items()])
@@ -203,8 +218,8 @@ class SysidNode(Node):
     def close(self) -> None:
         """Stop the worker process (a running search is killed) and the dashboard."""
         self.identification.close()
-        if self.dashboard is not None:
-            self.dashboard.close()
+        if self.dashboard_server is not None:
+            self.dashboard_server.close()
 
 
 def main(args: list[str] | None = None) -> int:

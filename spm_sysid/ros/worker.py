@@ -17,7 +17,7 @@ involved, so nothing is left behind:
   error, and a new worker is started.
 
 Messages from the worker: ``("ready",)``, ``("progress", *values)``,
-``("result", value)``, ``("error", text, exception class name)``.
+``("result", value)``, ``("error", text, the exception's class names, nearest first)``.
 """
 
 from __future__ import annotations
@@ -53,11 +53,20 @@ class JobTimeoutError(JobCancelledError):
 
 
 class JobError(RuntimeError):
-    """The job raised; ``kind`` is its exception's class name (e.g. ``DataError``)."""
+    """The job raised; ``kinds``: its exception's class name and its bases', nearest first.
 
-    def __init__(self, message: str, kind: str = "") -> None:
+    (``("TooFewSamplesError", "DataError", "ValueError", ...)``: the node maps the
+    nearest it knows to an answer's code.)
+    """
+
+    def __init__(self, message: str, kinds: tuple[str, ...] | str = ()) -> None:
         super().__init__(message)
-        self.kind = kind
+        self.kinds = (kinds,) if isinstance(kinds, str) else tuple(kinds)
+
+    @property
+    def kind(self) -> str:
+        """The exception's own class name ('' when unknown)."""
+        return self.kinds[0] if self.kinds else ""
 
 
 def _send(stream, message: Any) -> None:
@@ -338,7 +347,8 @@ def _worker_main(function: str) -> int:
             result = func(*args, **kwargs, progress=progress)
             reply = ("result", result)
         except Exception as exc:  # reported to the parent as the job's error
-            reply = ("error", str(exc) or type(exc).__name__, type(exc).__name__)
+            reply = ("error", str(exc) or type(exc).__name__,
+                     tuple(c.__name__ for c in type(exc).__mro__))
         with lock:
             _send(out, reply)
 

@@ -87,6 +87,14 @@ class MimoJobResult:
         return None
 
     @property
+    def per_output(self) -> list:
+        """Each output's name, model, report and search history (as a job of one gives it)."""
+        from .single import OutputResult
+
+        return [OutputResult(name, r.model, r.report, r.search.history)
+                for name, r in zip(self.output_names, self.outputs)]
+
+    @property
     def diverged(self) -> list[str]:
         """Outputs whose coupled free-run simulation left their measured range."""
         return [name for name, r in zip(self.output_names, self.outputs)

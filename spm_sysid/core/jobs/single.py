@@ -16,7 +16,7 @@ from __future__ import annotations
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -39,8 +39,17 @@ from ..validate.validation import (
 )
 from .settings import JobSettings
 
-__all__ = ["JobResult", "choose_orders", "describe_selection", "run_single_job",
-           "validation_segments"]
+__all__ = ["JobResult", "OutputResult", "choose_orders", "describe_selection",
+           "run_single_job", "validation_segments"]
+
+
+class OutputResult(NamedTuple):
+    """One output of a job's result: what a page, a figure or a summary row shows of it."""
+
+    name: str
+    model: NarxModel
+    report: ValidationReport | None
+    history: list
 
 
 @dataclass
@@ -83,6 +92,24 @@ class JobResult:
     def residuals(self) -> np.ndarray:
         """One-step residuals of the validation rows (empty without validation)."""
         return np.empty(0) if self.report is None else self.report.residuals
+
+    @property
+    def per_output(self) -> list[OutputResult]:
+        """The one output (a job of several outputs has one entry each: the same view)."""
+        return [OutputResult(self.model.term_space.output, self.model, self.report,
+                             self.search.history)]
+
+    @property
+    def cross_tests(self) -> list:
+        """The outputs' residual cross-correlation: none for one output."""
+        return []
+
+    @property
+    def diverged(self) -> list[str]:
+        """The output, when its free-run simulation left the measured range."""
+        r = self.report
+        return [self.model.term_space.output] if r is not None and r.diverged_at is not None \
+            else []
 
     def summary(self, style: str = "lines") -> str:
         """The one summary formatter.

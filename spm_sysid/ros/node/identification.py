@@ -21,23 +21,30 @@ from rclpy.task import Future
 from spm_sysid_interfaces.action import Identify
 
 from ...core.errors import TooFewSamplesError
-from ...core.jobs import MimoJobResult
 from ...core.progress import Progress
 from ...core.record import BAG_OPTIONS, DataSpec, Record, load_record
+from ..futures import Pending
 from ..worker import JobCancelledError, JobError, JobTimeoutError, JobWorker
 from .parameters import NodeParameters
 from .publishing import SaveFailedError
 from .recording import Recorder
 
-__all__ = ["Code", "Identification", "LOAD_BOUND", "Outcome", "diverged"]
+__all__ = ["CODES", "Code", "Identification", "LOAD_BOUND", "Outcome", "code_of", "diverged"]
 
 #: The action result's error codes (``spm_sysid_interfaces/action/Identify``).
 Code = Identify.Result
 #: Seconds a goal's bag may take to read when ``job_timeout`` is 0 (no limit for the job).
 LOAD_BOUND = 600.0
-#: An error of the job (its class name, as the worker reports it) -> the answer's code.
-CODES = {"TooFewSamplesError": Code.TOO_FEW_SAMPLES, "DataError": Code.BAD_DATA,
-         "BagError": Code.BAD_DATA, "SettingsError": Code.INVALID_SETTINGS}
+#: An error of the job -> the answer's code, by its class or the nearest base class the
+#: worker reports (``MemoryLimitError`` and every new ``DataError`` subclass included).
+CODES = {"TooFewSamplesError": Code.TOO_FEW_SAMPLES, "BagError": Code.BAD_DATA,
+         "DataError": Code.BAD_DATA, "SettingsError": Code.INVALID_SETTINGS,
+         "MemoryLimitError": Code.INVALID_SETTINGS, "ModelFormatError": Code.BAD_DATA}
+
+
+def code_of(error: JobError) -> int:
+    """The answer's code of a job's error: its class's, else its nearest base class's."""
+    return next((CODES[name] for name in error.kinds if name in CODES), Code.FAILED)
 
 
 @dataclass
@@ -51,9 +58,7 @@ class Outcome:
 
 def diverged(result) -> bool:
     """The free-run simulation (of any output, coupled) left the measured range."""
-    if isinstance(result, MimoJobResult):
-        return bool(result.diverged)
-    return result.report is not None and result.report.diverged_at is not None
+    return bool(result.diverged)
 
 
 class Identification:
@@ -75,6 +80,8 @@ class Identification:
                  publish) -> None:
         self.node, self.params, self.recorder, self.publish = node, params, recorder, publish
         self.busy = threading.Lock()
+        self.idle = threading.Event()  # set while no identification runs
+        self.idle.set()
         self.started: float | None = None  # monotonic start of the running job
         self.progress: Progress | None = None
         self.last_error: str | None = None
@@ -82,7 +89,8 @@ class Identification:
         self.goal = None  # the action goal being executed
         self.feedback = None  # its feedback sender
         self.cancel_requested = False
-        # set from the worker's reader thread when a job ends, to wake the executor
+        self._reading: Pending | None = None  # a goal's bag being read
+        # triggered from other threads when an awaited wait ends, to wake the executor
         self._wake = node.create_guard_condition(lambda: None)
         self.worker = JobWorker("spm_sysid.core.jobs.run:run_job", on_progress=self._on_progress,
                                 on_event=node.get_logger().info)
@@ -98,12 +106,15 @@ class Identification:
         """
         if not auto and self.auto_running:
             self.worker.cancel("preempted by a manual identification")
-            await self._until(lambda: not self.busy.locked(), 10.0)
+            await Pending.run(lambda: self.idle.wait(10.0), self._wake.trigger).future
         if not self.busy.acquire(blocking=False):
+            if auto:
+                self.release_automatic()
             return Outcome(Code.BUSY, (
                 f"an identification is already running (started "
                 f"{time.monotonic() - (self.started or time.monotonic()):.1f} s ago); "
                 "try again when it has finished"))
+        self.idle.clear()
         self.goal, self.cancel_requested, self.feedback = goal, False, feedback
         try:
             return await self._run(names, texts, bag_path, record, auto)
@@ -111,7 +122,10 @@ class Identification:
             return self._failed(Code.FAILED, exc)
         finally:
             self.started = self.goal = self.feedback = None
+            if auto:
+                self.release_automatic()
             self.busy.release()
+            self.idle.set()
 
     async def _run(self, names, texts, bag_path: str, record, auto: bool) -> Outcome:
         try:
@@ -121,8 +135,11 @@ class Identification:
             return Outcome(Code.INVALID_SETTINGS, f"invalid settings: {exc}")
         try:
             if record is None and bag_path:  # read off the executor, with a bound
-                record = await self._off_executor(lambda: self._bag(values, bag_path),
-                                                  values["job_timeout"] or LOAD_BOUND)
+                try:
+                    record = await self._off_executor(lambda: self._bag(values, bag_path),
+                                                      values["job_timeout"] or LOAD_BOUND)
+                finally:
+                    self._reading = None
             elif record is None:  # the buffer: on the executor, as its callbacks
                 record = self.recorder.record(values["min_samples"])
         except TooFewSamplesError as exc:
@@ -152,7 +169,7 @@ class Identification:
                                "model stays published")
             return self._failed(Code.FAILED, exc)
         except JobError as exc:
-            return self._failed(CODES.get(exc.kind, Code.FAILED), exc)
+            return self._failed(code_of(exc), exc)
         if auto:
             return Outcome(Code.NONE, result.summary("line"), result)
         try:
@@ -163,12 +180,33 @@ class Identification:
         self.node.get_logger().info(f"identified: {message}")
         return Outcome(Code.DIVERGED if diverged(result) else Code.NONE, message, result)
 
+    def can_start_automatic(self) -> bool:
+        """No identification runs, manual or automatic: an automatic one may start."""
+        return not self.busy.locked() and not self.auto_running
+
+    def reserve_automatic(self) -> bool:
+        """Reserve the next run for an automatic identification (False: one runs already).
+
+        The reservation ends when that run (``run(..., auto=True)``) ends.
+        """
+        if not self.can_start_automatic():
+            return False
+        self.auto_running = True
+        return True
+
+    def release_automatic(self) -> None:
+        """End the reservation of :meth:`reserve_automatic` (its run ended, or never began)."""
+        self.auto_running = False
+
     def cancel(self, goal_handle) -> None:
         """Cancel the running goal when ``goal_handle`` is it (the search is ended at once)."""
         running = self.goal
         if running is not None and bytes(goal_handle.goal_id.uuid) == bytes(
                 running.goal_id.uuid):
             self.cancel_requested = True
+            reading = self._reading
+            if reading is not None:  # a bag being read: the wait ends now
+                reading.settle(exc=JobCancelledError("canceled by the client"))
             self.worker.cancel("canceled by the client")
             self.node.get_logger().info("identification canceled by the client")
 
@@ -201,75 +239,29 @@ class Identification:
 
         Reading a user's path may block (a slow disk, a network mount); the
         executor goes on serving cancels, ``~/get_model`` and ``/diagnostics``
-        meanwhile. A cancel ends the wait too.
+        meanwhile. A cancel (:meth:`cancel`) ends the wait at once.
         """
-        done = Future()
-        lock = threading.Lock()
-
-        def settle(value=None, exc: BaseException | None = None) -> None:
-            with lock:
-                if done.done():
-                    return
-                if exc is None:
-                    done.set_result(value)
-                else:
-                    done.set_exception(exc)
-            self._wake.trigger()
-
-        def run() -> None:
-            try:
-                settle(fn())
-            except BaseException as exc:  # noqa: BLE001 - handed to the awaiting coroutine
-                settle(exc=exc)
-
-        def watch() -> None:
-            end = time.monotonic() + timeout
-            while not done.done():
-                if self.cancel_requested:
-                    settle(exc=JobCancelledError("canceled by the client"))
-                elif time.monotonic() > end:
-                    settle(exc=OSError(f"reading the data took longer than {timeout:g} s "
-                                       "(job_timeout); is the path on a slow or stuck device?"))
-                time.sleep(0.05)
-
-        threading.Thread(target=run, daemon=True, name="read-data").start()
-        threading.Thread(target=watch, daemon=True, name="read-data-watch").start()
-        return done
-
-    def _until(self, predicate, timeout: float) -> Future:
-        """An awaitable: ``predicate()`` became true (or ``timeout`` seconds passed)."""
-        done = Future()
-
-        def wait() -> None:
-            end = time.monotonic() + timeout
-            while not predicate() and time.monotonic() < end:
-                time.sleep(0.02)
-            done.set_result(predicate())
-            self._wake.trigger()
-
-        threading.Thread(target=wait, daemon=True).start()
-        return done
+        self._reading = Pending.run(
+            fn, self._wake.trigger, timeout=timeout,
+            on_timeout=lambda: OSError(f"reading the data took longer than {timeout:g} s "
+                                       "(job_timeout); is the path on a slow or stuck "
+                                       "device?"))
+        return self._reading.future
 
     def _worker_ready(self, timeout: float) -> Future:
         """An awaitable: the worker process is ready (it restarts after a cancel)."""
-        ready = Future()
-
-        def wait() -> None:
-            ready.set_result(self.worker.wait_ready(timeout))
-            self._wake.trigger()
-
         if self.worker.ready:
-            ready.set_result(True)
-        else:
-            threading.Thread(target=wait, daemon=True).start()
-        return ready
+            pending = Pending(self._wake.trigger)
+            pending.settle(True)
+            return pending.future
+        return Pending.run(lambda: self.worker.wait_ready(timeout), self._wake.trigger).future
 
     def _in_worker(self, record, settings, values) -> Future:
         """The job in the worker process, as an awaitable rclpy Future.
 
         With ``job_timeout`` > 0 a longer job is stopped (its process replaced).
         """
-        done = Future()
+        pending = Pending(self._wake.trigger)
         extra = {"node": self.node.get_fully_qualified_name(),
                  "input_topic": values["input_topic"], "output_topic": values["output_topic"]}
         if values.get("output_field"):
@@ -285,13 +277,12 @@ class Identification:
 
         def finished(job):  # the worker's reader thread
             timer.cancel()
-            if job.exception() is None:
-                done.set_result(job.result())
+            exc = job.exception()
+            if exc is None:
+                pending.settle(job.result())
             else:
-                exc = job.exception()
-                done.set_exception(exc if isinstance(exc, (JobCancelledError, JobError))
-                                   else RuntimeError(str(exc)))
-            self._wake.trigger()
+                pending.settle(exc=exc if isinstance(exc, (JobCancelledError, JobError))
+                               else RuntimeError(str(exc)))
 
         job.add_done_callback(finished)
-        return done
+        return pending.future

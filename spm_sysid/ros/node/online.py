@@ -11,6 +11,7 @@ on ``~/validity`` (each change logged), the tracked coefficients on
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numpy as np
 from rclpy.node import Node
@@ -25,7 +26,28 @@ from ..common import LATCHED
 from ..typed import prediction_message, tracked_message, validity_message
 from .recording import Recorder
 
-__all__ = ["OnlinePart"]
+__all__ = ["CurrentModel", "OnlinePart"]
+
+
+@dataclass(frozen=True)
+class CurrentModel:
+    """What others may read of the current model: a snapshot, never the live session.
+
+    Attributes
+    ----------
+    model : NarxModel or MimoModel
+    state : str
+        The monitor's state (``VALID``, ``DEGRADED``, ``INVALID``).
+    change_stamp : int or None
+        The stamp (ns) where the detected change began.
+    since : float
+        Monotonic time the model was set.
+    """
+
+    model: object
+    state: str
+    change_stamp: int | None
+    since: float
 
 
 class OnlinePart:
@@ -89,6 +111,14 @@ class OnlinePart:
                 "written by an older version); the monitor takes its residuals as white and "
                 "may doubt a good model: identify again to monitor it against its own")
         self.publish_validity()
+
+    def current(self) -> CurrentModel | None:
+        """The current model and its monitor's state (None without a monitored model)."""
+        session = self.session
+        if session is None:
+            return None
+        return CurrentModel(session.model, session.state.state, session.change_stamp(),
+                            self.model_time)
 
     def on_pair(self, stamp: int, u: np.ndarray, y) -> None:
         """Each new aligned sample (the buffer calls this): predict, monitor, track."""

@@ -44,18 +44,18 @@ class Reidentification:
 
     def maybe_start(self) -> None:
         """Start an automatic identification when the policy says so (and it can run)."""
-        v, session, ident = self.values(), self.online.session, self.identification
+        v, current, ident = self.values(), self.online.current(), self.identification
         policy = v["reidentify"]
-        if policy == "never" or session is None or ident.busy.locked() or ident.auto_running:
+        if policy == "never" or current is None or not ident.can_start_automatic():
             return
         now = time.monotonic()
-        if now - max(self._last, self.online.model_time if policy == "periodic"
+        if now - max(self._last, current.since if policy == "periodic"
                      else -math.inf) < v["reidentify_interval"]:
             return
         if policy == "when_invalid":
-            if session.state.state != "INVALID":
+            if current.state != "INVALID":
                 return
-            since = session.change_stamp()
+            since = current.change_stamp
             why = "the model became INVALID"
         else:
             since, why = None, "periodic"
@@ -65,7 +65,9 @@ class Reidentification:
             keep[:max(len(y) - 4 * v["reidentify_samples"], 0)] = False
         if int(keep.sum()) < v["reidentify_samples"]:
             return  # not enough new samples yet; checked again every second
-        self._last, ident.auto_running = now, True
+        if not ident.reserve_automatic():
+            return
+        self._last = now
         self.node.executor.create_task(self._run, stamps[keep], u[keep], y[keep], why)
 
     async def _run(self, stamps, u, y, why: str) -> None:
@@ -85,9 +87,11 @@ class Reidentification:
                                              f"buffer of {self.node.get_fully_qualified_name()}"
                                              f" (automatic: {why})")
             out = await self.identification.run(record=record, auto=True)
-        finally:
-            self.identification.auto_running = False
-        current = None if self.online.session is None else self.online.session.model
+        except Exception:  # the record could not be made: the reservation ends here
+            self.identification.release_automatic()
+            raise
+        now = self.online.current()
+        current = None if now is None else now.model
         if out.result is None or current is None:
             counts["failed"] += 1
             counts["last"] = f"failed: {out.message}"

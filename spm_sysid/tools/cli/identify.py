@@ -39,7 +39,7 @@ def cmd_identify(args) -> int:
     finally:
         bars.close()
     several = record.n_outputs > 1
-    first = result.outputs[0].model if several else result.model
+    first = result.per_output[0].model
     if several:
         print(f"data: {record.source}, {len(record)} samples, outputs "
               f"{', '.join(record.output_names)} (one coupled model: each output's terms may "
@@ -67,19 +67,16 @@ def _written(record, result, several: bool) -> Written:
     """What ``identify`` writes: the model, a section per output with the job's own rows."""
     from ..html_report import OutputSection
 
-    notes = data_notes(result.data, (result.outputs[0] if several else result).model.metadata)
-    if several:
-        return Written(result.model, [
-            OutputSection(name, r.model, r.report, result.times, r.search.history)
-            for name, r in zip(result.output_names, result.outputs)], result.cross_tests,
-            f"{', '.join(result.output_names)}: identified coupled NARX model",
-            f"data: {record.source}, {len(record)} samples", result.summary("lines"), notes)
-    model = result.model
-    return Written(model, [OutputSection(model.term_space.output, model, result.report,
-                                         result.times, result.search.history)], [],
-                   f"{model.term_space.output}: identified NARX model",
-                   f"data: {record.source}, {result.estimation_samples} samples used for "
-                   "estimation", result.summary("lines"), notes)
+    first = result.per_output[0]
+    names = ", ".join(o.name for o in result.per_output)
+    title = (f"{names}: identified coupled NARX model" if several else
+             f"{names}: identified NARX model")
+    data = (f"data: {record.source}, {len(record)} samples" if several else
+            f"data: {record.source}, {result.estimation_samples} samples used for estimation")
+    return Written(result.model, [OutputSection(o.name, o.model, o.report, result.times,
+                                                o.history) for o in result.per_output],
+                   result.cross_tests, title, data, result.summary("lines"),
+                   data_notes(result.data, first.model.metadata))
 
 
 def data_notes(account: dict, metadata: dict) -> list[str]:
