@@ -76,6 +76,13 @@ def ros_env():
     lock.close()  # releases the domain
 
 
+#: A sysid_node reading two joints from one JointState topic (effort in, velocity out).
+JOINT_STATE_PARAMS = ("input_topic:=/joint_states", "input_type:=sensor_msgs/msg/JointState",
+                      "input_field:=effort[0],effort[1]", "input_names:=u1,u2",
+                      "output_topic:=/joint_states", "output_type:=sensor_msgs/msg/JointState",
+                      "output_field:=velocity[0],velocity[1]", "output_names:=y1,y2",
+                      "ny:=1", "nu:=1", "degree:=2", "criterion:=bic", "seed:=1")
+
 EQ1 = ["y(t-1)", "y(t-2)", "y(t-3)", "y(t-4)", "u(t-1)", "u(t-2)", "u(t-3)", "u(t-4)"]
 EQ2 = ["y(t-1)", "y(t-2)", "y(t-3)", "y(t-4)", "u(t-1)", "u(t-3)", "u(t-4)"]
 

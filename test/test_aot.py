@@ -1,4 +1,4 @@
-"""The ahead-of-time build of the kernels (issue 20): the same numbers as numba's JIT,
+"""The ahead-of-time build of the kernels: the same numbers as numba's JIT,
 only for the sources it was built from, only for the argument types it holds."""
 
 import importlib
@@ -87,7 +87,7 @@ def test_the_build_and_the_jit_fit_score_simulate_and_certify_the_same(robot_arm
 
     ev = problem.evaluator("aic")
     built, jitted = _both(lambda: certify(None, None, "aic", evaluator=ev, threads=1,
-                                          time_limit=60))
+                                          time_limit=600))
     assert built.status == jitted.status == "optimal"
     assert np.array_equal(built.mask, jitted.mask) and built.value == jitted.value
 

@@ -76,7 +76,7 @@ def test_certify_equals_brute_force(kind, criterion, seed):
     # budget 0: the tree does the work (nodes enumerate at most pairs exactly);
     # the default budget enumerates a 14-term problem at the root
     for budget in (0, None):
-        cert = certify(P, t, criterion, time_limit=60, enumeration_budget=budget)
+        cert = certify(P, t, criterion, time_limit=600, enumeration_budget=budget)
         assert cert.status == "optimal"
         assert cert.value == pytest.approx(truth, abs=1e-6)
         assert cert.lower_bound <= truth + 1e-6
@@ -85,7 +85,7 @@ def test_certify_equals_brute_force(kind, criterion, seed):
     # from a poor warm start (one term) too
     worst = np.zeros(P.shape[1], dtype=bool)
     worst[0] = True
-    again = certify(P, t, criterion, warm_start=worst, time_limit=60, enumeration_budget=0)
+    again = certify(P, t, criterion, warm_start=worst, time_limit=600, enumeration_budget=0)
     assert again.status == "optimal" and again.value == pytest.approx(truth, abs=1e-6)
 
 
@@ -140,15 +140,15 @@ def test_criteria_that_depend_on_coefficients_are_refused():
 def test_the_papers_models_are_certified_optimal(robot_arm, criterion, names):
     u, y = robot_arm
     ts = TermSpace()
-    cert = certify_data(u, y, term_space=ts, criterion=criterion, time_limit=60)
+    cert = certify_data(u, y, term_space=ts, criterion=criterion, time_limit=600)
     assert cert.status == "optimal" and sorted(cert.terms) == sorted(names)
-    res = identify(u=u, y=y, criterion=criterion, seed=1, certify_time_limit=60)
+    res = identify(u=u, y=y, criterion=criterion, seed=1, certify_time_limit=600)
     doc = res.model.metadata["certificate"]
     assert doc["status"] == "optimal" and doc["gap"] == 0.0
     assert doc["value"] == pytest.approx(res.ga.best_score) and sorted(doc["terms"]) == sorted(
         names)
     assert doc["value"] == pytest.approx(cert.value, abs=1e-6)
-    res = identify(u=u, y=y, criterion="pmic2", seed=1, certify_time_limit=60,
+    res = identify(u=u, y=y, criterion="pmic2", seed=1, certify_time_limit=600,
                    ga=__import__("spm_sysid").GAConfig(generations=20))
     assert res.model.metadata["certificate"]["status"] == "refused"
 
@@ -205,7 +205,7 @@ def test_running_out_of_room_for_open_nodes_stops_with_a_valid_bound(monkeypatch
 
     monkeypatch.setattr(certify_module, "MAX_OPEN_BYTES", 1)  # no room beyond the first block
     u, y = CASES["exchanger-0"]()
-    cert = certify_data(u, y, term_space=TermSpace(), criterion="bic", time_limit=60)
+    cert = certify_data(u, y, term_space=TermSpace(), criterion="bic", time_limit=600)
     assert cert.status == "limit" and cert.reason.startswith("memory limit (")
     assert cert.lower_bound < cert.value and cert.gap > 0 and len(cert.terms) > 0
 

@@ -1,4 +1,4 @@
-"""The live dashboard served by a real sysid_node, read by a real headless Chromium (issue 33)."""
+"""The live dashboard served by a real sysid_node, read by a real headless Chromium."""
 
 import pytest
 
@@ -195,8 +195,8 @@ def test_the_dashboard_refuses_an_open_bind_without_a_token_and_a_taken_port(
 
 def test_the_live_page_shows_every_output_of_a_coupled_model(ros_env, harness, browser,
                                                              tmp_path):
+    from .conftest import JOINT_STATE_PARAMS as PARAMS
     from .conftest import two_output_system, write_joint_state_bag
-    from .test_mimo_node import PARAMS
 
     u, Y = two_output_system(1200, seed=3, noise=0.001)
     bag = write_joint_state_bag(tmp_path / "joints", u, Y)

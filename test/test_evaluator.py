@@ -206,7 +206,7 @@ def test_nearly_dependent_structures_are_decided_as_the_reference_decides():
     # 40 columns that are combinations of 30 others plus noise of 1e-4 .. 1e-7: squared
     # pivots from 1e-6 down to 1e-12, around the rank threshold (1e-9), where a Gram
     # matrix's pivots are unreliable. (The GA in a 2 299-term space found such a
-    # structure: test_data_path.test_large_term_spaces_run_to_the_end...)
+    # structure: test_gaps_and_damaged_inputs.test_large_term_spaces_run_to_the_end...)
     rng = np.random.default_rng(0)
     base = rng.standard_normal((400, 30))
     cols = [base]

@@ -21,14 +21,10 @@ from spm_sysid_interfaces.msg import NarxModelSet, Prediction, Validity
 
 from spm_sysid.core.io.bagio import read_bag_signals
 
-from .conftest import ROOT, TRUE, two_output_system, write_joint_state_bag
+from .conftest import JOINT_STATE_PARAMS, ROOT, TRUE, two_output_system, write_joint_state_bag
 from .ros_harness import IdentifyClient, play_bag, start_node, stop
 
-PARAMS = ("input_topic:=/joint_states", "input_type:=sensor_msgs/msg/JointState",
-          "input_field:=effort[0],effort[1]", "input_names:=u1,u2",
-          "output_topic:=/joint_states", "output_type:=sensor_msgs/msg/JointState",
-          "output_field:=velocity[0],velocity[1]", "output_names:=y1,y2",
-          "ny:=1", "nu:=1", "degree:=2", "criterion:=bic", "seed:=1")
+PARAMS = JOINT_STATE_PARAMS
 
 
 def test_the_node_identifies_two_joints_from_a_joint_state_topic(ros_env, harness, tmp_path):

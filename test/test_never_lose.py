@@ -1,4 +1,4 @@
-"""Never lose to linear (issue 32): linear finalists, the significance rule, open-loop
+"""Never lose to linear: linear finalists, the significance rule, open-loop
 integrators, and the coupled judgement of several outputs."""
 
 import numpy as np

@@ -1,4 +1,4 @@
-"""`make run`: the main job end to end over real DDS, both foci (issue 11)."""
+"""`make run`: the main job end to end over real DDS, both foci."""
 
 import subprocess
 import sys

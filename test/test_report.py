@@ -1,4 +1,4 @@
-"""The HTML report (issue 33), opened in a real headless Chromium with no network."""
+"""The HTML report, opened in a real headless Chromium with no network."""
 
 import json
 import subprocess

@@ -1,4 +1,4 @@
-"""Issue 20 behaviour (speed itself is measured by spm_sysid.bench.speed, not here):
+"""What makes commands fast, as behaviour (speed itself is measured by spm_sysid.bench.speed):
 imports on demand, kernels compiled ahead, the polish, certification by default."""
 
 import json

@@ -1,4 +1,4 @@
-"""Issue 8 offline: gaps, safe files, damaged bags, clear errors, big inputs (no ROS)."""
+"""Offline: gaps, safe files, damaged bags, clear errors, big inputs (no ROS)."""
 
 import gzip
 import json

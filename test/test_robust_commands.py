@@ -1,4 +1,4 @@
-"""Issue 30 without ROS: nothing hangs, crashes or is overwritten.
+"""Without ROS: nothing hangs, crashes or is overwritten.
 
 Each test is the failure as it was reported: a pipe given as a bag, a truncated
 ahead-of-time build or numba cache, a batch writing over its own input, make-bag

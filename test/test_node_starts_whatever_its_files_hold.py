@@ -1,4 +1,4 @@
-"""Issue 17 over real DDS: a node that starts whatever is in its files, clear errors,
+"""Over real DDS: a node that starts whatever is in its files, clear errors,
 stamps that were never filled in, namesakes, back-pressure."""
 
 import pytest

@@ -1,4 +1,4 @@
-"""Issue 30 over real DDS: a goal never freezes the node; every request gets an answer.
+"""Over real DDS: a goal never freezes the node; every request gets an answer.
 
 A real sysid_node process; this test's rclpy node is the client.
 """

@@ -1,4 +1,4 @@
-"""Issue 18: one path from a record to a model; the same input, the same model document."""
+"""Jobs (core/jobs): one path from a record to a model; the same input, the same model document."""
 
 import json
 import subprocess

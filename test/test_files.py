@@ -1,4 +1,4 @@
-"""Issue 17: data read once, files that are only ever files, inputs never overwritten.
+"""Files (core/files.py): data read once, files that are only ever files, inputs never overwritten.
 
 Each test reproduces a case that lost or destroyed something before the fix.
 """
