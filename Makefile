@@ -58,12 +58,12 @@ lint: $(KERNELS)
 	$(BIN)/ruff check .
 
 bench: $(KERNELS)
-	$(BIN)/spm-sysid bench
+	$(BIN)/python -m benchmarks.commands bench
 
 ## GA time and memory against term-space size and samples, with the FastCan baseline.
 bench-sizes: $(KERNELS)
 	$(BIN)/python -m pip install --quiet -e '.[bench]'
-	$(BIN)/spm-sysid bench-sizes --fastcan
+	$(BIN)/python -m benchmarks.commands bench-sizes --fastcan
 
 bag: $(KERNELS)
 	$(BIN)/spm-sysid make-bag --output bags/robot_arm --force
@@ -79,40 +79,40 @@ clean:
 
 ## Certification: robot-arm data and records made hard on purpose, 60 s each.
 bench-certify: $(KERNELS)
-	$(BIN)/python -m spm_sysid.bench.certify
+	$(BIN)/python -m benchmarks.certify
 
 ## The spaces users search (164 and 454 candidates) on real records, beside SCIP's MIQP.
 bench-certify-scale: $(KERNELS)
 	$(BIN)/python -m pip install --quiet -e '.[bench]'
-	$(BIN)/python -m spm_sysid.bench.certify_scale
+	$(BIN)/python -m benchmarks.certify_scale
 
 ## Where a command's time goes; the quick command against a DEAP GA; GA and simulation times.
 bench-speed: $(KERNELS)
 	$(BIN)/python -m pip install --quiet -e '.[bench]'
-	$(BIN)/python -m spm_sysid.bench.speed --large
+	$(BIN)/python -m benchmarks.speed --large
 
 ## Second-half free run against the linear ARX yardstick: robot arm, dryer, heat exchanger,
 ## two tanks, the two-link arm (two outputs).
 bench-accuracy: $(KERNELS)
-	$(BIN)/python -m spm_sysid.bench.accuracy
+	$(BIN)/python -m benchmarks.accuracy
 
 ## Models on data they were not fitted on: two-tank cascade, robot-arm halves, coverage.
 bench-generalise: $(KERNELS)
-	$(BIN)/python -m spm_sysid.bench.generalise
+	$(BIN)/python -m benchmarks.generalise
 
 ## Online monitor and tracker: detection delay, false alarms, drift tracking, cost per sample.
 bench-online: $(KERNELS)
-	$(BIN)/python -m spm_sysid.bench.online
+	$(BIN)/python -m benchmarks.online
 
 ## Several outputs: a two-link arm identified as one coupled model, against two single-output runs.
 bench-mimo: $(KERNELS)
-	$(BIN)/python -m spm_sysid.bench.mimo
-	$(BIN)/python -m spm_sysid.bench.mimo --focus simulation --repeats 1
+	$(BIN)/python -m benchmarks.mimo
+	$(BIN)/python -m benchmarks.mimo --focus simulation --repeats 1
 
 ## Study on the local pool vs a 2-worker Dask cluster (the paper's 180 runs).
 bench-dask: $(KERNELS)
-	$(BIN)/python -m spm_sysid.bench.cluster
+	$(BIN)/python -m benchmarks.cluster
 
 ## Node benchmark: ingest at 1 kHz for 60 s, identify latency, memory with 100000 pairs.
 bench-node: $(KERNELS)
-	$(BIN)/python -m spm_sysid.bench.node
+	$(BIN)/python -m benchmarks.node

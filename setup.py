@@ -9,7 +9,7 @@ PACKAGE = "spm_sysid"
 setup(
     name=PACKAGE,
     version="0.1.0",
-    packages=find_packages(exclude=["test", "test.*"]),
+    packages=find_packages(exclude=["test", "test.*", "benchmarks", "benchmarks.*"]),
     # the report's and the dashboard's templates, stylesheet and scripts
     package_data={"spm_sysid.tools.pages": ["*.html", "*.css", "*.js"]},
     data_files=[

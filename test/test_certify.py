@@ -176,7 +176,7 @@ def test_certify_command_and_identify_certify(tmp_path, robot_arm_path):
 
 def test_bench_certify_prints_the_table():
     """The benchmark command as `make bench-certify` runs it, on one case and criterion."""
-    r = subprocess.run([sys.executable, "-m", "spm_sysid.bench.certify", "--cases",
+    r = subprocess.run([sys.executable, "-m", "benchmarks.certify", "--cases",
                         "robot-arm", "--criteria", "bic", "--time-limit", "30"],
                        capture_output=True, text=True, cwd=ROOT, timeout=300)
     assert r.returncode == 0, r.stderr
@@ -185,13 +185,13 @@ def test_bench_certify_prints_the_table():
     assert fields[1:4] == ["1024", "bic", "optimal"]
     assert float(fields[5]) == pytest.approx(-10707.48, abs=0.01)
     assert "certified 1 of 1" in r.stdout
-    r = subprocess.run([sys.executable, "-m", "spm_sysid.bench.certify", "--cases",
+    r = subprocess.run([sys.executable, "-m", "benchmarks.certify", "--cases",
                         "nonsense"], capture_output=True, text=True, cwd=ROOT, timeout=60)
     assert r.returncode == 2 and "unknown case(s) nonsense" in r.stderr
 
 
 def test_hard_cases_are_made_the_same_way_each_time():
-    from spm_sysid.bench.certify import CASES
+    from benchmarks.certify import CASES
 
     for name in ("dryer-0", "exchanger-1", "ar-0.97"):
         u1, y1 = CASES[name]()
@@ -201,7 +201,7 @@ def test_hard_cases_are_made_the_same_way_each_time():
 
 def test_running_out_of_room_for_open_nodes_stops_with_a_valid_bound(monkeypatch):
     import spm_sysid.core.search.certify as certify_module
-    from spm_sysid.bench.certify import CASES
+    from benchmarks.certify import CASES
 
     monkeypatch.setattr(certify_module, "MAX_OPEN_BYTES", 1)  # no room beyond the first block
     u, y = CASES["exchanger-0"]()

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from spm_sysid.bench.engine import NaiveEvaluator
+from benchmarks.engine import NaiveEvaluator
 from spm_sysid.core.fit.evaluator import StructureEvaluator, structure_keys
 from spm_sysid.core.fit.lstsq import reference_fit, reference_score
 from spm_sysid.core.model.terms import TermSpace

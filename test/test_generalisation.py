@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from spm_sysid.bench.tanks import record as tank_record
+from benchmarks.tanks import record as tank_record
 from spm_sysid.core.errors import DataError
 from spm_sysid.core.fit.criteria import aicc
 from spm_sysid.core.fit.problem import Problem
@@ -47,7 +47,7 @@ def test_covariance_is_sigma2_inverse_gram_of_the_regressors(robot_arm):
 
 def test_the_95_percent_intervals_cover_the_true_coefficients():
     """300 replicates of a NARX system with known coefficients: coverage 93-97 %."""
-    from spm_sysid.bench.generalise import coverage  # the benchmark's own computation
+    from benchmarks.generalise import coverage  # the benchmark's own computation
 
     pooled, per_coefficient = coverage(replicates=300, n=300, seed=2026)
     assert 0.93 <= pooled <= 0.97, pooled

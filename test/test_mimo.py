@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from spm_sysid.bench.two_link import record
+from benchmarks.two_link import record
 from spm_sysid.core.errors import ModelFormatError
 from spm_sysid.core.jobs import JobSettings, run_job
 from spm_sysid.core.model.mimo import MimoModel, output_space

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
+from benchmarks.online import system
 from spm_sysid import identify
-from spm_sysid.bench.online import system
 from spm_sysid.core.model.narx import NarxModel
 from spm_sysid.core.model.terms import TermSpace
 from spm_sysid.core.online import OnlinePredictor, RecursiveTracker, ValidityMonitor

@@ -18,7 +18,7 @@ from spm_sysid_interfaces.msg import NarxModel as NarxModelMsg
 from spm_sysid_interfaces.msg import Prediction, Validity
 from std_msgs.msg import String
 
-from spm_sysid.bench.online import system
+from benchmarks.online import system
 from spm_sysid.core.io.bagio import read_bag_signals, write_io_bag
 from spm_sysid.core.model.narx import NarxModel
 

@@ -1,4 +1,4 @@
-"""What makes commands fast, as behaviour (speed itself is measured by spm_sysid.bench.speed):
+"""What makes commands fast, as behaviour (speed itself is measured by benchmarks.speed):
 imports on demand, kernels compiled ahead, the polish, certification by default."""
 
 import json
@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from spm_sysid.bench.certify import CASES
+from benchmarks.certify import CASES
 from spm_sysid.core.fit.problem import Problem
 from spm_sysid.core.identify import identify, identify_problem
 from spm_sysid.core.model.terms import TermSpace

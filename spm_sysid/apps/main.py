@@ -1,9 +1,9 @@
-"""The ``spm-sysid`` console script: the offline command line, ``call`` and the benchmarks.
+"""The ``spm-sysid`` console script: the offline command line and ``call``.
 
 ``call`` is the one sub-command that needs ROS; it is added here, where tools
 and ROS may meet, and imports rclpy only when it runs, so every other
-sub-command works on machines without ROS. ``bench`` and ``bench-sizes`` come
-from :mod:`spm_sysid.bench`, which sits above the tools.
+sub-command works on machines without ROS. The benchmarks are not commands of
+``spm-sysid``: they live beside the package (``benchmarks/``, ``make bench-*``).
 """
 
 from __future__ import annotations
@@ -58,9 +58,6 @@ def main(argv: list[str] | None = None) -> int:
                    help="use the std_srvs/Trigger service ~/identify instead of the action")
     p.add_argument("--quiet", action="store_true", help="no progress line")
     p.set_defaults(func=_cmd_call)
-    from ..bench.commands import add_parsers as add_bench_parsers
-
-    add_bench_parsers(sub)
     return run(parser, argv)
 
 

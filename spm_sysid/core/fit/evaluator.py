@@ -26,7 +26,7 @@ best: dropping the redundant term gives the same SSE with fewer terms.
 :func:`spm_sysid.core.fit.lstsq.reference_fit` is the slow, numerically
 preferred path (Householder QR of the selected columns); it gives the final
 model's coefficients and is the yardstick the evaluator is tested against. The
-benchmark's naive baseline lives with the benchmark (:mod:`spm_sysid.bench.engine`).
+benchmark's naive baseline lives with the benchmark (:mod:`benchmarks.engine`).
 
 The numbers behind the evaluator -- the Gram matrix :attr:`gram`, the
 triangular factor :attr:`factor`, the SSE floor -- are public: the branch and

@@ -17,7 +17,7 @@ the same spread and the same correlation. The monitor compares them with it:
   (:data:`H_MEAN`, :data:`H_VARIANCE`) are set for an average run length of
   about 10^6 samples between false alarms on white Gaussian z
   (Siegmund's approximation for the mean, simulation for both; measured:
-  ``python -m spm_sysid.bench.online``).
+  ``python -m benchmarks.online``).
 * **Window** of the last ``window`` samples: RMS of e against the
   identification's, and the Ljung-Box statistic of z over 10 lags. RMS ratio
   above :data:`DEGRADED_RMS` or a whiteness p-value below

@@ -36,71 +36,37 @@ Values are ``n ln(max(SSE, floor) * scale / n) + pen[k]``, the evaluator's
 formula. The heap lives in caller-owned arrays so a search can pause (after
 ``max_pops`` nodes) to report progress and go on, and grow when full.
 
-Three named tuples carry the state (numba compiles them like structs):
-:class:`Data`, the problem's numbers; :class:`Heap`, the open nodes, the
-incumbent and the counters (indexed by :data:`OPEN`, :data:`EXPANDED`, ...);
-:class:`Work`, one worker's scratch arrays, allocated once
-(:func:`workspace`). :func:`expand` pops nodes and runs the named steps on each:
+The state is :mod:`.bb_state`'s (the problem, the open nodes, a worker's scratch).
+:func:`expand` pops nodes and runs the named steps on each:
 :func:`_node_columns`, :func:`_factorise`, :func:`_branch_on`, :func:`_fit_all`,
 :func:`_bound_sizes` (with :func:`_consider` for incumbents), :func:`_walk_chain`.
 """
 
 from __future__ import annotations
 
-from collections import namedtuple
-
 import numpy as np
 
 from ..compiled.kernels import cholesky_rows, csne_step, reflect, reflector
 from ..compiled.registry import jit
+from .bb_state import (  # noqa: F401 - the search's state, named here as before
+    COUNTERS,
+    DONE,
+    EXPANDED,
+    FULL,
+    NEAR_BRANCHES,
+    OFFERED,
+    OPEN,
+    PAUSED,
+    PENDING,
+    Data,
+    Heap,
+    Work,
+    words_for,
+    workspace,
+)
 
 __all__ = ["COUNTERS", "DONE", "Data", "FULL", "Heap", "PAUSED", "Work", "expand",
            "words_for", "workspace"]
-
-#: :func:`expand` results.
-DONE, PAUSED, FULL = 0, 1, 2
-
-#: The counters of a :class:`Heap`, by position.
-OPEN, EXPANDED, OFFERED, NEAR_BRANCHES, PENDING = range(5)
-COUNTERS = ("open", "expanded", "offered", "near_branches", "pending")
-
-#: The problem's numbers: ``gram`` (m + 1, m + 1) of the unit-norm candidates and the
-#: target (last), ``r_ext`` their triangular factor, ``pen`` the penalty of each size,
-#: ``n``/``scale``/``floor`` the rows, SSE scale and SSE floor, ``rank_tol`` the
-#: smallest squared pivot of an identifiable structure, ``tol`` the pruning tolerance,
-#: ``near`` the squared pivot below which the evaluator decides a candidate.
-Data = namedtuple("Data", "gram r_ext pen n scale floor rank_tol tol near")
-
-#: The open nodes (a binary heap on ``bound``; ``inside``/``free`` are term masks in
-#: 64-bit words), the ``counts`` (see :data:`COUNTERS`), the incumbent ``best`` (1,)
-#: and ``best_mask``, and ``pending``: candidates whose rank the evaluator decides.
-Heap = namedtuple("Heap", "bound inside free counts best best_mask pending")
-
-#: One worker's scratch space (see :func:`workspace`).
-Work = namedtuple("Work", [
-    "inside", "free", "child_in", "child_free", "members", "cols", "cand", "chain",
-    "order", "L", "Lc", "piv", "Winv", "Hff", "pcost", "pairs", "Q", "At", "S", "cvec",
-    "exact", "small", "chosen", "lrow", "wbuf", "gbuf", "pick", "edges", "deg", "gone",
-    "theta", "theta2", "r", "g", "delta", "hdiag", "column", "drop", "prefmin", "wvals",
-    "cored", "Ht"])
-
-
-def workspace(m: int, rows: int, nw: int) -> Work:
-    """Scratch arrays for a search over m terms (``rows``: rows of r_ext; ``nw`` words)."""
-    z, e = np.zeros, np.empty
-    i64 = np.int64
-    return Work(
-        inside=z(nw, np.uint64), free=z(nw, np.uint64), child_in=z(nw, np.uint64),
-        child_free=z(nw, np.uint64), members=e(m, i64), cols=e(m + 1, i64),
-        cand=e(m + 1, i64), chain=e(m + 1, i64), order=e(m + 1, i64), L=z((m + 1, m + 1)),
-        Lc=z((m + 1, m + 1)), piv=z(m + 1), Winv=z((m, m)), Hff=z((m, m)),
-        pcost=z((m, m)), pairs=z((m, m)), Q=z((rows, m + 1)), At=z((rows, m + 1)),
-        S=z((m, m)), cvec=z(m), exact=z(m + 1), small=z(m + 1), chosen=z((m + 1, m + 1), i64),
-        lrow=z((m + 1, m + 1)), wbuf=z(m + 1), gbuf=z(m + 1), pick=z(m + 1, i64),
-        edges=e(max(m * m, 1)), deg=e(m, i64), gone=z(m, np.bool_), theta=e(m + 1),
-        theta2=e(m + 1), r=e(rows), g=e(m + 1), delta=e(m), hdiag=e(m), column=e(m),
-        drop=e(m + 1), prefmin=e(m + 1), wvals=e(m + 1), cored=z(m + 1, np.bool_),
-        Ht=z((m + 1, rows)))
 
 #: Drop costs (from the Gram matrix of T, relative rounding about eps * cond) count
 #: ``1 - DROP_MARGIN * eps * |T| * cond`` of themselves, cond estimated per node
@@ -117,11 +83,6 @@ SMALL_MARGIN = 1e-8
 #: eps |T| / its smallest singular value is below 1e-8 for 400 terms when that value
 #: is a tenth of its smallest pivot.
 SPAN_ANGLE = 1e-7
-
-
-def words_for(m: int) -> int:
-    """64-bit words of a term mask of m terms."""
-    return max(1, (m + 63) // 64)
 
 
 @jit

@@ -5,7 +5,7 @@ and a constant (delay 1), by plain least squares; the order n is chosen on the
 estimation data's own free run (the order whose simulation of those data is
 closest), which is what a careful user can know before seeing new data. A
 NARX model earns its nonlinear terms only by simulating held-out data better
-than this (:mod:`spm_sysid.bench.accuracy` measures it).
+than this (:mod:`benchmarks.accuracy` measures it).
 """
 
 from __future__ import annotations

@@ -16,8 +16,8 @@ command                   what it does                                        mo
 ``settings``              every setting: default, allowed values, where       here
 ========================  ==================================================  ===========
 
-:mod:`spm_sysid.apps.main` adds ``call`` (the ROS node's client) and the
-benchmarks ``bench`` and ``bench-sizes`` (:mod:`spm_sysid.bench.commands`). Shared pieces
+:mod:`spm_sysid.apps.main` adds ``call`` (the ROS node's client); the benchmarks
+live beside the package (``benchmarks/``). Shared pieces
 (options from the settings schema, loading data, checking destinations) are in
 :mod:`.common`, what identify and validate write in :mod:`.outputs`, progress bars in
 :mod:`.progress`. Every failure a user can

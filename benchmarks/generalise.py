@@ -1,8 +1,8 @@
 """Benchmark: models on data they were not fitted on.
 
-``python -m spm_sysid.bench.generalise`` (``make bench-generalise``) prints:
+``python -m benchmarks.generalise`` (``make bench-generalise``) prints:
 
-* **tanks**: the two-tank cascade (:mod:`spm_sysid.bench.tanks`), estimation
+* **tanks**: the two-tank cascade (:mod:`benchmarks.tanks`), estimation
   record seed 1, test record seed 2 (another multisine phase draw); for every
   space ny = nu in {2, 3, 4} x degree {2, 3}, with a constant, BIC, the default
   simulation focus: terms, whether the test-record simulation diverged, its
@@ -50,8 +50,9 @@ def one_step_fit(model, u: np.ndarray, y: np.ndarray) -> float:
 
 def tank_table(orders=(2, 3, 4), degrees=(2, 3), seed: int = 0) -> list[dict]:
     """The tanks rows (see the module doc)."""
-    from ..core.identify import identify
-    from ..core.model.terms import TermSpace
+    from spm_sysid.core.identify import identify
+    from spm_sysid.core.model.terms import TermSpace
+
     from .tanks import record
 
     u, y = record(1)
@@ -78,8 +79,8 @@ def tank_table(orders=(2, 3, 4), degrees=(2, 3), seed: int = 0) -> list[dict]:
 
 def coverage(replicates: int = 300, n: int = 300, seed: int = 2026) -> tuple[float, list]:
     """Share of 95 % intervals that hold the true coefficient (pooled, per coefficient)."""
-    from ..core.fit.problem import fit_structure
-    from ..core.model.terms import TermSpace
+    from spm_sysid.core.fit.problem import fit_structure
+    from spm_sysid.core.model.terms import TermSpace
 
     truth = {"y(t-1)": 0.5, "y(t-2)": -0.3, "u(t-1)": 1.0, "u(t-1)*u(t-2)": 0.2}
     ts = TermSpace(ny=2, nu=2, degree=2)
@@ -101,7 +102,7 @@ def coverage(replicates: int = 300, n: int = 300, seed: int = 2026) -> tuple[flo
 
 
 def _halves():
-    from ..core.record import DataSpec, load_record
+    from spm_sysid.core.record import DataSpec, load_record
 
     rec = load_record(DataSpec())
     half = len(rec.y) // 2
@@ -110,9 +111,9 @@ def _halves():
 
 def robot_arm_holdout(seed: int = 0) -> list[tuple[str, int, float, float]]:
     """(what, terms, second-half free-run fit, seconds) for the holdout comparison."""
-    from ..core.identify import identify
-    from ..core.model.terms import TermSpace
-    from ..core.validate.orders import propose_orders
+    from spm_sysid.core.identify import identify
+    from spm_sysid.core.model.terms import TermSpace
+    from spm_sysid.core.validate.orders import propose_orders
 
     u1, y1, u2, y2 = _halves()
     prop = propose_orders(u1, y1)
@@ -131,8 +132,8 @@ def robot_arm_holdout(seed: int = 0) -> list[tuple[str, int, float, float]]:
 
 def large_space(seed: int = 0) -> list[tuple[str, int, float, float, int, float]]:
     """(what, terms, one-step fit, free-run fit, warnings, seconds), first -> second half."""
-    from ..core.identify import identify
-    from ..core.model.terms import TermSpace
+    from spm_sysid.core.identify import identify
+    from spm_sysid.core.model.terms import TermSpace
 
     u1, y1, u2, y2 = _halves()
     out = []
@@ -146,7 +147,7 @@ def large_space(seed: int = 0) -> list[tuple[str, int, float, float, int, float]
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m spm_sysid.bench.generalise",
+    p = argparse.ArgumentParser(prog="python -m benchmarks.generalise",
                                 description=__doc__.split("\n\n")[0])
     p.add_argument("--skip-large", action="store_true",
                    help="leave out the ny=nu=6 degree-3 case (about 1-2 minutes)")

@@ -15,11 +15,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..core.fit.criteria import Criterion, get_criterion
-from ..core.fit.evaluator import StructureEvaluator
-from ..core.fit.lstsq import DEFAULT_RANK_TOL, score_one, sse_floor
-from ..core.model.terms import TermSpace
-from ..core.search.ga import GAConfig, run_ga
+from spm_sysid.core.fit.criteria import Criterion, get_criterion
+from spm_sysid.core.fit.evaluator import StructureEvaluator
+from spm_sysid.core.fit.lstsq import DEFAULT_RANK_TOL, score_one, sse_floor
+from spm_sysid.core.model.terms import TermSpace
+from spm_sysid.core.search.ga import GAConfig, run_ga
 
 __all__ = ["BenchFigures", "run_benchmark"]
 
@@ -148,10 +148,10 @@ def run_simulation_benchmark(u: np.ndarray, y: np.ndarray, *, repeats: int = 3,
     numba; the numbers are identical). The identification: ``focus="simulation"``,
     BIC, GA settings ``config`` (default the paper's), seeds 1..repeats.
     """
-    from ..core.fit.problem import fit_structure
-    from ..core.identify import identify
-    from ..core.model import simulation
-    from ..core.validate.validation import metrics
+    from spm_sysid.core.fit.problem import fit_structure
+    from spm_sysid.core.identify import identify
+    from spm_sysid.core.model import simulation
+    from spm_sysid.core.validate.validation import metrics
 
     space = TermSpace()
     mask = np.zeros(space.n_terms, dtype=bool)

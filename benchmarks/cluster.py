@@ -1,6 +1,6 @@
 """Benchmark: the paper's 180-run study on this machine's pool and on a 2-worker Dask cluster.
 
-``python -m spm_sysid.bench.cluster`` (``make bench-dask``) runs the study
+``python -m benchmarks.cluster`` (``make bench-dask``) runs the study
 (the paper's grid: AIC, BIC, PMIC2 x populations 200, 100 x SPM 0, 0.15 x 15
 runs; no certification, so only the runs are timed) first on the local process
 pool (one process per core), then on a Dask ``LocalCluster`` of two worker
@@ -25,8 +25,8 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     from distributed import LocalCluster
 
-    from ..core.io.datasets import load_robot_arm
-    from ..tools.experiment import ExperimentConfig, run_experiment
+    from spm_sysid.core.io.datasets import load_robot_arm
+    from spm_sysid.tools.experiment import ExperimentConfig, run_experiment
 
     u, y = load_robot_arm()
     config = ExperimentConfig(runs=args.runs, certify_reference=False)

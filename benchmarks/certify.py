@@ -1,6 +1,6 @@
 """Benchmark: certifying the optimum on the robot-arm data and on records made hard on purpose.
 
-``python -m spm_sysid.bench.certify`` (``make bench-certify``) runs, for
+``python -m benchmarks.certify`` (``make bench-certify``) runs, for
 each case and criterion, the GA (seed 1, the paper's settings) and then the
 branch and bound warm-started with its result, within ``--time-limit`` seconds,
 and prints one row each: status, the GA's value, the certified (or best found)
@@ -73,7 +73,7 @@ def _exchanger(seed: int, n: int = 4000, noise: float = 0.3) -> tuple[np.ndarray
 
 
 def _robot_arm() -> tuple[np.ndarray, np.ndarray]:
-    from ..core.io.datasets import load_robot_arm
+    from spm_sysid.core.io.datasets import load_robot_arm
 
     return load_robot_arm()
 
@@ -105,9 +105,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--first-seed", type=int, default=1,
                    help="the reach table's seeds are first-seed .. first-seed + seeds - 1")
     args = p.parse_args(argv)
-    from ..core.identify import identify
-    from ..core.model.terms import TermSpace
-    from ..core.search.certify import certify_data
+    from spm_sysid.core.identify import identify
+    from spm_sysid.core.model.terms import TermSpace
+    from spm_sysid.core.search.certify import certify_data
 
     cases = [c.strip() for c in args.cases.split(",") if c.strip()]
     unknown = [c for c in cases if c not in CASES]
@@ -142,11 +142,11 @@ def main(argv: list[str] | None = None) -> int:
 def reach(cases: list[str], criteria: list[str], seeds: int, time_limit: float,
           first_seed: int = 1) -> None:
     """How often the GA alone, and the GA with its polish, reach the certified optimum."""
-    from ..core.fit.problem import Problem
-    from ..core.identify import identify_problem
-    from ..core.model.terms import TermSpace
-    from ..core.options import SearchOptions
-    from ..core.search.certify import certify
+    from spm_sysid.core.fit.problem import Problem
+    from spm_sysid.core.identify import identify_problem
+    from spm_sysid.core.model.terms import TermSpace
+    from spm_sysid.core.options import SearchOptions
+    from spm_sysid.core.search.certify import certify
 
     print(f"\nGA (paper settings) alone and with the polish, seeds {first_seed}.."
           f"{first_seed + seeds - 1}: runs that reach "

@@ -49,11 +49,11 @@ def synthetic(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
 
 def _cell(spec: dict) -> dict:
     """One measurement, in this (child) process."""
-    from ..core.fit.evaluator import StructureEvaluator
-    from ..core.identify import identify
-    from ..core.io.datasets import load_robot_arm
-    from ..core.model.terms import TermSpace
-    from ..core.search.ga import GAConfig
+    from spm_sysid.core.fit.evaluator import StructureEvaluator
+    from spm_sysid.core.identify import identify
+    from spm_sysid.core.io.datasets import load_robot_arm
+    from spm_sysid.core.model.terms import TermSpace
+    from spm_sysid.core.search.ga import GAConfig
 
     ny, nu, degree = spec["space"]
     u, y = load_robot_arm() if spec["samples"] is None else synthetic(spec["samples"])
@@ -90,7 +90,7 @@ def _cell(spec: dict) -> dict:
 def _fastcan(space, u, y, criterion) -> dict:
     from fastcan import FastCan
 
-    from ..core.fit.lstsq import reference_score
+    from spm_sysid.core.fit.lstsq import reference_score
 
     P, target = space.regression(u, y)
     best, best_k, t0 = np.inf, 0, time.perf_counter()
@@ -148,7 +148,7 @@ def run(args) -> int:
     cells = [{"space": s, "samples": None} for s in SPACES] + \
         [{"space": SPACES[0], "samples": n} for n in SAMPLES]
     for cell in cells:
-        from ..core.model.terms import TermSpace
+        from spm_sysid.core.model.terms import TermSpace
 
         if TermSpace(ny=cell["space"][0], nu=cell["space"][1],
                      degree=cell["space"][2]).n_terms > args.max_terms:
@@ -156,7 +156,7 @@ def run(args) -> int:
         spec = dict(cell, budget=args.budget, criterion=args.criterion,
                     fastcan=args.fastcan and cell["samples"] is None,
                     spm0=cell["samples"] is None)
-        r = subprocess.run([sys.executable, "-m", "spm_sysid.bench.sizes", "--cell",
+        r = subprocess.run([sys.executable, "-m", "benchmarks.sizes", "--cell",
                             json.dumps(spec)], capture_output=True, text=True,
                            env={**__import__("os").environ, "OPENBLAS_NUM_THREADS": "1"})
         if r.returncode != 0:

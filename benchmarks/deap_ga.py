@@ -1,12 +1,12 @@
 """The baseline a user would write: a plain DEAP genetic algorithm with numpy's lstsq.
 
-``python -m spm_sysid.bench.deap_ga`` selects the robot-arm model's structure
+``python -m benchmarks.deap_ga`` selects the robot-arm model's structure
 in the paper's space (44 candidate terms) by AIC with the paper's GA settings
 (population 200, 300 generations, one-point crossover 0.6, bit-flip mutation
 0.01, roulette selection on the linearly scaled criterion, the best kept) and
 prints the best structure. Every individual is fitted by
 ``numpy.linalg.lstsq`` on its columns: no cache, no shared factorisation. It
-is the yardstick of ``python -m spm_sysid.bench.speed`` (needs the ``bench``
+is the yardstick of ``python -m benchmarks.speed`` (needs the ``bench``
 extra: ``pip install -e '.[bench]'``).
 """
 
@@ -23,8 +23,8 @@ __all__ = ["main"]
 def main(argv: list[str] | None = None) -> int:
     from deap import base, creator, tools
 
-    from ..core.io.datasets import load_robot_arm
-    from ..core.model.terms import TermSpace
+    from spm_sysid.core.io.datasets import load_robot_arm
+    from spm_sysid.core.model.terms import TermSpace
 
     u, y = load_robot_arm()
     ts = TermSpace()

@@ -44,7 +44,8 @@ RECORDS = (("robot arm", "robot_arm.dat"), ("dryer", "dryer.dat"),
 
 def _record(file: str):
     """The first half of a record beside the robot-arm data, or None."""
-    from ..core.io.data import load_io
+    from spm_sysid.core.io.data import load_io
+
     from .accuracy import _shared
 
     path = _shared(file)
@@ -61,9 +62,9 @@ def _peak_mb() -> float:
 
 def _ours(case: dict) -> dict:
     """The GA, then the branch and bound (one process)."""
-    from ..core.identify import identify
-    from ..core.model.terms import TermSpace
-    from ..core.search.certify import certify_data, ensure_compiled
+    from spm_sysid.core.identify import identify
+    from spm_sysid.core.model.terms import TermSpace
+    from spm_sysid.core.search.certify import certify_data, ensure_compiled
 
     u, y = _record(case["file"])
     space = TermSpace(ny=case["order"], nu=case["order"], degree=case["degree"])
@@ -88,9 +89,9 @@ def _scip(case: dict) -> dict:
     """Best-subset least squares of size ``case['k']`` by SCIP (one process)."""
     import pyscipopt
 
-    from ..core.fit.criteria import get_criterion
-    from ..core.fit.problem import Problem
-    from ..core.model.terms import TermSpace
+    from spm_sysid.core.fit.criteria import get_criterion
+    from spm_sysid.core.fit.problem import Problem
+    from spm_sysid.core.model.terms import TermSpace
 
     u, y = _record(case["file"])
     space = TermSpace(ny=case["order"], nu=case["order"], degree=case["degree"])
@@ -134,7 +135,7 @@ def _scip(case: dict) -> dict:
 
 
 def _child(kind: str, case: dict, timeout: float) -> dict:
-    p = subprocess.run([sys.executable, "-m", "spm_sysid.bench.certify_scale", "--one", kind,
+    p = subprocess.run([sys.executable, "-m", "benchmarks.certify_scale", "--one", kind,
                         json.dumps(case)], capture_output=True, text=True,
                        timeout=timeout)
     if p.returncode != 0:

@@ -51,7 +51,7 @@ def _cpu_seconds(pid: int) -> float:
 
 def _online_ingest(client, pub, pid: int, rate: float, count: int) -> dict:
     """Ingest ``count`` pairs at ``rate`` with a model monitored: losses and costs."""
-    from ..ros.client import wait_for_buffer
+    from spm_sysid.ros.client import wait_for_buffer
 
     before = wait_for_buffer(client, lambda kv: True, 10)
     base = int(before["received_outputs"])
@@ -73,7 +73,7 @@ def run(args) -> None:
     import rclpy
     from rclpy.node import Node
 
-    from ..ros.client import call_trigger, wait_for_buffer, wait_for_model
+    from spm_sysid.ros.client import call_trigger, wait_for_buffer, wait_for_model
 
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                ROS_DOMAIN_ID=str(args.domain), PYTHONUNBUFFERED="1")
@@ -142,7 +142,7 @@ def run(args) -> None:
               f"identify+validate in the worker {statistics.median(searches):.3f} s "
               f"({args.repeats} calls)")
         # 4. the action: round trip, and cancel latency during a long search
-        from ..ros.client import identify_goal
+        from spm_sysid.ros.client import identify_goal
 
         goals = []
         for _ in range(args.repeats):
@@ -180,7 +180,7 @@ def _dashboard_cost(args, env, client, pub, count: int, plain: dict) -> None:
     import threading
     import urllib.request
 
-    from ..ros.client import call_trigger, wait_for_buffer
+    from spm_sysid.ros.client import call_trigger, wait_for_buffer
 
     node = subprocess.Popen([sys.executable, "-m", "spm_sysid.ros.sysid_node", "--ros-args",
                              "-r", "__node:=spm_sysid", "-p", "seed:=1", "-p", "tracking:=true",

@@ -1,21 +1,21 @@
-"""Benchmark commands of ``spm-sysid``: ``bench`` and ``bench-sizes``.
+"""``python -m benchmarks.commands bench`` (``make bench``) and ``... bench-sizes``.
 
 ``bench``: the engine against a naive evaluator; ``bench-sizes``: time and
-memory against sizes.
-
-Registered by :mod:`spm_sysid.apps.main` (benchmarks sit above the tools).
+memory against sizes. The benchmarks live beside the package, not in it: the
+user's ``spm-sysid`` never imports them.
 """
 
 from __future__ import annotations
 
-from ..tools.cli.common import add_schema_options
+from spm_sysid.tools.cli.common import add_schema_options
 
-__all__ = ["add_parsers"]
+__all__ = ["add_parsers", "main"]
 
 
 def cmd_bench(args) -> int:
-    from ..core.record import DataSpec, load_record
-    from ..tools.cli.common import job_settings
+    from spm_sysid.core.record import DataSpec, load_record
+    from spm_sysid.tools.cli.common import job_settings
+
     from .engine import run_benchmark, run_simulation_benchmark
 
     settings = job_settings(args)
@@ -30,6 +30,17 @@ def cmd_bench_sizes(args) -> int:
     from .sizes import run
 
     return run(args)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run ``bench`` or ``bench-sizes`` (the options as ``spm-sysid identify``'s)."""
+    from spm_sysid.tools.cli import run
+    from spm_sysid.tools.cli.common import Parser
+
+    parser = Parser(prog="python -m benchmarks.commands",
+                    description="the engine's benchmarks (figures, no assertions)")
+    add_parsers(parser.add_subparsers(dest="command", required=True, parser_class=Parser))
+    return run(parser, argv)
 
 
 def add_parsers(sub) -> None:
@@ -47,3 +58,9 @@ def add_parsers(sub) -> None:
                        help="GA time and memory against term-space size and samples")
     bench_sizes_options(p)
     p.set_defaults(func=cmd_bench_sizes)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    import sys
+
+    sys.exit(main())

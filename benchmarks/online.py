@@ -50,14 +50,14 @@ def system(n, seed, change_at=None, kind="coefficient", noise=0.1):
 
 
 def _session(model, residuals, tracking=False):
-    from ..core.online.session import OnlineSession
+    from spm_sysid.core.online.session import OnlineSession
 
     return OnlineSession(model, residuals, tracking=tracking, sample_period=1 / RATE)
 
 
 def run(args) -> None:
-    from .. import identify
-    from ..core.model.terms import TermSpace
+    from spm_sysid import identify
+    from spm_sysid.core.model.terms import TermSpace
 
     space = TermSpace(ny=2, nu=2, degree=2)
     u0, y0 = system(2000, seed=1)
@@ -117,7 +117,7 @@ def run(args) -> None:
     m = identify(u=u[:2000], y=y[:2000], term_space=lin, criterion="bic", seed=0).model
     k = m.terms.index("u(t-1)")
     for forgetting in (0.99, 0.995):
-        from ..core.online.session import OnlineSession
+        from spm_sysid.core.online.session import OnlineSession
 
         s = OnlineSession(m, m.residuals(u[:2000], y[:2000]), tracking=True,
                           forgetting=forgetting, sample_period=1 / RATE)
@@ -142,7 +142,7 @@ def run(args) -> None:
                 s.feed(int(t * 1e9 / RATE), u[t], y[t])
             runs.append((time.perf_counter() - t0) / len(y) * 1e6)
         costs[label] = statistics.median(runs)
-    from ..core.online.predictor import OnlinePredictor
+    from spm_sysid.core.online.predictor import OnlinePredictor
 
     runs = []
     for _ in range(args.repeats):

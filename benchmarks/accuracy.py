@@ -44,7 +44,7 @@ START = 10
 
 
 def _shared(name: str) -> Path | None:
-    from ..core.io.datasets import find_robot_arm
+    from spm_sysid.core.io.datasets import find_robot_arm
 
     try:
         here = find_robot_arm().parent
@@ -56,7 +56,8 @@ def _shared(name: str) -> Path | None:
 
 def _records():
     """(name, (u1, y1), (u2, y2)) of every record that is here."""
-    from ..core.io.data import load_io
+    from spm_sysid.core.io.data import load_io
+
     from . import tanks
 
     for name, file in (("robot arm", "robot_arm.dat"), ("dryer", "dryer.dat"),
@@ -72,8 +73,8 @@ def _records():
 
 
 def _narx(u1, y1, settings: dict):
-    from ..core.jobs import JobSettings, run_job
-    from ..core.record import Record
+    from spm_sysid.core.jobs import JobSettings, run_job
+    from spm_sysid.core.record import Record
 
     names = {}
     if np.ndim(y1) == 2:
@@ -98,7 +99,7 @@ def _narx_run(model, u2, y2) -> np.ndarray:
 
 
 def _line(label: str, y2, sim, terms: str, seconds: float) -> str:
-    from ..core.validate.arx import fit_percent, rmse
+    from spm_sysid.core.validate.arx import fit_percent, rmse
 
     r, f = rmse(y2, sim, START), fit_percent(y2, sim, START)
     rs = ", ".join("diverged" if not np.isfinite(v) else f"{v:.5g}" for v in r)
@@ -151,10 +152,10 @@ def _systems(kind: str, seed: int, n: int = 800):
 
 def calls(seeds: int) -> None:
     """How reliable the linear/nonlinear call is, by the number of held-out blocks."""
-    from ..core.fit.problem import Problem
-    from ..core.identify import identify_problem
-    from ..core.model.terms import TermSpace
-    from ..core.options import SearchOptions
+    from spm_sysid.core.fit.problem import Problem
+    from spm_sysid.core.identify import identify_problem
+    from spm_sysid.core.model.terms import TermSpace
+    from spm_sysid.core.options import SearchOptions
 
     space = TermSpace(ny=2, nu=2, degree=2, constant=True)
     print(f"the linear/nonlinear call over {seeds} seeds (800 samples, (2, 2, 2) with a "
@@ -179,7 +180,8 @@ def calls(seeds: int) -> None:
 
 
 def run(args) -> None:
-    from ..core.validate.arx import choose_arx
+    from spm_sysid.core.validate.arx import choose_arx
+
     from . import two_link
 
     base = {"focus": "simulation", "constant": True, "criterion": "bic", "seed": 1}

@@ -1,6 +1,6 @@
 """Benchmark: a coupled two-output identification of a two-link arm (``make bench-mimo``).
 
-The arm of :mod:`spm_sysid.bench.two_link` (two torques in, two joint angles
+The arm of :mod:`benchmarks.two_link` (two torques in, two joint angles
 out, 2e-4 rad noise): 4 000 samples to identify, a second record of 4 000 to
 simulate. Prints each output's equation, whether it has the cross terms the
 physics puts there (the other joint's lags or torque), the coupled free-run
@@ -21,9 +21,10 @@ __all__ = ["main"]
 
 
 def run(args) -> None:
-    from ..core.jobs import JobSettings, run_job
-    from ..core.model.terms import TermSpace
-    from ..core.record import Record
+    from spm_sysid.core.jobs import JobSettings, run_job
+    from spm_sysid.core.model.terms import TermSpace
+    from spm_sysid.core.record import Record
+
     from .two_link import record
 
     tau, q = record(args.samples, seed=0)

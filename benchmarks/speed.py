@@ -1,11 +1,11 @@
 """Benchmark: where the time of a command goes, and the speed targets.
 
-``python -m spm_sysid.bench.speed`` (``make bench-speed``) prints
+``python -m benchmarks.speed`` (``make bench-speed``) prints
 
 1. **the quick command**: ``spm-sysid identify --quiet`` on the robot-arm data,
    whole process, median of ``--repeats`` runs, against the same command on
    numba's JIT (``SPM_SYSID_AOT=0``: no ahead-of-time build) and the DEAP baseline
-   (:mod:`spm_sysid.bench.deap_ga`, ``--baseline-repeats`` runs, interleaved in
+   (:mod:`benchmarks.deap_ga`, ``--baseline-repeats`` runs, interleaved in
    the same call) and their ratio; then where the time goes: imports by
    package (``python -X importtime``) and each phase of the job in-process;
 2. **the GA** at the paper's settings in-process (median of repeats, a fresh
@@ -58,7 +58,7 @@ def quick_command(repeats: int, baseline_repeats: int
             ours.append(_wall(_CLI + ["identify", "--quiet"]))
             jit.append(_wall(_CLI + ["identify", "--quiet"], no_build))
         if i < baseline_repeats:
-            base.append(_wall([sys.executable, "-m", "spm_sysid.bench.deap_ga"]))
+            base.append(_wall([sys.executable, "-m", "benchmarks.deap_ga"]))
     return ours, jit, base
 
 
@@ -79,13 +79,13 @@ def import_breakdown(top: int = 8) -> list[tuple[str, float]]:
 
 def phase_breakdown() -> list[tuple[str, float]]:
     """Seconds of each phase of the default identification, in this (warm) process."""
-    from ..core.fit.problem import Problem
-    from ..core.identify import _polish
-    from ..core.record import DataSpec, load_record
-    from ..core.search.certify import certify
-    from ..core.search.ga import GAConfig, run_ga
-    from ..core.validate.excitation import check_problem
-    from ..core.validate.validation import validate_model
+    from spm_sysid.core.fit.problem import Problem
+    from spm_sysid.core.identify import _polish
+    from spm_sysid.core.record import DataSpec, load_record
+    from spm_sysid.core.search.certify import certify
+    from spm_sysid.core.search.ga import GAConfig, run_ga
+    from spm_sysid.core.validate.excitation import check_problem
+    from spm_sysid.core.validate.validation import validate_model
 
     out = []
     t = time.perf_counter()
@@ -116,10 +116,10 @@ def phase_breakdown() -> list[tuple[str, float]]:
 
 def ga_times(repeats: int) -> tuple[list[float], list[float]]:
     """Seconds of the GA at paper settings (fresh evaluator each), and of GA + polish."""
-    from ..core.fit.problem import Problem
-    from ..core.identify import _polish
-    from ..core.record import DataSpec, load_record
-    from ..core.search.ga import GAConfig, run_ga
+    from spm_sysid.core.fit.problem import Problem
+    from spm_sysid.core.identify import _polish
+    from spm_sysid.core.record import DataSpec, load_record
+    from spm_sysid.core.search.ga import GAConfig, run_ga
 
     rec = load_record(DataSpec())
     problem = Problem.from_signals(rec.u, rec.y)
@@ -137,9 +137,10 @@ def ga_times(repeats: int) -> tuple[list[float], list[float]]:
 
 def simulation_times(repeats: int) -> list[tuple[str, float, int]]:
     """(case, median seconds, terms) of the default simulation-focused identification."""
-    from ..core.identify import identify
-    from ..core.model.terms import TermSpace
-    from ..core.record import DataSpec, load_record
+    from spm_sysid.core.identify import identify
+    from spm_sysid.core.model.terms import TermSpace
+    from spm_sysid.core.record import DataSpec, load_record
+
     from .tanks import record
 
     rec = load_record(DataSpec())
@@ -161,10 +162,10 @@ def simulation_times(repeats: int) -> list[tuple[str, float, int]]:
 
 def large_space() -> list[tuple[str, float, int, float]]:
     """(criterion, GA seconds, terms, value) for 454 candidates on the robot-arm data."""
-    from ..core.fit.problem import Problem
-    from ..core.model.terms import TermSpace
-    from ..core.record import DataSpec, load_record
-    from ..core.search.ga import GAConfig, run_ga
+    from spm_sysid.core.fit.problem import Problem
+    from spm_sysid.core.model.terms import TermSpace
+    from spm_sysid.core.record import DataSpec, load_record
+    from spm_sysid.core.search.ga import GAConfig, run_ga
 
     rec = load_record(DataSpec())
     problem = Problem.from_signals(rec.u, rec.y, TermSpace(ny=6, nu=6, degree=3))
@@ -184,7 +185,7 @@ def _med(values: list[float]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m spm_sysid.bench.speed",
+    p = argparse.ArgumentParser(prog="python -m benchmarks.speed",
                                 description=__doc__.split("\n\n")[0])
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--baseline-repeats", type=int, default=2)
@@ -194,7 +195,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"speed benchmark ({os.cpu_count()} cores); repeats {a.repeats}, "
           f"baseline repeats {a.baseline_repeats}", flush=True)
 
-    from ..core.compiled.aot import build_status
+    from spm_sysid.core.compiled.aot import build_status
 
     status = build_status()
     ours, jit, base = quick_command(a.repeats, a.baseline_repeats)
