@@ -43,6 +43,7 @@ def factors_from_name(name: str) -> list[tuple[str, int, int]]:
     return out
 
 
+@pytest.mark.slow
 def test_goal_gives_feedback_in_order_and_a_typed_result_equal_to_the_document(
         ros_env, harness, arm_bag):
     node = start_node(ros_env, "seed:=1")
@@ -116,6 +117,7 @@ def test_goal_gives_feedback_in_order_and_a_typed_result_equal_to_the_document(
         stop(node)
 
 
+@pytest.mark.slow
 def test_cancel_stops_a_long_search_and_keeps_the_model_a_second_goal_is_busy(
         ros_env, harness, arm_bag):
     node = start_node(ros_env, "seed:=1")
@@ -185,6 +187,7 @@ def test_bad_goals_end_with_a_code_and_the_reason(ros_env, harness, tmp_path):
         stop(node)
 
 
+@pytest.mark.slow
 def test_call_identify_uses_the_action_and_ctrl_c_cancels_the_goal(ros_env, harness, arm_bag):
     """``spm-sysid call identify`` as the README writes it: progress, then the answer."""
     node = start_node(ros_env, "seed:=1")

@@ -39,6 +39,7 @@ def built():
     return status
 
 
+@pytest.mark.slow
 def test_the_build_exports_the_kernels_commands_call(built):
     status = built
     table = json.loads(status.path.with_name(status.path.name.split(".")[0] + ".json")
@@ -65,6 +66,7 @@ def _both(fn):
         return fn(), jit
 
 
+@pytest.mark.slow
 def test_the_build_and_the_jit_fit_score_simulate_and_certify_the_same(robot_arm, built):
     u, y = robot_arm
     problem = Problem.from_signals(u, y)

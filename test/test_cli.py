@@ -57,6 +57,7 @@ def test_bad_file_content_error(tmp_path):
     assert r.returncode == 2 and "line 2: 'x' is not a number" in r.stderr
 
 
+@pytest.mark.slow
 def test_bench_prints_figures():
     """`make bench`'s command (the benchmarks live beside the package, not in spm-sysid)."""
     r = subprocess.run([sys.executable, "-m", "benchmarks.commands", "bench", "--repeats", "1",
@@ -68,6 +69,7 @@ def test_bench_prints_figures():
     assert "focus simulation (BIC, population 200, 15 generations)" in r.stdout
 
 
+@pytest.mark.slow
 def test_identify_plots_and_validate_saved_model_on_other_data(tmp_path, robot_arm_path):
     model = tmp_path / "m.json"
     figs = tmp_path / "figs"

@@ -49,6 +49,7 @@ def wait_http(url: str, timeout: float = 30.0):
     raise AssertionError(f"nothing answers at {url}")
 
 
+@pytest.mark.slow
 def test_the_live_page_shows_validity_the_model_and_the_predictions(
         ros_env, harness, browser, robot_arm, tmp_path):
     u, y = robot_arm
@@ -193,6 +194,7 @@ def test_the_dashboard_refuses_an_open_bind_without_a_token_and_a_taken_port(
         stop(first)
 
 
+@pytest.mark.slow
 def test_the_live_page_shows_every_output_of_a_coupled_model(ros_env, harness, browser,
                                                              tmp_path):
     from .conftest import JOINT_STATE_PARAMS as PARAMS
@@ -251,6 +253,7 @@ def _idle(host: str, port: int, count: int) -> list:
     return out
 
 
+@pytest.mark.slow
 def test_hundreds_of_idle_clients_never_take_the_nodes_descriptors(
         ros_env, harness, robot_arm, tmp_path):
     """Under ulimit -n 256: 600 connections that send nothing, then the node still answers."""

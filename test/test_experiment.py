@@ -21,6 +21,7 @@ def _study(out, report=None, extra=()):
     return subprocess.run(args, capture_output=True, text=True, cwd=ROOT, timeout=300)
 
 
+@pytest.mark.slow
 def test_small_study_end_to_end_and_reproducible(tmp_path):
     r1 = _study(tmp_path / "a", tmp_path / "report")
     assert r1.returncode == 0, r1.stderr

@@ -94,6 +94,7 @@ def test_identify_and_batch_write_the_same_model_document(tmp_path, robot_arm, k
     assert a["term_space"]["inputs"] == names
 
 
+@pytest.mark.slow
 def test_the_candidate_matrix_is_built_once_per_identification(robot_arm, monkeypatch):
     calls = []
     original = TermSpace.regression_matrix

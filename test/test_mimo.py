@@ -118,6 +118,7 @@ def test_a_two_link_arm_is_identified_coupled_and_simulates_a_new_record():
         assert fits[name]["free_run_fit_percent"] >= 85.0, fits
 
 
+@pytest.mark.slow
 def test_identify_with_two_output_columns_on_the_command_line(tmp_path):
     """``spm-sysid identify --output q1,q2`` on a CSV, as the README writes it."""
     import subprocess

@@ -122,6 +122,7 @@ def test_a_job_on_two_outputs_validates_each_with_the_coupled_free_run():
     assert "joint BIC" in result.summary("lines") and "y2:" in result.summary("line")
 
 
+@pytest.mark.slow
 def test_identify_with_two_output_columns_writes_a_coupled_model_and_figures(tmp_path):
     u, Y = two_output_system(400, seed=5, noise=0.001)
     path = tmp_path / "joints.csv"

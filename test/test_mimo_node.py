@@ -27,6 +27,7 @@ from .ros_harness import IdentifyClient, play_bag, start_node, stop
 PARAMS = JOINT_STATE_PARAMS
 
 
+@pytest.mark.slow
 def test_the_node_identifies_two_joints_from_a_joint_state_topic(ros_env, harness, tmp_path):
     u, Y = two_output_system(1200, seed=3)
     bag = write_joint_state_bag(tmp_path / "joints", u, Y)

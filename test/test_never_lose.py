@@ -178,6 +178,7 @@ def test_a_structure_whose_coupled_run_diverges_is_not_returned():
                for r in account["removed_by_guard"])
 
 
+@pytest.mark.slow
 def test_several_outputs_are_judged_coupled_and_orders_auto_covers_them():
     u, Y = _two_outputs(1200, seed=1)
     record = Record.from_samples(u, Y, source="two", input_names=("a", "b"),

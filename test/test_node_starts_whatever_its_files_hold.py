@@ -173,11 +173,12 @@ RESILIENT = """
 import sys
 import rclpy
 from rclpy.node import Node
-from spm_sysid.ros.common import run_node
+from spm_sysid.ros.common import CallbackErrors, run_node
 
 class Faulty(Node):
     def __init__(self):
         super().__init__("faulty")
+        self.callback_errors = CallbackErrors(self.get_logger())  # run_node counts into it
         self.ticks = 0
         self.create_timer(0.05, self.tick)
 
@@ -189,7 +190,7 @@ class Faulty(Node):
             rclpy.try_shutdown()  # as SIGINT would
 
 def finish(node, interrupted):
-    print(f"ticks {node.ticks} callback_errors {node.callback_errors}")
+    print(f"ticks {node.ticks} callback_errors {node.callback_errors.count}")
     return 0
 
 sys.exit(run_node(Faulty, errors=(ValueError,), finish=finish))

@@ -60,6 +60,7 @@ def latest(harness, msg_type, topic, predicate, timeout=30.0):
         harness.node.destroy_subscription(sub)
 
 
+@pytest.mark.slow
 def test_the_robot_arm_bag_replayed_again_stays_valid_and_scaled_by_one_and_a_half_is_not(
         ros_env, harness, robot_arm, tmp_path):
     u, y = robot_arm
@@ -126,6 +127,7 @@ def test_the_robot_arm_bag_replayed_again_stays_valid_and_scaled_by_one_and_a_ha
         stop(node)
 
 
+@pytest.mark.slow
 def test_a_restored_model_is_monitored_as_the_fresh_one(ros_env, harness, robot_arm, tmp_path):
     """A model from model_path: VALID on its own data, INVALID scaled by 1.5 (issue 30)."""
     u, y = robot_arm
@@ -160,6 +162,7 @@ def test_a_restored_model_is_monitored_as_the_fresh_one(ros_env, harness, robot_
         stop(node)
 
 
+@pytest.mark.slow
 def test_a_change_is_reidentified_and_a_worse_model_never_replaces_the_current_one(
         ros_env, harness, tmp_path):
     u0, y0 = system(2000, seed=1)

@@ -3,11 +3,14 @@
 import subprocess
 import sys
 
+import pytest
+
 from spm_sysid.core.model.narx import NarxModel
 
 from .conftest import ROOT
 
 
+@pytest.mark.slow
 def test_make_run_pipeline_prints_both_foci(ros_env, tmp_path):
     # `make run` is `python -m spm_sysid.apps.pipeline --out out/run` in domain 61; here
     # the same defaults with the test's own domain and output places

@@ -98,6 +98,7 @@ def wait_gone(pids, timeout=10.0) -> bool:
     return not any(alive(p) for p in pids)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("rate, repeats", [("10.0", 3), ("1.0", 1)])
 def test_readme_replay_delivers_every_pair_to_a_just_started_node(ros_env, harness, readme_bag,
                                                                  rate, repeats):
@@ -116,6 +117,7 @@ def test_readme_replay_delivers_every_pair_to_a_just_started_node(ros_env, harne
             stop(node)
 
 
+@pytest.mark.slow
 def test_replaying_again_into_a_running_node_makes_a_new_segment(ros_env, harness,
                                                                  readme_bag):
     node = readme_node(ros_env, "seed:=1")
@@ -310,6 +312,7 @@ def test_restarted_node_publishes_the_saved_model_again(ros_env, harness, readme
     assert "restored from" in ident[1]
 
 
+@pytest.mark.slow
 def test_model_path_is_checked_and_a_failed_save_publishes_nothing(ros_env, harness,
                                                                   readme_bag, tmp_path):
     (tmp_path / "afile").write_text("x")
@@ -358,6 +361,7 @@ def test_call_errors_go_to_stderr(ros_env):
     assert r.stderr.startswith("error: service /spm_sysid/identify is not available")
 
 
+@pytest.mark.slow
 def test_the_readme_tutorial_as_written(ros_env, harness, readme_bag):
     """The README's five commands (the bag made by readme_bag): node, replay, identify, watch."""
     node = readme_node(ros_env, "dashboard_port:=8765")

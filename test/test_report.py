@@ -45,6 +45,7 @@ def _source(page, name):
     }""", name)
 
 
+@pytest.mark.slow
 def test_identify_report_shows_the_model_and_its_data_offline(browser, tmp_path, robot_arm):
     report, doc_path = tmp_path / "report.html", tmp_path / "m.json"
     r = _cli("identify", "--report", "report.html", cwd=tmp_path)  # as the README writes it

@@ -73,6 +73,7 @@ def _aot_env(place: Path) -> dict:
 
 @pytest.mark.skipif(shutil.which("cc") is None and shutil.which("gcc") is None,
                     reason="no C compiler: the kernels run on numba's JIT")
+@pytest.mark.slow
 @pytest.mark.timeout(1500)  # two builds of up to 600 s each on a busy machine
 def test_a_truncated_build_runs_on_the_jit_with_one_warning_and_compile_repairs_it(tmp_path):
     env = _aot_env(tmp_path / "aot")
@@ -116,6 +117,7 @@ print(total(np.arange(10.0)))
 '''
 
 
+@pytest.mark.slow
 def test_an_unreadable_numba_cache_entry_is_compiled_again(tmp_path):
     (tmp_path / "kern.py").write_text(KERNEL_MODULE)
     env = {**os.environ, "SPM_SYSID_AOT": "0", "PYTHONPATH": f"{tmp_path}:{ROOT}"}

@@ -199,6 +199,7 @@ def test_diverged_model_is_an_error_in_the_node_diagnostics():
     assert any("not computed" in s.message for s in statuses)
 
 
+@pytest.mark.slow
 def test_simulation_focus_meets_the_free_run_target_on_the_robot_arm(robot_arm):
     u, y = robot_arm
     # in-sample selection (the simulation criterion on all data): 11 terms, 85.5 %

@@ -82,6 +82,7 @@ def test_the_t_quantile_and_the_pivoted_qr_agree_with_scipy(robot_arm):
         assert d[0] / d[-1] == pytest.approx(d_ref[0] / d_ref[-1], rel=0.05)
 
 
+@pytest.mark.slow
 def test_plots_and_the_simulation_focus_import_what_they_need(tmp_path):
     loaded = _loaded("identify", "--quiet", "--focus", "simulation", "--generations", "20",
                      "--plots", str(tmp_path / "figs"))

@@ -20,6 +20,7 @@ from .ros_harness import finish_publisher, publisher, start_node, stop
 from .ros_harness import play_bag as play
 
 
+@pytest.mark.slow
 def test_replay_identify_and_latched_results(ros_env, harness, arm_bag, robot_arm, tmp_path):
     u, y = robot_arm
     model_path = tmp_path / "saved" / "model.json"
@@ -103,6 +104,7 @@ def test_diagnostics_report_buffer_and_correlation_tests(ros_env, harness, arm_b
     assert st["correlation e_eu"][0] == 0 and "inside" in st["correlation e_eu"][1]
 
 
+@pytest.mark.slow
 def test_no_sample_lost_at_1khz_while_identify_runs(ros_env, harness):
     # a long search (6000 generations, several seconds) so recording and identification
     # overlap, and diagnostics (every 0.2 s) show it running
