@@ -122,6 +122,13 @@ PER_SIZE = 2
 #: Levenberg-Marquardt evaluations of a fold's fit (from least squares on its rows).
 FOLD_STEPS = 100
 
+#: Samples a screening or a fold's refinement fits on at most: longer records give it
+#: REFINE_WINDOWS windows spread over them (each simulated from its own start). A
+#: refinement costs about its samples times its terms squared per step; held-out
+#: errors and the final refinement use every sample.
+REFINE_ROWS = 10_000
+REFINE_WINDOWS = 4
+
 #: The k of the k-step prediction that integrating or unstable records are judged on.
 HORIZON = 10
 

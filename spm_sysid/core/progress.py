@@ -1,8 +1,10 @@
 """Where a job is: one progress record for progress bars, logs and ROS feedback.
 
-A job goes through phases (:data:`PHASES`): checking the data, the GA search,
-the certification (branch and bound), the simulation-focused refinement, and
-the validation. Each reports :class:`Progress` records to a callback; the
+A job goes through phases (:data:`PHASES`): checking the data, choosing the
+orders from the data (``orders: auto``), the GA search, the certification
+(branch and bound), the simulation focus's screening of structures and its
+judgement of finalists on held-out blocks, the refinement of the chosen model,
+and the validation. Each reports :class:`Progress` records to a callback; the
 command line draws them as progress bars, the node logs them and sends them as
 an action's feedback.
 """
@@ -16,7 +18,8 @@ from dataclasses import dataclass
 __all__ = ["PHASES", "Progress", "ProgressFn"]
 
 #: The phases of a job, in order.
-PHASES = ("checking data", "search", "certification", "refinement", "validation")
+PHASES = ("checking data", "orders", "search", "certification", "screening",
+          "held-out blocks", "refinement", "validation")
 
 
 @dataclass(frozen=True)

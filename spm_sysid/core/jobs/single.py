@@ -298,6 +298,7 @@ def run_single_job(
     est, val, data = validation_segments(record, settings)
     orders = None
     if settings.orders == "auto":  # the lags and degree from the estimation data
+        report(Progress("orders", elapsed=time.perf_counter() - t0))
         settings, orders = choose_orders(record, settings, est)
         est, val, data = validation_segments(record, settings)
     space = settings.term_space

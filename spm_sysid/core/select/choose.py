@@ -90,7 +90,7 @@ def validated_prediction(problem, evaluator, candidates, plan: SelectionPlan, cr
     k_step = plan.judged == "k-step"
     scores = cv_scores(problem, plan.folds, candidates, simulate=k_step,
                        horizon=plan.horizon)
-    report(Progress("refinement", len(candidates), len(candidates),
+    report(Progress("held-out blocks", len(candidates), len(candidates),
                     elapsed=time.perf_counter() - started))
     i = scores.best()
     if i is None:

@@ -36,7 +36,7 @@ from ..fit.refine import free_run_uncertainty, refine_simulation
 from ..model.narx import NarxModel
 from ..progress import Progress
 from .call import Call, linear_or_nonlinear
-from .folds import sub_blocks
+from .folds import refinement_windows, sub_blocks
 from .guard import shrink_to_hold, stress_check
 from .scores import Scores, mean_and_stderr
 from .simulation import SimulationScorer, linear_structures, simulation_value
@@ -91,7 +91,8 @@ def fold_runs(problem, fold, mask: np.ndarray) -> tuple[FoldRun, FoldRun]:
         return FoldRun(at, e * e)
 
     least_squares = held_out(model)
-    ref = refine_simulation(model, u, y, fold.train_segments, max_evaluations=FOLD_STEPS)
+    ref = refine_simulation(model, u, y, refinement_windows(fold.train_segments, lag),
+                            max_evaluations=FOLD_STEPS)
     if not (ref.success and np.isfinite(ref.sse)):
         return least_squares, least_squares
     return least_squares, held_out(model.with_coefficients(ref.coefficients))
@@ -164,13 +165,17 @@ class ValidatedSimulation:
     def __init__(self, problem, folds, criterion, max_terms, report, started) -> None:
         self.problem, self.folds, self.crit = problem, folds, criterion
         self.report, self.started = report, started
-        self.scorer = SimulationScorer(problem, criterion, steps=SEARCH_STEPS,
-                                       max_terms=max_terms, progress=report, started=started)
+        self.scorer = SimulationScorer(
+            problem, criterion, steps=SEARCH_STEPS, max_terms=max_terms, progress=report,
+            started=started,
+            segments=refinement_windows(problem.segments, problem.term_space.max_lag),
+            phase="screening")
         self.degree = np.array([len(t) for t in problem.term_space.terms])
 
     def screen(self, candidates) -> list[tuple[float, bytes]]:
         """Step 1 and 2: every candidate and linear structure scored; the finalists."""
         linear = linear_structures(self.problem)
+        self.scorer.total = len(candidates) + len(linear)
         for mask in list(candidates) + list(linear):
             self.scorer(mask)
         screened = self.scorer.scored
@@ -202,7 +207,7 @@ class ValidatedSimulation:
                 out.estimator.append(how)
                 rejected |= not np.isfinite(mean)
             out.scores.rejected += rejected
-            self.report(Progress("refinement", done + 1, len(finals),
+            self.report(Progress("held-out blocks", done + 1, len(finals),
                                  elapsed=time.perf_counter() - self.started))
         return out
 
@@ -252,6 +257,7 @@ class ValidatedSimulation:
         if estimator == "least squares":  # as the held-out blocks judged it
             model = screened.with_coefficients(problem.model(mask).coefficients)
             return model, None, stress_check(model, u, y, segments)
+        self.report(Progress("refinement", elapsed=time.perf_counter() - self.started))
         final = refine_simulation(screened, u, y, segments)
         model = screened.with_coefficients(screened.coefficients)
         if final.success and np.isfinite(final.sse):

@@ -23,11 +23,13 @@ from ..defaults import (
     INTERLEAVED_PIECES,
     MIN_BLOCK_ROWS,
     MIN_FOLD_EXCITATION,
+    REFINE_ROWS,
+    REFINE_WINDOWS,
 )
 from ..model.segments import rows_segments
 
 __all__ = ["Fold", "block_splits", "blocked_folds", "fold_excitation", "informative_folds",
-           "interleaved_folds", "sub_blocks"]
+           "interleaved_folds", "refinement_windows", "sub_blocks"]
 
 
 @dataclass(frozen=True)
@@ -239,3 +241,24 @@ def _runs(block: np.ndarray, segments) -> list[tuple[int, int]]:
             for part in np.split(inside, cuts):
                 out.append((int(part[0]), int(part[-1]) + 1))
     return out
+
+
+def refinement_windows(segments, lag: int, rows: int = REFINE_ROWS,
+                       windows: int = REFINE_WINDOWS) -> list[tuple[int, int]]:
+    """The samples a refinement fits on: ``segments`` whole, or windows spread over them.
+
+    A record of at most ``rows`` samples is used whole (nothing changes for it).
+    A longer one gives ``windows`` windows of ``rows / windows`` samples each,
+    evenly spread over its samples (in order, split at segment borders; each
+    longer than ``lag``): the refinement sees the whole record's range of
+    inputs, at a cost that does not grow with the record.
+    """
+    segments = [(int(a), int(b)) for a, b in segments]
+    total = sum(b - a for a, b in segments)
+    if total <= rows:
+        return segments
+    positions = np.concatenate([np.arange(a, b) for a, b in segments])
+    size = rows // windows
+    starts = np.linspace(0, len(positions) - size, windows).round().astype(int)
+    block = np.unique(np.concatenate([positions[s:s + size] for s in starts]))
+    return [(a, b) for a, b in _runs(block, segments) if b - a > lag]

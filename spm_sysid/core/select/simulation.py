@@ -34,6 +34,7 @@ from ..fit.refine import free_run_uncertainty, refine_simulation
 from ..model.narx import NarxModel
 from ..progress import Progress, ProgressFn
 from ..search.local import SearchResult, local_search
+from .folds import refinement_windows
 
 __all__ = ["SimulationScorer", "linear_masks", "linear_structures", "select_for_simulation",
            "simulation_value"]
@@ -71,6 +72,12 @@ class SimulationScorer:
         Keep the refinement's account in each model's metadata.
     progress, started
         ``refinement`` progress: structures refined, best value so far.
+    segments : list of (start, stop), optional
+        The samples refinements fit on (default: the problem's; a long record's
+        :func:`~spm_sysid.core.select.folds.refinement_windows`): values of one
+        scorer compare with each other.
+    phase : str
+        The progress phase its reports name (``refinement``, or ``screening``).
 
     Attributes
     ----------
@@ -82,13 +89,19 @@ class SimulationScorer:
 
     def __init__(self, problem: Problem, criterion: Criterion, *, steps: int | None = None,
                  max_terms: int = 0, notes: bool = False, progress: ProgressFn | None = None,
-                 started: float | None = None) -> None:
+                 started: float | None = None, segments=None,
+                 phase: str = "refinement") -> None:
         self.problem, self.criterion = problem, criterion
+        self.segments = problem.segments if segments is None else segments
+        self.phase = phase
+        lag = problem.term_space.max_lag
+        self.rows = sum(b - a - lag for a, b in self.segments)
         self.steps, self.max_terms, self.notes = steps, max_terms, notes
         self.report = progress or (lambda p: None)
         self.started = time.perf_counter() if started is None else started
         self.scored: dict[bytes, tuple[float, NarxModel | None]] = {}
         self.refinements = 0
+        self.total = 0  # structures to refine, when known (progress)
         self.current: NarxModel | None = None  # the local search's current structure
 
     def __call__(self, mask: np.ndarray) -> float:
@@ -109,7 +122,7 @@ class SimulationScorer:
             self.refinements += 1
             if ref.success and np.isfinite(ref.sse):
                 model.coefficients = ref.coefficients
-                value = simulation_value(self.criterion, ref.sse, problem.rows, mask,
+                value = simulation_value(self.criterion, ref.sse, self.rows, mask,
                                          ref.coefficients, problem)
                 if self.notes:
                     model.metadata = {"refinement": ref.message, "free_run_sse": ref.sse,
@@ -117,12 +130,12 @@ class SimulationScorer:
             else:
                 model = None
         self.scored[key] = (value, model)
-        self.report(Progress("refinement", self.refinements, 0, self.best_value,
+        self.report(Progress(self.phase, self.refinements, self.total, self.best_value,
                              elapsed=time.perf_counter() - self.started))
         return value
 
     def _refine(self, model: NarxModel):
-        u, y, segments = self.problem.u, self.problem.y, self.problem.segments
+        u, y, segments = self.problem.u, self.problem.y, self.segments
         start = self.current
         if start is not None:  # warm start: the neighbour's refined coefficients
             theta = dict(zip(start.term_indices, start.coefficients))
@@ -190,8 +203,9 @@ def select_for_simulation(
         When every candidate's simulation diverges on the estimation data.
     """
     u, y, segments = problem.u, problem.y, problem.segments
+    windows = refinement_windows(segments, problem.term_space.max_lag)
     scorer = SimulationScorer(problem, criterion, notes=True, progress=progress,
-                              started=started)
+                              started=started, segments=windows)
     found = scorer.search(candidates, max_steps=max_passes)
     if found is None:
         raise DataError("every candidate structure's free-run simulation diverges on the "
@@ -202,6 +216,11 @@ def select_for_simulation(
     # the search's moves ran a few Levenberg-Marquardt steps each: finish the winner's
     final = refine_simulation(screened, u, y, segments)
     coefficients = screened.coefficients
+    if windows != list(segments):  # screened on windows: the winner's values on all rows
+        account["free_run_sse"] = final.sse_start
+        value = simulation_value(criterion, final.sse_start, problem.rows, best,
+                                 coefficients, problem)
+        account["screened_on_samples"] = scorer.rows
     if final.success and final.sse < account["free_run_sse"]:
         coefficients = final.coefficients
         value = simulation_value(criterion, final.sse, problem.rows, best, coefficients,

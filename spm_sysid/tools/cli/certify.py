@@ -77,7 +77,7 @@ def cmd_certify(args) -> int:
             warm = res.model.mask
             stopped = (f", stopped at generation {len(res.ga.history) - 1} by half the time "
                        "limit" if res.ga.stopped_early else "")
-            bars.close()
+            bars.close_bar()
             print(f"warm start: the GA's best, {args.criterion.upper()} "
                   f"{res.ga.best_score:.2f} ({int(warm.sum())} terms, {res.ga.elapsed:.2f} s"
                   f"{stopped})")

@@ -1,22 +1,38 @@
-"""Progress bars on the terminal: one helper for every command.
+"""Progress on the terminal and off it: one helper for every command.
 
-:class:`PhaseBars` draws a job's :class:`~spm_sysid.core.progress.Progress`
-records (a bar per phase: generations of the search, nodes of the
-certification, structures refined); :func:`count_bar` counts finished items
-(runs of a study, inputs of a batch). Bars go to stderr and stay silent when
-stderr is not a terminal (tqdm's ``disable=None``) or with ``--quiet``.
+:class:`PhaseBars` shows a job's :class:`~spm_sysid.core.progress.Progress`
+records (the search's generations, the certification's nodes, the structures
+refined, the held-out blocks judged ...):
+
+* on a terminal, a live bar per phase (tqdm), replaced when the phase changes;
+* off a terminal (a log, CI, ``| tee``), a line on stderr at each new phase and
+  then at least every :data:`LINE_EVERY` seconds -- the phase, how far it is
+  (``step/total`` and the share done, when the total is known), the seconds
+  elapsed, and an estimate of the phase's remaining seconds from its pace. A
+  phase whose steps are long (one refinement on 10^5 samples) still gets its
+  line: a clock prints the last record again, with the time, when nothing new
+  came for that long.
+
+:func:`count_bar` counts finished items (runs of a study, inputs of a batch).
+``--quiet`` silences both.
 """
 
 from __future__ import annotations
 
 import math
 import sys
+import threading
+import time
 
 from ...core.progress import Progress
 
-__all__ = ["PhaseBars", "count_bar"]
+__all__ = ["LINE_EVERY", "PhaseBars", "count_bar"]
 
-_UNITS = {"search": "gen", "certification": " nodes", "refinement": " structures"}
+_UNITS = {"search": "gen", "certification": " nodes", "refinement": " structures",
+          "orders": " orders", "screening": " structures", "held-out blocks": " finalists"}
+
+#: Seconds between progress lines off a terminal (at most).
+LINE_EVERY = 10.0
 
 
 def _bar(**kw):
@@ -26,19 +42,33 @@ def _bar(**kw):
 
 
 class PhaseBars:
-    """Draws Progress records: a bar for the current phase, replaced when it changes."""
+    """Shows Progress records: a bar on a terminal, lines off it (see the module doc)."""
 
-    def __init__(self, enabled: bool = True) -> None:
+    def __init__(self, enabled: bool = True, stream=None, every: float = LINE_EVERY) -> None:
+        self.stream = stream or sys.stderr
         # tqdm stays silent off a terminal; not importing it then saves its import time
-        self.enabled = enabled and _terminal()
+        self.enabled = enabled and _terminal(self.stream)
+        self.logging = enabled and not self.enabled
+        self.every = every
         self.phase: str | None = None
         self.bar = None
+        self._last: Progress | None = None
+        self._phase_start = self._printed = time.monotonic()
+        self._t0 = time.monotonic()
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._clock = None
+        if self.logging:
+            self._clock = threading.Thread(target=self._tick, daemon=True, name="progress")
+            self._clock.start()
 
     def __call__(self, p: Progress) -> None:
+        if self.logging:
+            self._log(p)
         if not self.enabled or p.phase not in _UNITS:
             return
         if p.phase != self.phase:
-            self.close()
+            self.close_bar()
             self.phase = p.phase
             self.bar = _bar(total=p.total or None, desc=p.phase, unit=_UNITS[p.phase])
         self.bar.n = p.step
@@ -51,9 +81,41 @@ class PhaseBars:
             post["fits"] = p.evaluations
         self.bar.set_postfix(post, refresh=True)
 
+    # -- lines off a terminal -------------------------------------------------------------
+    def _log(self, p: Progress) -> None:
+        with self._lock:
+            now = time.monotonic()
+            new_phase = p.phase != (self._last.phase if self._last else None)
+            if new_phase:
+                self._phase_start = now
+            self._last = p
+            if new_phase or now - self._printed >= self.every:
+                self._print(p, now)
+
+    def _print(self, p: Progress, now: float, still: bool = False) -> None:
+        text = p.line() + (" (still working on this step)" if still else "")
+        if p.total and p.step:
+            share = min(p.step / p.total, 1.0)
+            left = (now - self._phase_start) * (1.0 - share) / max(share, 1e-9)
+            text += f"; {share:.0%} of this phase, about {left:.0f} s left in it"
+        print(text, file=self.stream, flush=True)
+        self._printed = now
+
+    def _tick(self) -> None:
+        """Every so often: the last record again when nothing new came (a long step)."""
+        while not self._stop.wait(1.0):
+            with self._lock:
+                now = time.monotonic()
+                if self._last is not None and now - self._printed >= self.every:
+                    from dataclasses import replace
+
+                    self._print(replace(self._last, elapsed=now - self._t0), now, still=True)
+
+    # -- search reports -------------------------------------------------------------------
     def generation(self, stats) -> None:
         """A GA generation (:class:`~spm_sysid.core.search.ga.GenerationStats`) as progress."""
-        self(Progress("search", stats.generation, self._total, stats.best, stats.evaluations))
+        self(Progress("search", stats.generation, self._total, stats.best, stats.evaluations,
+                      elapsed=time.monotonic() - self._t0))
 
     def for_generations(self, total: int) -> PhaseBars:
         """Set the number of generations for :meth:`generation`; returns self."""
@@ -64,21 +126,28 @@ class PhaseBars:
 
     def nodes(self, nodes: int, best: float, lower: float) -> None:
         """A branch-and-bound report as progress."""
-        self(Progress("certification", nodes, 0, best, bound=lower))
+        self(Progress("certification", nodes, 0, best, bound=lower,
+                      elapsed=time.monotonic() - self._t0))
 
-    def close(self) -> None:
+    def close_bar(self) -> None:
         if self.bar is not None:
             self.bar.close()
             self.bar = None
 
+    def close(self) -> None:
+        """The bar closed; no more lines (the clock stops)."""
+        self.close_bar()
+        self._stop.set()
+
 
 def count_bar(total: int, desc: str, unit: str, enabled: bool = True):
     """A bar counting finished items (None when disabled or stderr is not a terminal)."""
-    return _bar(total=total, desc=desc, unit=unit) if enabled and _terminal() else None
+    return _bar(total=total, desc=desc, unit=unit) if enabled and _terminal(sys.stderr) \
+        else None
 
 
-def _terminal() -> bool:
+def _terminal(stream) -> bool:
     try:
-        return sys.stderr.isatty()
+        return stream.isatty()
     except (AttributeError, ValueError):  # replaced or closed stderr
         return False
