@@ -67,6 +67,30 @@ POLISH_FLIPS = (4, 12)
 #: Spaces of at most this many usable terms are certified after the GA by default.
 AUTO_CERTIFY_TERMS = 120
 
+# -- orders: auto ---------------------------------------------------------------------
+
+#: Candidate terms a proposed space may have at most: the GA, the screening and the
+#: certification stay quick, and orders and degree trade within it (order 10 of degree 3
+#: is 1 771 terms; order 3 of degree 3, 84; order 7 of degree 2, 120). Records with
+#: fewer than ROWS_PER_TERM rows per term get a smaller budget.
+AUTO_MAX_TERMS = 120
+
+#: Samples the proposal scans at most (the first of the longest segment): a scan's spaces
+#: compare on them; a longer record adds little to the comparison and costs in proportion.
+SCAN_ROWS = 15_000
+
+#: Share of the scanned samples each space is fitted on in the simulation focus's scan;
+#: its free run is judged on the rest.
+SCAN_FIT_SHARE = 2 / 3
+
+#: Spaces of the simulation focus's scan refined: the best of each degree by least
+#: squares, and this many best overall (a refinement costs a second or two).
+SCAN_REFINED = 4
+
+#: A smaller space whose held-out free-run error is within this factor of the best's is
+#: preferred (fewer candidates: a quicker search, less to overfit).
+SCAN_TOLERANCE = 1.02
+
 # -- choosing on held-out blocks ----------------------------------------------------------
 
 #: Held-out blocks of validated selection (focus prediction).
@@ -109,6 +133,11 @@ OVERFIT_RATIO = 3.0
 #: better" at this level: one test, so that many finalists cannot pass one by chance.
 SIGNIFICANCE = 0.05
 
+#: Other nonlinear finalists that also pass that test, tried in turn (by held-out error)
+#: when the stability guard removes the tested one, before its shrunk version and before
+#: the best linear one.
+FALLBACKS = 3
+
 # -- the simulation focus ---------------------------------------------------------------
 
 #: Levenberg-Marquardt evaluations per move of the simulation-focused search and of the
@@ -126,8 +155,23 @@ FOLD_STEPS = 100
 #: REFINE_WINDOWS windows spread over them (each simulated from its own start). A
 #: refinement costs about its samples times its terms squared per step; held-out
 #: errors and the final refinement use every sample.
-REFINE_ROWS = 10_000
+REFINE_ROWS = 5_000
 REFINE_WINDOWS = 4
+
+#: A record with more estimation rows than this is long: its held-out blocks (in a long
+#: record each one holds thousands of samples, and a fit on the rest barely varies with
+#: the block) are laid once, each cut into LONG_SUB_BLOCKS sub-blocks for the paired test
+#: (SIMULATION_FOLDS * LONG_SUB_BLOCKS estimates, as repeats give a short record); one
+#: finalist per size; a fold's refinement runs SEARCH_STEPS evaluations. The cost of the
+#: judging then stays about that of a record of REFINE_ROWS samples.
+LONG_ROWS = 20_000
+LONG_SUB_BLOCKS = 3
+
+#: On a long record: structures judged at most (instead of MAX_CANDIDATES), and the
+#: Levenberg-Marquardt evaluations of the final refinement on every sample (from the
+#: screening's coefficients, already refined on windows; instead of 200).
+LONG_CANDIDATES = 60
+LONG_FINAL_STEPS = 100
 
 #: The k of the k-step prediction that integrating or unstable records are judged on.
 HORIZON = 10

@@ -136,7 +136,8 @@ def identify(
                                            np.asarray(y, dtype=float),
                                            normalise_segments(segments, len(y)),
                                            term_space, options.criterion
-                                           if isinstance(options.criterion, str) else "bic")
+                                           if isinstance(options.criterion, str) else "bic",
+                                           options.focus)
     problem = Problem.from_signals(u, y, term_space, segments)
     result = identify_problem(problem, options, ga=ga, callback=callback, progress=progress)
     if why is not None:

@@ -21,7 +21,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, fields, replace
 from typing import Any
 
-from .defaults import SIMULATION_FOLDS, SIMULATION_REPEATS
+from .defaults import SIMULATION_FOLDS
 from .settings import SETTINGS, check
 
 __all__ = ["SEARCH_SETTINGS", "SearchOptions"]
@@ -45,7 +45,9 @@ class SearchOptions:
         records are judged on with the simulation focus (0: the default k).
     simulation_folds, simulation_repeats : int
         Held-out blocks of the simulation focus and how many times they are laid
-        (not settings of the schema: tuning, :mod:`spm_sysid.core.defaults`).
+        (not settings of the schema: tuning, :mod:`spm_sysid.core.defaults`);
+        repeats None: :data:`~spm_sysid.core.defaults.SIMULATION_REPEATS`, once on
+        a long record (:data:`~spm_sysid.core.defaults.LONG_ROWS`).
     """
 
     criterion: str | Callable[..., Any] = SETTINGS["criterion"].default
@@ -60,7 +62,7 @@ class SearchOptions:
     certify_time_limit: float = SETTINGS["certify_time_limit"].default
     horizon: int = SETTINGS["horizon"].default
     simulation_folds: int = SIMULATION_FOLDS
-    simulation_repeats: int = SIMULATION_REPEATS
+    simulation_repeats: int | None = None
 
     @classmethod
     def from_values(cls, values: Mapping[str, Any]) -> SearchOptions:

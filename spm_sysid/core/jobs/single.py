@@ -186,13 +186,14 @@ def describe_selection(doc: dict | None) -> str:
         text = (f"selected by its {doc['what']} error on {doc['folds']} held-out blocks "
                 + (f"(MSE {held:.4g})" if held is not None else ""))
         call = doc.get("linear_or_nonlinear") or {}
+        if call.get("terms") is not None:  # what was returned, after guard and fallback
+            text += f": a {call['choice']} model of {call['terms']} terms"
         if call.get("p_value") is not None:
-            verdict = ("simulates them better than the best linear one by more than the noise"
-                       if call["choice"] == "nonlinear" else
-                       "is not better than the best linear one by more than the noise: "
-                       "linear kept")
-            text += (f"; the nonlinear candidate's held-out error is {call['ratio']:.2f}x the "
-                     f"best linear's (p = {call['p_value']:.3g}): it {verdict}")
+            text += ("; the nonlinear candidate"
+                     + (f" ({call['nonlinear_terms']} terms)" if call.get("nonlinear_terms")
+                        else "")
+                     + f" had {call['ratio']:.2f}x the best linear's held-out error "
+                     f"(p = {call['p_value']:.3g}): " + _fate(call))
         elif call.get("choice") == "linear":
             text += "; no nonlinear finalist simulated the held-out blocks better than linear"
         removed = doc.get("removed_by_guard")
@@ -201,6 +202,21 @@ def describe_selection(doc: dict | None) -> str:
                      "left the output's range off the estimation data")
         return text
     return f"selected by the criterion on the estimation data ({doc.get('note', '')})"
+
+
+def _fate(call: dict) -> str:
+    """What became of the tested nonlinear candidate, in a clause."""
+    fate = call.get("challenger_fate")
+    if fate is None:  # documents written before the account described the returned model
+        return ("better than the best linear one by more than the noise"
+                if call.get("choice") == "nonlinear" else
+                "not better than the best linear one by more than the noise: linear kept")
+    if fate.startswith("returned"):
+        return "better than the best linear one by more than the noise, " + fate
+    if fate.startswith("removed"):
+        return ("better than the best linear one by more than the noise, but " + fate
+                + "; the model above was returned instead")
+    return fate + ": linear kept"
 
 
 def choose_orders(record: Record, settings: JobSettings, est) -> tuple[JobSettings, dict]:
@@ -214,7 +230,7 @@ def choose_orders(record: Record, settings: JobSettings, est) -> tuple[JobSettin
     from ..validate.orders import orders_from_data
 
     space, why = orders_from_data(record.u, record.y, est, settings.term_space,
-                                  settings.criterion)
+                                  settings.criterion, settings.focus)
     return replace(settings, term_space=space), why
 
 

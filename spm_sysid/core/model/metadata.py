@@ -242,14 +242,19 @@ METADATA = fields({
         "linear_or_nonlinear": fields({
             "choice": text(choices=("linear", "nonlinear")), "ratio": MSE,
             "p_value": number(0.0, 1.0), "best_linear_held_out_mse": MSE,
-            "best_linear_held_out_stderr": MSE, "blocks": integer()})},
+            "best_linear_held_out_stderr": MSE, "blocks": integer(),
+            "tested": text(choices=("linear", "nonlinear")), "terms": integer(),
+            "nonlinear_terms": integer(), "challenger_fate": text(),
+            "shrunk_nonlinear_terms": number(0.0, 1.0), "fallback": text()})},
         required=("method", "what", "folds")),
     "certificate": lambda v, p: _certificate(v, p),
     "orders": fields({
         "ny": integer(1, null=False), "nu": integer(1), "degree": integer(1, null=False),
         "reason": text(), "criterion": text(), "samples": integer(),
         "order_scan": items(row(integer(1, null=False), number())),
-        "degree_scan": items(items(number()))}, required=("ny", "degree")),
+        "degree_scan": items(items(number())), "space_scan": items(items(number())),
+        "focus": text(choices=("prediction", "simulation")), "max_terms": integer()},
+        required=("ny", "degree")),
     "data_check": fields({
         "rows": integer(null=False), "usable": integer(null=False),
         "candidates": integer(null=False), "rows_per_candidate": number(0.0, null=False),

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..defaults import SIGNIFICANCE
+from ..defaults import FALLBACKS, SIGNIFICANCE
 
 __all__ = ["Call", "linear_or_nonlinear", "paired_p_value"]
 
@@ -36,7 +36,9 @@ class Call:
     ----------
     order : list of int
         The finalists in the order to try them (the choice first; the next ones
-        when the guard removes it).
+        when the guard removes it: after a nonlinear choice, up to
+        :data:`~spm_sysid.core.defaults.FALLBACKS` other nonlinear finalists that
+        pass the same test, then the best linear one).
     choice : str
         ``linear`` or ``nonlinear``.
     linear : int or None
@@ -116,7 +118,12 @@ def linear_or_nonlinear(mean: Sequence[float], stderr: Sequence[float],
         ratio = mean[challenger] / mean[best]
         p = paired_p_value(blocks[best], blocks[challenger])
     if challenger is not None and p < SIGNIFICANCE:
-        order = [challenger, best] + [i for i in rest if i not in (challenger, best)]
+        # if the guard removes the challenger: the other nonlinear finalists that beat the
+        # best linear one by the same test, then the linear ones
+        also = [i for i in nonlinear if i != challenger and mean[i] < mean[best]
+                and paired_p_value(blocks[best], blocks[i]) < SIGNIFICANCE][:FALLBACKS]
+        order = [challenger] + also + [best] + [i for i in rest
+                                                if i not in (challenger, best, *also)]
         return Call(order, "nonlinear", best, challenger, ratio, p)
     order = [best] + [i for i in rest if i != best and linear[i]] + nonlinear
     return Call(order, "linear", best, challenger, ratio, p)

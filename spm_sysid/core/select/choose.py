@@ -21,12 +21,19 @@ import time
 
 import numpy as np
 
-from ..defaults import MAX_JUDGED_TERMS, OVERFIT_RATIO, ROWS_PER_TERM
+from ..defaults import (
+    LONG_CANDIDATES,
+    MAX_CANDIDATES,
+    MAX_JUDGED_TERMS,
+    OVERFIT_RATIO,
+    ROWS_PER_TERM,
+)
 from ..errors import DataError
 from ..fit.lstsq import sse_floor
 from ..model.narx import NarxModel
 from ..progress import Progress
 from .finalists import validated_simulation
+from .folds import is_long
 from .plan import SelectionPlan
 from .scores import candidate_structures, cv_scores
 from .simulation import select_for_simulation
@@ -74,7 +81,9 @@ def _candidates(problem, evaluator, options) -> np.ndarray:
         return np.concatenate([p for p in paths if len(p)]) if any(len(p) for p in paths) \
             else np.zeros((0, evaluator.n_terms), dtype=bool)
 
-    candidates = candidate_structures(problem, evaluator, options.shortlist, forward=forward)
+    candidates = candidate_structures(problem, evaluator, options.shortlist, forward=forward,
+                                      max_candidates=LONG_CANDIDATES if is_long(problem)
+                                      else MAX_CANDIDATES)
     # structures of more than one term per ROWS_PER_TERM rows are not judged: the
     # warning threshold of an overfit (and max_terms, when smaller)
     cap = min(limit, options.max_terms) if options.max_terms else limit

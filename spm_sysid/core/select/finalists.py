@@ -2,7 +2,8 @@
 
 1. **Screen** every candidate, and the full linear ARX structure of every order
    in the space, by the criterion of its free-run error after a short
-   refinement on all estimation data (:class:`~.simulation.SimulationScorer`).
+   refinement on the estimation data (:class:`~.simulation.SimulationScorer`;
+   a long record's refinement windows).
 2. **Finalists**: for each highest degree (linear, quadratic, ...) the best
    screened structures of each size, up to
    :data:`~spm_sysid.core.defaults.FINALISTS` sizes spread over the range (the
@@ -19,13 +20,18 @@
    (:func:`~spm_sysid.core.select.guard.stress_check`), with its nonlinear
    terms shrunk if that is what it takes; otherwise the next by the call.
 
+A long record (:func:`~spm_sysid.core.select.folds.is_long`) is judged on blocks
+laid once and cut in sub-blocks, with one finalist per size and shorter fold
+refinements (:data:`~spm_sysid.core.defaults.LONG_ROWS`): its cost stays about
+that of a record of :data:`~spm_sysid.core.defaults.REFINE_ROWS` samples.
+
 No model of the screening is changed: each step makes its own.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -36,7 +42,7 @@ from ..fit.refine import free_run_uncertainty, refine_simulation
 from ..model.narx import NarxModel
 from ..progress import Progress
 from .call import Call, linear_or_nonlinear
-from .folds import refinement_windows, sub_blocks
+from .folds import final_steps, is_long, refinement_windows, sub_blocks
 from .guard import shrink_to_hold, stress_check
 from .scores import Scores, mean_and_stderr
 from .simulation import SimulationScorer, linear_structures, simulation_value
@@ -67,12 +73,14 @@ class FoldRun:
         return self.at is not None or self.diverged_at is not None
 
 
-def fold_runs(problem, fold, mask: np.ndarray) -> tuple[FoldRun, FoldRun]:
+def fold_runs(problem, fold, mask: np.ndarray, steps: int = FOLD_STEPS
+              ) -> tuple[FoldRun, FoldRun]:
     """The held-out runs of the structure fitted on the fold, one per estimator.
 
     Least squares on the fold's rows, then refined from there on the free-run
-    error of the fold's segments (:data:`~spm_sysid.core.defaults.FOLD_STEPS`
-    evaluations); a refinement that fails judges the least-squares fit twice.
+    error of the fold's segments (at most ``steps`` evaluations, on a long
+    record's :func:`~spm_sysid.core.select.folds.refinement_windows`); a
+    refinement that fails judges the least-squares fit twice.
     """
     u, y = problem.u, problem.y
     try:
@@ -92,7 +100,7 @@ def fold_runs(problem, fold, mask: np.ndarray) -> tuple[FoldRun, FoldRun]:
 
     least_squares = held_out(model)
     ref = refine_simulation(model, u, y, refinement_windows(fold.train_segments, lag),
-                            max_evaluations=FOLD_STEPS)
+                            max_evaluations=steps)
     if not (ref.success and np.isfinite(ref.sse)):
         return least_squares, least_squares
     return least_squares, held_out(model.with_coefficients(ref.coefficients))
@@ -112,8 +120,9 @@ def sub_block_errors(runs: list[FoldRun], label: np.ndarray, n_sub: int) -> list
     return list(np.where(count > 0, sse / np.maximum(count, 1), np.nan))
 
 
-def finalists(screened: dict, term_space) -> list[tuple[float, bytes]]:
-    """The best screened structures of each size (:data:`PER_SIZE`), sizes spread, by degree.
+def finalists(screened: dict, term_space, per_size: int = PER_SIZE
+              ) -> list[tuple[float, bytes]]:
+    """The best screened structures of each size (``per_size``), sizes spread, by degree.
 
     Structures are grouped by their highest degree (linear, quadratic, ...):
     in-sample, a nonlinear structure nearly always beats a linear one of the
@@ -139,7 +148,7 @@ def finalists(screened: dict, term_space) -> list[tuple[float, bytes]]:
             targets = np.geomspace(sizes[0], sizes[-1], FINALISTS - 1)
             spread = {min(sizes, key=lambda k: abs(np.log(k) - np.log(t))) for t in targets}
             sizes = sorted(spread | {best_size})
-        out += [item for k in sizes for item in sorted(by_size[k])[:PER_SIZE]]
+        out += [item for k in sizes for item in sorted(by_size[k])[:per_size]]
     return sorted(out)
 
 
@@ -179,7 +188,8 @@ class ValidatedSimulation:
         for mask in list(candidates) + list(linear):
             self.scorer(mask)
         screened = self.scorer.scored
-        finals = finalists(screened, self.problem.term_space)
+        finals = finalists(screened, self.problem.term_space,
+                           1 if is_long(self.problem) else PER_SIZE)
         keys = {key for _, key in finals}
         finals += [(screened[mask_key(m)][0], mask_key(m)) for m in linear
                    if mask_key(m) not in keys and np.isfinite(screened[mask_key(m)][0])]
@@ -192,13 +202,17 @@ class ValidatedSimulation:
         """Step 3: each finalist and estimator on the held-out sub-blocks."""
         n = self.problem.term_space.n_terms
         label = sub_blocks(self.problem, self.folds)
+        n_sub = int(label.max()) + 1
+        steps = SEARCH_STEPS if is_long(self.problem) else FOLD_STEPS
         out = Judged(Scores(), [], [])
+        self.report(Progress("held-out blocks", 0, len(finals),
+                             elapsed=time.perf_counter() - self.started))
         for done, (_, key) in enumerate(finals):
             mask = key_mask(key, n)
-            both = [fold_runs(self.problem, fold, mask) for fold in self.folds]
+            both = [fold_runs(self.problem, fold, mask, steps) for fold in self.folds]
             rejected = False
             for j, how in enumerate(ESTIMATORS):
-                values = sub_block_errors([b[j] for b in both], label, len(self.folds))
+                values = sub_block_errors([b[j] for b in both], label, n_sub)
                 mean, stderr = mean_and_stderr(values)
                 out.scores.masks.append(mask)
                 out.scores.mean.append(mean)
@@ -258,7 +272,7 @@ class ValidatedSimulation:
             model = screened.with_coefficients(problem.model(mask).coefficients)
             return model, None, stress_check(model, u, y, segments)
         self.report(Progress("refinement", elapsed=time.perf_counter() - self.started))
-        final = refine_simulation(screened, u, y, segments)
+        final = refine_simulation(screened, u, y, segments, **final_steps(problem))
         model = screened.with_coefficients(screened.coefficients)
         if final.success and np.isfinite(final.sse):
             model = screened.with_coefficients(final.coefficients)
@@ -300,27 +314,16 @@ def validated_simulation(problem, candidates, folds, crit, max_terms, report,
     judged = job.judge(finals)
     call, decision = job.choose(judged)
     s, linear_sse = judged.scores, job.linear_sse(judged)
-    removed, reasons, tried = s.rejected, [], set()
-    for i in call.order:
+    held = first_that_holds(job, call, judged, linear_sse)
+    removed, reasons, i = s.rejected + held.removed, held.reasons, held.index
+    if i is not None:
         mask, how = s.masks[i], judged.estimator[i]
-        if (mask_key(mask), how) in tried:
-            continue
-        tried.add((mask_key(mask), how))
-        model, final, why = job.fit_all(mask, how)
-        shrunk = None
-        if why and job.degree[mask].max() > 1:
-            held = shrink_to_hold(model, problem.u, problem.y, problem.segments, linear_sse)
-            if held is not None:
-                shrunk, coefficients = held
-                model, why = model.with_coefficients(coefficients), None
-        if why:
-            removed += 1
-            reasons.append(why)
-            continue
         if i != call.order[0]:
             decision = {**decision, "fallback": "the chosen structure failed the guard; "
                         f"the next by the rule has {int(mask.sum())} terms"}
-        return job.finish(model, mask, how, final, shrunk), {
+        decision = returned_account(decision, call, i, int(mask.sum()),
+                                    bool(job.degree[mask].max() > 1), held.shrunk, reasons)
+        return job.finish(held.model, mask, how, held.final, held.shrunk), {
             "held_out_mse": s.mean[i], "held_out_stderr": s.stderr[i],
             "candidates": len(candidates), "screened": len(job.scorer.scored),
             "finalists": len(finals), "removed_by_guard": removed,
@@ -328,3 +331,79 @@ def validated_simulation(problem, candidates, folds, crit, max_terms, report,
     raise DataError(f"every finalist structure's simulation leaves the output's range off "
                     f"the estimation data ({removed} removed by the guard"
                     + (f": {reasons[0]}" if reasons else "") + ")")
+
+
+def returned_account(decision: dict, call: Call, returned: int, terms: int, nonlinear: bool,
+                     shrunk: float | None, reasons: list[str]) -> dict:
+    """The call's account rewritten for the model returned (after guard, shrinkage, fallback).
+
+    ``choice`` and ``terms`` describe the returned model; ``tested`` is what the
+    paired test decided; ``challenger_fate`` says in one clause what became of the
+    tested nonlinear finalist: returned (shrunk, if it was), removed by the
+    stability guard (its reason), or not better than the best linear one.
+    """
+    out = {**decision, "tested": decision.get("choice"),
+           "choice": "nonlinear" if nonlinear else "linear", "terms": terms}
+    if shrunk is not None:
+        out["shrunk_nonlinear_terms"] = shrunk
+    if call.challenger is None:
+        return out
+    if returned == call.challenger:
+        fate = "returned"
+        if shrunk is not None:
+            fate += f", its nonlinear coefficients scaled by {shrunk:g} to pass the stability guard"
+    elif call.choice == "nonlinear":
+        fate = "removed by the stability guard" + (f" ({reasons[0]})" if reasons else "")
+    else:
+        fate = "not better than the best linear one by more than the noise"
+    out["challenger_fate"] = fate
+    return out
+
+
+@dataclass
+class Held:
+    """The finalist returned after the guard (index None: none held) and what was removed."""
+
+    index: int | None
+    model: NarxModel | None = None
+    final: object = None
+    shrunk: float | None = None
+    removed: int = 0
+    reasons: list[str] = field(default_factory=list)
+
+
+def first_that_holds(job: ValidatedSimulation, call: Call, judged: Judged,
+                     linear_sse: float) -> Held:
+    """The first finalist, in the call's order, whose model fitted on all data holds.
+
+    Each is fitted as it was judged (:meth:`ValidatedSimulation.fit_all`) and
+    must pass the stability guard. The first nonlinear one the guard removes is
+    shrunk (:func:`~spm_sysid.core.select.guard.shrink_to_hold`) only when no
+    other nonlinear finalist of the order holds, before the first linear one:
+    a smaller nonlinear effect is a last resort, not a first.
+    """
+    s = judged.scores
+    u, y, segments = job.problem.u, job.problem.y, job.problem.segments
+    removed, reasons, tried, pending = 0, [], set(), None
+    for i in [*call.order, None]:
+        nonlinear = i is not None and bool(job.degree[s.masks[i]].max() > 1)
+        if pending is not None and not nonlinear:  # no other nonlinear finalist held
+            j, model, final = pending
+            pending, kept = None, shrink_to_hold(model, u, y, segments, linear_sse)
+            if kept is not None:
+                return Held(j, model.with_coefficients(kept[1]), final, kept[0],
+                            removed - 1, reasons)
+        if i is None:
+            break
+        key = (mask_key(s.masks[i]), judged.estimator[i])
+        if key in tried:
+            continue
+        tried.add(key)
+        model, final, why = job.fit_all(s.masks[i], judged.estimator[i])
+        if why is None:
+            return Held(i, model, final, None, removed, reasons)
+        removed += 1
+        reasons.append(why)
+        if nonlinear and pending is None:
+            pending = (i, model, final)
+    return Held(None, removed=removed, reasons=reasons)

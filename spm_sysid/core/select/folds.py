@@ -21,6 +21,9 @@ from ..defaults import (
     EXCITED_DIRECTIONS,
     FOLDS,
     INTERLEAVED_PIECES,
+    LONG_FINAL_STEPS,
+    LONG_ROWS,
+    LONG_SUB_BLOCKS,
     MIN_BLOCK_ROWS,
     MIN_FOLD_EXCITATION,
     REFINE_ROWS,
@@ -29,7 +32,7 @@ from ..defaults import (
 from ..model.segments import rows_segments
 
 __all__ = ["Fold", "block_splits", "blocked_folds", "fold_excitation", "informative_folds",
-           "interleaved_folds", "refinement_windows", "sub_blocks"]
+           "final_steps", "interleaved_folds", "is_long", "refinement_windows", "sub_blocks"]
 
 
 @dataclass(frozen=True)
@@ -194,13 +197,26 @@ def block_splits(segments, k: int, repeats: int, lag: int
     return out
 
 
-def sub_blocks(problem, folds: list[Fold]) -> np.ndarray:
-    """Each sample's sub-block: the record cut into as many equal parts as there are folds.
+def is_long(problem) -> bool:
+    """A long record (:data:`~spm_sysid.core.defaults.LONG_ROWS`): blocks laid once, cut."""
+    return problem.rows > LONG_ROWS
 
-    With repeated blocks every sub-block is held out by the same number of folds
-    and never fitted on by them, so the sub-blocks' held-out errors are separate
+
+def final_steps(problem) -> dict:
+    """The final refinement's limit: ``{}`` (its own), or a long record's (keywords)."""
+    return {"max_evaluations": LONG_FINAL_STEPS} if is_long(problem) else {}
+
+
+def sub_blocks(problem, folds: list[Fold]) -> np.ndarray:
+    """Each sample's sub-block: separate held-out estimates for the paired test.
+
+    With repeated blocks, the record cut into as many equal parts as there are
+    folds: every sub-block is held out by the same number of folds and never
+    fitted on by them, so the sub-blocks' held-out errors are separate
     estimates, one per sub-block (-1 outside the segments). When each sample is
-    held out by one fold only (interleaved folds), its sub-block is that fold.
+    held out by one fold only, its sub-block is that fold; on a long record
+    (:func:`is_long`) each fold's held-out samples are cut in
+    :data:`~spm_sysid.core.defaults.LONG_SUB_BLOCKS` consecutive parts.
     """
     label = np.full(len(problem.y), -1, dtype=int)
     held = np.zeros(len(problem.y), dtype=int)
@@ -208,7 +224,12 @@ def sub_blocks(problem, folds: list[Fold]) -> np.ndarray:
         for a, b in fold.held_out:
             label[a:b] = i
             held[a:b] += 1
-    if held.max(initial=0) <= 1:  # each sample held out once (interleaved): by its fold
+    if held.max(initial=0) <= 1:  # each sample held out once: by its fold
+        if is_long(problem):
+            for i, fold in enumerate(folds):
+                at = np.concatenate([np.arange(a, b) for a, b in fold.held_out])
+                label[at] = i * LONG_SUB_BLOCKS + (
+                    np.arange(len(at)) * LONG_SUB_BLOCKS // max(len(at), 1))
         return label
     positions = np.concatenate([np.arange(a, b) for a, b in problem.segments])
     label[:] = -1

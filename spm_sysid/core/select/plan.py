@@ -21,10 +21,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from ..defaults import FOLDS, HORIZON, ROWS_PER_TERM
+from ..defaults import FOLDS, HORIZON, ROWS_PER_TERM, SIMULATION_REPEATS
 from ..options import SearchOptions
 from ..validate.open_loop import OpenLoop, open_loop_check
-from .folds import Fold, informative_folds
+from .folds import Fold, informative_folds, is_long
 
 __all__ = ["SelectionPlan", "plan_selection"]
 
@@ -97,8 +97,10 @@ def plan_selection(problem, options: SearchOptions) -> SelectionPlan:
             warnings.append(open_loop.reason().replace(
                 "judged on the k-step prediction", f"judged on the {horizon}-step prediction"))
     if options.focus == "simulation":
-        folds, fold_note = informative_folds(problem, options.simulation_folds,
-                                             options.simulation_repeats)
+        repeats = options.simulation_repeats
+        if repeats is None:
+            repeats = 1 if is_long(problem) else SIMULATION_REPEATS
+        folds, fold_note = informative_folds(problem, options.simulation_folds, repeats)
     else:
         folds, fold_note = informative_folds(problem, FOLDS)
     if mode == "validated" and not folds:

@@ -34,7 +34,7 @@ from ..fit.refine import free_run_uncertainty, refine_simulation
 from ..model.narx import NarxModel
 from ..progress import Progress, ProgressFn
 from ..search.local import SearchResult, local_search
-from .folds import refinement_windows
+from .folds import final_steps, refinement_windows
 
 __all__ = ["SimulationScorer", "linear_masks", "linear_structures", "select_for_simulation",
            "simulation_value"]
@@ -214,7 +214,7 @@ def select_for_simulation(
     value, screened = scorer.scored[mask_key(best)]
     account = dict(screened.metadata)
     # the search's moves ran a few Levenberg-Marquardt steps each: finish the winner's
-    final = refine_simulation(screened, u, y, segments)
+    final = refine_simulation(screened, u, y, segments, **final_steps(problem))
     coefficients = screened.coefficients
     if windows != list(segments):  # screened on windows: the winner's values on all rows
         account["free_run_sse"] = final.sse_start

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from ...core.defaults import AUTO_MAX_TERMS, ROWS_PER_TERM
 from .common import (
     UserError,
     add_data_options,
@@ -46,7 +47,8 @@ def cmd_propose_lags(args) -> int:
                         "contiguous record")
     proposal = propose_orders(record.u, record.y, max_order=args.max_order,
                               max_degree=args.max_degree, delay=args.delay,
-                              criterion=args.criterion, inputs=record.input_names)
+                              criterion=args.criterion, inputs=record.input_names,
+                              focus=args.focus, max_terms=args.max_terms)
     print(f"data: {record.source}, {len(record)} samples")
     print(proposal.summary())
     n, d = proposal.order, proposal.degree
@@ -91,4 +93,12 @@ def add_parsers(sub) -> None:
                    help="input delay of the candidates (default 1)")
     p.add_argument("--criterion", choices=("aic", "bic"), default="bic",
                    help="criterion of both scans (default bic)")
+    p.add_argument("--focus", choices=("prediction", "simulation"), default="prediction",
+                   help="what the model is for: spaces compared by the one-step criterion "
+                   "(prediction) or by how they simulate held-out samples (simulation), "
+                   "as identify --orders auto does with that focus (default prediction)")
+    p.add_argument("--max-terms", type=positive_int, default=AUTO_MAX_TERMS,
+                   help="candidate terms a proposed space may have at most (default "
+                   f"{AUTO_MAX_TERMS}; fewer on records of fewer than {ROWS_PER_TERM} rows "
+                   "per term)")
     p.set_defaults(func=cmd_propose_lags)

@@ -23,6 +23,7 @@ import math
 import sys
 import threading
 import time
+from dataclasses import replace
 
 from ...core.progress import Progress
 
@@ -53,6 +54,7 @@ class PhaseBars:
         self.phase: str | None = None
         self.bar = None
         self._last: Progress | None = None
+        self._fresh = False  # a record came since the last line
         self._phase_start = self._printed = time.monotonic()
         self._t0 = time.monotonic()
         self._lock = threading.Lock()
@@ -88,7 +90,7 @@ class PhaseBars:
             new_phase = p.phase != (self._last.phase if self._last else None)
             if new_phase:
                 self._phase_start = now
-            self._last = p
+            self._last, self._fresh = p, True
             if new_phase or now - self._printed >= self.every:
                 self._print(p, now)
 
@@ -96,10 +98,12 @@ class PhaseBars:
         text = p.line() + (" (still working on this step)" if still else "")
         if p.total and p.step:
             share = min(p.step / p.total, 1.0)
-            left = (now - self._phase_start) * (1.0 - share) / max(share, 1e-9)
-            text += f"; {share:.0%} of this phase, about {left:.0f} s left in it"
+            text += f"; {share:.0%} of this phase"
+            spent = now - self._phase_start
+            if spent >= 1.0 and share < 1.0:  # a pace to go by
+                text += f", about {spent * (1.0 - share) / share:.0f} s left in it"
         print(text, file=self.stream, flush=True)
-        self._printed = now
+        self._printed, self._fresh = now, False
 
     def _tick(self) -> None:
         """Every so often: the last record again when nothing new came (a long step)."""
@@ -107,9 +111,8 @@ class PhaseBars:
             with self._lock:
                 now = time.monotonic()
                 if self._last is not None and now - self._printed >= self.every:
-                    from dataclasses import replace
-
-                    self._print(replace(self._last, elapsed=now - self._t0), now, still=True)
+                    last = replace(self._last, elapsed=now - self._t0)
+                    self._print(last, now, still=not self._fresh)
 
     # -- search reports -------------------------------------------------------------------
     def generation(self, stats) -> None:
