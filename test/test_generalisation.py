@@ -246,7 +246,8 @@ def test_the_default_simulation_focus_never_returns_a_model_that_diverges_on_new
     sel = m.metadata["selection"]
     assert sel["method"] == "validated" and sel["what"] == "free-run"
     assert sel["held_out_mse"] is not None and sel["finalists"] >= 2
-    assert sel["removed_by_guard"] >= 1  # structures that explode off the data exist here
+    # structures that explode off the data exist here: on held-out blocks or under the guard
+    assert sel["removed_by_guard"] + sel["left_range_held_out"] >= 1
     assert m.criterion_value is not None
 
 

@@ -96,23 +96,58 @@ def test_a_linear_system_with_noise_gets_a_linear_model(seed):
     assert {"y(t-1)", "y(t-2)", "u(t-1)", "u(t-2)"} <= set(m.terms)
 
 
-def test_an_integrating_system_is_judged_on_k_step_prediction_and_says_why():
-    rng = np.random.default_rng(5)
-    n = 1000
+def _integrator(seed: int, n: int = 1000):
+    rng = np.random.default_rng(seed)
     u = rng.standard_normal(n)
     y = np.zeros(n)
     for t in range(2, n):  # a motor position: an integrator behind a lag
         y[t] = 1.6 * y[t - 1] - 0.6 * y[t - 2] + 0.05 * u[t - 1]
-    y += 0.001 * rng.standard_normal(n)
+    return u, y + 0.001 * rng.standard_normal(n)
+
+
+def test_an_integrating_system_is_judged_on_its_free_run_and_says_so():
+    """Issue 41: users compare free runs of drives; only unstable outputs go to k-step."""
+    from spm_sysid.core.validate.arx import choose_arx
+
+    u, y = _integrator(5)
     result = run_job(Record.from_samples(u, y, source="integrator"),
                      JobSettings.from_values({"focus": "simulation", "seed": 0}))
     m = result.model
     loop = m.metadata["open_loop"]
-    assert loop["kind"] == "integrating" and loop["free_run_applies"] is False
-    assert loop["pole"][0] == pytest.approx(1.0, abs=0.01) and loop["horizon"] == 10
-    assert m.metadata["selection"]["what"] == "10-step"
+    assert loop["kind"] == "integrating" and loop["free_run_applies"] is True
+    assert loop["pole"][0] == pytest.approx(1.0, abs=0.01) and "horizon" not in loop
+    assert m.metadata["selection"]["what"] == "free-run"
     text = result.summary("lines")
-    assert "integrates (a real pole at" in text
+    assert "the output integrates (a real pole at" in text and "judged on its free run" in text
+    # on a record it never saw, its free run is no worse than the linear ARX yardstick's
+    u2, y2 = _integrator(6)
+    yhat, diverged = m.run(u2, y2)
+    assert diverged is None
+    lag = m.term_space.max_lag
+    ours = float(np.sqrt(np.mean((y2[lag:] - yhat) ** 2)))
+    arx = choose_arx(u, y).simulate(u2, y2)
+    theirs = float(np.sqrt(np.nanmean((y2[10:] - arx[10:]) ** 2)))
+    assert ours <= 1.05 * theirs, (ours, theirs)
+
+
+def test_an_unstable_system_is_judged_on_k_step_prediction_and_says_why():
+    rng = np.random.default_rng(2)
+    n = 1500
+    r = rng.standard_normal(n)
+    y, u = np.zeros(n), np.zeros(n)
+    for t in range(1, n):  # a plant with a pole at 1.05, stabilised by feedback
+        y[t] = 1.05 * y[t - 1] + 0.5 * u[t - 1]
+        u[t] = -1.5 * y[t] + r[t]
+    y += 1e-4 * rng.standard_normal(n)
+    result = run_job(Record.from_samples(u, y, source="unstable"),
+                     JobSettings.from_values({"focus": "simulation", "seed": 0,
+                                              "ny": 2, "nu": 2}))
+    m = result.model
+    loop = m.metadata["open_loop"]
+    assert loop["kind"] == "unstable" and loop["free_run_applies"] is False
+    assert loop["horizon"] == 10 and m.metadata["selection"]["what"] == "10-step"
+    text = result.summary("lines")
+    assert "is unstable in open loop (a pole of magnitude" in text
     assert "free-run errors do not compare models; judged on the 10-step prediction" in text
 
 

@@ -232,9 +232,17 @@ def _check_data(problem: Problem, crit: Criterion):
 def _search(problem, evaluator, ga: GAConfig, options: SearchOptions, callback, report,
             started) -> GAResult:
     """The GA with SPM; a search that fits nothing is an error naming the likely cause."""
+    def best_so_far():
+        best = evaluator.ranked(1)
+        if not len(best):
+            return None
+        return problem.model(problem.expand(best[0]), criterion=evaluator.criterion.name,
+                             criterion_value=float(evaluator.cached_score(best[0])))
+
     def on_generation(stats: GenerationStats):
         report(Progress("search", stats.generation, ga.generations, stats.best,
-                        stats.evaluations, elapsed=time.perf_counter() - started))
+                        stats.evaluations, elapsed=time.perf_counter() - started,
+                        best_model=best_so_far))
         return None if callback is None else callback(stats)
 
     result = run_ga(evaluator, ga, seed=options.seed, callback=on_generation)

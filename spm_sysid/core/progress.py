@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 __all__ = ["PHASES", "Progress", "ProgressFn"]
 
@@ -44,6 +44,10 @@ class Progress:
         The certification's lower bound (NaN outside certification).
     elapsed : float
         Seconds since the job began.
+    best_model : callable, optional
+        Builds the best model so far (the search's best by the criterion, fitted
+        by least squares; at validation, the chosen one), for a job stopped
+        before its end (Ctrl-C): called only then, so reports stay cheap.
     """
 
     phase: str
@@ -53,6 +57,7 @@ class Progress:
     evaluations: int = 0
     bound: float = math.nan
     elapsed: float = 0.0
+    best_model: Callable[[], object] | None = field(default=None, compare=False, repr=False)
 
     @property
     def gap(self) -> float:

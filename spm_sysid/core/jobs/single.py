@@ -196,6 +196,9 @@ def describe_selection(doc: dict | None) -> str:
                      f"(p = {call['p_value']:.3g}): " + _fate(call))
         elif call.get("choice") == "linear":
             text += "; no nonlinear finalist simulated the held-out blocks better than linear"
+        left = doc.get("left_range_held_out")
+        if left:
+            text += (f"; {left} finalist(s) left the output's range on the held-out blocks")
         removed = doc.get("removed_by_guard")
         if removed:
             text += (f"; the stability guard removed {removed} structure(s) whose simulation "
@@ -330,7 +333,7 @@ def run_single_job(
     model = ident.model
     validation = None
     if settings.validation != "none":
-        report(Progress("validation", elapsed=t1 - t0))
+        report(Progress("validation", elapsed=t1 - t0, best_model=lambda: model))
         validation = validate_model(model, u, y, correlation_lags=settings.correlation_lags,
                                     segment=settings.validation, segments=val,
                                     horizon=settings.horizon or None)

@@ -239,6 +239,7 @@ METADATA = fields({
         "method": text(null=False), "note": text(), "what": text(null=False),
         "folds": integer(), "held_out_mse": MSE, "held_out_stderr": MSE, "ratio": MSE,
         "in_sample_mse": MSE, "removed_by_guard": integer(), "candidates": integer(),
+        "left_range_held_out": integer(),
         "linear_or_nonlinear": fields({
             "choice": text(choices=("linear", "nonlinear")), "ratio": MSE,
             "p_value": number(0.0, 1.0), "best_linear_held_out_mse": MSE,
@@ -269,6 +270,7 @@ METADATA = fields({
         "one_step": METRICS, "k_step": METRICS, "free_run": METRICS,
         "correlation_tests_skipped": text(), "correlation_tests": items(TEST)}),
     "monitor": lambda v, p: check_monitor(v, p),
+    "interrupted": fields({"phase": text(), "model": text()}),
 })
 
 #: The several-output document's own metadata (each output's model has its own).

@@ -47,8 +47,9 @@ def choose(plan: SelectionPlan, problem, evaluator, best_mask, best_score, crit,
     if plan.mode == "validated":
         candidates = _candidates(problem, evaluator, options)
         if plan.simulate:
-            model, chosen = validated_simulation(problem, candidates, plan.folds, crit,
-                                                 options.max_terms, report, started)
+            model, chosen = validated_simulation(
+                problem, candidates, plan.folds, crit, options.max_terms, report, started,
+                plan.open_loop is not None and plan.open_loop.kind == "integrating")
         else:
             model, chosen = validated_prediction(problem, evaluator, candidates, plan, crit,
                                                  report, started)

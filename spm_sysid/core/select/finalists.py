@@ -169,10 +169,15 @@ class ValidatedSimulation:
     problem, folds, criterion, max_terms, report, started
         The problem, its held-out folds, the criterion, the size limit (0: none),
         the progress callback and the job's start time.
+    integrating : bool
+        The output integrates (the open-loop check): the guard drives it with its
+        own input only (:func:`~spm_sysid.core.select.guard.stress_check`).
     """
 
-    def __init__(self, problem, folds, criterion, max_terms, report, started) -> None:
+    def __init__(self, problem, folds, criterion, max_terms, report, started,
+                 integrating: bool = False) -> None:
         self.problem, self.folds, self.crit = problem, folds, criterion
+        self.integrating = integrating  # the guard checks its own input only
         self.report, self.started = report, started
         self.scorer = SimulationScorer(
             problem, criterion, steps=SEARCH_STEPS, max_terms=max_terms, progress=report,
@@ -270,16 +275,16 @@ class ValidatedSimulation:
         screened = self.scorer.scored[mask_key(mask)][1]
         if estimator == "least squares":  # as the held-out blocks judged it
             model = screened.with_coefficients(problem.model(mask).coefficients)
-            return model, None, stress_check(model, u, y, segments)
+            return model, None, stress_check(model, u, y, segments, self.integrating)
         self.report(Progress("refinement", elapsed=time.perf_counter() - self.started))
         final = refine_simulation(screened, u, y, segments, **final_steps(problem))
         model = screened.with_coefficients(screened.coefficients)
         if final.success and np.isfinite(final.sse):
             model = screened.with_coefficients(final.coefficients)
-        why = stress_check(model, u, y, segments)
+        why = stress_check(model, u, y, segments, self.integrating)
         if why and final.success:  # the refinement may be what left the range
             model = screened.with_coefficients(screened.coefficients)
-            why = stress_check(model, u, y, segments)
+            why = stress_check(model, u, y, segments, self.integrating)
         return model, final, why
 
     def finish(self, model: NarxModel, mask, estimator, final, shrunk) -> NarxModel:
@@ -307,15 +312,15 @@ class ValidatedSimulation:
 
 
 def validated_simulation(problem, candidates, folds, crit, max_terms, report,
-                         started) -> tuple[NarxModel, dict]:
+                         started, integrating: bool = False) -> tuple[NarxModel, dict]:
     """Simulation focus, validated (see the module doc): the model and its account."""
-    job = ValidatedSimulation(problem, folds, crit, max_terms, report, started)
+    job = ValidatedSimulation(problem, folds, crit, max_terms, report, started, integrating)
     finals = job.screen(candidates)
     judged = job.judge(finals)
     call, decision = job.choose(judged)
     s, linear_sse = judged.scores, job.linear_sse(judged)
     held = first_that_holds(job, call, judged, linear_sse)
-    removed, reasons, i = s.rejected + held.removed, held.reasons, held.index
+    removed, reasons, i = held.removed, held.reasons, held.index
     if i is not None:
         mask, how = s.masks[i], judged.estimator[i]
         if i != call.order[0]:
@@ -327,10 +332,14 @@ def validated_simulation(problem, candidates, folds, crit, max_terms, report,
             "held_out_mse": s.mean[i], "held_out_stderr": s.stderr[i],
             "candidates": len(candidates), "screened": len(job.scorer.scored),
             "finalists": len(finals), "removed_by_guard": removed,
+            "left_range_held_out": s.rejected,
             "linear_or_nonlinear": decision, **({"guard_reasons": reasons} if reasons else {})}
-    raise DataError(f"every finalist structure's simulation leaves the output's range off "
-                    f"the estimation data ({removed} removed by the guard"
-                    + (f": {reasons[0]}" if reasons else "") + ")")
+    raise DataError(f"no finalist structure simulates within the output's range: "
+                    f"{s.rejected} of {len(finals)} left it on the held-out blocks, "
+                    f"{removed} were removed by the stability guard"
+                    + (f" ({reasons[0]})" if reasons else "")
+                    + "; the record may need other terms (a larger space, --orders auto) or "
+                    "the prediction focus")
 
 
 def returned_account(decision: dict, call: Call, returned: int, terms: int, nonlinear: bool,
@@ -389,7 +398,8 @@ def first_that_holds(job: ValidatedSimulation, call: Call, judged: Judged,
         nonlinear = i is not None and bool(job.degree[s.masks[i]].max() > 1)
         if pending is not None and not nonlinear:  # no other nonlinear finalist held
             j, model, final = pending
-            pending, kept = None, shrink_to_hold(model, u, y, segments, linear_sse)
+            pending, kept = None, shrink_to_hold(model, u, y, segments, linear_sse,
+                                                 job.integrating)
             if kept is not None:
                 return Held(j, model.with_coefficients(kept[1]), final, kept[0],
                             removed - 1, reasons)

@@ -110,4 +110,6 @@ def plan_selection(problem, options: SearchOptions) -> SelectionPlan:
                             f"blocks: {fold_note}")
     elif fold_note:
         note = f"{note}; {fold_note}"
+    if open_loop is not None and open_loop.note():
+        warnings.append(open_loop.note())
     return SelectionPlan(mode, judged, horizon, folds, note, open_loop, warnings)

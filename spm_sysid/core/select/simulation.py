@@ -83,8 +83,9 @@ class SimulationScorer:
     ----------
     scored : dict
         Structure key (:func:`~spm_sysid.core.fit.evaluator.mask_key`) ->
-        (value, refined model or None); +inf for one that cannot be fitted or
-        whose simulation diverges on the estimation data.
+        (value, refined model or None); +inf for one that cannot be fitted, whose
+        simulation diverges on the estimation data, or without an input term (its
+        free run ignores the input: it models no effect of it).
     """
 
     def __init__(self, problem: Problem, criterion: Criterion, *, steps: int | None = None,
@@ -103,6 +104,9 @@ class SimulationScorer:
         self.refinements = 0
         self.total = 0  # structures to refine, when known (progress)
         self.current: NarxModel | None = None  # the local search's current structure
+        ts = problem.term_space  # the terms with an input in them: a structure needs one
+        self.driven = np.array([any(ts.linear[i][0] >= 0 for i in t) for t in ts.terms],
+                               dtype=bool)
 
     def __call__(self, mask: np.ndarray) -> float:
         """The structure's value (scored once; warm-started from :attr:`current`)."""
@@ -111,7 +115,7 @@ class SimulationScorer:
             return self.scored[key][0]
         problem = self.problem
         value, model = np.inf, None
-        if mask.any() and not (mask & ~problem.usable).any() and not (
+        if (mask & self.driven).any() and not (mask & ~problem.usable).any() and not (
                 self.max_terms and mask.sum() > self.max_terms):
             try:
                 model = problem.model(mask)

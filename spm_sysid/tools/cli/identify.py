@@ -36,6 +36,10 @@ def cmd_identify(args) -> int:
         result = run_job(record, settings, progress=bars, progress_every=1)
     except SettingsError as exc:  # a setting that depends on the data (correlation_lags)
         raise UserError(as_option(exc)) from None
+    except KeyboardInterrupt:  # Ctrl-C, SIGTERM: the best model so far, if asked for
+        bars.close()
+        write_interrupted(args, bars)
+        raise
     finally:
         bars.close()
     several = record.n_outputs > 1
@@ -51,6 +55,33 @@ def cmd_identify(args) -> int:
     print(result.summary("lines"))
     write_outputs(args, _written(record, result, several))
     return 0
+
+
+def write_interrupted(args, bars: PhaseBars) -> None:
+    """On Ctrl-C: the best model so far to ``--json``, marked interrupted (else nothing).
+
+    The document's ``metadata.interrupted`` says in which phase the job stopped
+    and what the model is (the search's best by the criterion, least squares,
+    not validated; or the chosen model before its validation).
+    """
+    import sys
+
+    if not args.json or bars.best_model is None:
+        return
+    try:
+        model = bars.best_model()
+    except KeyboardInterrupt:  # a second Ctrl-C: stop now
+        return
+    if model is None:
+        return
+    what = ("the chosen model, not validated" if bars.best_phase == "validation" else
+            f"the search's best structure so far by {str(model.criterion).upper()}, fitted "
+            "by least squares; the selection did not finish")
+    model.metadata = {**model.metadata, "interrupted": {
+        "phase": bars.last_phase or bars.best_phase, "model": what}}
+    model.save(args.json)
+    print(f"interrupted during {bars.last_phase or bars.best_phase}: the best model so far "
+          f"({what}) written to {args.json}", file=sys.stderr)
 
 
 def _print_checks(account: dict, metadata: dict) -> None:

@@ -54,6 +54,8 @@ class PhaseBars:
         self.phase: str | None = None
         self.bar = None
         self._last: Progress | None = None
+        self.best_model = None  # builds the job's best model so far (Progress.best_model)
+        self.best_phase = self.last_phase = ""
         self._fresh = False  # a record came since the last line
         self._phase_start = self._printed = time.monotonic()
         self._t0 = time.monotonic()
@@ -65,6 +67,9 @@ class PhaseBars:
             self._clock.start()
 
     def __call__(self, p: Progress) -> None:
+        self.last_phase = p.phase
+        if p.best_model is not None:
+            self.best_model, self.best_phase = p.best_model, p.phase
         if self.logging:
             self._log(p)
         if not self.enabled or p.phase not in _UNITS:
@@ -107,7 +112,7 @@ class PhaseBars:
 
     def _tick(self) -> None:
         """Every so often: the last record again when nothing new came (a long step)."""
-        while not self._stop.wait(1.0):
+        while not self._stop.wait(min(1.0, self.every / 2)):
             with self._lock:
                 now = time.monotonic()
                 if self._last is not None and now - self._printed >= self.every:
