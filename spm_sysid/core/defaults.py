@@ -67,6 +67,13 @@ POLISH_FLIPS = (4, 12)
 #: Spaces of at most this many usable terms are certified after the GA by default.
 AUTO_CERTIFY_TERMS = 120
 
+# -- uncertainty bands ---------------------------------------------------------------
+
+#: Simulated values an output band keeps at most (rows x draws, 160 MB): a record of more
+#: than 100 000 rows gets fewer coefficient draws, never fewer than MIN_BAND_DRAWS.
+BAND_VALUES = 20_000_000
+MIN_BAND_DRAWS = 40
+
 # -- orders: auto ---------------------------------------------------------------------
 
 #: Candidate terms a proposed space may have at most: the GA, the screening and the
@@ -184,6 +191,11 @@ REAL_ANGLE = 0.05
 #: friction); an unstable real pole that slow (a time constant of 500 samples or more)
 #: still simulates over a held-out block.
 INTEGRATOR_MARGIN = 2e-3
+
+#: The open-loop check's ARX order at least (the output's lags when more, up to 10): an
+#: ARX of order 2 or 3 on a drive at 1 kHz with friction puts its integrator at
+#: 1.002-1.005 (equation-error bias), order 4 at 1.001.
+OPEN_LOOP_ORDER = 4
 
 #: A column whose part not explained by the columns before it is below this share of its
 #: norm repeats them (the open-loop check drops it before it reads the poles).

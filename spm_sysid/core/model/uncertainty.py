@@ -198,29 +198,47 @@ def output_band(model, u: np.ndarray, y: np.ndarray, *, horizon: int | None = 1,
 
     Monte Carlo over ``draws`` coefficient vectors from the model's normal
     distribution (fixed ``seed``: the same band every time). None when the
-    model carries no uncertainty.
+    model carries no uncertainty. Memory stays bounded on long records: at most
+    :data:`~spm_sysid.core.defaults.BAND_VALUES` simulated values are kept (fewer
+    draws, never below :data:`~spm_sysid.core.defaults.MIN_BAND_DRAWS`), and the
+    quantiles are taken a block of rows at a time.
     """
+    from ..defaults import BAND_VALUES, MIN_BAND_DRAWS
+
     unc = getattr(model, "uncertainty", None)
     if unc is None:
         return None
+    rows = len(y) if segments is None else sum(max(b - a, 0) for a, b in segments)
+    draws = int(min(draws, max(MIN_BAND_DRAWS, BAND_VALUES // max(rows, 1))))
     rng = np.random.default_rng(seed)
     cov = 0.5 * (unc.covariance + unc.covariance.T)
     theta = rng.multivariate_normal(model.coefficients, cov, size=draws,
                                      check_valid="ignore", method="eigh")
+    lo, hi = 0.5 - level / 2.0, 0.5 + level / 2.0
     if horizon == 1:
         P, _ = model.term_space.regression(u, y, segments, terms=model.term_indices)
-        outputs = P @ theta.T  # (rows, draws)
         ok = np.ones(draws, dtype=bool)
-    else:
-        runs, ok = [], np.ones(draws, dtype=bool)
-        for i, th in enumerate(theta):
-            yhat, at = model.with_coefficients(th).run(u, y, horizon, segments)
-            ok[i] = at is None
-            runs.append(yhat)
-        outputs = np.column_stack(runs)
-    lo, hi = 0.5 - level / 2.0, 0.5 + level / 2.0
-    if ok.any():
-        q = np.quantile(outputs[:, ok], [lo, hi], axis=1)
-    else:
-        q = np.full((2, outputs.shape[0]), np.nan)
+        q = np.empty((2, len(P)))
+        for a in range(0, len(P), _BLOCK):
+            q[:, a:a + _BLOCK] = np.quantile(P[a:a + _BLOCK] @ theta.T, [lo, hi], axis=1)
+        return Band(q[0], q[1], level, draws, 0.0)
+    outputs, ok = None, np.ones(draws, dtype=bool)
+    for i, th in enumerate(theta):
+        yhat, at = model.with_coefficients(th).run(u, y, horizon, segments)
+        if outputs is None:
+            outputs = np.empty((len(yhat), draws))
+        ok[i] = at is None
+        outputs[:, i] = yhat
+    if outputs is None or not ok.any():
+        n = 0 if outputs is None else len(outputs)
+        return Band(np.full(n, np.nan), np.full(n, np.nan), level, draws,
+                    float(1.0 - ok.mean()))
+    q = np.empty((2, len(outputs)))
+    keep = np.flatnonzero(ok)
+    for a in range(0, len(outputs), _BLOCK):
+        q[:, a:a + _BLOCK] = np.quantile(outputs[a:a + _BLOCK][:, keep], [lo, hi], axis=1)
     return Band(q[0], q[1], level, draws, float(1.0 - ok.mean()))
+
+
+#: Rows whose quantiles are taken at once (bounds the copies a quantile makes).
+_BLOCK = 20_000

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from ..defaults import FOLDS, HORIZON, ROWS_PER_TERM, SIMULATION_REPEATS
+from ..defaults import FOLDS, HORIZON, OPEN_LOOP_ORDER, ROWS_PER_TERM, SIMULATION_REPEATS
 from ..options import SearchOptions
 from ..validate.open_loop import OpenLoop, open_loop_check
 from .folds import Fold, informative_folds, is_long
@@ -90,7 +90,7 @@ def plan_selection(problem, options: SearchOptions) -> SelectionPlan:
     open_loop, judged, horizon = None, "one-step", None
     if options.focus == "simulation":
         open_loop = open_loop_check(problem.u, problem.y, problem.segments,
-                                    min(max(problem.term_space.ny, 2), 10))
+                                    min(max(problem.term_space.ny, OPEN_LOOP_ORDER), 10))
         judged = "free-run"
         if open_loop is not None and not open_loop.free_run_applies:
             judged, horizon = "k-step", options.horizon or HORIZON
