@@ -1,0 +1,119 @@
+"""Benchmark: the command that chooses everything, at real sizes (make bench-scale).
+
+Runs ``spm-sysid identify --focus simulation --orders auto`` -- as a user types
+it, in its own process -- on
+
+* the Wiener-Hammerstein estimation record (``../shared/data/wh_est.dat``) cut
+  to 10 000, 30 000 and 100 000 samples;
+* a synthetic 1 kHz joint recording of 10 minutes (600 000 samples): the
+  PD-controlled joint with viscous and Coulomb friction of the test helpers
+  (``test/helpers/joint.py``);
+
+and prints, per size, the wall seconds, the peak resident memory of that
+process (``os.wait4``), the phases its progress lines named, and the slope of
+log(time) against log(samples) over the sizes (1: linear cost). ``--repeats``
+runs each size several times and prints the median. Figures, not assertions:
+the limits the project keeps are 60 s for Silverbox (65 062 samples), 120 s
+for Wiener-Hammerstein (100 000) and 1.5 GB on a 2-core machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["main"]
+
+ROOT = Path(__file__).resolve().parents[1]
+SIZES = (10_000, 30_000, 100_000)
+COMMAND = ("identify", "--focus", "simulation", "--orders", "auto")
+
+
+def _joint(seconds: float) -> tuple[np.ndarray, np.ndarray]:
+    path = ROOT / "test" / "helpers" / "joint.py"
+    spec = importlib.util.spec_from_file_location("spm_sysid_test_joint", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module.joint_record(seconds, seed=0)
+
+
+def _run(data: Path, extra: tuple[str, ...]) -> tuple[float, float, int, list[str]]:
+    """(seconds, peak MiB, exit status, phases seen) of one identify run."""
+    exe = str(Path(sys.executable).with_name("spm-sysid"))
+    t0 = time.perf_counter()
+    p = subprocess.Popen([exe, *COMMAND, "--data", str(data), *extra],
+                         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    phases = []
+    for line in p.stderr:
+        head = line.split(":")[0].split(",")[0]
+        if head and (not phases or phases[-1] != head) and not line.startswith(" "):
+            phases.append(head)
+    _, status, usage = os.wait4(p.pid, 0)
+    seconds = time.perf_counter() - t0
+    return seconds, usage.ru_maxrss / 1024.0, os.waitstatus_to_exitcode(status), phases
+
+
+def run(args) -> None:
+    from spm_sysid.core.io.data import load_io
+
+    shared = ROOT.parent / "shared" / "data"
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        records = []
+        wh = shared / "wh_est.dat"
+        if wh.is_file():
+            u, y = load_io(wh)
+            for n in args.sizes:
+                path = Path(tmp) / f"wh_{n}.dat"
+                np.savetxt(path, np.column_stack([u[:n], y[:n]]), fmt="%.10g")
+                records.append((f"Wiener-Hammerstein, first {n}", n, path))
+        else:
+            print(f"{wh} not found: the Wiener-Hammerstein sizes are skipped")
+        if args.joint_seconds > 0:
+            tau, q = _joint(args.joint_seconds)
+            path = Path(tmp) / "joint.dat"
+            np.savetxt(path, np.column_stack([tau, q]), fmt="%.10g")
+            records.append((f"joint at 1 kHz, {args.joint_seconds:g} s", len(q), path))
+        print(f"spm-sysid {' '.join(COMMAND)} --data FILE (median of {args.repeats})")
+        print(f"{'record':<36} {'samples':>8} {'seconds':>9} {'peak MiB':>9}  status  phases")
+        for label, n, path in records:
+            runs = [_run(path, ("--seed", str(seed))) for seed in range(args.repeats)]
+            seconds = float(np.median([r[0] for r in runs]))
+            peak = float(np.median([r[1] for r in runs]))
+            status = max(r[2] for r in runs)
+            print(f"{label:<36} {n:>8} {seconds:>9.1f} {peak:>9.0f}  {status:>6}  "
+                  f"{' > '.join(runs[0][3])}", flush=True)
+            rows.append((n, seconds, label))
+    wh_rows = [(n, s) for n, s, label in rows if label.startswith("Wiener")]
+    if len(wh_rows) >= 2:
+        x, t = np.log([r[0] for r in wh_rows]), np.log([r[1] for r in wh_rows])
+        slope = float(np.polyfit(x, t, 1)[0])
+        print(f"slope of log(seconds) against log(samples), Wiener-Hammerstein sizes: "
+              f"{slope:.2f} (1: cost linear in the samples)")
+    if len(rows) >= 2:
+        x, t = np.log([r[0] for r in rows]), np.log([r[1] for r in rows])
+        print(f"slope over every size: {float(np.polyfit(x, t, 1)[0]):.2f}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--sizes", type=int, nargs="+", default=list(SIZES),
+                   help="samples of the Wiener-Hammerstein record to run on")
+    p.add_argument("--joint-seconds", type=float, default=600.0,
+                   help="seconds of the synthetic 1 kHz joint recording (0: skip)")
+    p.add_argument("--repeats", type=int, default=1, help="runs per size (median)")
+    run(p.parse_args(argv))
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
