@@ -454,3 +454,31 @@ def test_tracking_from_a_constant_input_never_drifts(arm_doc):
     tracker = session.tracker
     assert tracker.updates == 0 and tracker.frozen > 0  # was 499 updates, 2.7 SE of drift
     np.testing.assert_array_equal(tracker.theta, model.coefficients)
+
+
+def test_the_nodes_worker_runs_a_real_job_and_relays_its_progress(robot_arm):
+    """The records carry a builder of the best model (for Ctrl-C), local to the
+    worker: they still cross the pipe (this failed every identification of the node)."""
+    import pickle
+
+    from spm_sysid.core.jobs import JobSettings
+    from spm_sysid.core.progress import Progress
+    from spm_sysid.core.record import Record
+    from spm_sysid.ros.worker import JobWorker
+
+    record = Progress("validation", 3, 5, best=-2.0, bound=-3.0, elapsed=1.0,
+                      best_model=lambda: "a model")
+    copy = pickle.loads(pickle.dumps(record))
+    assert copy == record and copy.best_model is None
+    phases = []
+    worker = JobWorker("spm_sysid.core.jobs.run:run_job",
+                       on_progress=lambda p: phases.append(p.phase))
+    try:
+        assert worker.wait_ready(120)
+        u, y = robot_arm
+        result = worker.submit(Record.from_samples(u, y, source="arm"),
+                               JobSettings.from_values({"seed": 1})).result(timeout=600)
+        assert len(result.model.terms) > 0
+        assert {"search", "validation"} <= set(phases)
+    finally:
+        worker.close()

@@ -59,6 +59,15 @@ class Progress:
     elapsed: float = 0.0
     best_model: Callable[[], object] | None = field(default=None, compare=False, repr=False)
 
+    def __reduce__(self):
+        """Pickle without ``best_model``: a builder is local to its process.
+
+        The node's worker sends these records to the node through a pipe; the
+        builder (a closure over the job's state) stays behind.
+        """
+        return (Progress, (self.phase, self.step, self.total, self.best,
+                           self.evaluations, self.bound, self.elapsed))
+
     @property
     def gap(self) -> float:
         """``best - bound`` during certification (NaN otherwise)."""
