@@ -256,3 +256,27 @@ def test_shrinking_the_nonlinear_terms_makes_a_diverging_model_hold():
     assert stress_check(model.with_coefficients(coefficients), u, y, segments) is None
     # not kept when it would simulate the data worse than the best linear model does
     assert shrink_to_hold(model, u, y, segments, linear_sse=0.0) is None
+
+
+def test_orders_auto_gives_a_record_with_an_offset_its_constant():
+    """A level around 5 (a tank, a temperature): without the constant as a candidate
+    the free run of new data was biased (the two tanks: 1.6x the linear ARX's error)."""
+    from spm_sysid.core.validate.arx import choose_arx, rmse
+
+    def record(seed, n=1500):
+        rng = np.random.default_rng(seed)
+        u = rng.uniform(0, 1, n)
+        y = np.full(n, 5.0)
+        for t in range(2, n):
+            y[t] = 1.0 + 0.8 * y[t - 1] + 0.5 * u[t - 1] - 0.2 * u[t - 1] ** 2
+        return u, y + 0.01 * rng.standard_normal(n)
+
+    (u1, y1), (u2, y2) = record(0), record(1)
+    settings = JobSettings.from_values({"focus": "simulation", "orders": "auto", "seed": 1})
+    model = run_job(Record.from_samples(u1, y1, source="offset"), settings).model
+    assert model.metadata["orders"]["constant"] is True
+    assert "1" in model.terms  # the constant entered
+    yhat, _ = model.run(u2, y2)
+    ours = float(rmse(y2[model.term_space.max_lag:], yhat, 10)[0])
+    arx = float(rmse(y2, choose_arx(u1, y1).simulate(u2, y2), 10)[0])
+    assert ours <= arx and ours < 1.5 * 0.01, (ours, arx)  # at the noise level
