@@ -134,6 +134,8 @@ def _call(model) -> str:
         text += f"; held-out {held:.3g} +- {se:.2g} ({se / held:.0%}) over {blocks} blocks"
     if call.get("fallback"):
         text += f"; {call['fallback']}"
+    if coupled and coupled.get("removed_by_guard"):
+        text += f"; removed by the guard: {len(coupled['removed_by_guard'])} finalist(s)"
     loop = model.metadata.get("open_loop") if hasattr(model, "term_space") else None
     if loop and not loop.get("free_run_applies", True):
         text += f"; {loop['kind']}: judged on the {loop.get('horizon')}-step prediction"

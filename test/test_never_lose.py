@@ -280,3 +280,18 @@ def test_orders_auto_gives_a_record_with_an_offset_its_constant():
     ours = float(rmse(y2[model.term_space.max_lag:], yhat, 10)[0])
     arx = float(rmse(y2, choose_arx(u1, y1).simulate(u2, y2), 10)[0])
     assert ours <= arx and ours < 1.5 * 0.01, (ours, arx)  # at the noise level
+
+
+def test_the_coupled_sentence_says_when_the_guard_removed_the_better_nonlinear_one():
+    from spm_sysid.core.jobs.several import describe_coupled
+
+    doc = {"folds": 6, "chosen": "linear MIMO ARX of order 7", "fitted": "least squares",
+           "choice": "nonlinear", "nonlinear": "the outputs' own choices", "ratio": 0.61,
+           "p_value": 6e-6, "removed_by_guard": ["the outputs' own choices (as chosen): x",
+                                                 "the outputs' own choices (jointly refined): x"]}
+    text = describe_coupled(doc)
+    assert text.startswith("coupled judgement on 6 held-out blocks: linear MIMO ARX of order 7")
+    assert "2 finalist(s) removed" in text
+    assert "the outputs' own choices among them: the model returned is the next" in text
+    doc.update(chosen="the outputs' own choices", fitted="jointly refined", removed_by_guard=[])
+    assert "removed" not in describe_coupled(doc)

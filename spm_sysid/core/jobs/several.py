@@ -166,7 +166,11 @@ def describe_coupled(doc: dict | None) -> str:
                  f"best linear's (p = {doc['p_value']:.3g}): {verdict}")
     removed = doc.get("removed_by_guard") or []
     if removed:
-        text += f"; {len(removed)} finalist(s) removed because their coupled run diverged"
+        text += (f"; {len(removed)} finalist(s) removed because their coupled run diverged "
+                 "when driven by the guard's inputs")
+        if doc.get("choice") == "nonlinear" and doc.get("nonlinear") and \
+                doc["chosen"] != doc["nonlinear"]:
+            text += f" ({doc['nonlinear']} among them: the model returned is the next finalist)"
     return text
 
 
