@@ -19,6 +19,18 @@ BIN = os.path.dirname(sys.executable)
 pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("dask"), pytest.mark.timeout(900)]
 
 
+def _scheduler_address(sched_file, log, limit: float = 120.0) -> str:
+    """The address in the scheduler's file, once written whole (the scheduler creates
+    the file before it writes it: on a busy machine it was read empty)."""
+    deadline = time.monotonic() + limit
+    while time.monotonic() < deadline:
+        try:
+            return json.loads(sched_file.read_text())["address"]
+        except (OSError, ValueError, KeyError):
+            time.sleep(0.2)
+    pytest.fail(f"the dask scheduler wrote no address in {limit:.0f} s: {log.read_text()[-500:]}")
+
+
 @pytest.fixture(scope="module")
 def cluster(tmp_path_factory):
     """`dask scheduler` and two `dask worker` processes on 127.0.0.1."""
@@ -30,10 +42,7 @@ def cluster(tmp_path_factory):
                                "--no-dashboard", "--scheduler-file", str(sched_file)],
                               stdout=subprocess.DEVNULL, stderr=open(d / "sched.log", "w"),
                               env=env)]
-    deadline = time.monotonic() + 60
-    while not sched_file.exists() and time.monotonic() < deadline:
-        time.sleep(0.2)
-    address = json.loads(sched_file.read_text())["address"]
+    address = _scheduler_address(sched_file, d / "sched.log")
     workers = []
 
     def start_worker(i):
