@@ -42,8 +42,7 @@ def cluster(tmp_path_factory):
                                "--no-dashboard", "--scheduler-file", str(sched_file)],
                               stdout=subprocess.DEVNULL, stderr=open(d / "sched.log", "w"),
                               env=env)]
-    address = _scheduler_address(sched_file, d / "sched.log")
-    workers = []
+    workers: list = []
 
     def start_worker(i):
         p = subprocess.Popen([f"{BIN}/dask", "worker", address, "--nworkers", "1",
@@ -53,21 +52,23 @@ def cluster(tmp_path_factory):
         workers.append(p)
         return p
 
-    start_worker(0)
-    start_worker(1)
-    from distributed import Client
+    try:  # the processes end even when the set-up fails (one was left running)
+        address = _scheduler_address(sched_file, d / "sched.log")
+        start_worker(0)
+        start_worker(1)
+        from distributed import Client
 
-    with Client(address, timeout=60) as c:
-        c.wait_for_workers(2, timeout=120)
-    yield {"address": address, "workers": workers, "start_worker": start_worker}
-    for p in workers + procs:
-        p.terminate()
-    for p in workers + procs:
-        try:
-            p.wait(10)
-        except subprocess.TimeoutExpired:
-            p.kill()
-
+        with Client(address, timeout=60) as c:
+            c.wait_for_workers(2, timeout=120)
+        yield {"address": address, "workers": workers, "start_worker": start_worker}
+    finally:
+        for p in workers + procs:
+            p.terminate()
+        for p in workers + procs:
+            try:
+                p.wait(10)
+            except subprocess.TimeoutExpired:
+                p.kill()
 
 def spm(*args, timeout=600):
     return subprocess.run([sys.executable, "-m", "spm_sysid.apps.main", *args],
