@@ -130,15 +130,19 @@ def test_an_integrating_system_is_judged_on_its_free_run_and_says_so():
     assert ours <= 1.05 * theirs, (ours, theirs)
 
 
-def test_an_unstable_system_is_judged_on_k_step_prediction_and_says_why():
+def _stabilised_unstable_plant(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """A plant with a pole at 1.05, stabilised by feedback; (u, y), y with 1e-4 noise."""
     rng = np.random.default_rng(2)
-    n = 1500
     r = rng.standard_normal(n)
     y, u = np.zeros(n), np.zeros(n)
-    for t in range(1, n):  # a plant with a pole at 1.05, stabilised by feedback
+    for t in range(1, n):
         y[t] = 1.05 * y[t - 1] + 0.5 * u[t - 1]
         u[t] = -1.5 * y[t] + r[t]
-    y += 1e-4 * rng.standard_normal(n)
+    return u, y + 1e-4 * rng.standard_normal(n)
+
+
+def test_an_unstable_system_is_judged_on_k_step_prediction_and_says_why():
+    u, y = _stabilised_unstable_plant(1500)
     result = run_job(Record.from_samples(u, y, source="unstable"),
                      JobSettings.from_values({"focus": "simulation", "seed": 0,
                                               "ny": 2, "nu": 2}))
@@ -155,14 +159,8 @@ def test_the_open_loop_check_tells_resonance_from_integrator_and_instability(rob
     u, y = robot_arm
     stable = open_loop_check(u, y, [(0, len(y))], 10)  # lightly damped, not integrating
     assert stable.kind == "stable" and stable.free_run_applies and abs(stable.pole) > 0.99
-    rng = np.random.default_rng(2)
-    n = 2000
-    r = rng.standard_normal(n)
-    y, u = np.zeros(n), np.zeros(n)
-    for t in range(1, n):  # a plant with a pole at 1.05, stabilised by feedback
-        y[t] = 1.05 * y[t - 1] + 0.5 * u[t - 1]
-        u[t] = -1.5 * y[t] + r[t]
-    loop = open_loop_check(u, y + 1e-4 * rng.standard_normal(n), [(0, n)], 2)
+    u, y = _stabilised_unstable_plant(2000)
+    loop = open_loop_check(u, y, [(0, len(y))], 2)
     assert loop.kind == "unstable" and abs(loop.pole) == pytest.approx(1.05, abs=0.02)
     assert "unstable in open loop" in loop.reason()
 
