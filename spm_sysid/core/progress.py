@@ -59,14 +59,17 @@ class Progress:
     elapsed: float = 0.0
     best_model: Callable[[], object] | None = field(default=None, compare=False, repr=False)
 
-    def __reduce__(self):
+    def __getstate__(self) -> dict:
         """Pickle without ``best_model``: a builder is local to its process.
 
         The node's worker sends these records to the node through a pipe; the
         builder (a closure over the job's state) stays behind.
         """
-        return (Progress, (self.phase, self.step, self.total, self.best,
-                           self.evaluations, self.bound, self.elapsed))
+        return {k: v for k, v in self.__dict__.items() if k != "best_model"}
+
+    def __setstate__(self, state: dict) -> None:
+        for k, v in {**state, "best_model": None}.items():
+            object.__setattr__(self, k, v)  # frozen: set as __init__ does
 
     @property
     def gap(self) -> float:

@@ -254,7 +254,8 @@ METADATA = fields({
         "reason": text(), "criterion": text(), "samples": integer(),
         "order_scan": items(row(integer(1, null=False), number())),
         "degree_scan": items(items(number())), "space_scan": items(items(number())),
-        "focus": text(choices=("prediction", "simulation")), "max_terms": integer()},
+        "focus": text(choices=("prediction", "simulation")), "max_terms": integer(),
+        "constant": flag},
         required=("ny", "degree")),
     "data_check": fields({
         "rows": integer(null=False), "usable": integer(null=False),
