@@ -467,7 +467,8 @@ def test_propose_lags_finds_the_order_and_degree_of_a_known_system(tmp_path):
     np.savetxt(tmp_path / "sys.dat", np.column_stack([u, y]))
     r = cli("propose-lags", "--data", str(tmp_path / "sys.dat"), "--max-order", "8")
     assert r.returncode == 0, r.stderr
-    assert r.stdout.strip().endswith("proposal: --ny 3 --nu 3 --degree 2 --delay 1")
+    assert r.stdout.strip().endswith("proposal: --ny 3 --nu 3 --degree 2 --delay 1 --constant"
+                                     "  (as --orders auto identifies: the constant a candidate)")
 
 
 def test_large_term_spaces_run_to_the_end_and_too_large_is_refused(robot_arm, monkeypatch):

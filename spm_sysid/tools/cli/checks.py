@@ -52,7 +52,8 @@ def cmd_propose_lags(args) -> int:
     print(f"data: {record.source}, {len(record)} samples")
     print(proposal.summary())
     n, d = proposal.order, proposal.degree
-    print(f"proposal: --ny {n} --nu {n} --degree {d} --delay {args.delay}")
+    print(f"proposal: --ny {n} --nu {n} --degree {d} --delay {args.delay} --constant"
+          "  (as --orders auto identifies: the constant a candidate)")
     return 0
 
 
