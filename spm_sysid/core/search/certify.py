@@ -47,7 +47,7 @@ import os
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -55,7 +55,6 @@ from ..compiled.aot import build_status
 from ..compiled.registry import jit_available, jit_loaded
 from ..cores import usable_cores
 from ..defaults import MAX_JUDGED_TERMS
-from ..files import json_float
 from ..fit.criteria import CERTIFIABLE, Criterion, get_criterion
 from ..fit.evaluator import NEAR_RANK, StructureEvaluator
 from ..fit.lstsq import DEFAULT_RANK_TOL
@@ -65,6 +64,13 @@ from .branch_bound import (
     DONE,
     FULL,
     Data,
+)
+from .certificate import (
+    Certificate,
+    describe_certificate,
+    mse_bounds,
+    penalty_per_size,
+    trivial_bound,
 )
 from .heaps import (
     MAX_OPEN_BYTES,
@@ -79,128 +85,6 @@ from .local import polish as search_polish
 
 __all__ = ["CERTIFIABLE", "Certificate", "certify", "certify_data", "check_certify_memory",
            "describe_certificate", "ensure_compiled", "penalty_per_size", "search_is_compiled"]
-
-
-
-@dataclass
-class Certificate:
-    """Outcome of :func:`certify`.
-
-    Attributes
-    ----------
-    status : str
-        ``optimal`` (proved) or ``limit`` (the time or node limit ran out).
-    value : float
-        Criterion value of the best structure found.
-    lower_bound : float
-        No structure scores below this (``value`` itself when optimal).
-    mask : ndarray of bool
-        The best structure found.
-    nodes : int
-        Branch-and-bound nodes explored.
-    seconds : float
-    bound : str
-        The bounds used.
-    reason : str or None
-        What ran out (``limit``).
-    warm_start : float or None
-        The warm start's value (e.g. the GA's best).
-    one_step_mse : float or None
-        The best structure's one-step mean squared error (the data's units).
-    mse_lower_bound : float or None
-        No structure of at most as many terms has a one-step MSE below this: the
-        lower bound read at the best structure's size (``one_step_mse`` itself when
-        optimal). For AIC, AICc and BIC ``value = N ln(MSE) + pen(k)``, so it is
-        ``one_step_mse * exp(-gap / N)``.
-    """
-
-    status: str
-    value: float
-    lower_bound: float
-    mask: np.ndarray
-    nodes: int
-    seconds: float
-    bound: str = "exact small sizes + drop and pair bounds + span bound (nearly dependent terms)"
-    reason: str | None = None
-    warm_start: float | None = None
-    terms: list[str] = field(default_factory=list)
-    one_step_mse: float | None = None
-    mse_lower_bound: float | None = None
-
-    @property
-    def gap(self) -> float:
-        """``value - lower_bound`` (0 when optimal)."""
-        return 0.0 if self.status == "optimal" else float(self.value - self.lower_bound)
-
-    @property
-    def improved(self) -> bool:
-        """The search found a better structure than the warm start."""
-        return self.warm_start is not None and self.value < self.warm_start - 1e-9
-
-    def to_dict(self) -> dict:
-        """JSON-ready (the ``certify --json`` document and ``metadata.certificate``)."""
-        return {"status": self.status, "value": float(self.value),
-                "lower_bound": float(self.lower_bound), "gap": float(self.gap),
-                "terms": list(self.terms), "nodes": int(self.nodes),
-                "seconds": round(float(self.seconds), 4), "bound": self.bound,
-                "reason": self.reason, "warm_start": self.warm_start,
-                "size": int(np.count_nonzero(self.mask)),
-                "one_step_mse": json_float(self.one_step_mse),
-                "mse_lower_bound": json_float(self.mse_lower_bound)}
-
-
-def describe_certificate(doc: dict | None) -> str:
-    """A certificate in a few words, for answers, logs and the command line ('' if none).
-
-    ``doc`` is :meth:`Certificate.to_dict` (``model.metadata["certificate"]``).
-    """
-    if not doc:
-        return ""
-    if doc["status"] == "optimal":
-        text = (f"certified optimal over all structures ({doc['nodes']} nodes, "
-                f"{doc['seconds']:.2f} s)")
-    elif doc["status"] == "limit":
-        text = (f"NOT certified ({doc['reason']}): lower bound {doc['lower_bound']:.2f}, "
-                f"gap {doc['gap']:.2f}")
-        mse, low = doc.get("one_step_mse"), doc.get("mse_lower_bound")
-        if mse and low is not None:
-            text += (f"; one-step MSE {mse:.4g}: no structure of at most {doc['size']} terms "
-                     f"below {low:.4g} (at most {100.0 * (1.0 - low / mse):.1f} % lower)")
-    else:
-        return f"not certifiable: {doc['reason']}"
-    if doc.get("ga_value") is not None and doc["value"] < doc["ga_value"]:
-        text += f"; the search improved on the GA's {doc['ga_value']:.2f}"
-    elif doc.get("warm_start") is not None and doc["value"] < doc["warm_start"] - 1e-9:
-        text += f"; improved on the warm start ({doc['warm_start']:.4f})"
-    return text
-
-
-def penalty_per_size(criterion: Criterion, n: int, m: int, max_terms: int = 0) -> np.ndarray:
-    """``pen(k)`` for k = 0..m, or a ValueError when the criterion is not certifiable.
-
-    The criterion must be ``n ln(SSE/n) + pen(k)`` (checked numerically) with
-    ``pen`` increasing. Sizes the criterion rules out (AICc with no degrees of
-    freedom left) and sizes above ``max_terms`` (when > 0) get ``+inf``: no
-    structure of those sizes can be selected, nor certified.
-    """
-    if criterion.name not in CERTIFIABLE or criterion.needs_coefficients:
-        raise ValueError(
-            f"criterion {criterion.name} cannot be certified: its value depends on more "
-            f"than the SSE and the number of terms (certifiable: {', '.join(CERTIFIABLE)})")
-    k = np.arange(m + 1)
-    with np.errstate(invalid="ignore"):
-        pen = criterion(np.full(m + 1, float(n)), n, k, None)
-        check = criterion(np.full(m + 1, float(n) * np.e), n, k, None)
-    finite = np.isfinite(pen)
-    usable = int(finite.sum())  # only the largest sizes may be ruled out
-    head = slice(0, usable)
-    if (usable == 0 or not finite[head].all() or not np.allclose(check[head] - pen[head], n)
-            or np.any(np.diff(pen[head]) <= 0)):
-        raise ValueError(f"criterion {criterion.name} is not of the form N ln(SSE/N) + pen(k)")
-    if max_terms and max_terms < m:
-        pen = pen.copy()
-        pen[max_terms + 1:] = np.inf
-    return pen
 
 
 #: Subsets of its free terms a node enumerates exactly (its smallest sizes).
@@ -296,207 +180,268 @@ def ensure_compiled() -> None:
 
 
 def certify(
-    P: np.ndarray,
-    target: np.ndarray,
-    criterion: str | Criterion = "bic",
-    *,
-    warm_start: np.ndarray | None = None,
-    time_limit: float = 60.0,
-    node_limit: int | None = None,
-    sse_scale: float = 1.0,
-    tolerance: float = 1e-6,
-    rank_tol: float = DEFAULT_RANK_TOL,
-    progress: Callable[[int, float, float], None] | None = None,
-    evaluator: StructureEvaluator | None = None,
-    enumeration_budget: int | None = None,
-    threads: int | None = None,
-    started: float | None = None,
+    P: np.ndarray, target: np.ndarray, criterion: str | Criterion = "bic", *,
+    warm_start: np.ndarray | None = None, time_limit: float = 60.0,
+    node_limit: int | None = None, sse_scale: float = 1.0, tolerance: float = 1e-6,
+    rank_tol: float = DEFAULT_RANK_TOL, progress: Callable[[int, float, float], None] | None = None,
+    evaluator: StructureEvaluator | None = None, enumeration_budget: int | None = None,
+    threads: int | None = None, started: float | None = None,
 ) -> Certificate:
     """Search all structures of the columns of ``P`` exactly (see the module doc).
 
     Parameters
     ----------
     P, target : ndarray
-        Regression matrix and target, as for :class:`StructureEvaluator` (None
-        when ``evaluator`` is given).
+        As for :class:`StructureEvaluator` (None when ``evaluator`` is given).
     criterion : str or Criterion
         ``aic`` or ``bic``.
     warm_start : ndarray of bool, optional
-        A good structure (the GA's); default: forward selection's best. It is
-        improved by a local search (one term added, removed or swapped) first.
-    time_limit : float
-        Seconds before stopping with ``limit``.
-    node_limit : int, optional
-        Nodes before stopping with ``limit``.
-    sse_scale : float
-        As for the evaluator (SSE of the data as given / SSE of ``target``).
-    tolerance : float
-        Subtrees whose bound is within this of the incumbent are not searched.
-    rank_tol : float
-        As for the evaluator: structures with a smaller squared pivot score +inf.
+        A good structure (the GA's; default: forward selection's), polished first.
+    time_limit, node_limit : float, int, optional
+        Seconds, nodes before stopping with ``limit``.
+    sse_scale, rank_tol, tolerance : float
+        As for the evaluator; subtrees within ``tolerance`` of the incumbent are cut.
     progress : callable, optional
         ``progress(nodes, best, lower_bound)`` about every 0.5 s.
     evaluator : StructureEvaluator, optional
         Reuse the GA's (same data and criterion): its cache and numbers.
     enumeration_budget : int, optional
-        Subsets of its free terms a node enumerates exactly (default
-        :data:`ENUMERATION_BUDGET`; 0: only up to two terms).
+        Subsets of free terms a node enumerates (default :data:`ENUMERATION_BUDGET`).
     threads : int, optional
-        Workers searching at once, each with its own open nodes, sharing the
-        incumbent and dealt nodes best first when one runs short (default: the
-        usable cores, at most 8; one when ``node_limit`` is given; fewer when
-        the memory bound does not hold more).
+        Workers, each with its own open nodes (default: the usable cores, at most 8;
+        one with ``node_limit``; fewer when the memory bound does not hold more).
     started : float, optional
-        ``time.perf_counter()`` when the caller's set-up began (the time limit
-        counts from there; default: now).
-
-    The time limit and the memory bound hold in every phase: the set-up's
-    memory is checked before anything is built, the local search and forward
-    selection stop at the deadline, and a search stopped before it began
-    reports the trivial lower bound (all terms' SSE, one term's penalty).
+        ``time.perf_counter()`` when the caller's set-up began (default: now).
 
     Raises
     ------
-    ValueError
-        A criterion that cannot be certified (e.g. PMIC2).
-    MemoryLimitError
-        The set-up, or one search worker, would exceed the memory bound.
+    ValueError, MemoryLimitError
+        A criterion that cannot be certified (e.g. PMIC2), an impossible limit; the
+        set-up or one search worker would exceed the memory bound.
     """
     ensure_compiled()
     t0 = time.perf_counter() if started is None else started
     deadline = t0 + time_limit
+    _check_limits(time_limit, node_limit, threads)
+    crit = get_criterion(criterion)
+    ev = evaluator or _evaluator(P, target, crit, rank_tol=rank_tol, sse_scale=sse_scale)
+    if ev.criterion.name != crit.name:
+        raise ValueError(f"the evaluator scores {ev.criterion.name}, not {crit.name}")
+    search = _Search.set_up(ev, crit, node_limit, threads, tolerance)
+    best_full, best_value, warm_value = _incumbent(ev, search.usable, warm_start, deadline,
+                                                   time_limit)
+    if time.perf_counter() >= deadline:  # the set-up used the time: nothing searched
+        return _unsearched(search, best_full, float(best_value), warm_value, t0=t0,
+                           time_limit=time_limit)
+    budget = ENUMERATION_BUDGET if enumeration_budget is None else int(enumeration_budget)
+    heaps = search.heaps(best_value, best_full)
+    status, reason = search.run(heaps, budget, deadline=deadline, time_limit=time_limit,
+                                node_limit=node_limit, progress=progress)
+    return _certificate(ev, search, heaps, status, reason, t0=t0, tolerance=tolerance,
+                        warm_value=warm_value)
+
+
+def _evaluator(P: np.ndarray, target: np.ndarray, crit: Criterion, *, rank_tol: float,
+               sse_scale: float) -> StructureEvaluator:
+    """The evaluator of ``P`` and ``target``, once the memory bound holds its set-up."""
+    P = np.asarray(P)
+    check_certify_memory(*P.shape)
+    return StructureEvaluator(np.asarray(P, dtype=float), np.asarray(target, dtype=float),
+                              crit, rank_tol=rank_tol, sse_scale=sse_scale)
+
+
+def _unsearched(search: _Search, best_full: np.ndarray, value: float,
+                warm_value: float | None, *, t0: float, time_limit: float) -> Certificate:
+    """The set-up used the time: the incumbent with the trivial lower bound.
+
+    The time limit holds in every phase: the local search and forward selection
+    stop at the deadline, and nothing else is searched.
+    """
+    lower = min(search.trivial, value)
+    return Certificate(status="limit", value=value, lower_bound=lower,
+                       mask=best_full, nodes=0, seconds=time.perf_counter() - t0,
+                       reason=f"time limit {time_limit:g} s (reached while setting the "
+                              "search up)", warm_start=warm_value,
+                       **mse_bounds(value, lower, best_full, search.pen, search.ev.n))
+
+
+def _check_limits(time_limit: float, node_limit: int | None, threads: int | None) -> None:
+    """A ValueError naming a limit no search can keep."""
     if not time_limit > 0:
         raise ValueError(f"time_limit must be > 0 seconds, got {time_limit}")
     if node_limit is not None and node_limit < 1:
         raise ValueError(f"node_limit must be at least 1, got {node_limit}")
     if threads is not None and threads < 1:
         raise ValueError(f"threads must be at least 1, got {threads}")
-    crit = get_criterion(criterion)
-    if evaluator is None:
-        P = np.asarray(P)
-        check_certify_memory(*P.shape)
-        evaluator = StructureEvaluator(np.asarray(P, dtype=float),
-                                       np.asarray(target, dtype=float), crit,
-                                       rank_tol=rank_tol, sse_scale=sse_scale)
-    ev = evaluator
-    n, m = ev.n, ev.n_terms
-    if ev.criterion.name != crit.name:
-        raise ValueError(f"the evaluator scores {ev.criterion.name}, not {crit.name}")
-    pen = penalty_per_size(crit, n, m, ev.max_terms)
-    # the evaluator's unit-norm Gram matrix of [P y] and triangular factor (the same
-    # least-squares problem in min(n, m + 1) rows), on the non-zero columns
-    usable = np.flatnonzero(~ev.zero_columns)
-    keep = np.concatenate([usable, [m]])
-    rows_r = ev.factor.shape[0]
-    mu = len(usable)
-    # node_limit asks for an exact count: one worker then; fewer when memory is short
-    cores = usable_cores()
-    workers = 1 if node_limit is not None else max(1, min(int(threads or cores or 1), 8))
-    limit, _ = memory_limit()
-    copies = 8.0 * ((mu + 1) ** 2 + rows_r * (mu + 1))  # the search's gram and factor
-    per_worker = worker_bytes(rows_r, mu)
-    check_memory(copies + per_worker, f"the branch and bound over {mu} candidate terms")
-    workers = max(1, min(workers, int((limit - copies) // per_worker)))
-    open_bytes = int(min(MAX_OPEN_BYTES, max(limit - copies - workers * per_worker, 0) / 2))
-    gram = np.ascontiguousarray(ev.gram[np.ix_(keep, keep)])
-    r_aug = np.ascontiguousarray(ev.factor[:, keep])
-    trivial = _trivial_bound(r_aug, float(n), ev.sse_scale, ev.sse_floor, pen)
 
-    # incumbent: the warm start (else forward selection), then a local search
+
+def _incumbent(ev: StructureEvaluator, usable: np.ndarray, warm_start: np.ndarray | None,
+               deadline: float, time_limit: float) -> tuple[np.ndarray, float, float | None]:
+    """The first incumbent: the warm start (else forward selection's), polished.
+
+    Returns its mask, its value and the warm start's own value (None when not finite).
+    """
     if warm_start is None:
         from .forward import forward_selection
 
-        _, warm_start = forward_selection(ev, max_terms=min(MAX_JUDGED_TERMS, mu),
+        _, warm_start = forward_selection(ev, max_terms=min(MAX_JUDGED_TERMS, len(usable)),
                                           deadline=deadline)
     warm = np.asarray(warm_start, dtype=bool)
     warm_value = ev.cached_score(warm) if warm.any() else np.inf
     best_full, best_value = polish(ev, warm, usable, seconds=min(5.0, 0.1 * time_limit),
                                    deadline=deadline)
-    warm_value = float(warm_value) if np.isfinite(warm_value) else None
-    if time.perf_counter() >= deadline:  # the set-up used the time: nothing searched
-        value = float(best_value)
-        lower = min(trivial, value)
-        return Certificate(status="limit", value=value, lower_bound=lower,
-                           mask=best_full, nodes=0, seconds=time.perf_counter() - t0,
-                           reason=f"time limit {time_limit:g} s (reached while setting the "
-                                  "search up)", warm_start=warm_value,
-                           **_mse_bounds(value, lower, best_full, pen, n))
+    return best_full, best_value, float(warm_value) if np.isfinite(warm_value) else None
 
-    budget = ENUMERATION_BUDGET if enumeration_budget is None else int(enumeration_budget)
-    heaps = [OpenNodes(mu, r_aug.shape[0], best_value, best_full[usable], workers,
-                        open_bytes) for _ in range(workers)]
-    heaps[0].push_root(mu)
-    data = Data(gram, r_aug, pen, float(n), ev.sse_scale, ev.sse_floor, ev.rank_tol, tolerance,
-                NEAR_RANK * ev.rank_tol)
-    status, reason = "optimal", None
-    chunk, last_report, restarted = 64, t0, False
-    pool = ThreadPoolExecutor(workers) if workers > 1 else None
-    search_start = time.perf_counter()
-    # the ahead-of-time build holds the GIL: short searches run on it one heap after the
-    # other, longer ones switch to numba's JIT (0.7 s to load) and run the heaps in parallel
-    serial_for = PARALLEL_AFTER if build_status() and not jit_loaded() else 0.0
-    try:
-        while True:
-            done_nodes = sum(h.nodes for h in heaps)
-            pops = chunk if node_limit is None else min(chunk, node_limit - done_nodes)
-            started = time.perf_counter()
-            busy = [h for h in heaps if h.size]
-            if (pool is not None and serial_for and started - search_start >= serial_for
-                    and not jit_available()):  # a broken numba: the build, one thread
-                pool.shutdown()
-                pool = None
-            if pool is None or len(busy) == 1 or started - search_start < serial_for:
-                results = [h.expand(data, pops, budget) for h in busy]
-            else:
-                results = list(pool.map(OpenNodes.expand_in_parallel, busy,
-                                        [data] * len(busy), [pops] * len(busy),
-                                        [budget] * len(busy)))
-            for h in busy:
-                h.settle(ev, usable)
+
+@dataclass
+class _Search:
+    """The branch and bound's shared data, its workers and the memory each may use."""
+
+    ev: StructureEvaluator
+    usable: np.ndarray
+    pen: np.ndarray
+    data: Data
+    workers: int
+    open_bytes: int
+    trivial: float
+
+    @classmethod
+    def set_up(cls, ev: StructureEvaluator, crit: Criterion, node_limit: int | None,
+               threads: int | None, tolerance: float) -> _Search:
+        """Gram matrix and factor on the non-zero columns; workers the memory bound holds."""
+        n, m = ev.n, ev.n_terms
+        pen = penalty_per_size(crit, n, m, ev.max_terms)
+        # the evaluator's unit-norm Gram matrix of [P y] and triangular factor (the same
+        # least-squares problem in min(n, m + 1) rows), on the non-zero columns
+        usable = np.flatnonzero(~ev.zero_columns)
+        keep = np.concatenate([usable, [m]])
+        rows_r = ev.factor.shape[0]
+        mu = len(usable)
+        # node_limit asks for an exact count: one worker then; fewer when memory is short
+        cores = usable_cores()
+        workers = 1 if node_limit is not None else max(1, min(int(threads or cores or 1), 8))
+        limit, _ = memory_limit()
+        copies = 8.0 * ((mu + 1) ** 2 + rows_r * (mu + 1))  # the search's gram and factor
+        per_worker = worker_bytes(rows_r, mu)
+        check_memory(copies + per_worker, f"the branch and bound over {mu} candidate terms")
+        workers = max(1, min(workers, int((limit - copies) // per_worker)))
+        open_bytes = int(min(MAX_OPEN_BYTES, max(limit - copies - workers * per_worker, 0) / 2))
+        gram = np.ascontiguousarray(ev.gram[np.ix_(keep, keep)])
+        r_aug = np.ascontiguousarray(ev.factor[:, keep])
+        data = Data(gram, r_aug, pen, float(n), ev.sse_scale, ev.sse_floor, ev.rank_tol,
+                    tolerance, NEAR_RANK * ev.rank_tol)
+        return cls(ev, usable, pen, data, workers, open_bytes,
+                   trivial_bound(r_aug, float(n), ev.sse_scale, ev.sse_floor, pen))
+
+    def heaps(self, best_value: float, best_full: np.ndarray) -> list[OpenNodes]:
+        """One heap of open nodes per worker, the root in the first."""
+        mu = len(self.usable)
+        heaps = [OpenNodes(mu, self.data.r_ext.shape[0], best_value, best_full[self.usable],
+                           self.workers, self.open_bytes) for _ in range(self.workers)]
+        heaps[0].push_root(mu)
+        return heaps
+
+    def run(self, heaps: list[OpenNodes], budget: int, *, deadline: float, time_limit: float,
+            node_limit: int | None, progress: Callable | None) -> tuple[str, str | None]:
+        """Expand the heaps in rounds until proved or a limit is met: (status, reason)."""
+        rounds = _Rounds(self.workers)
+        try:
+            while True:
+                started = time.perf_counter()
+                results, busy = rounds.expand(heaps, self.data, budget, node_limit)
+                for h in busy:
+                    h.settle(self.ev, self.usable)
+                share_best(heaps)
+                if all(r == DONE for r in results):  # the incumbent only improves: stays proved
+                    return "optimal", None
+                now = self._restart(heaps, rounds, time_limit, deadline, node_limit)
+                full = [h for h, r in zip(busy, results) if r == FULL]
+                if any(not h.grow() for h in full):
+                    return "limit", f"memory limit ({sum(h.size for h in heaps):,} open nodes)"
+                if self.workers > 1:
+                    balance(heaps)
+                rounds.pace(now - started)
+                if node_limit is not None and sum(h.nodes for h in heaps) >= node_limit:
+                    return "limit", f"node limit {node_limit}"
+                if now >= deadline:
+                    return "limit", f"time limit {time_limit:g} s"
+                rounds.report(heaps, now, progress)
+        finally:
+            rounds.close()
+
+    def _restart(self, heaps: list[OpenNodes], rounds: _Rounds, time_limit: float,
+                 deadline: float, node_limit: int | None) -> float:
+        """Once, after PATH_AFTER s without a proof: restarts for a better incumbent."""
+        now = time.perf_counter()
+        if rounds.restarted or now - rounds.search_start < PATH_AFTER or node_limit is not None:
+            return now
+        rounds.restarted = True
+        mask, value = path_incumbent(self.ev, self.usable,
+                                     deadline=min(deadline, now + PATH_SHARE * time_limit))
+        if mask is not None and value < heaps[0].best[0]:
+            heaps[0].best[0] = value
+            heaps[0].best_mask[:] = mask[self.usable]
             share_best(heaps)
-            now = time.perf_counter()
-            if all(r == DONE for r in results):  # the incumbent only improves: stays proved
-                break
-            if not restarted and now - search_start >= PATH_AFTER and node_limit is None:
-                restarted = True  # no proof yet: restarts for a better incumbent
-                mask, value = path_incumbent(
-                    ev, usable, deadline=min(deadline, now + PATH_SHARE * time_limit))
-                if mask is not None and value < heaps[0].best[0]:
-                    heaps[0].best[0] = value
-                    heaps[0].best_mask[:] = mask[usable]
-                    share_best(heaps)
-                now = time.perf_counter()
-            full = [h for h, r in zip(busy, results) if r == FULL]
-            if any(not h.grow() for h in full):
-                status = "limit"
-                reason = f"memory limit ({sum(h.size for h in heaps):,} open nodes)"
-                break
-            if workers > 1:
-                balance(heaps)
-            # rounds of about 0.1-0.4 s: limits and progress are checked between them
-            if now - started < 0.1:
-                chunk = min(chunk * 2, 1 << 16)
-            elif now - started > 0.4:
-                chunk = max(1, chunk // 2)
-            if node_limit is not None and sum(h.nodes for h in heaps) >= node_limit:
-                status, reason = "limit", f"node limit {node_limit}"
-                break
-            if now >= deadline:
-                status, reason = "limit", f"time limit {time_limit:g} s"
-                break
-            if progress is not None and now - last_report > 0.5:
-                last_report = now
-                progress(sum(h.nodes for h in heaps), float(heaps[0].best[0]),
-                         lower_bound(heaps))
-    finally:
-        if pool is not None:
-            pool.shutdown()
+        return time.perf_counter()
+
+
+class _Rounds:
+    """The search's rounds: how many nodes each pops, on one thread or several, and reports."""
+
+    def __init__(self, workers: int) -> None:
+        self.chunk = 64
+        self.pool = ThreadPoolExecutor(workers) if workers > 1 else None
+        self.search_start = time.perf_counter()
+        self.last_report = self.search_start
+        self.restarted = False
+        # the ahead-of-time build holds the GIL: short searches run on it one heap after the
+        # other, longer ones switch to numba's JIT (0.7 s to load) and run the heaps in parallel
+        self.serial_for = PARALLEL_AFTER if build_status() and not jit_loaded() else 0.0
+
+    def expand(self, heaps: list[OpenNodes], data: Data, budget: int,
+               node_limit: int | None) -> tuple[list[int], list[OpenNodes]]:
+        """One round over the heaps that hold nodes: their results, and those heaps."""
+        done_nodes = sum(h.nodes for h in heaps)
+        pops = self.chunk if node_limit is None else min(self.chunk, node_limit - done_nodes)
+        elapsed = time.perf_counter() - self.search_start
+        busy = [h for h in heaps if h.size]
+        if (self.pool is not None and self.serial_for and elapsed >= self.serial_for
+                and not jit_available()):  # a broken numba: the build, one thread
+            self.close()
+        if self.pool is None or len(busy) == 1 or elapsed < self.serial_for:
+            return [h.expand(data, pops, budget) for h in busy], busy
+        return list(self.pool.map(OpenNodes.expand_in_parallel, busy, [data] * len(busy),
+                                  [pops] * len(busy), [budget] * len(busy))), busy
+
+    def pace(self, seconds: float) -> None:
+        """Rounds of about 0.1-0.4 s: limits and progress are checked between them."""
+        if seconds < 0.1:
+            self.chunk = min(self.chunk * 2, 1 << 16)
+        elif seconds > 0.4:
+            self.chunk = max(1, self.chunk // 2)
+
+    def report(self, heaps: list[OpenNodes], now: float, progress: Callable | None) -> None:
+        """``progress(nodes, best, lower bound)`` about every 0.5 s."""
+        if progress is not None and now - self.last_report > 0.5:
+            self.last_report = now
+            progress(sum(h.nodes for h in heaps), float(heaps[0].best[0]), lower_bound(heaps))
+
+    def close(self) -> None:
+        """The thread pool ends (the rounds go on in this thread)."""
+        if self.pool is not None:
+            self.pool.shutdown()
+            self.pool = None
+
+
+def _certificate(ev: StructureEvaluator, search: _Search, heaps: list[OpenNodes], status: str,
+                 reason: str | None, *, t0: float, tolerance: float,
+                 warm_value: float | None) -> Certificate:
+    """The best structure re-scored by the evaluator, with its lower bound."""
     best = heaps[0].best
-    best_mask = heaps[0].best_mask
     nodes = sum(h.nodes for h in heaps)
-    lower = float(best[0]) if status == "optimal" else max(lower_bound(heaps), trivial)
-    mask = np.zeros(m, dtype=bool)
-    mask[usable[best_mask]] = True
+    lower = float(best[0]) if status == "optimal" else max(lower_bound(heaps), search.trivial)
+    mask = np.zeros(ev.n_terms, dtype=bool)
+    mask[search.usable[heaps[0].best_mask]] = True
     value = ev.cached_score(mask) if mask.any() else np.inf
     if value > best[0] + tolerance and status == "optimal":
         # the evaluator (the GA's numbers) disagrees with the search's accurate refit
@@ -506,29 +451,7 @@ def certify(
     return Certificate(status=status, value=float(value), lower_bound=lower,
                        mask=mask, nodes=int(nodes), seconds=time.perf_counter() - t0,
                        reason=reason, warm_start=warm_value,
-                       **_mse_bounds(float(value), lower, mask, pen, n))
-
-
-def _mse_bounds(value: float, lower: float, mask: np.ndarray, pen: np.ndarray,
-                n: float) -> dict:
-    """The best structure's one-step MSE, and the least of any structure of its size or less.
-
-    ``value = N ln(MSE) + pen(k)`` read backwards at k = its size.
-    """
-    k = int(np.count_nonzero(mask))
-    if not (k and np.isfinite(value) and np.isfinite(pen[k])):
-        return {}
-    mse = float(np.exp((value - pen[k]) / n))
-    low = float(np.exp((lower - pen[k]) / n)) if np.isfinite(lower) else 0.0
-    return {"one_step_mse": mse, "mse_lower_bound": min(low, mse)}
-
-
-def _trivial_bound(r_aug: np.ndarray, n: float, scale: float, floor: float,
-                   pen: np.ndarray) -> float:
-    """No structure scores below the SSE of all terms with the penalty of one term."""
-    mu = r_aug.shape[1] - 1
-    sse = float(r_aug[mu, mu] ** 2) if r_aug.shape[0] > mu else 0.0
-    return float(n * np.log(max(sse, floor) * scale / n) + pen[1]) if mu else np.inf
+                       **mse_bounds(float(value), lower, mask, search.pen, ev.n))
 
 
 def certify_data(
