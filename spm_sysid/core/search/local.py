@@ -86,18 +86,10 @@ def neighbours(mask: np.ndarray, allowed: np.ndarray, moves: Sequence[str] = MOV
 
 
 def local_search(
-    score: Callable[[np.ndarray], np.ndarray],
-    start: np.ndarray,
-    allowed: np.ndarray,
-    *,
-    moves: Sequence[str] = MOVES,
-    start_value: float | None = None,
-    patience: int = 0,
-    max_steps: int | None = None,
-    deadline: float | None = None,
-    min_steps: int = 0,
-    max_scored: int | None = None,
-    tolerance: float = 1e-9,
+    score: Callable[[np.ndarray], np.ndarray], start: np.ndarray, allowed: np.ndarray, *,
+    moves: Sequence[str] = MOVES, start_value: float | None = None, patience: int = 0,
+    max_steps: int | None = None, deadline: float | None = None, min_steps: int = 0,
+    max_scored: int | None = None, tolerance: float = 1e-9,
     on_step: Callable[[np.ndarray, float], None] | None = None,
 ) -> SearchResult:
     """Move from ``start`` by single-term changes while that helps (see the module doc).
@@ -105,78 +97,41 @@ def local_search(
     Parameters
     ----------
     score : callable
-        ``score(masks) -> values`` for a (B, M) batch; lower is better; +inf for
-        structures that cannot be used.
-    start : ndarray of bool, shape (M,)
-        Where to begin (may be empty: then only additions are possible).
-    allowed : ndarray of bool, shape (M,)
-        Terms a move may bring in.
-    moves : sequence of str
-        Among :data:`MOVES`.
+        ``score(masks) -> values`` for a (B, M) batch; lower is better (+inf: unusable).
+    start, allowed : ndarray of bool, shape (M,)
+        Where to begin (may be empty: then only additions); terms a move may bring in.
+    moves, tolerance : sequence of str, float
+        Among :data:`MOVES`; an improvement must exceed ``tolerance``.
     start_value : float, optional
         The start's value when known (else it is scored; an empty start is +inf).
     patience : int
-        Steps in a row without a new best after which the search stops; such
-        steps are taken (0: stop at a local optimum instead).
-    max_steps : int, optional
-        Most steps.
+        Steps in a row without a new best before stopping (0: at a local optimum).
+    max_steps, min_steps : int
+        Most steps; steps taken whatever the deadline (forward selection takes one).
     deadline : float, optional
-        ``time.perf_counter()`` at which to stop, checked between batches once
-        ``min_steps`` steps are done.
-    min_steps : int
-        Steps taken whatever the deadline (forward selection takes one, so an
-        empty start always gives a structure).
+        ``time.perf_counter()`` at which to stop, checked between batches.
     max_scored : int, optional
-        Most neighbours scored in all (a budget that, unlike ``deadline``, gives
-        the same result on any machine). When it runs out inside a step, the
-        best neighbour scored so far is still taken if it improves.
-    tolerance : float
-        An improvement must exceed this.
+        Most neighbours scored in all (unlike ``deadline``, the same result on any
+        machine); the best scored is still taken if it improves.
     on_step : callable, optional
-        Called with the new current structure and its value after every step.
+        ``on_step(structure, value)`` after every step.
     """
-    unknown = set(moves) - set(MOVES)
-    if unknown:
-        raise ValueError(f"moves must be among {', '.join(MOVES)}, got {sorted(unknown)}")
-    current = np.asarray(start, dtype=bool).copy()
-    if start_value is None:
-        start_value = float(score(current[None, :])[0]) if current.any() else np.inf
-    value = float(start_value)
+    current, value = _start(score, start, start_value, moves)
     best, best_value = current.copy(), value
     steps = scored = since = 0
     while True:
-        if max_steps is not None and steps >= max_steps:
-            return SearchResult(best, best_value, steps, scored, "max steps")
         timed = deadline is not None and steps >= min_steps
-        if timed and time.perf_counter() >= deadline:
-            return SearchResult(best, best_value, steps, scored, "deadline")
-        move, move_value = None, np.inf
-        spent = False
-        for batch in neighbours(current, allowed, moves):
-            if max_scored is not None:
-                batch = batch[:max(max_scored - scored, 0)]
-                spent = scored + len(batch) >= max_scored
-                if not len(batch):
-                    break
-            values = np.asarray(score(batch), dtype=float)
-            scored += len(batch)
-            i = int(np.argmin(values))
-            if values[i] < move_value:
-                move, move_value = batch[i].copy(), float(values[i])
-            if spent or (timed and time.perf_counter() >= deadline):
-                break
-        if spent:
-            if move is not None and move_value < value - tolerance:
-                current, value = move, move_value
-                steps += 1
-                if on_step is not None:
-                    on_step(current, value)
-                if value < best_value - tolerance:
-                    best, best_value = current.copy(), value
+        limit = _limit(steps, max_steps, deadline if timed else None)
+        if limit:
+            return SearchResult(best, best_value, steps, scored, limit)
+        move, move_value, scored, spent = _best_neighbour(
+            score, current, allowed, moves, scored, max_scored, deadline if timed else None)
+        improves = move is not None and move_value < value - tolerance
+        if spent and not improves:
             return SearchResult(best, best_value, steps, scored, "budget")
         if move is None or not np.isfinite(move_value):
             return SearchResult(best, best_value, steps, scored, "no neighbour")
-        if not move_value < value - tolerance and patience == 0:
+        if not improves and patience == 0:
             return SearchResult(best, best_value, steps, scored, "local optimum")
         current, value = move, move_value
         steps += 1
@@ -186,8 +141,57 @@ def local_search(
             best, best_value, since = current.copy(), value, 0
         else:
             since += 1
-            if since >= patience:
-                return SearchResult(best, best_value, steps, scored, "patience")
+        if spent:
+            return SearchResult(best, best_value, steps, scored, "budget")
+        if since and since >= patience:
+            return SearchResult(best, best_value, steps, scored, "patience")
+
+
+def _limit(steps: int, max_steps: int | None, deadline: float | None) -> str | None:
+    """What stops the search before its next step ("max steps", "deadline"), if anything."""
+    if max_steps is not None and steps >= max_steps:
+        return "max steps"
+    if deadline is not None and time.perf_counter() >= deadline:
+        return "deadline"
+    return None
+
+
+def _start(score: Callable[[np.ndarray], np.ndarray], start: np.ndarray,
+           start_value: float | None, moves: Sequence[str]) -> tuple[np.ndarray, float]:
+    """The start (a copy) and its value (scored unless given; an empty start is +inf)."""
+    unknown = set(moves) - set(MOVES)
+    if unknown:
+        raise ValueError(f"moves must be among {', '.join(MOVES)}, got {sorted(unknown)}")
+    current = np.asarray(start, dtype=bool).copy()
+    if start_value is None:
+        start_value = float(score(current[None, :])[0]) if current.any() else np.inf
+    return current, float(start_value)
+
+
+def _best_neighbour(score: Callable[[np.ndarray], np.ndarray], current: np.ndarray,
+                    allowed: np.ndarray, moves: Sequence[str], scored: int,
+                    max_scored: int | None,
+                    deadline: float | None) -> tuple[np.ndarray | None, float, int, bool]:
+    """The best neighbour of ``current`` scored within the budget and the deadline.
+
+    Returns it (None when none was scored), its value, the neighbours scored in
+    all, and whether the budget ``max_scored`` is spent.
+    """
+    move, move_value, spent = None, np.inf, False
+    for batch in neighbours(current, allowed, moves):
+        if max_scored is not None:
+            batch = batch[:max(max_scored - scored, 0)]
+            spent = scored + len(batch) >= max_scored
+            if not len(batch):
+                break
+        values = np.asarray(score(batch), dtype=float)
+        scored += len(batch)
+        i = int(np.argmin(values))
+        if values[i] < move_value:
+            move, move_value = batch[i].copy(), float(values[i])
+        if spent or (deadline is not None and time.perf_counter() >= deadline):
+            break
+    return move, move_value, scored, spent
 
 
 #: A kicked structure whose add/remove descent ends within this of the best so far is
