@@ -151,103 +151,112 @@ class DashboardServer:
         self.server.server_close()
 
 
-def _handler(board: DashboardServer):
-    page = None
+def _handler(board: DashboardServer) -> type[BaseHTTPRequestHandler]:
+    """The request handler class of one dashboard (its page built once, on first use)."""
+    return type("Handler", (_Handler,), {"board": board, "page": None})
 
-    class Handler(BaseHTTPRequestHandler):
-        server_version = "spm_sysid-dashboard"
-        timeout = REQUEST_TIMEOUT  # each read and write on the connection
 
-        def setup(self):
-            super().setup()
-            # the whole request (line and headers) within REQUEST_TIMEOUT, however slowly
-            # it trickles in: then the connection is closed
-            self._deadline = threading.Timer(REQUEST_TIMEOUT, self._expire)
-            self._deadline.daemon = True
-            self._deadline.start()
+_TEXT = "text/plain; charset=utf-8"
 
-        def _expire(self):
-            board.counts["connection_errors"] += 1
-            try:
-                self.connection.shutdown(socket.SHUT_RDWR)
-            except OSError:
-                pass
 
-        def parse_request(self):
-            ok = super().parse_request()
-            self._deadline.cancel()
-            return ok
+class _Handler(BaseHTTPRequestHandler):
+    """GET of the page, its state and the report; a whole request within REQUEST_TIMEOUT."""
 
-        def finish(self):
-            self._deadline.cancel()
-            try:
-                super().finish()
-            except OSError:  # the client went away while the answer was flushed
-                board.counts["connection_errors"] += 1
+    server_version = "spm_sysid-dashboard"
+    timeout = REQUEST_TIMEOUT  # each read and write on the connection
+    board: DashboardServer
+    page: bytes | None
 
-        def log_message(self, format, *args):  # noqa: A002 - the base class's name
-            pass  # requests are counted, not logged line by line
+    def setup(self):
+        super().setup()
+        # the whole request (line and headers) within REQUEST_TIMEOUT, however slowly
+        # it trickles in: then the connection is closed
+        self._deadline = threading.Timer(REQUEST_TIMEOUT, self._expire)
+        self._deadline.daemon = True
+        self._deadline.start()
 
-        def _allowed(self, url) -> bool:
-            """The token when one is set; else a Host that names the loopback."""
-            if board.token:
-                given = parse_qs(url.query).get("token", [""])[0]
-                if not hmac.compare_digest(given.encode(), board.token.encode()):
-                    board.counts["forbidden"] += 1
-                    self._send(403, b"this dashboard needs its token: ?token=... (the "
-                               b"node's dashboard_token parameter)\n",
-                               "text/plain; charset=utf-8")
-                    return False
-                return True
-            host = self.headers.get("Host")
-            if host is not None and not is_loopback(host_name(host)):
-                board.counts["bad_host"] += 1
-                self._send(421, b"this dashboard answers requests to the loopback only "
-                           b"(Host: localhost or 127.0.0.1)\n", "text/plain; charset=utf-8")
+    def _expire(self):
+        self.board.counts["connection_errors"] += 1
+        try:
+            self.connection.shutdown(socket.SHUT_RDWR)
+        except OSError:
+            pass
+
+    def parse_request(self):
+        ok = super().parse_request()
+        self._deadline.cancel()
+        return ok
+
+    def finish(self):
+        self._deadline.cancel()
+        try:
+            super().finish()
+        except OSError:  # the client went away while the answer was flushed
+            self.board.counts["connection_errors"] += 1
+
+    def log_message(self, format, *args):  # noqa: A002 - the base class's name
+        pass  # requests are counted, not logged line by line
+
+    def _allowed(self, url) -> bool:
+        """The token when one is set; else a Host that names the loopback."""
+        board = self.board
+        if board.token:
+            given = parse_qs(url.query).get("token", [""])[0]
+            if not hmac.compare_digest(given.encode(), board.token.encode()):
+                board.counts["forbidden"] += 1
+                self._send(403, b"this dashboard needs its token: ?token=... (the "
+                           b"node's dashboard_token parameter)\n", _TEXT)
                 return False
             return True
+        host = self.headers.get("Host")
+        if host is not None and not is_loopback(host_name(host)):
+            board.counts["bad_host"] += 1
+            self._send(421, b"this dashboard answers requests to the loopback only "
+                       b"(Host: localhost or 127.0.0.1)\n", _TEXT)
+            return False
+        return True
 
-        def _send(self, code: int, body: bytes, kind: str) -> None:
-            self.send_response(code)
-            self.send_header("Content-Type", kind)
-            self.send_header("Content-Length", str(len(body)))
-            self.send_header("Cache-Control", "no-store")
-            self.end_headers()
-            self.wfile.write(body)
+    def _send(self, code: int, body: bytes, kind: str) -> None:
+        self.send_response(code)
+        self.send_header("Content-Type", kind)
+        self.send_header("Content-Length", str(len(body)))
+        self.send_header("Cache-Control", "no-store")
+        self.end_headers()
+        self.wfile.write(body)
 
-        def do_GET(self):  # noqa: N802 - http.server's name
-            nonlocal page
-            board.requests += 1
-            url = urlsplit(self.path)
-            if not self._allowed(url):
-                return
-            try:
-                if url.path in ("/", "/index.html"):
-                    if page is None:
-                        from ...tools.dashboard_page import page as make_page
+    def do_GET(self):  # noqa: N802 - http.server's name
+        self.board.requests += 1
+        url = urlsplit(self.path)
+        if not self._allowed(url):
+            return
+        try:
+            self._answer(url.path)
+        except OSError:  # reset, broken pipe, timed out: the client went away
+            self.board.counts["connection_errors"] += 1
+        except Exception as exc:  # noqa: BLE001 - a failing page never stops the node
+            self._send(500, f"dashboard error: {exc}\n".encode(), _TEXT)
 
-                        page = make_page().encode()
-                    self._send(200, page, "text/html; charset=utf-8")
-                elif url.path == "/state.json":
-                    body = json.dumps(board.content.state(), allow_nan=False).encode()
-                    self._send(200, body, "application/json")
-                elif url.path == "/report.html":
-                    report = board.content.report_page()
-                    if report is None:
-                        self._send(404, b"no identification yet\n", "text/plain; charset=utf-8")
-                    else:
-                        self._send(200, report, "text/html; charset=utf-8")
-                else:
-                    self._send(404, b"not found\n", "text/plain; charset=utf-8")
-            except OSError:  # reset, broken pipe, timed out: the client went away
-                board.counts["connection_errors"] += 1
-            except Exception as exc:  # noqa: BLE001 - a failing page never stops the node
-                self._send(500, f"dashboard error: {exc}\n".encode(),
-                           "text/plain; charset=utf-8")
+    def _answer(self, path: str) -> None:
+        """The page, its state, the report, or 404."""
+        if path in ("/", "/index.html"):
+            if type(self).page is None:
+                from ...tools.dashboard_page import page as make_page
 
-        def _read_only(self):
-            self._send(405, b"the dashboard is read-only\n", "text/plain; charset=utf-8")
+                type(self).page = make_page().encode()
+            self._send(200, type(self).page, "text/html; charset=utf-8")
+        elif path == "/state.json":
+            body = json.dumps(self.board.content.state(), allow_nan=False).encode()
+            self._send(200, body, "application/json")
+        elif path == "/report.html":
+            report = self.board.content.report_page()
+            if report is None:
+                self._send(404, b"no identification yet\n", _TEXT)
+            else:
+                self._send(200, report, "text/html; charset=utf-8")
+        else:
+            self._send(404, b"not found\n", _TEXT)
 
-        do_POST = do_PUT = do_DELETE = do_PATCH = _read_only  # noqa: N815
+    def _read_only(self):
+        self._send(405, b"the dashboard is read-only\n", _TEXT)
 
-    return Handler
+    do_POST = do_PUT = do_DELETE = do_PATCH = _read_only  # noqa: N815

@@ -38,17 +38,47 @@ GRID_SETTINGS = ("population_size", "spm_fraction")
 
 
 def cmd_experiment(args) -> int:
-    import json
+    """``spm-sysid experiment``: the study grid on one record, summarised (and its report)."""
     import time
 
+    from ..experiment import summarise, summary_table, write_results
+
+    config = _study_config(args)
+    record = load(args)
+    info = record.segment_info()
+    if info.gaps or len(info.bounds) > 1:
+        raise UserError(f"{record.source} has gaps; the study needs one contiguous record")
+    n_runs = (len(config.criteria) * len(config.populations) * len(config.spm_fractions)
+              * config.runs)
+    print(f"study: {n_runs} runs on {record.source}, {len(record.y)} samples")
+    t0 = time.perf_counter()
+    records = _run_study(args, record, config, n_runs)
+    elapsed = time.perf_counter() - t0
+    if records.resumed:
+        print(f"resumed: {records.resumed} run(s) were already done and were not run again")
+    rows = summarise(records)
+    if records:
+        write_results(records, rows, config, args.out)
+        print(summary_table(rows))
+    done_here = f" ({records.resumed} from the earlier session)" if records.resumed else ""
+    print(f"{len(records)} of {n_runs} runs{done_here} in {elapsed:.1f} s; per-run records "
+          f"and figure in {args.out}")
+    if records.failures:
+        _report_failures(records.failures, Path(args.out))
+        return 1
+    if args.report:
+        from ..report import write_study_report
+
+        path = write_study_report(records, rows, config, args.out, args.report, elapsed,
+                                  record.source, records.resumed)
+        print(f"report written to {path}")
+    return 0
+
+
+def _study_config(args):
+    """The study's settings: the options given, over ``--config`` when one is given."""
     from ...core.errors import SettingsError
-    from ..experiment import (
-        ExperimentConfig,
-        run_experiment,
-        summarise,
-        summary_table,
-        write_results,
-    )
+    from ..experiment import ExperimentConfig
 
     overrides = {k: getattr(args, k) for k, s in SETTINGS.items()
                  if s.group in STUDY_SETTINGS and s.cli and k not in GRID_SETTINGS}
@@ -60,24 +90,20 @@ def cmd_experiment(args) -> int:
                      certify_time_limit=args.certify_time_limit)
     try:
         if args.config:
-            config = ExperimentConfig.from_mapping(read_yaml(args.config, "--config"),
-                                                   f"--config {args.config}", **overrides)
-        else:
-            config = ExperimentConfig(**{k: v for k, v in overrides.items() if v is not None})
+            return ExperimentConfig.from_mapping(read_yaml(args.config, "--config"),
+                                                 f"--config {args.config}", **overrides)
+        return ExperimentConfig(**{k: v for k, v in overrides.items() if v is not None})
     except TypeError as exc:
         raise UserError(f"bad experiment settings: {exc}") from None
     except SettingsError as exc:
         raise UserError(str(exc)) from None
-    record = load(args)
-    info = record.segment_info()
-    if info.gaps or len(info.bounds) > 1:
-        raise UserError(f"{record.source} has gaps; the study needs one contiguous record")
-    u, y, source = record.u, record.y, record.source
-    n_runs = (len(config.criteria) * len(config.populations) * len(config.spm_fractions)
-              * config.runs)
-    print(f"study: {n_runs} runs on {source}, {len(y)} samples")
+
+
+def _run_study(args, record, config, n_runs: int):
+    """The runs (here or on the Dask cluster), with a bar; an interruption keeps what finished."""
+    from ..experiment import run_experiment
+
     bar = count_bar(n_runs, "runs", "run", not args.quiet)
-    t0 = time.perf_counter()
 
     def tick(i, n):
         if bar:
@@ -93,8 +119,8 @@ def cmd_experiment(args) -> int:
     where = f"the Dask cluster at {args.scheduler}" if args.scheduler else "this machine"
     print(f"running on {where}" + ("; resuming" if args.resume else ""))
     try:
-        records = run_experiment(u, y, config, progress=tick, scheduler=args.scheduler,
-                                 out=args.out, resume=args.resume)
+        return run_experiment(record.u, record.y, config, progress=tick,
+                              scheduler=args.scheduler, out=args.out, resume=args.resume)
     except (FileExistsError, OSError, ValueError, RuntimeError) as exc:
         raise UserError(str(exc)) from None
     except KeyboardInterrupt:
@@ -105,34 +131,19 @@ def cmd_experiment(args) -> int:
     finally:
         if bar:
             bar.close()
-    elapsed = time.perf_counter() - t0
-    if records.resumed:
-        print(f"resumed: {records.resumed} run(s) were already done and were not run again")
-    rows = summarise(records)
-    if records:
-        write_results(records, rows, config, args.out)
-        print(summary_table(rows))
-    done_here = f" ({records.resumed} from the earlier session)" if records.resumed else ""
-    print(f"{len(records)} of {n_runs} runs{done_here} in {elapsed:.1f} s; per-run records "
-          f"and figure in {args.out}")
-    if records.failures:
-        for f in records.failures:
-            print(f"run {f.key} FAILED after {f.attempts} attempt(s): {f.error}",
-                  file=sys.stderr)
-        (Path(args.out) / "failures.json").write_text(json.dumps(
-            [{"run": f.key, "error": f.error, "attempts": f.attempts}
-             for f in records.failures], indent=1))
-        print(f"error: {len(records.failures)} run(s) failed (listed above and in "
-              f"{Path(args.out) / 'failures.json'}); the summary covers the others; "
-              "--resume runs only what is missing", file=sys.stderr)
-        return 1
-    if args.report:
-        from ..report import write_study_report
 
-        path = write_study_report(records, rows, config, args.out, args.report, elapsed, source,
-                            records.resumed)
-        print(f"report written to {path}")
-    return 0
+
+def _report_failures(failures, out: Path) -> None:
+    """Each failed run on stderr and in OUT/failures.json, then one error line."""
+    import json
+
+    for f in failures:
+        print(f"run {f.key} FAILED after {f.attempts} attempt(s): {f.error}", file=sys.stderr)
+    (out / "failures.json").write_text(json.dumps(
+        [{"run": f.key, "error": f.error, "attempts": f.attempts} for f in failures], indent=1))
+    print(f"error: {len(failures)} run(s) failed (listed above and in "
+          f"{out / 'failures.json'}); the summary covers the others; "
+          "--resume runs only what is missing", file=sys.stderr)
 
 
 # -- batch -------------------------------------------------------------------------------------
@@ -191,6 +202,12 @@ class _Namespace:
 
 def add_parsers(sub) -> None:
     """Register ``experiment`` and ``batch``."""
+    _add_batch_parser(sub)
+    _add_experiment_parser(sub)
+
+
+def _add_batch_parser(sub) -> None:
+    """``batch``: many inputs, one model each."""
     from ...core.record import BAG_OPTIONS
 
     p = sub.add_parser("batch", help="identify many data files and bags (here or on a Dask "
@@ -214,6 +231,9 @@ def add_parsers(sub) -> None:
     add_schema_options(p, ("term_space", "ga", "criterion", "validation"))
     p.set_defaults(func=cmd_batch)
 
+
+def _add_experiment_parser(sub) -> None:
+    """``experiment``: the paper's study grid."""
     p = sub.add_parser("experiment", help="the paper's study: SPM vs plain GA, repeated runs")
     add_data_options(p, bag=False)
     p.add_argument("--config", metavar="YAML", help="settings file (options below override)")
