@@ -64,64 +64,69 @@ def diagnostic_statuses(name: str, stats: dict, *, field_errors: int = 0,
     worker_failure : str
         Why the worker process keeps dying while it starts ('' when it does not).
     """
-    type_mismatches = type_mismatches or []
+    health = {"field_errors": field_errors, "unset_stamps": unset_stamps,
+              "namesakes": namesakes, "worker_ready": worker_ready,
+              "worker_restarts": worker_restarts, "callback_errors": callback_errors,
+              "type_mismatch": "; ".join(type_mismatches or [])}
+    statuses = [_buffer_status(name, stats, health, worker_failure)]
+    ident = f"{name}: identification"
+    if running is not None:
+        statuses.append(_running_status(ident, *running))
+    elif last_error:
+        statuses.append(Status(ERROR, ident, last_error))
+    elif model is not None and model.get("schema") == "spm_sysid/narx-mimo-model":
+        for out, doc in zip(model["outputs"], model["models"]):  # several outputs
+            statuses += _model_statuses(f"{name} ({out})", f"{ident} ({out})", doc,
+                                        restored_from)
+        for t in (model.get("metadata") or {}).get("cross_correlation_tests", []):
+            statuses.append(Status(
+                OK if t["passed"] else WARN, f"{name}: residual {t['name']}",
+                ("inside the 95 % band" if t["passed"] else "outside the 95 % band")
+                + f" ({t['fraction_inside']:.0%} of lags inside)", _values(t)))
+    elif model is not None:
+        statuses += _model_statuses(name, ident, model, restored_from)
+    return statuses
+
+
+def _buffer_status(name: str, stats: dict, health: dict, worker_failure: str) -> Status:
+    """The buffer's counts and the node's own health, at the level of its worst problem."""
     lost = stats["rejected_nonfinite"] + stats["rejected_out_of_order"]
     problems = []
     if lost:
         problems.append(f"{lost} rejected")
     if stats.get("time_jumps"):
         problems.append(f"{stats['time_jumps']} jump(s) back in time")
-    if type_mismatches:
+    if health["type_mismatch"]:
         problems.append("a publisher of the wrong message type")
-    if namesakes:
-        problems.append(f"{namesakes} other node(s) with this node's name")
-    if unset_stamps:
-        problems.append(f"{unset_stamps} message(s) with header.stamp never set (receive time "
-                        "used)")
-    if not worker_ready:
+    if health["namesakes"]:
+        problems.append(f"{health['namesakes']} other node(s) with this node's name")
+    if health["unset_stamps"]:
+        problems.append(f"{health['unset_stamps']} message(s) with header.stamp never set "
+                        "(receive time used)")
+    if not health["worker_ready"]:
         problems.append(f"worker not ready: {worker_failure}" if worker_failure
                         else "worker not ready")
-    if callback_errors:
-        problems.append(f"{callback_errors} callback error(s) (see the log)")
+    if health["callback_errors"]:
+        problems.append(f"{health['callback_errors']} callback error(s) (see the log)")
     level = OK
-    if (lost or field_errors or unset_stamps or namesakes or stats.get("time_jumps")
-            or not worker_ready or callback_errors):
+    if (lost or health["field_errors"] or health["unset_stamps"] or health["namesakes"]
+            or stats.get("time_jumps") or not health["worker_ready"]
+            or health["callback_errors"]):
         level = WARN
-    if type_mismatches or worker_failure:
+    if health["type_mismatch"] or worker_failure:
         level = ERROR
-    statuses = [Status(
-        level, f"{name}: buffer",
-        f"{stats['samples']} paired samples" + "".join(f", {p}" for p in problems),
-        {**_values(stats), **_values({"field_errors": field_errors,
-                                      "unset_stamps": unset_stamps,
-                                      "namesakes": namesakes,
-                                      "worker_ready": worker_ready,
-                                      "worker_restarts": worker_restarts,
-                                      "callback_errors": callback_errors,
-                                      "type_mismatch": "; ".join(type_mismatches)})})]
-    ident = f"{name}: identification"
-    if running is not None:
-        p, seconds = running
-        what = f"generation {p.step}" if p.phase == "search" else f"{p.phase} ({p.step})"
-        statuses.append(Status(OK, ident, f"running: {what}", _values(
-            {"phase": p.phase, "step": p.step, "total": p.total, "best": f"{p.best:.4f}",
-             "evaluations": p.evaluations, "bound": f"{p.bound:.4f}",
-             "seconds": f"{seconds:.2f}"})))
-    elif last_error:
-        statuses.append(Status(ERROR, ident, last_error))
-    elif model is not None:
-        if model.get("schema") == "spm_sysid/narx-mimo-model":  # several outputs
-            for out, doc in zip(model["outputs"], model["models"]):
-                statuses += _model_statuses(f"{name} ({out})", f"{ident} ({out})", doc,
-                                            restored_from)
-            for t in (model.get("metadata") or {}).get("cross_correlation_tests", []):
-                statuses.append(Status(
-                    OK if t["passed"] else WARN, f"{name}: residual {t['name']}",
-                    ("inside the 95 % band" if t["passed"] else "outside the 95 % band")
-                    + f" ({t['fraction_inside']:.0%} of lags inside)", _values(t)))
-        else:
-            statuses += _model_statuses(name, ident, model, restored_from)
-    return statuses
+    return Status(level, f"{name}: buffer",
+                  f"{stats['samples']} paired samples" + "".join(f", {p}" for p in problems),
+                  {**_values(stats), **_values(health)})
+
+
+def _running_status(ident: str, p, seconds: float) -> Status:
+    """A running job: its phase and step, best value, evaluations, bound and seconds."""
+    what = f"generation {p.step}" if p.phase == "search" else f"{p.phase} ({p.step})"
+    return Status(OK, ident, f"running: {what}", _values(
+        {"phase": p.phase, "step": p.step, "total": p.total, "best": f"{p.best:.4f}",
+         "evaluations": p.evaluations, "bound": f"{p.bound:.4f}",
+         "seconds": f"{seconds:.2f}"}))
 
 
 def _model_statuses(name: str, ident: str, model: dict, restored_from: str | None
