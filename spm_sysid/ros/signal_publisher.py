@@ -65,6 +65,35 @@ def _publish(pub, msg, stats: dict, timeout: float = BACKPRESSURE_TIMEOUT) -> No
 
 def main(argv: list[str] | None = None) -> int:
     """Command-line entry; returns the exit status."""
+    a = _parser().parse_args(argv)
+
+    import rclpy
+    from geometry_msgs.msg import AccelStamped, WrenchStamped
+    from rclpy.node import Node
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    u, y = _signals(a.data, a.count)
+    rclpy.init()
+    node = Node("signal_publisher")
+    qos = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE)
+    pub_u = node.create_publisher(WrenchStamped, a.input_topic, qos)
+    pub_y = node.create_publisher(AccelStamped, a.output_topic, qos)
+    try:
+        while pub_u.get_subscription_count() < 1 or pub_y.get_subscription_count() < 1:
+            time.sleep(0.05)
+        time.sleep(1.0)
+        print(json.dumps({"started": True}), flush=True)
+        return _publish_all(a, u, y, pub_u, pub_y)
+    except KeyboardInterrupt:
+        return 130
+    finally:
+        node.destroy_node()
+        if rclpy.ok():
+            rclpy.shutdown()
+
+
+def _parser() -> argparse.ArgumentParser:
+    """The command line: rate, count, the data and what to do to stamps and values."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("rate", type=float, help="messages per second per topic")
     p.add_argument("count", type=int, help="messages per topic")
@@ -80,80 +109,68 @@ def main(argv: list[str] | None = None) -> int:
                    help="seconds a publish may wait for a full send queue to drain")
     p.add_argument("--input-topic", default="/robot_arm/torque")
     p.add_argument("--output-topic", default="/robot_arm/acceleration")
-    a = p.parse_args(argv)
+    return p
 
-    import rclpy
-    from geometry_msgs.msg import AccelStamped, WrenchStamped
-    from rclpy.node import Node
-    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
+def _signals(data: str, count: int):
+    """The input and output to publish: a ramp, the robot-arm data, or a data file."""
     from ..core.record import DataSpec, load_record
 
-    if a.data == "ramp":
-        u = [float(k) for k in range(a.count)]
-        y = [-float(k) for k in range(a.count)]
-    else:  # the robot-arm data, or a data file: the one loader
-        record = load_record(DataSpec.from_values({}, data=None if a.data == "robot_arm"
-                                                  else a.data))
-        u, y = record.u, record.y
-    rclpy.init()
-    node = Node("signal_publisher")
-    qos = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE)
-    pub_u = node.create_publisher(WrenchStamped, a.input_topic, qos)
-    pub_y = node.create_publisher(AccelStamped, a.output_topic, qos)
-    try:
-        while pub_u.get_subscription_count() < 1 or pub_y.get_subscription_count() < 1:
-            time.sleep(0.05)
-        time.sleep(1.0)
-        print(json.dumps({"started": True}), flush=True)
-        w, acc = WrenchStamped(), AccelStamped()
-        nans = late = 0
-        stats = {"blocked": 0}
-        t0 = time.monotonic()
-        for k in range(a.count):
-            delay = t0 + k / a.rate - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
-            elif delay < -0.01:
-                late += 1
-            ns = (time.time_ns() if a.stamps == "wall" else 0 if a.stamps == "zero"
-                  else a.start_ns + round(k * 1e9 / a.rate))
-            w.header.stamp.sec, w.header.stamp.nanosec = divmod(ns, 10**9)
-            acc.header.stamp.sec, acc.header.stamp.nanosec = divmod(
-                ns + a.output_offset_ns if ns else 0, 10**9)
-            w.wrench.torque.z = float(u[k % len(u)])
-            acc.accel.linear.x = float(y[k % len(y)])
-            if a.nan_every and k % a.nan_every == 0:
-                acc.accel.linear.x = math.nan
-                nans += 1
-            try:
-                _publish(pub_u, w, stats, a.backpressure_timeout)
-                _publish(pub_y, acc, stats, a.backpressure_timeout)
-            except KeyboardInterrupt:
-                print(json.dumps({"published": k, "nans": nans, "late": late, **stats,
-                                  "interrupted": True}), flush=True)
-                return 130
-            except RuntimeError as exc:
-                print(json.dumps({"published": k, "nans": nans, "late": late, **stats,
-                                  "error": str(exc)}), flush=True)
-                print(f"error: {exc}; {k} of {a.count} samples published", file=sys.stderr)
-                return 1
-        elapsed = time.monotonic() - t0
-        # every subscriber acknowledged every message before the publishers go away (a
-        # fixed sleep lost the tail on a loaded machine: 56 266 of 60 000 arrived)
-        confirmed = all(pub.wait_for_all_acked(rclpy_duration(ACK_TIMEOUT))
-                        for pub in (pub_u, pub_y))
-        print(json.dumps({"published": a.count, "nans": nans, "seconds": elapsed,
-                          "late": late, "delivery_confirmed": confirmed, **stats}), flush=True)
-        if not confirmed:
-            print(f"warning: not every message was acknowledged within {ACK_TIMEOUT:g} s",
-                  file=sys.stderr)
-    except KeyboardInterrupt:
-        return 130
-    finally:
-        node.destroy_node()
-        if rclpy.ok():
-            rclpy.shutdown()
+    if data == "ramp":
+        return [float(k) for k in range(count)], [-float(k) for k in range(count)]
+    record = load_record(DataSpec.from_values({}, data=None if data == "robot_arm" else data))
+    return record.u, record.y
+
+
+def _publish_all(a, u, y, pub_u, pub_y) -> int:
+    """``a.count`` samples at ``a.rate``, then wait for every subscriber's acknowledgement.
+
+    Prints one JSON line of counts at the end (or when interrupted or refused).
+    """
+    from geometry_msgs.msg import AccelStamped, WrenchStamped
+
+    w, acc = WrenchStamped(), AccelStamped()
+    nans = late = 0
+    stats = {"blocked": 0}
+    t0 = time.monotonic()
+    for k in range(a.count):
+        delay = t0 + k / a.rate - time.monotonic()
+        if delay > 0:
+            time.sleep(delay)
+        elif delay < -0.01:
+            late += 1
+        ns = (time.time_ns() if a.stamps == "wall" else 0 if a.stamps == "zero"
+              else a.start_ns + round(k * 1e9 / a.rate))
+        w.header.stamp.sec, w.header.stamp.nanosec = divmod(ns, 10**9)
+        acc.header.stamp.sec, acc.header.stamp.nanosec = divmod(
+            ns + a.output_offset_ns if ns else 0, 10**9)
+        w.wrench.torque.z = float(u[k % len(u)])
+        acc.accel.linear.x = float(y[k % len(y)])
+        if a.nan_every and k % a.nan_every == 0:
+            acc.accel.linear.x = math.nan
+            nans += 1
+        try:
+            _publish(pub_u, w, stats, a.backpressure_timeout)
+            _publish(pub_y, acc, stats, a.backpressure_timeout)
+        except KeyboardInterrupt:
+            print(json.dumps({"published": k, "nans": nans, "late": late, **stats,
+                              "interrupted": True}), flush=True)
+            return 130
+        except RuntimeError as exc:
+            print(json.dumps({"published": k, "nans": nans, "late": late, **stats,
+                              "error": str(exc)}), flush=True)
+            print(f"error: {exc}; {k} of {a.count} samples published", file=sys.stderr)
+            return 1
+    elapsed = time.monotonic() - t0
+    # every subscriber acknowledged every message before the publishers go away (a
+    # fixed sleep lost the tail on a loaded machine: 56 266 of 60 000 arrived)
+    confirmed = all(pub.wait_for_all_acked(rclpy_duration(ACK_TIMEOUT))
+                    for pub in (pub_u, pub_y))
+    print(json.dumps({"published": a.count, "nans": nans, "seconds": elapsed,
+                      "late": late, "delivery_confirmed": confirmed, **stats}), flush=True)
+    if not confirmed:
+        print(f"warning: not every message was acknowledged within {ACK_TIMEOUT:g} s",
+              file=sys.stderr)
     return 0
 
 
