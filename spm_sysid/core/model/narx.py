@@ -253,63 +253,9 @@ class NarxModel:
     @classmethod
     def from_dict(cls, doc: dict) -> NarxModel:
         """Read a model document, checking schema, version and term consistency."""
-        if not isinstance(doc, dict) or doc.get("schema") != MODEL_SCHEMA:
-            raise ModelFormatError(
-                f"not a spm_sysid model document (schema must be {MODEL_SCHEMA!r})"
-            )
-        version = doc.get("schema_version")
-        if not _is_int(version) or version not in READABLE_VERSIONS:  # true is not 1
-            raise ModelFormatError(
-                f"model schema version {version!r} is not supported (this is version "
-                f"{MODEL_SCHEMA_VERSION})"
-            )
-        for key in ("term_space", "terms", "term_indices", "coefficients"):
-            if key not in doc:
-                raise ModelFormatError(f"model document is incomplete: no {key!r}")
-        ts = doc["term_space"]
-        if not isinstance(ts, dict):
-            raise ModelFormatError("'term_space' must be an object")
-        for key in ("ny", "nu", "degree", "delay"):
-            value = ts.get(key)
-            ok = _is_int(value) or (key in ("nu", "delay") and version >= 2
-                                    and isinstance(value, list) and value
-                                    and all(_is_int(v) for v in value))
-            if not ok:
-                raise ModelFormatError(f"term_space.{key} must be an integer, got {value!r}")
-        if version >= 2 and not (isinstance(ts.get("inputs", []), list)
-                                 and all(isinstance(v, str) for v in ts.get("inputs", []))):
-            raise ModelFormatError("term_space.inputs must be a list of names")
-        if not isinstance(ts.get("constant"), bool):
-            raise ModelFormatError(f"term_space.constant must be true or false, got "
-                                   f"{ts.get('constant')!r}")
-        try:
-            space = TermSpace.from_dict(ts)
-        except (TypeError, ValueError) as exc:
-            raise ModelFormatError(f"term_space is invalid: {exc}") from None
-        indices, coefs, names = doc["term_indices"], doc["coefficients"], doc["terms"]
-        for key, value in (("term_indices", indices), ("coefficients", coefs),
-                           ("terms", names)):
-            if not isinstance(value, list):
-                raise ModelFormatError(f"{key!r} must be a list, got {type(value).__name__}")
-        bad = [i for i in indices if not _is_int(i)]
-        if bad:
-            raise ModelFormatError(f"term_indices must be integers, got {bad[0]!r}")
-        if len(set(indices)) != len(indices):
-            raise ModelFormatError("term_indices lists a term more than once")
-        bad = [c for c in coefs if not _is_number(c)]
-        if bad:
-            raise ModelFormatError(f"coefficients must be numbers, got {_show(bad[0])}")
-        if not all(math.isfinite(c) for c in coefs):
-            raise ModelFormatError("coefficients must be finite (NaN or inf found)")
-        if not all(isinstance(n, str) for n in names):
-            raise ModelFormatError("terms must be strings")
-        all_names = space.term_names()
-        if len(indices) != len(coefs) or len(names) != len(coefs):
-            raise ModelFormatError("terms, term_indices and coefficients differ in length")
-        if any(i < 0 or i >= len(all_names) for i in indices):
-            raise ModelFormatError("a term index lies outside the term space")
-        if [all_names[i] for i in indices] != names:
-            raise ModelFormatError("term names do not match the term space's order")
+        version = _check_header(doc)
+        space = _term_space(doc["term_space"], version)
+        indices, coefs = _terms(doc, space)
         crit = doc.get("criterion")
         if crit is not None and not (isinstance(crit, dict) and isinstance(crit.get("name"), str)
                                      and (crit.get("value") is None
@@ -330,17 +276,10 @@ class NarxModel:
                 uncertainty = Uncertainty.from_dict(doc["uncertainty"], len(coefs))
             except (KeyError, TypeError, ValueError, OverflowError) as exc:
                 raise ModelFormatError(f"'uncertainty' is invalid: {exc}") from None
-        return cls(
-            term_space=space,
-            term_indices=[int(i) for i in indices],
-            coefficients=np.array(coefs, dtype=float),
-            criterion=crit.get("name"),
-            criterion_value=crit.get("value"),
-            mse=doc.get("mse"),
-            n_samples=doc.get("n_samples"),
-            metadata=metadata,
-            uncertainty=uncertainty,
-        )
+        return cls(term_space=space, term_indices=[int(i) for i in indices],
+                   coefficients=np.array(coefs, dtype=float), criterion=crit.get("name"),
+                   criterion_value=crit.get("value"), mse=doc.get("mse"),
+                   n_samples=doc.get("n_samples"), metadata=metadata, uncertainty=uncertainty)
 
     def to_json(self) -> str:
         """The document as JSON text."""
@@ -422,3 +361,70 @@ def _show(x) -> str:
     return text if len(text) <= 40 else f"{text[:12]}... ({len(text)} digits, beyond any float)"
 
 
+def _check_header(doc: dict) -> int:
+    """The document's schema version, once schema, version and the four parts are there."""
+    if not isinstance(doc, dict) or doc.get("schema") != MODEL_SCHEMA:
+        raise ModelFormatError(
+            f"not a spm_sysid model document (schema must be {MODEL_SCHEMA!r})"
+        )
+    version = doc.get("schema_version")
+    if not _is_int(version) or version not in READABLE_VERSIONS:  # true is not 1
+        raise ModelFormatError(
+            f"model schema version {version!r} is not supported (this is version "
+            f"{MODEL_SCHEMA_VERSION})"
+        )
+    for key in ("term_space", "terms", "term_indices", "coefficients"):
+        if key not in doc:
+            raise ModelFormatError(f"model document is incomplete: no {key!r}")
+    return version
+
+
+def _term_space(ts: dict, version: int) -> TermSpace:
+    """``term_space`` read back, its fields checked by type first."""
+    if not isinstance(ts, dict):
+        raise ModelFormatError("'term_space' must be an object")
+    for key in ("ny", "nu", "degree", "delay"):
+        value = ts.get(key)
+        ok = _is_int(value) or (key in ("nu", "delay") and version >= 2
+                                and isinstance(value, list) and value
+                                and all(_is_int(v) for v in value))
+        if not ok:
+            raise ModelFormatError(f"term_space.{key} must be an integer, got {value!r}")
+    if version >= 2 and not (isinstance(ts.get("inputs", []), list)
+                             and all(isinstance(v, str) for v in ts.get("inputs", []))):
+        raise ModelFormatError("term_space.inputs must be a list of names")
+    if not isinstance(ts.get("constant"), bool):
+        raise ModelFormatError(f"term_space.constant must be true or false, got "
+                               f"{ts.get('constant')!r}")
+    try:
+        return TermSpace.from_dict(ts)
+    except (TypeError, ValueError) as exc:
+        raise ModelFormatError(f"term_space is invalid: {exc}") from None
+
+
+def _terms(doc: dict, space: TermSpace) -> tuple[list, list]:
+    """``term_indices`` and ``coefficients``, checked together with ``terms`` and the space."""
+    indices, coefs, names = doc["term_indices"], doc["coefficients"], doc["terms"]
+    for key, value in (("term_indices", indices), ("coefficients", coefs), ("terms", names)):
+        if not isinstance(value, list):
+            raise ModelFormatError(f"{key!r} must be a list, got {type(value).__name__}")
+    bad = [i for i in indices if not _is_int(i)]
+    if bad:
+        raise ModelFormatError(f"term_indices must be integers, got {bad[0]!r}")
+    if len(set(indices)) != len(indices):
+        raise ModelFormatError("term_indices lists a term more than once")
+    bad = [c for c in coefs if not _is_number(c)]
+    if bad:
+        raise ModelFormatError(f"coefficients must be numbers, got {_show(bad[0])}")
+    if not all(math.isfinite(c) for c in coefs):
+        raise ModelFormatError("coefficients must be finite (NaN or inf found)")
+    if not all(isinstance(n, str) for n in names):
+        raise ModelFormatError("terms must be strings")
+    all_names = space.term_names()
+    if len(indices) != len(coefs) or len(names) != len(coefs):
+        raise ModelFormatError("terms, term_indices and coefficients differ in length")
+    if any(i < 0 or i >= len(all_names) for i in indices):
+        raise ModelFormatError("a term index lies outside the term space")
+    if [all_names[i] for i in indices] != names:
+        raise ModelFormatError("term names do not match the term space's order")
+    return indices, coefs
