@@ -278,69 +278,19 @@ def parse_data_text(text: str, source: str = "<text>", inputs: list[str] | None 
     with any value missing are dropped together, with a time column).
     """
     table = parse_table(text, source)
-    names, width = table.names, table.width
+    names = table.names
     it = next((k for k, n in enumerate(names or []) if n in TIME_COLUMNS), None)
     outputs = [output] if isinstance(output, str) else list(output or [])
     chosen = inputs is not None or bool(outputs)
-    if chosen:
-        iys = ([_column(table, c) for c in outputs] if outputs
-               else [names.index("y") if names and "y" in names else width - 1])
-        iu = ([_column(table, c) for c in inputs] if inputs
-              else [k for k in range(width) if k not in iys and k != it])
-        if not iu or set(iys) & set(iu) or len(set(iu)) != len(iu) or len(set(iys)) != len(
-                iys) or (it is not None and (it in iu or it in iys)):
-            shown = ", ".join(str(c) for c in [*(inputs or []), *outputs])
-            raise DataError(f"{source}: choose distinct input and output columns (the "
-                            f"columns asked for, {shown}, name a column twice or the time "
-                            "column)")
-    elif names and "u" in names and "y" in names:
-        iu, iys = [names.index("u")], [names.index("y")]
-    else:
-        others = [k for k in range(width) if k != it]
-        if len(others) != 2:
-            where = f"{source}, line {table.header_line or table.lines[0]}"
-            if names is None:
-                raise DataError(f"{where}: expected 2 columns (input u, output y), "
-                                f"found {width}")
-            if it is not None:
-                raise DataError(f"{source}: with a time column the CSV needs columns named "
-                                f"'u' and 'y' or exactly two more columns, found {names}")
-            raise DataError(f"{where}: CSV header {table.header_names} needs columns named "
-                            f"'u' and 'y' or exactly 2 columns, found {width}")
-        iu, iys = [others[0]], [others[1]]
+    iu, iys = _signal_columns(table, source, it, inputs, outputs)
     values = table.values
-    cols = iu + iys
-    signals = values[:, cols]
+    signals = values[:, iu + iys]
     t = None
     rejected = 0
     if it is not None:  # rows with missing values are dropped and counted (gaps by time)
-        bad_t = np.flatnonzero(~np.isfinite(values[:, it]))
-        if bad_t.size:
-            raise DataError(f"{source}, line {table.lines[bad_t[0]]}: the time column has a "
-                            "missing or non-finite value")
-        ok = np.all(np.isfinite(signals), axis=1)
-        rejected = int((~ok).sum())
-        values, signals = values[ok], signals[ok]
-        t = values[:, it].copy()
-        back = np.flatnonzero(np.diff(t) <= 0)
-        if back.size:
-            k = int(back[0])
-            line = table.lines[np.flatnonzero(ok)[k + 1]]
-            raise DataError(f"{source}, line {line}: the time column must increase; time "
-                            f"{t[k + 1]:g} follows {t[k]:g}")
+        t, signals, rejected = _timed_rows(table, source, it, signals)
     else:
-        bad = np.flatnonzero(~np.all(np.isfinite(signals), axis=1))
-        if bad.size:
-            row = int(bad[0])
-            cells = table.tokens(row)
-            token = next((cells[j] for j in cols if j < len(cells)
-                          and not (cells[j] and math.isfinite(float(cells[j])))), "")
-            where = f"{source}, line {table.lines[row]}"
-            if token:
-                raise DataError(f"{where}: value {_show(token)} is not finite (NaN or inf are not "
-                                "allowed; add a time column to have such rows dropped as gaps)")
-            raise DataError(f"{where}: a value is missing (add a time column to have such "
-                            "rows dropped as gaps)")
+        _check_all_finite(table, source, signals, iu + iys)
     if len(signals) == 0:
         raise DataError(f"{source}: no rows with all values present")
     m = len(iu)
@@ -360,6 +310,76 @@ def parse_data_text(text: str, source: str = "<text>", inputs: list[str] | None 
     return IOData(np.ascontiguousarray(u), np.ascontiguousarray(y), t, rejected,
                   source, in_names if chosen else (), ",".join(out_names),
                   out_names if len(iys) > 1 else ())
+
+
+def _signal_columns(table: Table, source: str, it: int | None, inputs: list[str] | None,
+                    outputs: list) -> tuple[list[int], list[int]]:
+    """The input and output columns: as chosen, named u and y, or the two besides time."""
+    names, width = table.names, table.width
+    if inputs is not None or outputs:
+        iys = ([_column(table, c) for c in outputs] if outputs
+               else [names.index("y") if names and "y" in names else width - 1])
+        iu = ([_column(table, c) for c in inputs] if inputs
+              else [k for k in range(width) if k not in iys and k != it])
+        if not iu or set(iys) & set(iu) or len(set(iu)) != len(iu) or len(set(iys)) != len(
+                iys) or (it is not None and (it in iu or it in iys)):
+            shown = ", ".join(str(c) for c in [*(inputs or []), *outputs])
+            raise DataError(f"{source}: choose distinct input and output columns (the "
+                            f"columns asked for, {shown}, name a column twice or the time "
+                            "column)")
+        return iu, iys
+    if names and "u" in names and "y" in names:
+        return [names.index("u")], [names.index("y")]
+    others = [k for k in range(width) if k != it]
+    if len(others) != 2:
+        where = f"{source}, line {table.header_line or table.lines[0]}"
+        if names is None:
+            raise DataError(f"{where}: expected 2 columns (input u, output y), "
+                            f"found {width}")
+        if it is not None:
+            raise DataError(f"{source}: with a time column the CSV needs columns named "
+                            f"'u' and 'y' or exactly two more columns, found {names}")
+        raise DataError(f"{where}: CSV header {table.header_names} needs columns named "
+                        f"'u' and 'y' or exactly 2 columns, found {width}")
+    return [others[0]], [others[1]]
+
+
+def _timed_rows(table: Table, source: str, it: int,
+                signals: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """Times, the rows with every value present, and how many were dropped (gaps by time)."""
+    values = table.values
+    bad_t = np.flatnonzero(~np.isfinite(values[:, it]))
+    if bad_t.size:
+        raise DataError(f"{source}, line {table.lines[bad_t[0]]}: the time column has a "
+                        "missing or non-finite value")
+    ok = np.all(np.isfinite(signals), axis=1)
+    rejected = int((~ok).sum())
+    values, signals = values[ok], signals[ok]
+    t = values[:, it].copy()
+    back = np.flatnonzero(np.diff(t) <= 0)
+    if back.size:
+        k = int(back[0])
+        line = table.lines[np.flatnonzero(ok)[k + 1]]
+        raise DataError(f"{source}, line {line}: the time column must increase; time "
+                        f"{t[k + 1]:g} follows {t[k]:g}")
+    return t, signals, rejected
+
+
+def _check_all_finite(table: Table, source: str, signals: np.ndarray, cols: list[int]) -> None:
+    """Without a time column every value must be there: else the line and the token."""
+    bad = np.flatnonzero(~np.all(np.isfinite(signals), axis=1))
+    if not bad.size:
+        return
+    row = int(bad[0])
+    cells = table.tokens(row)
+    token = next((cells[j] for j in cols if j < len(cells)
+                  and not (cells[j] and math.isfinite(float(cells[j])))), "")
+    where = f"{source}, line {table.lines[row]}"
+    if token:
+        raise DataError(f"{where}: value {_show(token)} is not finite (NaN or inf are not "
+                        "allowed; add a time column to have such rows dropped as gaps)")
+    raise DataError(f"{where}: a value is missing (add a time column to have such "
+                    "rows dropped as gaps)")
 
 
 def _column(table: Table, sel) -> int:
