@@ -158,49 +158,12 @@ def refine_simulation(model: NarxModel, u: np.ndarray, y: np.ndarray,
         Most simulations (with Jacobian) Levenberg-Marquardt may run.
     """
     ts = model.term_space
-    u = ts.inputs_2d(u)
-    y = np.asarray(y, dtype=float)
-    lag0 = ts.max_lag
-    segs = _segments(y, segments, lag0)
-    bounds = divergence_bounds(y)
-    measured = np.concatenate([y[a + lag0:b] for a, b in segs])
     theta0 = np.asarray(model.coefficients, dtype=float)
-    cache: dict[bytes, tuple[np.ndarray, np.ndarray, int | None]] = {}
-
-    radius0 = linear_radius(ts, model.term_indices, theta0)
-    guard = radius0 < 1.0  # a stable start stays stable
-    stable = linear_stability_check(ts, model.term_indices)
-
-    def simulate(theta):
-        key = theta.tobytes()
-        if key not in cache:
-            cache.clear()  # least_squares asks for fun, then jac, of the same theta
-            if guard and not stable(theta):
-                # unstable linear part: as costly as a divergence at the first sample
-                r = measured - np.where(measured >= 0.5 * (bounds[0] + bounds[1]),
-                                        bounds[0], bounds[1])
-                cache[key] = (r, np.zeros((len(measured), len(theta))), segs[0][0] + lag0)
-                return cache[key]
-            outs, jacs, first = [], [], None
-            for a, b in segs:
-                yhat, jac, at = free_run_sensitivities(model.compiled, theta, u[a:b], y[a:b],
-                                                       bounds)
-                if at is not None:
-                    if first is None:
-                        first = a + at
-                    bad = ~np.isfinite(yhat)
-                    last = yhat[~bad][-1] if (~bad).any() else y[a + lag0 - 1]
-                    # beyond the divergence: the range's nearest edge, no gradient
-                    yhat[bad] = bounds[1] if last >= 0.5 * (bounds[0] + bounds[1]) else bounds[0]
-                    jac[bad] = 0.0
-                outs.append(yhat)
-                jacs.append(jac)
-            cache[key] = (measured - np.concatenate(outs), -np.vstack(jacs), first)
-        return cache[key]
-
+    simulate = _FreeRunResiduals(model, u, y, segments,
+                                 guard=linear_radius(ts, model.term_indices, theta0) < 1.0)
     r0, _, div0 = simulate(theta0)
     sse0 = float(r0 @ r0) if div0 is None else float("inf")
-    if len(measured) <= len(theta0):
+    if len(simulate.measured) <= len(theta0):
         return Refinement(theta0, sse0, sse0, div0, 1, div0 is None,
                           "too few rows to refine; least squares kept")
     try:
@@ -226,3 +189,55 @@ def refine_simulation(model: NarxModel, u: np.ndarray, y: np.ndarray,
                           f"the simulation diverges at sample {div0} and refinement did not "
                           "find stable coefficients")
     return Refinement(theta, sse, sse0, div0, nfev, True, msg)
+
+
+class _FreeRunResiduals:
+    """Free-run residuals and their Jacobian at theta, over every segment (the last cached).
+
+    ``guard``: a stable start stays stable; coefficients whose linear part is
+    unstable cost as much as a divergence at the first sample. Beyond a
+    divergence the simulation holds the range's nearest edge, with no gradient.
+    Returns ``(residuals, jacobian, first sample diverged or None)``.
+    """
+
+    def __init__(self, model: NarxModel, u: np.ndarray, y: np.ndarray,
+                 segments: list[tuple[int, int]] | None, guard: bool) -> None:
+        ts = model.term_space
+        self.compiled = model.compiled
+        self.u = ts.inputs_2d(u)
+        self.y = np.asarray(y, dtype=float)
+        self.lag0 = ts.max_lag
+        self.segs = _segments(self.y, segments, self.lag0)
+        self.bounds = divergence_bounds(self.y)
+        self.measured = np.concatenate([self.y[a + self.lag0:b] for a, b in self.segs])
+        self.guard = guard
+        self.stable = linear_stability_check(ts, model.term_indices)
+        self.cache: dict[bytes, tuple[np.ndarray, np.ndarray, int | None]] = {}
+
+    def __call__(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, int | None]:
+        key = theta.tobytes()
+        if key not in self.cache:
+            self.cache.clear()  # least_squares asks for fun, then jac, of the same theta
+            self.cache[key] = self._evaluate(theta)
+        return self.cache[key]
+
+    def _evaluate(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, int | None]:
+        measured, bounds, lag0 = self.measured, self.bounds, self.lag0
+        if self.guard and not self.stable(theta):
+            r = measured - np.where(measured >= 0.5 * (bounds[0] + bounds[1]),
+                                    bounds[0], bounds[1])
+            return r, np.zeros((len(measured), len(theta))), self.segs[0][0] + lag0
+        outs, jacs, first = [], [], None
+        for a, b in self.segs:
+            yhat, jac, at = free_run_sensitivities(self.compiled, theta, self.u[a:b],
+                                                   self.y[a:b], bounds)
+            if at is not None:
+                if first is None:
+                    first = a + at
+                bad = ~np.isfinite(yhat)
+                last = yhat[~bad][-1] if (~bad).any() else self.y[a + lag0 - 1]
+                yhat[bad] = bounds[1] if last >= 0.5 * (bounds[0] + bounds[1]) else bounds[0]
+                jac[bad] = 0.0
+            outs.append(yhat)
+            jacs.append(jac)
+        return measured - np.concatenate(outs), -np.vstack(jacs), first

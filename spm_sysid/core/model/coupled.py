@@ -155,64 +155,84 @@ def refine_coupled(model, u: np.ndarray, Y: np.ndarray,
     """
     from scipy.optimize import least_squares  # imported when a refinement runs
 
-    u = np.asarray(u, dtype=float)
-    u = u[:, None] if u.ndim == 1 else u
-    Y = np.asarray(Y, dtype=float)
-    q = Y.shape[1]
-    cc = CoupledCompiled.from_models(model.models, u.shape[1])
-    lag = cc.max_lag
-    segs = [(a, b) for a, b in (segments or [(0, len(Y))]) if b - a > lag]
-    bounds = [divergence_bounds(Y[:, i]) for i in range(q)]
-    scale = np.array([float(np.std(Y[:, i])) or 1.0 for i in range(q)])
-    measured = np.concatenate([Y[a + lag:b] for a, b in segs])  # (rows, q)
-    sizes = np.cumsum((0,) + cc.n_terms)
+    run = _CoupledResiduals(model, u, Y, segments)
     theta0 = np.concatenate([np.asarray(m.coefficients, dtype=float) for m in model.models])
-    penalty = 10.0 * np.array([(hi - lo) for lo, hi in bounds]) / scale
-
-    def split(theta):
-        return [theta[sizes[i]:sizes[i + 1]] for i in range(q)]
-
-    def simulate(theta) -> tuple[np.ndarray, bool]:
-        runs, diverged = [], False
-        for a, b in segs:
-            sim, div = coupled_run(cc, split(theta), u[a:b], Y[a:b], bounds)
-            runs.append(sim)
-            diverged |= any(d is not None for d in div)
-        return np.concatenate(runs), diverged
-
-    def residuals(theta) -> np.ndarray:
-        sim, _ = simulate(theta)
-        r = (measured - sim) / scale
-        return np.where(np.isfinite(r), r, penalty).ravel()
-
-    r0 = residuals(theta0)
-    _, div0 = simulate(theta0)
+    r0 = run.residuals(theta0)
     before = float(r0 @ r0)
     info = {"before": before, "after": before, "evaluations": 1, "taken": False}
-    if measured.size <= theta0.size:
+    if run.measured.size <= theta0.size:
         info["message"] = "too few rows to refine"
         return model, info
     try:
-        sol = least_squares(residuals, theta0, method="lm", x_scale="jac",
+        sol = least_squares(run.residuals, theta0, method="lm", x_scale="jac",
                             max_nfev=max_evaluations)
     except (ValueError, FloatingPointError) as exc:  # pragma: no cover - numerical failure
         info["message"] = f"refinement failed ({exc})"
         return model, info
-    sim, div = simulate(sol.x)
+    sim, div = run.simulate(sol.x)
     after = float(sol.fun @ sol.fun)
     info.update(after=after, evaluations=int(sol.nfev))
     if div or not after < before:
         info["message"] = ("the refined coefficients diverge" if div else
                            "the coefficients given simulate best together; kept")
         return model, info
-    # each output's uncertainty from its rows and columns of the joint Jacobian
-    jac = sol.jac.reshape(len(measured), q, -1)  # d(r)/d(theta), r = (y - sim) / scale
-    models = []
-    for i, (m, th) in enumerate(zip(model.models, split(sol.x))):
-        J = -jac[:, i, sizes[i]:sizes[i + 1]] * scale[i]  # d(sim_i)/d(theta_i)
-        e = measured[:, i] - sim[:, i]
-        unc = from_jacobian(J, float(e @ e)) if np.all(np.isfinite(J)) else m.uncertainty
-        meta = {**m.metadata, "coupled_refinement": True}
-        models.append(replace(m, coefficients=np.array(th), uncertainty=unc, metadata=meta))
     info.update(taken=True, message=str(sol.message))
-    return replace(model, models=models), info
+    return replace(model, models=run.refined_models(model, sol, sim)), info
+
+
+class _CoupledResiduals:
+    """The coupled free run of all outputs over the segments, and its scaled residuals.
+
+    Residuals are divided by each output's spread; a sample past a divergence
+    costs ten times its output's range.
+    """
+
+    def __init__(self, model, u: np.ndarray, Y: np.ndarray,
+                 segments: list[tuple[int, int]] | None) -> None:
+        u = np.asarray(u, dtype=float)
+        self.u = u[:, None] if u.ndim == 1 else u
+        self.Y = np.asarray(Y, dtype=float)
+        self.q = q = self.Y.shape[1]
+        self.cc = CoupledCompiled.from_models(model.models, self.u.shape[1])
+        lag = self.cc.max_lag
+        self.segs = [(a, b) for a, b in (segments or [(0, len(self.Y))]) if b - a > lag]
+        self.bounds = [divergence_bounds(self.Y[:, i]) for i in range(q)]
+        self.scale = np.array([float(np.std(self.Y[:, i])) or 1.0 for i in range(q)])
+        self.measured = np.concatenate([self.Y[a + lag:b] for a, b in self.segs])  # (rows, q)
+        self.sizes = np.cumsum((0,) + self.cc.n_terms)
+        self.penalty = 10.0 * np.array([(hi - lo) for lo, hi in self.bounds]) / self.scale
+
+    def split(self, theta: np.ndarray) -> list[np.ndarray]:
+        """Each output's coefficients."""
+        return [theta[self.sizes[i]:self.sizes[i + 1]] for i in range(self.q)]
+
+    def simulate(self, theta: np.ndarray) -> tuple[np.ndarray, bool]:
+        """The coupled free run over every segment, and whether any output diverged."""
+        runs, diverged = [], False
+        for a, b in self.segs:
+            sim, div = coupled_run(self.cc, self.split(theta), self.u[a:b], self.Y[a:b],
+                                   self.bounds)
+            runs.append(sim)
+            diverged |= any(d is not None for d in div)
+        return np.concatenate(runs), diverged
+
+    def residuals(self, theta: np.ndarray) -> np.ndarray:
+        """Scaled free-run residuals of all outputs, one vector."""
+        sim, _ = self.simulate(theta)
+        r = (self.measured - sim) / self.scale
+        return np.where(np.isfinite(r), r, self.penalty).ravel()
+
+    def refined_models(self, model, sol, sim: np.ndarray) -> list:
+        """Each output's model with its refined coefficients and their uncertainty.
+
+        Each output's uncertainty comes from its rows and columns of the joint Jacobian.
+        """
+        jac = sol.jac.reshape(len(self.measured), self.q, -1)  # d(r)/d(theta)
+        models = []
+        for i, (m, th) in enumerate(zip(model.models, self.split(sol.x))):
+            J = -jac[:, i, self.sizes[i]:self.sizes[i + 1]] * self.scale[i]  # d(sim_i)/d(th)
+            e = self.measured[:, i] - sim[:, i]
+            unc = from_jacobian(J, float(e @ e)) if np.all(np.isfinite(J)) else m.uncertainty
+            meta = {**m.metadata, "coupled_refinement": True}
+            models.append(replace(m, coefficients=np.array(th), uncertainty=unc, metadata=meta))
+        return models

@@ -198,18 +198,9 @@ def select_coupled(joined: MimoModel, u: np.ndarray, Y: np.ndarray,
     u = np.asarray(u, dtype=float)
     u = u[:, None] if u.ndim == 1 else u
     Y = np.asarray(Y, dtype=float)
-    lag = joined.max_lag
-    folds = coupled_folds(segments, len(Y), lag)
+    folds = coupled_folds(segments, len(Y), joined.max_lag)
     scale = _scales(Y, segments)
-    top = max(max([m.term_space.ny] + list(m.term_space.nus)) for m in joined.models)
-    finalists: list[tuple[str, str, MimoModel]] = [("the outputs' own choices", "as chosen",
-                                                    joined)]
-    finalists.append(("the outputs' own choices", "jointly refined", joined))
-    for k in range(1, top + 1):
-        lin = linear_mimo(joined, k)
-        if not any(_same(lin, f[2]) for f in finalists):
-            finalists += [(f"linear MIMO ARX of order {k}", how, lin)
-                          for how in COUPLED_ESTIMATORS]
+    finalists = _coupled_finalists(joined)
     values = [_fold_errors(model, how, folds, u, Y, scale) for _, how, model in finalists]
     means, stderr = zip(*(mean_and_stderr(r) for r in values)) if values else ((), ())
     account: dict = {"folds": len(folds), "significance": SIGNIFICANCE,
@@ -218,14 +209,13 @@ def select_coupled(joined: MimoModel, u: np.ndarray, Y: np.ndarray,
                                    for (n, h, _), m, s in zip(finalists, means, stderr)]}
     call = linear_or_nonlinear(means, stderr, [_terms(f[2]) for f in finalists],
                                [_degree(f[2]) <= 1 for f in finalists], values)
-    order = call.order
     if call.linear is not None:
         if call.challenger is not None:
             account.update(nonlinear=finalists[call.challenger][0], ratio=call.ratio,
                            p_value=call.p_value)
         account["choice"] = call.choice
     removed = []
-    for i in order:
+    for i in call.order:
         name, how, model = finalists[i]
         full = _fit_full(model, how, joined, u, Y, segments)
         if full is None:
@@ -244,6 +234,24 @@ def select_coupled(joined: MimoModel, u: np.ndarray, Y: np.ndarray,
     account.update(chosen="the outputs' own choices", fitted="as chosen", all_diverge=why,
                    removed_by_guard=removed)
     return joined, account
+
+
+def _coupled_finalists(joined: MimoModel) -> list[tuple[str, str, MimoModel]]:
+    """The outputs' own choices (as chosen, jointly refined) and the linear MIMO ARX.
+
+    One linear model per order up to the largest lag of the choices, each fitted
+    by every coupled estimator; a linear model equal to one before is left out.
+    """
+    top = max(max([m.term_space.ny] + list(m.term_space.nus)) for m in joined.models)
+    finalists: list[tuple[str, str, MimoModel]] = [("the outputs' own choices", "as chosen",
+                                                    joined)]
+    finalists.append(("the outputs' own choices", "jointly refined", joined))
+    for k in range(1, top + 1):
+        lin = linear_mimo(joined, k)
+        if not any(_same(lin, f[2]) for f in finalists):
+            finalists += [(f"linear MIMO ARX of order {k}", how, lin)
+                          for how in COUPLED_ESTIMATORS]
+    return finalists
 
 
 def _fit_full(model: MimoModel, how: str, joined: MimoModel, u, Y, segments
