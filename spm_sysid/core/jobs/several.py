@@ -330,39 +330,13 @@ def run_mimo_job(record: Record, settings, *, progress: ProgressFn | None = None
     relay(Progress("refinement", elapsed=time.perf_counter() - t0))
     chosen, account = select_coupled(model, u, Y, est)
     if chosen is not model:
-        model = replace(chosen, metadata={**model.metadata, **chosen.metadata})
-        model.metadata["joint_criterion"] = MimoModel.joined(
-            names, model.inputs, model.models).metadata["joint_criterion"]
-        for i, r in enumerate(outputs):
-            own = r.model.metadata.get("selection")
-            r.model = model.models[i]
-            # the account describes the model returned, not the output's own choice
-            r.model.metadata["selection"] = {
-                "method": "coupled", "what": "coupled free-run",
-                "folds": int(account.get("folds") or 0), "chosen": account.get("chosen"),
-                "fitted": account.get("fitted"),
-                "held_out_mse": account.get("held_out_error"),
-                "note": "chosen with the other outputs by the coupled judgement",
-                **({"own_choice": own} if own else {})}
-            if r.report is not None:
-                r.report = validate_model(
-                    r.model, augmented_inputs(u, Y, i), Y[:, i],
-                    correlation_lags=settings.correlation_lags,
-                    segment=settings.validation, segments=val,
-                    horizon=settings.horizon or None)
+        model = _take_coupled_choice(model, chosen, account, outputs, record, settings, val)
     model.metadata["coupled_selection"] = account
     if orders is not None:
         model.metadata["orders"] = orders
     cross = []
     if settings.validation != "none":
-        reports = [r.report for r in outputs]
-        cross = couple_reports(model, u, Y, val, reports, settings.correlation_lags)
-        for i, r in enumerate(outputs):
-            if r.report is not None:
-                r.model.metadata["validation"] = {**r.report.to_dict(), "free_run_coupled": True}
-                store_monitor_reference(r.model.metadata, r.report.residuals,
-                                        augmented_inputs(u, Y, i))
-        model.metadata["cross_correlation_tests"] = [t.to_dict() for t in cross]
+        cross = _validate_coupled(model, outputs, u, Y, val, settings.correlation_lags)
     data = outputs[0].data
     model.metadata["data"] = data
     model.metadata.update(record.metadata())
@@ -371,3 +345,46 @@ def run_mimo_job(record: Record, settings, *, progress: ProgressFn | None = None
     model.metadata.update(metadata or {})
     times = record.row_seconds(val, model.max_lag) if settings.validation != "none" else None
     return MimoJobResult(model, outputs, cross, data, seconds, times)
+
+
+def _take_coupled_choice(model: MimoModel, chosen: MimoModel, account: dict, outputs: list,
+                         record: Record, settings, val: list) -> MimoModel:
+    """The coupled judgement's choice returned: each output's model, account and report.
+
+    The selection account describes the model returned, not the output's own choice
+    (kept as ``own_choice``).
+    """
+    u, Y = record.u, record.y
+    model = replace(chosen, metadata={**model.metadata, **chosen.metadata})
+    model.metadata["joint_criterion"] = MimoModel.joined(
+        model.outputs, model.inputs, model.models).metadata["joint_criterion"]
+    for i, r in enumerate(outputs):
+        own = r.model.metadata.get("selection")
+        r.model = model.models[i]
+        r.model.metadata["selection"] = {
+            "method": "coupled", "what": "coupled free-run",
+            "folds": int(account.get("folds") or 0), "chosen": account.get("chosen"),
+            "fitted": account.get("fitted"),
+            "held_out_mse": account.get("held_out_error"),
+            "note": "chosen with the other outputs by the coupled judgement",
+            **({"own_choice": own} if own else {})}
+        if r.report is not None:
+            r.report = validate_model(
+                r.model, augmented_inputs(u, Y, i), Y[:, i],
+                correlation_lags=settings.correlation_lags,
+                segment=settings.validation, segments=val,
+                horizon=settings.horizon or None)
+    return model
+
+
+def _validate_coupled(model: MimoModel, outputs: list, u: np.ndarray, Y: np.ndarray,
+                      val: list, correlation_lags: int) -> list:
+    """Cross-correlation tests of the outputs' residuals; each report on the coupled run."""
+    cross = couple_reports(model, u, Y, val, [r.report for r in outputs], correlation_lags)
+    for i, r in enumerate(outputs):
+        if r.report is not None:
+            r.model.metadata["validation"] = {**r.report.to_dict(), "free_run_coupled": True}
+            store_monitor_reference(r.model.metadata, r.report.residuals,
+                                    augmented_inputs(u, Y, i))
+    model.metadata["cross_correlation_tests"] = [t.to_dict() for t in cross]
+    return cross

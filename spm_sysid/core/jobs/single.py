@@ -269,12 +269,8 @@ def validation_segments(record: Record, settings: JobSettings
 
 @one_blas_thread()
 def run_single_job(
-    record: Record,
-    settings: JobSettings,
-    *,
-    progress: ProgressFn | None = None,
-    progress_every: int = 25,
-    metadata: Mapping[str, Any] | None = None,
+    record: Record, settings: JobSettings, *, progress: ProgressFn | None = None,
+    progress_every: int = 25, metadata: Mapping[str, Any] | None = None,
 ) -> JobResult:
     """Identify and validate a record of one output.
 
@@ -282,32 +278,23 @@ def run_single_job(
     ----------
     record : Record
         The samples, their names, stamps and account
-        (:func:`spm_sysid.core.record.load_record`, or
-        :meth:`~spm_sysid.core.record.Record.from_samples`). Gaps and restarts in
-        its stamps split it into segments (``settings.sample_period``,
-        ``settings.gap_factor``) and no regression row crosses one.
+        (:func:`spm_sysid.core.record.load_record`). Gaps and restarts in its
+        stamps split it into segments and no regression row crosses one.
     settings : JobSettings
         Term space, GA, criterion, validation and timeline settings; the term
         space takes the record's signal names.
-    progress : callable, optional
+    progress, progress_every : callable, int
         Called with :class:`~spm_sysid.core.progress.Progress` records: checking
         data, every ``progress_every`` generations of the search (and the last),
         certification, refinement, validation.
-    progress_every : int
-        Generations between search reports.
     metadata : mapping, optional
         Extra entries for the model document's metadata.
 
-    Returns
-    -------
-    JobResult
-
     Raises
     ------
-    DataError
-        Too little usable data, or nothing could be fitted.
-    SettingsError
-        Settings that do not fit the data (per-input lags, correlation lags).
+    DataError, SettingsError
+        Too little usable data, or nothing could be fitted; settings that do not fit
+        the data (per-input lags, correlation lags).
     """
     t0 = time.perf_counter()
     report = progress or (lambda p: None)
@@ -321,34 +308,50 @@ def run_single_job(
         settings, orders = choose_orders(record, settings, est)
         est, val, data = validation_segments(record, settings)
     space = settings.term_space
-
-    def throttled(p: Progress) -> None:
-        if p.phase != "search" or p.step % progress_every == 0 or p.step == p.total:
-            report(p)
-
     problem = Problem.from_signals(u, y, space, est)
-    ident = identify_problem(problem, settings.search, ga=settings.ga, progress=throttled,
-                             started=t0)
+    ident = identify_problem(problem, settings.search, ga=settings.ga,
+                             progress=_throttled(report, progress_every), started=t0)
     t1 = time.perf_counter()
     model = ident.model
     validation = None
     if settings.validation != "none":
         report(Progress("validation", elapsed=t1 - t0, best_model=lambda: model))
-        validation = validate_model(model, u, y, correlation_lags=settings.correlation_lags,
-                                    segment=settings.validation, segments=val,
-                                    horizon=settings.horizon or None)
-        model.metadata["validation"] = validation.to_dict()
-        store_monitor_reference(model.metadata, validation.residuals, u)
+        validation = _validated(model, u, y, settings, val)
     t2 = time.perf_counter()
     seconds = {"search": t1 - t0, "validation": t2 - t1, "total": t2 - t0}
-    if orders is not None:
-        model.metadata["orders"] = orders
-    model.metadata["data"] = data
-    model.metadata["samples_used"] = data["used_samples"]
-    model.metadata.update(record.metadata())
-    model.metadata["identify_seconds"] = round(seconds["total"], 4)
-    model.metadata.update(metadata or {})
+    _record_account(model.metadata, record, data, orders, seconds, metadata)
     times = record.row_seconds(val, space.max_lag) if validation is not None else None
     return JobResult(model=model, report=validation, search=ident.ga, data=data,
                      estimation_samples=problem.n_samples, seconds=seconds,
                      validation_segments=list(val), times=times)
+
+
+def _throttled(report: ProgressFn, every: int) -> ProgressFn:
+    """``report`` for every ``every``-th generation of the search (and the last), all else."""
+    def throttled(p: Progress) -> None:
+        if p.phase != "search" or p.step % every == 0 or p.step == p.total:
+            report(p)
+    return throttled
+
+
+def _validated(model: NarxModel, u: np.ndarray, y: np.ndarray, settings: JobSettings,
+               val: list[tuple[int, int]]):
+    """The model validated on its validation segments; its report and monitor reference stored."""
+    validation = validate_model(model, u, y, correlation_lags=settings.correlation_lags,
+                                segment=settings.validation, segments=val,
+                                horizon=settings.horizon or None)
+    model.metadata["validation"] = validation.to_dict()
+    store_monitor_reference(model.metadata, validation.residuals, u)
+    return validation
+
+
+def _record_account(meta: dict, record: Record, data: dict, orders: dict | None,
+                    seconds: dict, metadata: Mapping[str, Any] | None) -> None:
+    """The model's metadata gains what the job used: orders, data, record, seconds, extras."""
+    if orders is not None:
+        meta["orders"] = orders
+    meta["data"] = data
+    meta["samples_used"] = data["used_samples"]
+    meta.update(record.metadata())
+    meta["identify_seconds"] = round(seconds["total"], 4)
+    meta.update(metadata or {})
