@@ -62,38 +62,25 @@ class IdentificationResult:
 
 
 def identify(
-    *,
-    u: np.ndarray,
-    y: np.ndarray,
-    term_space: TermSpace | None = None,
-    ga: GAConfig | None = None,
-    segments: list[tuple[int, int]] | None = None,
+    *, u: np.ndarray, y: np.ndarray, term_space: TermSpace | None = None,
+    ga: GAConfig | None = None, segments: list[tuple[int, int]] | None = None,
     callback: Callable[[GenerationStats], bool | None] | None = None,
-    progress: ProgressFn | None = None,
-    **settings: Any,
+    progress: ProgressFn | None = None, **settings: Any,
 ) -> IdentificationResult:
     """Select a NARX structure with the SPM-GA and fit it.
 
     Parameters
     ----------
-    u : ndarray, shape (n,) or (n, m)
-        Input samples (one column per input of the term space).
-    y : ndarray, shape (n,)
-        Output samples, equally spaced (within each segment).
-    term_space : TermSpace, optional
-        Candidate terms; default: the paper's (ny=4, nu=4, degree 2, delay 1), or
-        the space of the ``ny``, ``nu``, ``degree``, ``delay``, ``constant``
-        settings when given.
-    ga : GAConfig, optional
-        GA settings; default: the paper's (population 200, 300 generations, SPM
-        0.15), or those of the GA settings given by name.
+    u, y : ndarray, shapes (n,) or (n, m), and (n,)
+        Input samples (one column per input) and output samples, equally spaced.
+    term_space, ga : TermSpace, GAConfig, optional
+        Default: the paper's (ny=4, nu=4, degree 2, delay 1; population 200, 300
+        generations, SPM 0.15), or those of the settings given by name.
     segments : list of (start, stop), optional
-        Contiguous parts of the record (``[start, stop)``): regression rows are
-        built inside each and fitted together, never across a gap. Segments no
-        longer than the largest lag are skipped. Default: the whole record.
+        Contiguous parts of the record: regression rows never cross a gap; parts
+        no longer than the largest lag are skipped. Default: the whole record.
     callback : callable, optional
-        Called with each generation's statistics; returning ``False`` stops the
-        search (see :func:`spm_sysid.core.search.ga.run_ga`).
+        Each generation's statistics; ``False`` stops the search (:func:`run_ga`).
     progress : callable, optional
         Called with :class:`~spm_sysid.core.progress.Progress` records.
     **settings
@@ -110,39 +97,40 @@ def identify(
 
     Raises
     ------
-    SettingsError
-        An unknown setting, a validation setting, or a value out of range.
-    DataError
-        Data that cannot identify the space (see :meth:`Problem.from_signals`).
+    SettingsError, DataError
+        An unknown setting, a validation setting, or a value out of range; data that
+        cannot identify the space (see :meth:`Problem.from_signals`).
 
     Notes
     -----
     u and y are scaled internally by powers of two (exact), so data of any
     magnitude identify alike; coefficients and criteria are in the user's units.
-    Candidate terms whose regressor is zero on all rows (e.g. every term with u
-    when the input is zero) are left out of the search, and the result says so
-    (``model.metadata["excluded_zero_terms"]``); so are terms whose regressor is
-    proportional to an earlier term's: ``model.metadata["excluded_duplicate_terms"]``
-    maps each to the term it repeats.
+    Candidate terms whose regressor is zero on all rows, or proportional to an
+    earlier term's, are left out of the search, and the result says so
+    (``model.metadata["excluded_zero_terms"]``, ``["excluded_duplicate_terms"]``).
     """
     options, term_space, ga, orders = _edge(settings, term_space, ga)
     why = None
     if orders == "auto":
-        from .model.segments import normalise_segments
-        from .validate.orders import orders_from_data
-
-        u2 = np.asarray(u, dtype=float)
-        term_space, why = orders_from_data(u2 if u2.ndim == 2 else u2[:, None],
-                                           np.asarray(y, dtype=float),
-                                           normalise_segments(segments, len(y)),
-                                           term_space, options.criterion
-                                           if isinstance(options.criterion, str) else "bic",
-                                           options.focus)
+        term_space, why = _orders_from_data(u, y, segments, term_space, options)
     problem = Problem.from_signals(u, y, term_space, segments)
     result = identify_problem(problem, options, ga=ga, callback=callback, progress=progress)
     if why is not None:
         result.model.metadata["orders"] = why
     return result
+
+
+def _orders_from_data(u: np.ndarray, y: np.ndarray, segments: list[tuple[int, int]] | None,
+                      term_space: TermSpace, options: SearchOptions) -> tuple[TermSpace, dict]:
+    """``orders: auto``: the lags and degree proposed from the data, and why."""
+    from .model.segments import normalise_segments
+    from .validate.orders import orders_from_data
+
+    u2 = np.asarray(u, dtype=float)
+    criterion = options.criterion if isinstance(options.criterion, str) else "bic"
+    return orders_from_data(u2 if u2.ndim == 2 else u2[:, None], np.asarray(y, dtype=float),
+                            normalise_segments(segments, len(y)), term_space, criterion,
+                            options.focus)
 
 
 def _edge(settings: dict, term_space, ga) -> tuple[SearchOptions, TermSpace, GAConfig, str]:
