@@ -19,31 +19,14 @@ __all__ = ["add_parser", "cmd_certify"]
 
 
 def cmd_certify(args) -> int:
+    """``spm-sysid certify``: the GA's best as warm start, then the branch and bound."""
     import time
 
     from ...core.files import atomic_write_text, document_json
-    from ...core.identify import identify
-    from ...core.search.certify import (
-        CERTIFIABLE,
-        certify_data,
-        check_certify_memory,
-        describe_certificate,
-        ensure_compiled,
-        search_is_compiled,
-    )
+    from ...core.search.certify import certify_data, check_certify_memory, describe_certificate
 
-    if args.criterion not in CERTIFIABLE:
-        raise UserError(f"--criterion {args.criterion} cannot be certified (its value depends "
-                        f"on the coefficients); certifiable: {', '.join(CERTIFIABLE)}")
-    if args.threads is not None and args.threads < 1:
-        raise UserError(f"--threads must be at least 1, got {args.threads}")
-    if args.node_limit is not None and args.node_limit < 1:
-        raise UserError(f"--node-limit must be at least 1, got {args.node_limit}")
-    settings = job_settings(args)
+    settings = _checked_settings(args)
     time_limit = settings.search.certify_time_limit
-    if not time_limit > 0:
-        raise UserError(f"--certify-time-limit (--time-limit) must be > 0 seconds, got "
-                        f"{time_limit:g}")
     check_outputs(args)
     record = load(args)
     settings = settings.for_signals(record.input_names, record.output_name)
@@ -53,34 +36,12 @@ def cmd_certify(args) -> int:
                          space.n_terms)  # before the GA: nothing wasted
     print(f"data: {record.source}, {len(record)} samples; "
           f"{space.n_terms} candidate terms, {args.criterion.upper()}")
-    if not search_is_compiled():
-        print("compiling the branch and bound (the first use on this machine, about 20 s; "
-              "cached after; not counted in the time limit; `spm-sysid compile` does it "
-              "ahead) ...", flush=True)
-        ensure_compiled()
+    _compile_first()
     started = time.perf_counter()  # the time limit covers the warm start and the proof
-    warm = None
     bars = PhaseBars(not args.quiet).for_generations(settings.ga.generations)
     try:
-        if not args.no_ga:
-            def on_generation(stats):
-                bars.generation(stats)
-                # the warm start may take half the time limit; the proof gets the rest
-                return time.perf_counter() - started < 0.5 * time_limit
-
-            # the criterion's best is the warm start (not a validated selection's
-            # choice), and the proof below is the only certification
-            res = identify(u=record.u, y=record.y, term_space=space, criterion=args.criterion,
-                           ga=settings.ga, seed=settings.seed, segments=segments,
-                           callback=on_generation, selection="criterion",
-                           auto_certify_time_limit=0)
-            warm = res.model.mask
-            stopped = (f", stopped at generation {len(res.ga.history) - 1} by half the time "
-                       "limit" if res.ga.stopped_early else "")
-            bars.close_bar()
-            print(f"warm start: the GA's best, {args.criterion.upper()} "
-                  f"{res.ga.best_score:.2f} ({int(warm.sum())} terms, {res.ga.elapsed:.2f} s"
-                  f"{stopped})")
+        warm = None if args.no_ga else _warm_start(args, record, settings, segments, bars,
+                                                   started)
         cert = certify_data(record.u, record.y, term_space=space, criterion=args.criterion,
                             segments=segments, warm_start=warm, time_limit=time_limit,
                             node_limit=args.node_limit, progress=bars.nodes,
@@ -99,6 +60,65 @@ def cmd_certify(args) -> int:
         path = atomic_write_text(args.json, document_json(doc) + "\n")
         print(f"certificate written to {path}")
     return 0
+
+
+def _checked_settings(args):
+    """The job settings, once criterion, threads, node and time limits are possible."""
+    from ...core.search.certify import CERTIFIABLE
+
+    if args.criterion not in CERTIFIABLE:
+        raise UserError(f"--criterion {args.criterion} cannot be certified (its value depends "
+                        f"on the coefficients); certifiable: {', '.join(CERTIFIABLE)}")
+    if args.threads is not None and args.threads < 1:
+        raise UserError(f"--threads must be at least 1, got {args.threads}")
+    if args.node_limit is not None and args.node_limit < 1:
+        raise UserError(f"--node-limit must be at least 1, got {args.node_limit}")
+    settings = job_settings(args)
+    time_limit = settings.search.certify_time_limit
+    if not time_limit > 0:
+        raise UserError(f"--certify-time-limit (--time-limit) must be > 0 seconds, got "
+                        f"{time_limit:g}")
+    return settings
+
+
+def _compile_first() -> None:
+    """The first use on a machine compiles the branch and bound, said, before any clock."""
+    from ...core.search.certify import ensure_compiled, search_is_compiled
+
+    if not search_is_compiled():
+        print("compiling the branch and bound (the first use on this machine, about 20 s; "
+              "cached after; not counted in the time limit; `spm-sysid compile` does it "
+              "ahead) ...", flush=True)
+        ensure_compiled()
+
+
+def _warm_start(args, record, settings, segments, bars, started: float):
+    """The GA's best structure by the criterion, within half the time limit."""
+    import time
+
+    from ...core.identify import identify
+
+    time_limit = settings.search.certify_time_limit
+
+    def on_generation(stats):
+        bars.generation(stats)
+        # the warm start may take half the time limit; the proof gets the rest
+        return time.perf_counter() - started < 0.5 * time_limit
+
+    # the criterion's best is the warm start (not a validated selection's
+    # choice), and the proof below is the only certification
+    res = identify(u=record.u, y=record.y, term_space=settings.term_space,
+                   criterion=args.criterion, ga=settings.ga, seed=settings.seed,
+                   segments=segments, callback=on_generation, selection="criterion",
+                   auto_certify_time_limit=0)
+    warm = res.model.mask
+    stopped = (f", stopped at generation {len(res.ga.history) - 1} by half the time "
+               "limit" if res.ga.stopped_early else "")
+    bars.close_bar()
+    print(f"warm start: the GA's best, {args.criterion.upper()} "
+          f"{res.ga.best_score:.2f} ({int(warm.sum())} terms, {res.ga.elapsed:.2f} s"
+          f"{stopped})")
+    return warm
 
 
 def add_parser(sub) -> None:
