@@ -60,49 +60,40 @@ from .common import asks_for_help, message_class, run_node
 __all__ = ["BagPlayer", "main"]
 
 
+#: The player's parameters: name, default, description (all read-only).
+_PARAMETERS = (
+    ("bag", "", "bag directory or .mcap file"),
+    ("rate", 1.0, "playback speed factor (> 0)"),
+    ("start_delay", 0.0, "seconds before the first message"),
+    ("loop", False, "replay from the start at the end"),
+    ("topics", [""], "topics to play (empty: all)"),
+    ("remap", [""], "from:=to topic renames"),
+    ("qos_depth", 10000, "keep-last depth of the publishers"),
+    ("wait_for_subscribers", 1,
+     "matched subscribers per topic before playing (0: play at once)"),
+    ("wait_timeout", 30.0, "longest wait for subscribers, seconds"),
+    ("settle_time", 1.0, "seconds to wait after subscribers matched"),
+    ("ack_timeout", 10.0, "longest wait at the end for subscribers to acknowledge, seconds"),
+)
+
+
+def _remaps(entries: list[str]) -> dict[str, str]:
+    """``from:=to`` entries as a dict, or a BagError naming the bad entry."""
+    remap = {}
+    for item in (r for r in entries if r):
+        src, sep, dst = item.partition(":=")
+        if not sep or not src or not dst:
+            raise BagError(f"remap entry {item!r} must look like from:=to")
+        remap[src] = dst
+    return remap
+
+
 class BagPlayer(Node):
     """Publishes a bag's messages on their topics with the recorded timing."""
 
     def __init__(self) -> None:
         super().__init__("bag_player")
-        self.declare_parameter("bag", "", ParameterDescriptor(
-            description="bag directory or .mcap file", read_only=True))
-        self.declare_parameter("rate", 1.0, ParameterDescriptor(
-            description="playback speed factor (> 0)", read_only=True))
-        self.declare_parameter("start_delay", 0.0, ParameterDescriptor(
-            description="seconds before the first message", read_only=True))
-        self.declare_parameter("loop", False, ParameterDescriptor(
-            description="replay from the start at the end", read_only=True))
-        self.declare_parameter("topics", [""], ParameterDescriptor(
-            description="topics to play (empty: all)", read_only=True))
-        self.declare_parameter("remap", [""], ParameterDescriptor(
-            description="from:=to topic renames", read_only=True))
-        self.declare_parameter("qos_depth", 10000, ParameterDescriptor(
-            description="keep-last depth of the publishers", read_only=True))
-        self.declare_parameter("wait_for_subscribers", 1, ParameterDescriptor(
-            description="matched subscribers per topic before playing (0: play at once)",
-            read_only=True))
-        self.declare_parameter("wait_timeout", 30.0, ParameterDescriptor(
-            description="longest wait for subscribers, seconds", read_only=True))
-        self.declare_parameter("settle_time", 1.0, ParameterDescriptor(
-            description="seconds to wait after subscribers matched", read_only=True))
-        self.declare_parameter("ack_timeout", 10.0, ParameterDescriptor(
-            description="longest wait at the end for subscribers to acknowledge, seconds",
-            read_only=True))
-
-        p = {name: self.get_parameter(name).value for name in (
-            "bag", "rate", "start_delay", "loop", "topics", "remap", "qos_depth",
-            "wait_for_subscribers", "wait_timeout", "settle_time", "ack_timeout")}
-        if not p["bag"]:
-            raise BagError("parameter 'bag' is required (--ros-args -p bag:=PATH)")
-        if not (p["rate"] > 0 and math.isfinite(p["rate"])):
-            raise BagError(f"parameter 'rate' must be > 0, got {p['rate']}")
-        for name in ("start_delay", "wait_timeout", "settle_time", "ack_timeout"):
-            if not (p[name] >= 0 and math.isfinite(p[name])):
-                raise BagError(f"parameter '{name}' must be >= 0 seconds, got {p[name]}")
-        if p["wait_for_subscribers"] < 0 or p["qos_depth"] < 1:
-            raise BagError("parameters 'wait_for_subscribers' must be >= 0 and 'qos_depth' "
-                           ">= 1")
+        p = self._parameters()
         self.bag = Path(p["bag"])
         self.rate = float(p["rate"])
         self.start_delay = max(0.0, float(p["start_delay"]))
@@ -112,13 +103,7 @@ class BagPlayer(Node):
         self.settle_time = max(0.0, float(p["settle_time"]))
         self.ack_timeout = float(p["ack_timeout"])
         selected = [t for t in p["topics"] if t]
-        remap = {}
-        for item in (r for r in p["remap"] if r):
-            src, sep, dst = item.partition(":=")
-            if not sep or not src or not dst:
-                raise BagError(f"remap entry {item!r} must look like from:=to")
-            remap[src] = dst
-
+        remap = _remaps(p["remap"])
         reader = open_bag(self.bag)  # fails early, with a clear message
         try:
             topics = {c.topic: c.msgtype for c in reader.connections}
@@ -144,6 +129,24 @@ class BagPlayer(Node):
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._play, name="bag-playback", daemon=True)
         self._thread.start()
+
+    def _parameters(self) -> dict:
+        """The node's parameters (read-only), declared, read and checked."""
+        for name, default, description in _PARAMETERS:
+            self.declare_parameter(name, default, ParameterDescriptor(
+                description=description, read_only=True))
+        p = {name: self.get_parameter(name).value for name, _, _ in _PARAMETERS}
+        if not p["bag"]:
+            raise BagError("parameter 'bag' is required (--ros-args -p bag:=PATH)")
+        if not (p["rate"] > 0 and math.isfinite(p["rate"])):
+            raise BagError(f"parameter 'rate' must be > 0, got {p['rate']}")
+        for name in ("start_delay", "wait_timeout", "settle_time", "ack_timeout"):
+            if not (p[name] >= 0 and math.isfinite(p[name])):
+                raise BagError(f"parameter '{name}' must be >= 0 seconds, got {p[name]}")
+        if p["wait_for_subscribers"] < 0 or p["qos_depth"] < 1:
+            raise BagError("parameters 'wait_for_subscribers' must be >= 0 and 'qos_depth' "
+                           ">= 1")
+        return p
 
     def stop(self) -> None:
         """Ask the playback thread to end."""
