@@ -93,7 +93,7 @@ class BagPlayer(Node):
 
     def __init__(self) -> None:
         super().__init__("bag_player")
-        p = self._parameters()
+        p = self._read_parameters()
         self.bag = Path(p["bag"])
         self.rate = float(p["rate"])
         self.start_delay = max(0.0, float(p["start_delay"]))
@@ -130,7 +130,7 @@ class BagPlayer(Node):
         self._thread = threading.Thread(target=self._play, name="bag-playback", daemon=True)
         self._thread.start()
 
-    def _parameters(self) -> dict:
+    def _read_parameters(self) -> dict:
         """The node's parameters (read-only), declared, read and checked."""
         for name, default, description in _PARAMETERS:
             self.declare_parameter(name, default, ParameterDescriptor(

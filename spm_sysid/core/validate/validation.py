@@ -217,12 +217,9 @@ def validate_model(
     model : NarxModel
         The model to validate.
     u, y : ndarray, shape (n,)
-        The segment; its first ``model.term_space.max_lag`` samples serve as
-        initial conditions.
-    correlation_lags : int
-        Largest lag of the correlation tests.
-    segment : str
-        Label for reports (``"estimation"`` or ``"holdout"``).
+        The segment; its first ``max_lag`` samples serve as initial conditions.
+    correlation_lags, segment : int, str
+        Largest lag of the correlation tests; the reports' label (``"holdout"``...).
     segments : list of (start, stop), optional
         Contiguous parts of the record (see :mod:`spm_sysid.core.model.segments`):
         predictions never cross from one to the next, and each is simulated from
@@ -234,19 +231,8 @@ def validate_model(
         With a model that carries coefficient uncertainty, 95 % bands of its
         one-step and free-run outputs (:func:`~spm_sysid.core.model.uncertainty.output_band`).
     """
-    try:
-        u = model.term_space.inputs_2d(u)
-    except ValueError as exc:
-        raise DataError(str(exc)) from None
-    y = np.asarray(y, dtype=float)
+    u, y, segments = _checked_record(model, u, y, segments, correlation_lags)
     lag0 = model.term_space.max_lag
-    if len(y) != len(u):
-        raise DataError(f"u and y differ in length: {len(u)} and {len(y)}")
-    segments = rows_segments(segments, len(y), lag0)
-    rows = sum(b - a - lag0 for a, b in segments)
-    if rows < max(3, correlation_lags + 1):
-        raise DataError(f"too few samples to validate: {rows} regression rows (need at "
-                        f"least {max(3, correlation_lags + 1)})")
     measured = model.measured(y, segments)
     one_step = model.predict(u, y, segments)
     free_run, diverged = model.run(u, y, None, segments)
@@ -271,18 +257,30 @@ def validate_model(
         one_band = output_band(model, u, y, horizon=1, segments=segments)
         free_band = output_band(model, u, y, horizon=None, segments=segments)
     return ValidationReport(
-        one_step_band=one_band,
-        free_run_band=free_band,
-        measured=measured,
-        one_step=one_step,
-        free_run=free_run,
-        one_step_metrics=metrics(measured, one_step),
-        free_run_metrics=free_metrics,
-        tests=tests,
-        segment=segment,
+        one_step_band=one_band, free_run_band=free_band, measured=measured,
+        one_step=one_step, free_run=free_run, one_step_metrics=metrics(measured, one_step),
+        free_run_metrics=free_metrics, tests=tests, segment=segment,
         n_samples=sum(b - a for a, b in segments),
-        horizon=horizon if k_step is not None else None,
-        k_step=k_step,
-        k_step_metrics=k_metrics,
-        tests_skipped=skipped,
+        horizon=horizon if k_step is not None else None, k_step=k_step,
+        k_step_metrics=k_metrics, tests_skipped=skipped,
     )
+
+
+def _checked_record(model: NarxModel, u: np.ndarray, y: np.ndarray,
+                    segments: list[tuple[int, int]] | None,
+                    correlation_lags: int) -> tuple[np.ndarray, np.ndarray, list]:
+    """Inputs (n, m), output and row segments, once they hold enough rows; else a DataError."""
+    try:
+        u = model.term_space.inputs_2d(u)
+    except ValueError as exc:
+        raise DataError(str(exc)) from None
+    y = np.asarray(y, dtype=float)
+    lag0 = model.term_space.max_lag
+    if len(y) != len(u):
+        raise DataError(f"u and y differ in length: {len(u)} and {len(y)}")
+    segments = rows_segments(segments, len(y), lag0)
+    rows = sum(b - a - lag0 for a, b in segments)
+    if rows < max(3, correlation_lags + 1):
+        raise DataError(f"too few samples to validate: {rows} regression rows (need at "
+                        f"least {max(3, correlation_lags + 1)})")
+    return u, y, segments
