@@ -194,20 +194,13 @@ def run_batch(inputs: Sequence[str], out: str | Path, values: dict, *,
         A per-input setting that is unknown or invalid (before any work).
     """
     from ..core.files import atomic_write_text, document_json
-    from ..core.jobs import JobSettings
 
     out = Path(out)
-    per_input = check_per_input(per_input)
     names = model_names(inputs)
-    tasks = {}
-    for i, (p, n) in enumerate(zip(inputs, names)):
-        v = settings_for(str(p), values, per_input)
-        JobSettings.from_values(v)  # every input's settings checked before any work
-        tasks[str(i)] = (str(p), n, v, str(out / f"{n}.json"))
+    tasks = _tasks(inputs, names, out, values, check_per_input(per_input))
     own = check_destinations(out, inputs, [out / f"{n}.json" for n in names], force)
     out.mkdir(parents=True, exist_ok=True)
     count = [0]
-
     failed_writes: dict[str, str] = {}
 
     def on_done(outcome) -> None:
@@ -223,16 +216,7 @@ def run_batch(inputs: Sequence[str], out: str | Path, values: dict, *,
 
     outcomes = run_tasks(_identify_one, tasks, scheduler=scheduler, workers=workers,
                          retries=0, on_done=on_done)
-    rows = []
-    for key, (path, _, _, _) in tasks.items():
-        o = outcomes[key]
-        if o.ok and o.result[0]["model"] not in failed_writes:
-            rows.append(o.result[0])
-        else:
-            error = o.error if not o.ok else failed_writes[o.result[0]["model"]]
-            rows.append({"input": path, "samples": None, "terms": None, "criterion": None,
-                         "value": None, "one_step_fit": None, "free_run_fit": None,
-                         "status": f"error: {error}", "seconds": None, "model": None})
+    rows = [_row(path, outcomes[key], failed_writes) for key, (path, _, _, _) in tasks.items()]
     written = {Path(r["model"]).name for r in rows if r.get("model")} | set(SUMMARY_FILES)
     stale = remove_stale(out, own - written - {MANIFEST})
     write_summary(rows, out)
@@ -243,6 +227,29 @@ def run_batch(inputs: Sequence[str], out: str | Path, values: dict, *,
         note(f"removed {len(stale)} model file(s) of the earlier batch in {out} that this "
              f"one did not write again: {', '.join(stale)}")
     return rows
+
+
+def _tasks(inputs: Sequence[str], names: list[str], out: Path, values: dict,
+           per_input: dict) -> dict[str, tuple]:
+    """One task per input: (path, name, settings, model file); every input's settings checked."""
+    from ..core.jobs import JobSettings
+
+    tasks = {}
+    for i, (p, n) in enumerate(zip(inputs, names)):
+        v = settings_for(str(p), values, per_input)
+        JobSettings.from_values(v)  # every input's settings checked before any work
+        tasks[str(i)] = (str(p), n, v, str(out / f"{n}.json"))
+    return tasks
+
+
+def _row(path: str, outcome, failed_writes: dict[str, str]) -> dict:
+    """The summary row of one input: its job's, or an error row saying why."""
+    if outcome.ok and outcome.result[0]["model"] not in failed_writes:
+        return outcome.result[0]
+    error = outcome.error if not outcome.ok else failed_writes[outcome.result[0]["model"]]
+    return {"input": path, "samples": None, "terms": None, "criterion": None,
+            "value": None, "one_step_fit": None, "free_run_fit": None,
+            "status": f"error: {error}", "seconds": None, "model": None}
 
 
 def remove_stale(out: Path, names: set[str]) -> list[str]:
