@@ -18,12 +18,10 @@ fraction's reach count with that of s = 0 at the same criterion and population.
 
 from __future__ import annotations
 
-import csv
 import json
 import time
-from collections import defaultdict
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -36,8 +34,18 @@ from ..core.model.terms import TermSpace
 from ..core.search.ga import GAConfig
 from ..core.settings import JOB_GROUPS, SETTINGS, check
 from ..core.validate.validation import metrics
+from .study_results import (
+    RunRecord,
+    SettingSummary,
+    StudyRecords,
+    mark_reached,
+    summarise,
+    summary_table,
+    write_results,
+)
 
-__all__ = ["ExperimentConfig", "RunRecord", "SettingSummary", "run_experiment", "summarise"]
+__all__ = ["ExperimentConfig", "RunRecord", "SettingSummary", "StudyRecords", "mark_reached",
+           "run_experiment", "summarise", "summary_table", "write_results"]
 
 #: The study's own settings (the grid and how it runs); every other key is a job setting.
 STUDY_FIELDS = ("criteria", "populations", "spm_fractions", "runs", "seed", "workers",
@@ -186,28 +194,6 @@ class ExperimentConfig:
             raise SettingsError(f"{source}: {exc}") from None
 
 
-@dataclass
-class RunRecord:
-    """One GA run of the study."""
-
-    criterion: str
-    population_size: int
-    spm_fraction: float
-    run: int
-    seed: int
-    final_value: float
-    terms: list[str]
-    n_terms: int
-    first_best_generation: int
-    seconds: float
-    evaluations: int
-    best_curve: list[float] = field(repr=False, default_factory=list)
-    reached_best: bool = False
-    focus: str = "prediction"
-    free_run_fit: float | None = None  # percent on the data; None when it diverged
-    reference: str = "best found across runs"  # or "certified optimum"
-
-
 # -- workers --------------------------------------------------------------------------
 
 _WORKER: dict = {}
@@ -233,13 +219,6 @@ def _one_run(task: tuple) -> RunRecord:
         best_curve=ident.ga.history_array("best").tolist(), focus=job.focus,
         free_run_fit=None if not np.isfinite(free) else float(free),
     )
-
-
-class StudyRecords(list):
-    """The study's records (a list, in task order) and the runs that failed."""
-
-    failures: list
-    resumed: int = 0
 
 
 def _task(task: tuple, shared: tuple) -> RunRecord:
@@ -286,28 +265,12 @@ def run_experiment(
     """
     from .runner import run_tasks
 
-    tasks = {}
-    for c in config.criteria:
-        for pop in config.populations:
-            for s in config.spm_fractions:
-                for r in range(config.runs):
-                    t = (c, int(pop), float(s), r, config.seed + r)
-                    tasks[run_key(t)] = t
+    tasks = _study_tasks(config)
     token = data_token(u, y, config)
     finished: dict[str, RunRecord] = {}
     partial = None
     if out is not None:
-        out = Path(out)
-        out.mkdir(parents=True, exist_ok=True)
-        partial, stamp = out / "runs.partial.jsonl", out / "study.json"
-        if resume:
-            finished = _read_partial(partial, stamp, token, tasks)
-        elif partial.exists():
-            raise FileExistsError(
-                f"{out} holds runs of an earlier study ({partial.name}); resume it with "
-                "--resume, start over with --force, or choose another --out (nothing was "
-                "overwritten)")
-        stamp.write_text(json.dumps({"token": token, "config": config.to_dict()}, indent=1))
+        partial, finished = _open_partial(Path(out), resume, token, tasks, config)
     todo = {k: t for k, t in tasks.items() if k not in finished}
     count = [len(finished)]
     if progress and finished:
@@ -325,6 +288,48 @@ def run_experiment(
 
     outcomes = run_tasks(_task, todo, shared=(token, u, y, config),
                          scheduler=scheduler, workers=config.workers, on_done=on_done)
+    records = _in_task_order(tasks, finished, outcomes)
+    optima = (certify_optima(u, y, config, records) if config.certify_reference and records
+              else {})
+    mark_reached(records, optima)
+    return records
+
+
+def _study_tasks(config: ExperimentConfig) -> dict[str, tuple]:
+    """Every (criterion, population, fraction, run, seed) of the grid, by its run key."""
+    tasks = {}
+    for c in config.criteria:
+        for pop in config.populations:
+            for s in config.spm_fractions:
+                for r in range(config.runs):
+                    t = (c, int(pop), float(s), r, config.seed + r)
+                    tasks[run_key(t)] = t
+    return tasks
+
+
+def _open_partial(out: Path, resume: bool, token: str, tasks: dict,
+                  config: ExperimentConfig) -> tuple[Path, dict[str, RunRecord]]:
+    """OUT's file of finished runs, and the runs it holds when resuming (else none).
+
+    An earlier study's runs are never overwritten without ``--force`` (the caller
+    removes them) or ``--resume``.
+    """
+    out.mkdir(parents=True, exist_ok=True)
+    partial, stamp = out / "runs.partial.jsonl", out / "study.json"
+    finished: dict[str, RunRecord] = {}
+    if resume:
+        finished = _read_partial(partial, stamp, token, tasks)
+    elif partial.exists():
+        raise FileExistsError(
+            f"{out} holds runs of an earlier study ({partial.name}); resume it with "
+            "--resume, start over with --force, or choose another --out (nothing was "
+            "overwritten)")
+    stamp.write_text(json.dumps({"token": token, "config": config.to_dict()}, indent=1))
+    return partial, finished
+
+
+def _in_task_order(tasks: dict, finished: dict, outcomes: dict) -> StudyRecords:
+    """The records in the grid's order (resumed or run here), with the failed runs."""
     records = StudyRecords()
     records.failures = [o for o in outcomes.values() if not o.ok]
     records.resumed = len(finished)
@@ -333,9 +338,6 @@ def run_experiment(
             records.append(finished[key])
         elif key in outcomes and outcomes[key].ok:
             records.append(outcomes[key].result)
-    optima = (certify_optima(u, y, config, records) if config.certify_reference and records
-              else {})
-    mark_reached(records, optima)
     return records
 
 
@@ -383,130 +385,4 @@ def certify_optima(u: np.ndarray, y: np.ndarray, config: ExperimentConfig,
     return out
 
 
-def mark_reached(records: Sequence[RunRecord], optima: dict[str, dict] | None = None
-                 ) -> dict[str, tuple[float, list[str], str]]:
-    """Flag runs whose final structure is their criterion's reference structure.
-
-    The reference is the certified optimum where ``optima`` has one (status
-    ``optimal``), else the best structure found across the runs. Returns
-    criterion -> (value, terms, what the reference is).
-    """
-    best: dict[str, tuple[float, list[str], str]] = {}
-    for r in records:
-        if r.criterion not in best or r.final_value < best[r.criterion][0]:
-            best[r.criterion] = (r.final_value, r.terms, "best found across runs")
-    for crit, doc in (optima or {}).items():
-        if doc.get("status") == "optimal":
-            best[crit] = (doc["value"], doc["terms"], "certified optimum")
-    for r in records:
-        value, terms, label = best[r.criterion]
-        r.reached_best = sorted(r.terms) == sorted(terms)
-        r.reference = label
-    return best
-
-
 # -- summary --------------------------------------------------------------------------
-
-
-@dataclass
-class SettingSummary:
-    """One row of the study's table."""
-
-    criterion: str
-    population_size: int
-    spm_fraction: float
-    runs: int
-    reached: int
-    mean_final: float
-    best_final: float
-    mean_generation_to_best: float
-    mean_seconds: float
-    fisher_p: float | None  # against s = 0 at the same criterion and population
-    mean_free_run_fit: float | None = None  # percent, over runs that did not diverge
-    diverged: int = 0
-    reference: str = "best found across runs"
-
-
-def summarise(records: Sequence[RunRecord]) -> list[SettingSummary]:
-    """The per-setting table, with Fisher's exact test against s = 0."""
-    from scipy.stats import fisher_exact
-
-    groups: dict[tuple, list[RunRecord]] = defaultdict(list)
-    for r in records:
-        groups[(r.criterion, r.population_size, r.spm_fraction)].append(r)
-    rows = []
-    for (crit, pop, s), runs in groups.items():
-        reached = sum(r.reached_best for r in runs)
-        base = groups.get((crit, pop, 0.0))
-        p = None
-        if base is not None and s != 0.0:
-            b = sum(r.reached_best for r in base)
-            p = float(fisher_exact([[reached, len(runs) - reached], [b, len(base) - b]])[1])
-        rows.append(SettingSummary(
-            criterion=crit, population_size=pop, spm_fraction=s, runs=len(runs), reached=reached,
-            mean_final=float(np.mean([r.final_value for r in runs])),
-            best_final=float(np.min([r.final_value for r in runs])),
-            mean_generation_to_best=float(np.mean([r.first_best_generation for r in runs])),
-            mean_seconds=float(np.mean([r.seconds for r in runs])),
-            fisher_p=p,
-            mean_free_run_fit=_mean([r.free_run_fit for r in runs if r.free_run_fit is not None]),
-            diverged=sum(r.free_run_fit is None for r in runs),
-            reference=runs[0].reference,
-        ))
-    return rows
-
-
-def _mean(values: list) -> float | None:
-    return float(np.mean(values)) if values else None
-
-
-def summary_table(rows: Sequence[SettingSummary]) -> str:
-    """The summary as a Markdown table (free-run fit: mean over runs that did not diverge)."""
-    head = ("| criterion | population | SPM s | reached | reference | mean final | best final | "
-            "mean free-run fit | mean gen. to best | mean s/run | Fisher p vs s=0 |\n"
-            "|---|---|---|---|---|---|---|---|---|---|---|\n")
-    body = "".join(
-        f"| {r.criterion.upper()} | {r.population_size} | {r.spm_fraction:g} | "
-        f"{r.reached}/{r.runs} | {r.reference} | "
-        f"{r.mean_final:.2f} | {r.best_final:.2f} | {_fit(r)} | "
-        f"{r.mean_generation_to_best:.1f} | "
-        f"{r.mean_seconds:.2f} | {'—' if r.fisher_p is None else f'{r.fisher_p:.3g}'} |\n"
-        for r in rows
-    )
-    return head + body
-
-
-def _fit(r: SettingSummary) -> str:
-    text = "—" if r.mean_free_run_fit is None else f"{r.mean_free_run_fit:.1f} %"
-    return text + (f" ({r.diverged} diverged)" if r.diverged else "")
-
-
-def write_results(records: Sequence[RunRecord], rows: Sequence[SettingSummary],
-                  config: ExperimentConfig, out: Path) -> list[Path]:
-    """runs.csv, runs.json (with convergence curves), summary.csv, summary.md, figure."""
-    from .plots import plot_convergence
-
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    fields = [f for f in RunRecord.__dataclass_fields__ if f != "best_curve"]
-    with open(out / "runs.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=fields)
-        w.writeheader()
-        for r in records:
-            row = {k: v for k, v in asdict(r).items() if k in fields}
-            row["terms"] = " + ".join(r.terms)
-            w.writerow(row)
-    (out / "runs.json").write_text(json.dumps(
-        {"config": config.to_dict(), "runs": [asdict(r) for r in records]}, indent=1))
-    with open(out / "summary.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(SettingSummary.__dataclass_fields__))
-        w.writeheader()
-        for row in rows:
-            w.writerow(asdict(row))
-    (out / "summary.md").write_text(summary_table(rows))
-    curves: dict[str, dict[float, list]] = defaultdict(lambda: defaultdict(list))
-    for r in records:
-        key = f"{r.criterion.upper()}, population {r.population_size}"
-        curves[key][r.spm_fraction].append(r.best_curve)
-    figs = plot_convergence(curves, out / "convergence")
-    return [out / "runs.csv", out / "runs.json", out / "summary.csv", out / "summary.md", *figs]
