@@ -93,6 +93,33 @@ def asks_for_help(args: list[str] | None) -> bool:
     return any(a in ("-h", "--help") for a in before)
 
 
+def _init(args: list[str] | None) -> bool:
+    """``rclpy.init``; False (with one error line) when ROS cannot read the arguments."""
+    from rclpy._rclpy_pybind11 import RCLError
+
+    try:
+        rclpy.init(args=args)
+    except RCLError as exc:  # e.g. -p dashboard_host:=:: (YAML reads "::" otherwise)
+        why = str(exc).split("Error:", 1)[-1].split(", at ")[0].strip()
+        print(f"error: ROS cannot read the command line's arguments ({why}); a value YAML "
+              "reads as something else must be quoted, e.g. -p 'dashboard_host:=\"::\"'",
+              file=sys.stderr)
+        return False
+    return True
+
+
+def _spin(executor: SingleThreadedExecutor, node: Node,
+          until: Callable[[Node], bool] | None) -> None:
+    """Until ``until(node)`` or, without it, until shut down, callbacks' errors counted."""
+    if until is None:
+        errors_of = getattr(node, "callback_errors", None)
+        _spin_resilient(executor, errors_of if isinstance(errors_of, CallbackErrors)
+                        else CallbackErrors(node.get_logger()))
+        return
+    while rclpy.ok() and not until(node):
+        executor.spin_once(timeout_sec=0.1)
+
+
 def run_node(build: Callable[[], Node], *, until: Callable[[Node], bool] | None = None,
              errors: tuple[type[BaseException], ...] = (ValueError,),
              finish: Callable[[Node, bool], int] | None = None,
@@ -118,15 +145,7 @@ def run_node(build: Callable[[], Node], *, until: Callable[[Node], bool] | None 
     args : list of str, optional
         Command-line arguments for ``rclpy.init``.
     """
-    from rclpy._rclpy_pybind11 import RCLError
-
-    try:
-        rclpy.init(args=args)
-    except RCLError as exc:  # e.g. -p dashboard_host:=:: (YAML reads "::" otherwise)
-        why = str(exc).split("Error:", 1)[-1].split(", at ")[0].strip()
-        print(f"error: ROS cannot read the command line's arguments ({why}); a value YAML "
-              "reads as something else must be quoted, e.g. -p 'dashboard_host:=\"::\"'",
-              file=sys.stderr)
+    if not _init(args):
         return 2
     executor = SingleThreadedExecutor()
     node = None
@@ -135,15 +154,8 @@ def run_node(build: Callable[[], Node], *, until: Callable[[Node], bool] | None 
     try:
         node = build()
         executor.add_node(node)
-        if until is None:
-            errors_of = getattr(node, "callback_errors", None)
-            _spin_resilient(executor, errors_of if isinstance(errors_of, CallbackErrors)
-                            else CallbackErrors(node.get_logger()))
-            interrupted = not rclpy.ok()
-        else:
-            while rclpy.ok() and not until(node):
-                executor.spin_once(timeout_sec=0.1)
-            interrupted = not rclpy.ok()  # SIGINT/SIGTERM shut the context down
+        _spin(executor, node, until)
+        interrupted = not rclpy.ok()  # SIGINT/SIGTERM shut the context down
     except errors as exc:
         print(f"error: {exc}", file=sys.stderr)
         status = 1

@@ -52,8 +52,6 @@ def model_message(doc: Mapping, stamp=None) -> NarxModel:
 
     ``stamp`` (a ``builtin_interfaces/Time``) goes into the header.
     """
-    from ..core.search.certify import describe_certificate
-
     space = TermSpace.from_dict(doc["term_space"])
     meta = doc.get("metadata") or {}
     msg = NarxModel()
@@ -70,8 +68,29 @@ def model_message(doc: Mapping, stamp=None) -> NarxModel:
         TermFactor(signal=s, lag=int(lag), power=int(p)) for s, lag, p in space.term_factors(i)])
         for name, i in zip(doc["terms"], doc["term_indices"])]
     msg.coefficients = [float(c) for c in doc["coefficients"]]
+    _fill_uncertainty(msg, doc.get("uncertainty"))
+    crit = doc.get("criterion") or {}
+    msg.criterion = str(crit.get("name") or "")
+    msg.criterion_value = _num(crit.get("value"))
+    msg.criterion_meaning = str(meta.get("criterion_meaning") or "")
+    msg.focus = str(meta.get("focus") or "prediction")
+    msg.selection = str((meta.get("selection") or {}).get("method") or "criterion")
+    msg.one_step_mse = _num(doc.get("mse"))
+    _fill_certificate(msg, meta.get("certificate") or {})
+    data = meta.get("data") or {}
+    msg.samples = _uint(data.get("samples", doc.get("n_samples")))
+    msg.used_samples = _uint(data.get("used_samples", meta.get("samples_used")))
+    msg.segments = _uint(data.get("used_segments", data.get("segments", 1)))
+    msg.gaps = _uint(data.get("gaps"))
+    msg.missing_samples = _uint(data.get("missing_samples"))
+    msg.rejected_samples = _uint(data.get("rejected_samples"))
+    _fill_validation(msg, meta.get("validation") or {})
+    msg.warnings = [str(w) for w in meta.get("warnings") or []]
+    return msg
 
-    unc = doc.get("uncertainty")
+
+def _fill_uncertainty(msg: NarxModel, unc: Mapping | None) -> None:
+    """Standard errors and intervals (confidence level NaN when the document has none)."""
     msg.confidence_level = NAN
     if unc:
         msg.uncertainty_method = str(unc["method"])
@@ -80,15 +99,11 @@ def model_message(doc: Mapping, stamp=None) -> NarxModel:
         msg.interval_lower = [float(a) for a, _ in unc["intervals"]]
         msg.interval_upper = [float(b) for _, b in unc["intervals"]]
 
-    crit = doc.get("criterion") or {}
-    msg.criterion = str(crit.get("name") or "")
-    msg.criterion_value = _num(crit.get("value"))
-    msg.criterion_meaning = str(meta.get("criterion_meaning") or "")
-    msg.focus = str(meta.get("focus") or "prediction")
-    msg.selection = str((meta.get("selection") or {}).get("method") or "criterion")
-    msg.one_step_mse = _num(doc.get("mse"))
 
-    cert = meta.get("certificate") or {}
+def _fill_certificate(msg: NarxModel, cert: Mapping) -> None:
+    """The certification's status, bound, gap and its account in words."""
+    from ..core.search.certify import describe_certificate
+
     msg.certification = _CERTIFICATION.get(
         cert.get("status"), NarxModel.CERTIFICATION_NOT_CERTIFIABLE if cert
         else NarxModel.CERTIFICATION_NOT_RUN)
@@ -96,15 +111,9 @@ def model_message(doc: Mapping, stamp=None) -> NarxModel:
     msg.gap = _num(cert.get("gap"))
     msg.certificate = describe_certificate(cert) if cert else ""
 
-    data = meta.get("data") or {}
-    msg.samples = _uint(data.get("samples", doc.get("n_samples")))
-    msg.used_samples = _uint(data.get("used_samples", meta.get("samples_used")))
-    msg.segments = _uint(data.get("used_segments", data.get("segments", 1)))
-    msg.gaps = _uint(data.get("gaps"))
-    msg.missing_samples = _uint(data.get("missing_samples"))
-    msg.rejected_samples = _uint(data.get("rejected_samples"))
 
-    val = meta.get("validation") or {}
+def _fill_validation(msg: NarxModel, val: Mapping) -> None:
+    """Fits (one-step, k-step, free run) and where the free run diverged (-1: never)."""
     msg.one_step_fit_percent = _num((val.get("one_step") or {}).get("fit_percent"))
     k_step = val.get("k_step") or {}
     msg.k_step_fit_percent = _num(k_step.get("fit_percent"))
@@ -113,8 +122,6 @@ def model_message(doc: Mapping, stamp=None) -> NarxModel:
     diverged = val.get("diverged_at")
     msg.diverged = diverged is not None
     msg.diverged_at = -1 if diverged is None else int(diverged)
-    msg.warnings = [str(w) for w in meta.get("warnings") or []]
-    return msg
 
 
 def _fit(metrics: Mapping | None) -> FitMetrics:
