@@ -318,50 +318,11 @@ def build_report(content: ReportContent, sections: list[OutputSection]) -> str:
     import json
 
     plots = _Plots()
-    body = []
-
-    def div(plot_id: str, cls: str = "") -> str:
-        return f'<div id="{plot_id}"{f" class={chr(34)}{cls}{chr(34)}" if cls else ""}></div>'
-
-    for sec in sections:
-        part = [f'<section class="output" id="output-{_esc(sec.name)}">'
-                + (f"<h2>Output {_esc(sec.name)}</h2>" if len(sections) > 1 else "")
-                + f'<p class="equation" id="equation-{_esc(sec.name)}">'
-                f"{_esc(sec.model.equation())}</p>",
-                _coefficient_table(sec), _facts(sec)]
-        rep = sec.report
-        if rep is None:
-            part.append("<p>No validation was run (validation: none).</p>")
-        else:
-            kind, sentence = verdict(sec)
-            part.insert(1, f'<p class="verdict {kind}" id="verdict-{_esc(sec.name)}">'
-                        f"{_esc(sentence)}</p>")
-            if rep.diverged_at is not None:
-                part.append(f'<p class="diverged" id="diverged-{_esc(sec.name)}">The free-run '
-                            f"simulation DIVERGED at sample {_esc(rep.diverged_at)}: the model "
-                            "does not describe the system there.</p>")
-            part.append(f"<h3>Validation ({_esc(rep.segment)} data, {_esc(rep.n_samples)} "
-                        "samples)</h3>")
-            kinds = ["one_step"] + (["k_step"] if rep.k_step is not None else []) \
-                + ["free_run"]
-            for kind in kinds:
-                first = len(plots.specs)
-                _prediction_plots(plots, sec, kind)
-                part += [div(s["id"]) for s in plots.specs[first:]]
-            _residual_plot(plots, sec)
-            part.append(div(plots.specs[-1]["id"]))
-            part.append("<h3>Correlation tests</h3>")
-            if rep.tests_skipped:
-                part.append(f"<p>{_esc(rep.tests_skipped)}</p>")
-            part += [div(i, "half") for i in _correlation_plots(plots, sec.name, rep.tests)]
-        if sec.history:
-            part.append("<h3>Search</h3>" + div(_convergence_plot(plots, sec.name,
-                                                                  sec.history)))
-        part.append("</section>")
-        body.append("\n".join(part))
+    body = ["\n".join(_output_section(plots, sec, several=len(sections) > 1))
+            for sec in sections]
     if content.cross_tests:
         body.append("<section><h2>Cross-correlation of the outputs' residuals</h2>")
-        body += [div(i, "half") for i in _correlation_plots(plots, "outputs",
+        body += [_div(i, "half") for i in _correlation_plots(plots, "outputs",
                                                              content.cross_tests, "cross")]
         body.append("</section>")
     text = "\n".join(body)
@@ -375,6 +336,56 @@ def build_report(content: ReportContent, sections: list[OutputSection]) -> str:
         written=_esc(time.strftime("%Y-%m-%d %H:%M:%S")),
         notes=f'<ul class="notes">{notes}</ul>' if notes else "", body=text,
         summary=summary, plots=data, draw=read_page_file("report.js"))
+
+
+def _div(plot_id: str, cls: str = "") -> str:
+    """The empty element a plot is drawn into."""
+    return f'<div id="{plot_id}"{f" class={chr(34)}{cls}{chr(34)}" if cls else ""}></div>'
+
+
+def _output_section(plots: _Plots, sec: OutputSection, several: bool) -> list[str]:
+    """One output's section: equation, verdict, coefficients, facts, validation, search."""
+    part = [f'<section class="output" id="output-{_esc(sec.name)}">'
+            + (f"<h2>Output {_esc(sec.name)}</h2>" if several else "")
+            + f'<p class="equation" id="equation-{_esc(sec.name)}">'
+            f"{_esc(sec.model.equation())}</p>",
+            _coefficient_table(sec), _facts(sec)]
+    rep = sec.report
+    if rep is None:
+        part.append("<p>No validation was run (validation: none).</p>")
+    else:
+        kind, sentence = verdict(sec)
+        part.insert(1, f'<p class="verdict {kind}" id="verdict-{_esc(sec.name)}">'
+                    f"{_esc(sentence)}</p>")
+        part += _validation_part(plots, sec)
+    if sec.history:
+        part.append("<h3>Search</h3>" + _div(_convergence_plot(plots, sec.name, sec.history)))
+    part.append("</section>")
+    return part
+
+
+def _validation_part(plots: _Plots, sec: OutputSection) -> list[str]:
+    """Divergence, prediction plots, residuals and correlation tests of one output."""
+    rep = sec.report
+    part = []
+    if rep.diverged_at is not None:
+        part.append(f'<p class="diverged" id="diverged-{_esc(sec.name)}">The free-run '
+                    f"simulation DIVERGED at sample {_esc(rep.diverged_at)}: the model "
+                    "does not describe the system there.</p>")
+    part.append(f"<h3>Validation ({_esc(rep.segment)} data, {_esc(rep.n_samples)} "
+                "samples)</h3>")
+    kinds = ["one_step"] + (["k_step"] if rep.k_step is not None else []) + ["free_run"]
+    for kind in kinds:
+        first = len(plots.specs)
+        _prediction_plots(plots, sec, kind)
+        part += [_div(s["id"]) for s in plots.specs[first:]]
+    _residual_plot(plots, sec)
+    part.append(_div(plots.specs[-1]["id"]))
+    part.append("<h3>Correlation tests</h3>")
+    if rep.tests_skipped:
+        part.append(f"<p>{_esc(rep.tests_skipped)}</p>")
+    part += [_div(i, "half") for i in _correlation_plots(plots, sec.name, rep.tests)]
+    return part
 
 
 def write_model_report(path: str | Path, content: ReportContent,

@@ -122,11 +122,7 @@ def plot_prediction(report: ValidationReport, stem: Path, kind: str = "one_step"
     ax1.plot(t, report.measured, color="k", lw=0.8, label="measured")
     ax1.plot(t, pred, color="tab:red", lw=0.7, ls="--", label=label)
     ax1.set_ylabel("output y")
-    # a zoomed window, so that the two curves can be told apart: where the error peaks
-    finite = np.isfinite(err)
-    peak = int(np.nanargmax(np.abs(np.where(finite, err, np.nan)))) if finite.any() else 0
-    a = int(np.clip(peak - ZOOM // 2, 0, max(len(t) - ZOOM, 0)))
-    z = slice(a, a + ZOOM)
+    z = _zoom(err, len(t))
     if band is not None:
         text = f"{band.level:.0%} band (coefficient uncertainty)"
         ax1.fill_between(t, band.lower, band.upper, color="tab:red", alpha=0.2, lw=0,
@@ -141,13 +137,7 @@ def plot_prediction(report: ValidationReport, stem: Path, kind: str = "one_step"
     axz.set_title(f"{span} (around the largest error)", fontsize=8)
     ax1.axvspan(t[z][0], t[z][-1], color="tab:orange", alpha=0.15, lw=0)
     if m.get("diverged_at") is not None:
-        bad = np.flatnonzero(~np.isfinite(pred))
-        row = int(bad[0]) if bad.size else len(pred) - 1
-        for ax in (ax1, ax2):
-            ax.axvline(t[row], color="tab:red", lw=1.5)
-        ax1.annotate(f"diverged at sample {m['diverged_at']}", (t[row], ax1.get_ylim()[1]),
-                     xytext=(-5, -12), textcoords="offset points", ha="right",
-                     color="tab:red", fontsize=9)
+        _mark_divergence(ax1, ax2, t, pred, m["diverged_at"])
         summary = f"{label[0].upper() + label[1:]}: DIVERGED at sample {m['diverged_at']}"
     else:
         summary = (f"{label[0].upper() + label[1:]}: max |e| {m['max_abs']:.4g}, "
@@ -160,6 +150,25 @@ def plot_prediction(report: ValidationReport, stem: Path, kind: str = "one_step"
     ax2.sharex(ax1)
     fig.tight_layout()
     return _save(fig, stem)
+
+
+def _zoom(err: np.ndarray, n: int) -> slice:
+    """A window of ZOOM rows around the largest error, so the two curves can be told apart."""
+    finite = np.isfinite(err)
+    peak = int(np.nanargmax(np.abs(np.where(finite, err, np.nan)))) if finite.any() else 0
+    a = int(np.clip(peak - ZOOM // 2, 0, max(n - ZOOM, 0)))
+    return slice(a, a + ZOOM)
+
+
+def _mark_divergence(ax1, ax2, t: np.ndarray, pred: np.ndarray, at: int) -> None:
+    """A vertical line where the run stops being finite, and its sample named."""
+    bad = np.flatnonzero(~np.isfinite(pred))
+    row = int(bad[0]) if bad.size else len(pred) - 1
+    for ax in (ax1, ax2):
+        ax.axvline(t[row], color="tab:red", lw=1.5)
+    ax1.annotate(f"diverged at sample {at}", (t[row], ax1.get_ylim()[1]),
+                 xytext=(-5, -12), textcoords="offset points", ha="right",
+                 color="tab:red", fontsize=9)
 
 
 def plot_convergence(

@@ -267,9 +267,7 @@ class _Scorer:
 
 
 def run_ga(
-    evaluator: _Scorer,
-    config: GAConfig | None = None,
-    seed: int | None = None,
+    evaluator: _Scorer, config: GAConfig | None = None, seed: int | None = None,
     callback: Callable[[GenerationStats], bool | None] | None = None,
 ) -> GAResult:
     """Search structures with the GA; return the best one found.
@@ -320,13 +318,20 @@ def run_ga(
             break
         if gen == config.generations:
             break
-        pool = pop[roulette_select(roulette_fitness(scores, config.fitness), size, rng)]
-        n_children = size - 1 if config.elitism else size
-        children = mutate(spm_mating(pool, n_children, config.spm_fraction, config, rng),
-                          mutation, rng)
-        pop = np.concatenate([result.best_mask[None, :], children]) if config.elitism else children
+        pop = _next_generation(pop, scores, result.best_mask, config, mutation, rng)
 
     result.evaluations = evaluator.evaluations - evals0
     result.lookups = evaluator.lookups - lookups0
     result.elapsed = time.perf_counter() - start
     return result
+
+
+def _next_generation(pop: np.ndarray, scores: np.ndarray, best: np.ndarray, config: GAConfig,
+                     mutation: float, rng: np.random.Generator) -> np.ndarray:
+    """Roulette selection, SPM mating, mutation; the best kept first with elitism."""
+    size = len(pop)
+    pool = pop[roulette_select(roulette_fitness(scores, config.fitness), size, rng)]
+    n_children = size - 1 if config.elitism else size
+    children = mutate(spm_mating(pool, n_children, config.spm_fraction, config, rng),
+                      mutation, rng)
+    return np.concatenate([best[None, :], children]) if config.elitism else children

@@ -146,14 +146,10 @@ def propose_orders(u: np.ndarray, y: np.ndarray, *, max_order: int = 10, max_deg
 
     Parameters
     ----------
-    u : ndarray, shape (n,) or (n, m)
-        Input samples (one column per input).
-    y : ndarray, shape (n,)
-        Output samples.
-    max_order, max_degree : int
-        Largest lag order and degree tried.
-    delay : int
-        Input delay of every candidate space.
+    u, y : ndarray, shapes (n,) or (n, m), and (n,)
+        Input samples (one column per input) and output samples.
+    max_order, max_degree, delay : int
+        Largest lag order and degree tried; the input delay of every space.
     criterion : str
         ``aic`` or ``bic`` (criteria that need coefficients are not supported here).
     inputs : tuple of str
@@ -182,14 +178,7 @@ def propose_orders(u: np.ndarray, y: np.ndarray, *, max_order: int = 10, max_deg
         # its largest lag leaves the first row at `start`
         return Problem.from_signals(u, y, space, [(start - space.max_lag, stop)])
 
-    scan = []
-    for n in range(1, max_order + 1):
-        ev = problem(_space(n, 1, delay, names)).evaluator(crit)
-        try:
-            value = float(ev.cached_score(np.ones(ev.n_terms, dtype=bool)))
-        except (ValueError, np.linalg.LinAlgError):
-            value = np.inf
-        scan.append((n, value if np.isfinite(value) else np.inf))
+    scan = _linear_scan(problem, crit, max_order, delay, names)
     finite = [item for item in scan if np.isfinite(item[1])]
     if not finite:
         raise ValueError(f"no linear model of orders 1..{max_order} can be fitted")
@@ -203,6 +192,20 @@ def propose_orders(u: np.ndarray, y: np.ndarray, *, max_order: int = 10, max_deg
     else:
         _scan_degrees(out, problem, crit, max_degree, delay, names)
     return out
+
+
+def _linear_scan(problem, crit, max_order: int, delay: int,
+                 names: tuple[str, ...]) -> list[tuple[int, float]]:
+    """The criterion of every linear ARX of order 1..max_order (+inf where none fits)."""
+    scan = []
+    for n in range(1, max_order + 1):
+        ev = problem(_space(n, 1, delay, names)).evaluator(crit)
+        try:
+            value = float(ev.cached_score(np.ones(ev.n_terms, dtype=bool)))
+        except (ValueError, np.linalg.LinAlgError):
+            value = np.inf
+        scan.append((n, value if np.isfinite(value) else np.inf))
+    return scan
 
 
 def _scan_degrees(out: OrderProposal, problem, crit, max_degree, delay, names) -> None:
