@@ -287,25 +287,27 @@ def json_ready(value):
         return {str(k): json_ready(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
         return [json_ready(v) for v in value]
-    if isinstance(value, bool) or value is None or isinstance(value, str):
-        return value
-    if isinstance(value, int):
+    if isinstance(value, (bool, int, str)) or value is None:
         return value
     if isinstance(value, float):
         return value if math.isfinite(value) else None
-    try:  # numpy scalars and arrays, without importing numpy here
-        import numpy as np
+    return _numpy_ready(value)
 
-        if isinstance(value, np.ndarray):
-            return json_ready(value.tolist())
-        if isinstance(value, np.bool_):
-            return bool(value)
-        if isinstance(value, np.integer):
-            return int(value)
-        if isinstance(value, np.floating):
-            return json_ready(float(value))
+
+def _numpy_ready(value):
+    """Arrays and scalars of numpy as :func:`json_ready` gives them; anything else as it is."""
+    try:  # without importing numpy at this module's import
+        import numpy as np
     except ImportError:  # pragma: no cover - numpy is a dependency
-        pass
+        return value
+    if isinstance(value, np.ndarray):
+        return json_ready(value.tolist())
+    if isinstance(value, np.bool_):
+        return bool(value)
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, np.floating):
+        return json_ready(float(value))
     return value
 
 

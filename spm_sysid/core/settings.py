@@ -292,31 +292,38 @@ def check(name: str, value: Any) -> Any:
         s = SETTINGS[name]
     except KeyError:
         raise SettingsError(f"unknown setting {name!r}") from None
+    value = _typed(s, value)
+    if s.kind in (int, float) and ((s.low is not None and value < s.low)
+                                   or (s.high is not None and value > s.high)):
+        raise SettingsError(f"{name} must be {s.describe_range()}, got {value!r} ({s.help})")
+    return value
+
+
+def _typed(s: Setting, value: Any) -> Any:
+    """``value`` in the setting's type, or a SettingsError naming the setting."""
+    name = s.name
     if s.kind is bool:
         if not isinstance(value, bool):
             raise SettingsError(f"{name} must be true or false, got {value!r}")
         return value
     if s.kind is int:
+        if isinstance(value, bool):
+            raise SettingsError(f"{name} must be an integer, got {value!r}")
         try:
-            if isinstance(value, bool):
-                raise TypeError
-            value = operator.index(value)  # int and numpy integers; not 4.0 or "4"
+            return operator.index(value)  # int and numpy integers; not 4.0 or "4"
         except TypeError:
             raise SettingsError(f"{name} must be an integer, got {value!r}") from None
-    elif s.kind is float:
+    if s.kind is float:
         if isinstance(value, bool) or not isinstance(value, numbers.Real):
             raise SettingsError(f"{name} must be a number, got {value!r}")
-        value = float(value)
-        if not math.isfinite(value):
-            raise SettingsError(f"{name} must be a finite number, got {value!r}")
-    elif s.kind is str:
+        if not math.isfinite(float(value)):
+            raise SettingsError(f"{name} must be a finite number, got {float(value)!r}")
+        return float(value)
+    if s.kind is str:
         if not isinstance(value, str):
             raise SettingsError(f"{name} must be text, got {value!r}")
         if s.choices and value not in s.choices:
             raise SettingsError(f"{name} must be one of {', '.join(s.choices)}, got {value!r}")
-        return value
-    if (s.low is not None and value < s.low) or (s.high is not None and value > s.high):
-        raise SettingsError(f"{name} must be {s.describe_range()}, got {value!r} ({s.help})")
     return value
 
 

@@ -83,13 +83,7 @@ def parse_channels(topics, fields=None, types=None, names=None, role: str = "inp
         values = lists[f"{r}_{label}"]
         return values[0] if len(values) == 1 else (values[i] if values else None)
 
-    letter = "u" if r == "input" else "y"
-    names_ = lists[f"{r}_names"] or ([letter] if n == 1 else
-                                     [f"{letter}{i + 1}" for i in range(n)])
-    if len(names_) == 1 and n > 1:
-        raise ValueError(f"{r}_names gives one name for {n} {r}s")
-    if len(set(names_)) != n or not all(nm.isidentifier() for nm in names_):
-        raise ValueError(f"{r}_names must be distinct identifiers, got {', '.join(names_)}")
+    names_ = _signal_names(lists[f"{r}_names"], n, r)
     channels = []
     for i in range(n):
         msgtype, field = pick("type", i), pick("field", i) or ""
@@ -99,13 +93,29 @@ def parse_channels(topics, fields=None, types=None, names=None, role: str = "inp
         except FieldPathError as exc:
             raise ValueError(f"{r} {names_[i]}: {exc}") from None
         channels.append(Channel(pick("topic", i), msgtype, field, names_[i]))
+    _check_distinct(channels, n, r)
+    return channels
+
+
+def _signal_names(given: list[str], n: int, r: str) -> list[str]:
+    """The names given, or ``u``/``u1, u2, ...`` (``y`` for outputs); distinct identifiers."""
+    letter = "u" if r == "input" else "y"
+    names = given or ([letter] if n == 1 else [f"{letter}{i + 1}" for i in range(n)])
+    if len(names) == 1 and n > 1:
+        raise ValueError(f"{r}_names gives one name for {n} {r}s")
+    if len(set(names)) != n or not all(nm.isidentifier() for nm in names):
+        raise ValueError(f"{r}_names must be distinct identifiers, got {', '.join(names)}")
+    return names
+
+
+def _check_distinct(channels: list[Channel], n: int, r: str) -> None:
+    """No field read twice from one topic; one type per topic."""
     if len({(c.topic, c.field) for c in channels}) != n:
         raise ValueError(f"two {r}s read the same field of the same topic")
     for c in channels:
         same = {d.msgtype for d in channels if d.topic == c.topic}
         if len(same) > 1:
             raise ValueError(f"topic {c.topic} is given two types: {', '.join(map(str, same))}")
-    return channels
 
 
 def topic_streams(channels: Sequence[Channel]) -> list[tuple[str, str | None, list[int]]]:

@@ -122,37 +122,14 @@ class JobResult:
         value = m.criterion_value
         if m.metadata.get("focus") == "simulation":
             crit += " (simulation)"
-        cert = describe_certificate(m.metadata.get("certificate"))
-        pol = m.metadata.get("polish") or {}
-        if pol.get("value") is not None and pol["value"] < pol["ga_value"]:
-            cert = (f"the polish after the GA improved its best from {pol['ga_value']:.2f} "
-                    f"({pol['steps']} step(s))" + (f", {cert}" if cert else ""))
+        cert, selected = _certificate_words(m.metadata), _selection_words(m.metadata)
         warnings = m.metadata.get("warnings") or []
-        selected = describe_selection(m.metadata.get("selection"))
-        orders = m.metadata.get("orders")
-        if orders:
-            selected = (f"orders from the data: ny = nu = {orders['ny']}, degree "
-                        f"{orders['degree']} ({orders['reason']})"
-                        + (f"; {selected}" if selected else ""))
         if style == "line":
             text = (f"{m.equation()} | {crit} {value:.2f}, {len(m.term_indices)} terms, "
                     f"one-step MSE {m.mse:.4e}, {describe_data(self.data)}")
-            if selected:
-                text += f", {selected}"
-            if cert:
-                text += f", {cert}"
+            text += "".join(f", {part}" for part in (selected, cert) if part)
             if self.report is not None:
-                r = self.report
-                o, f = r.one_step_metrics, r.free_run_metrics
-                failed = [t.name for t in r.tests if not t.passed]
-                free = (f"free-run DIVERGED at sample {f['diverged_at']}"
-                        if f.get("diverged_at") is not None
-                        else f"free-run fit {f['fit_percent']:.1f} %")
-                tests = ("correlation tests not computed" if r.tests_skipped else
-                         "correlation tests " + ("all inside the band" if not failed
-                                                 else "outside the band: " + ", ".join(failed)))
-                text += (f" ({r.segment} validation: one-step fit {o['fit_percent']:.1f} %, "
-                         f"{free}, {tests})")
+                text += f" ({_validation_words(self.report)})"
             if warnings:
                 text += "; WARNING: " + "; WARNING: ".join(warnings)
             return text + f", {self.seconds.get('total', 0.0):.2f} s"
@@ -162,15 +139,46 @@ class JobResult:
                  f"{self.seconds.get('search', self.search.elapsed):.2f} s "
                  f"({self.search.evaluations} structures fitted, cache hit rate "
                  f"{self.search.cache_hit_rate:.0%})"]
-        if selected:
-            lines.append(selected)
-        if cert:
-            lines.append(cert)
+        lines += [part for part in (selected, cert) if part]
         lines.append(m.coefficient_table())
         lines += [f"warning: {w}" for w in warnings]
         if self.report is not None:
             lines.append(self.report.summary())
         return "\n".join(lines)
+
+
+def _certificate_words(meta: dict) -> str:
+    """The certificate in words, after what the polish improved (if it did)."""
+    cert = describe_certificate(meta.get("certificate"))
+    pol = meta.get("polish") or {}
+    if pol.get("value") is not None and pol["value"] < pol["ga_value"]:
+        cert = (f"the polish after the GA improved its best from {pol['ga_value']:.2f} "
+                f"({pol['steps']} step(s))" + (f", {cert}" if cert else ""))
+    return cert
+
+
+def _selection_words(meta: dict) -> str:
+    """How the structure was chosen, after the orders taken from the data (if they were)."""
+    selected = describe_selection(meta.get("selection"))
+    orders = meta.get("orders")
+    if orders:
+        selected = (f"orders from the data: ny = nu = {orders['ny']}, degree "
+                    f"{orders['degree']} ({orders['reason']})"
+                    + (f"; {selected}" if selected else ""))
+    return selected
+
+
+def _validation_words(r) -> str:
+    """The validation in one clause: fits, divergence, correlation tests."""
+    o, f = r.one_step_metrics, r.free_run_metrics
+    failed = [t.name for t in r.tests if not t.passed]
+    free = (f"free-run DIVERGED at sample {f['diverged_at']}"
+            if f.get("diverged_at") is not None
+            else f"free-run fit {f['fit_percent']:.1f} %")
+    tests = ("correlation tests not computed" if r.tests_skipped else
+             "correlation tests " + ("all inside the band" if not failed
+                                     else "outside the band: " + ", ".join(failed)))
+    return f"{r.segment} validation: one-step fit {o['fit_percent']:.1f} %, {free}, {tests}"
 
 
 def describe_selection(doc: dict | None) -> str:
