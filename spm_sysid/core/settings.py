@@ -299,6 +299,15 @@ def check(name: str, value: Any) -> Any:
     return value
 
 
+def _number(name: str, value: Any) -> float:
+    """A finite real number as a float (an integer is one; a boolean is not)."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise SettingsError(f"{name} must be a number, got {value!r}")
+    if not math.isfinite(float(value)):
+        raise SettingsError(f"{name} must be a finite number, got {float(value)!r}")
+    return float(value)
+
+
 def _typed(s: Setting, value: Any) -> Any:
     """``value`` in the setting's type, or a SettingsError naming the setting."""
     name = s.name
@@ -314,11 +323,7 @@ def _typed(s: Setting, value: Any) -> Any:
         except TypeError:
             raise SettingsError(f"{name} must be an integer, got {value!r}") from None
     if s.kind is float:
-        if isinstance(value, bool) or not isinstance(value, numbers.Real):
-            raise SettingsError(f"{name} must be a number, got {value!r}")
-        if not math.isfinite(float(value)):
-            raise SettingsError(f"{name} must be a finite number, got {float(value)!r}")
-        return float(value)
+        return _number(name, value)
     if s.kind is str:
         if not isinstance(value, str):
             raise SettingsError(f"{name} must be text, got {value!r}")

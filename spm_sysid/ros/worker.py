@@ -234,6 +234,25 @@ class JobWorker:
         except subprocess.TimeoutExpired:  # pragma: no cover - SIGKILL does not wait
             pass
 
+    def _handle(self, proc: subprocess.Popen, message: tuple) -> None:
+        """One message of the worker: ready, progress, or the job's result or error."""
+        kind = message[0]
+        if kind == "ready":
+            proc.was_ready = True
+            self._failures, self.start_failure = 0, ""
+            self._ready.set()
+            self.on_event(f"worker process {proc.pid} ready")
+        elif kind == "progress" and self.on_progress is not None:
+            self.on_progress(*message[1:])
+        elif kind in ("result", "error"):
+            with self._lock:
+                job, self._job = self._job, None
+            if job is not None and not job.done():
+                if kind == "result":
+                    job.set_result(message[1])
+                else:
+                    job.set_exception(JobError(*message[1:3]))
+
     def _read(self, proc: subprocess.Popen) -> None:
         """Reader thread of one worker process: results, progress, and its death."""
         while True:
@@ -241,22 +260,7 @@ class JobWorker:
                 message = _recv(proc.stdout)
             except (EOFError, OSError, pickle.UnpicklingError):
                 break
-            kind = message[0]
-            if kind == "ready":
-                proc.was_ready = True
-                self._failures, self.start_failure = 0, ""
-                self._ready.set()
-                self.on_event(f"worker process {proc.pid} ready")
-            elif kind == "progress" and self.on_progress is not None:
-                self.on_progress(*message[1:])
-            elif kind in ("result", "error"):
-                with self._lock:
-                    job, self._job = self._job, None
-                if job is not None and not job.done():
-                    if kind == "result":
-                        job.set_result(message[1])
-                    else:
-                        job.set_exception(JobError(*message[1:3]))
+            self._handle(proc, message)
         proc.wait()
         with self._lock:
             if proc is not self._proc:

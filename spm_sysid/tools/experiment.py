@@ -56,6 +56,16 @@ GRID = {"criteria": "criterion", "populations": "population_size",
         "spm_fractions": "spm_fraction"}
 
 
+def _check_grid_list(name: str, setting: str, values) -> None:
+    """A grid list: non-empty, each value valid for its setting, none twice."""
+    if not isinstance(values, list) or not values:
+        raise SettingsError(f"{name} must be a non-empty list")
+    checked = [check(setting, v) for v in values]  # 20.9 is not a population
+    if len(set(checked)) != len(checked):
+        raise SettingsError(f"{name} lists a value more than once: {values} (each "
+                            "setting of the grid is run once)")
+
+
 class ExperimentConfig:
     """What to run; defaults are the paper's study (180 runs).
 
@@ -129,13 +139,7 @@ class ExperimentConfig:
             raise SettingsError(f"certify_reference must be true or false, got "
                                 f"{self.certify_reference!r}")
         for name, setting in GRID.items():
-            values = getattr(self, name)
-            if not isinstance(values, list) or not values:
-                raise SettingsError(f"{name} must be a non-empty list")
-            checked = [check(setting, v) for v in values]  # 20.9 is not a population
-            if len(set(checked)) != len(checked):
-                raise SettingsError(f"{name} lists a value more than once: {values} (each "
-                                    "setting of the grid is run once)")
+            _check_grid_list(name, setting, getattr(self, name))
         # every cell's settings, checked once by the schema (unknown criteria included)
         for c in self.criteria:
             for pop in self.populations:

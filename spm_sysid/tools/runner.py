@@ -151,13 +151,8 @@ def _pool_round(pool, fn, tasks, shared, keys, attempts, retries, done, out, job
         finished, _ = wait(futures, return_when=FIRST_COMPLETED)
         for fut in finished:
             key = futures.pop(fut)
-            try:
-                outcome = TaskOutcome(key, _unwrap(fut.result(), job, key), None, attempts[key])
-            except BrokenProcessPool:
-                broken = True  # a worker process died: run its task again
-                outcome = None
-            except Exception as exc:  # noqa: BLE001 - reported per task
-                outcome = TaskOutcome(key, None, f"{type(exc).__name__}: {exc}", attempts[key])
+            outcome = _outcome(fut, job, key, attempts[key])
+            broken |= outcome is None  # a worker process died: run its task again
             if outcome is None or (not outcome.ok and attempts[key] <= retries):
                 if attempts[key] <= retries:
                     pending.append(key)
@@ -167,15 +162,31 @@ def _pool_round(pool, fn, tasks, shared, keys, attempts, retries, done, out, job
             out[key] = outcome
             done(outcome)
         if broken:  # the pool is unusable: collect what is left and start a new one
-            for fut, key in futures.items():
-                if fut.done() and not fut.exception():
-                    out[key] = TaskOutcome(key, _unwrap(fut.result(), job, key), None,
-                                           attempts[key])
-                    done(out[key])
-                else:
-                    pending.append(key)
+            pending += _collect_finished(futures, job, attempts, done, out)
             futures = {}
     return pending
+
+
+def _outcome(fut, job, key: str, attempt: int) -> TaskOutcome | None:
+    """A finished future's outcome (an error counted per task); None when its worker died."""
+    try:
+        return TaskOutcome(key, _unwrap(fut.result(), job, key), None, attempt)
+    except BrokenProcessPool:
+        return None
+    except Exception as exc:  # noqa: BLE001 - reported per task
+        return TaskOutcome(key, None, f"{type(exc).__name__}: {exc}", attempt)
+
+
+def _collect_finished(futures: dict, job, attempts: dict, done, out: dict) -> list:
+    """Of a broken pool's futures, keep the finished ones; the keys to run again."""
+    again = []
+    for fut, key in futures.items():
+        if fut.done() and not fut.exception():
+            out[key] = TaskOutcome(key, _unwrap(fut.result(), job, key), None, attempts[key])
+            done(out[key])
+        else:
+            again.append(key)
+    return again
 
 
 def _worker_signals() -> None:

@@ -402,12 +402,18 @@ def _term_space(ts: dict, version: int) -> TermSpace:
         raise ModelFormatError(f"term_space is invalid: {exc}") from None
 
 
-def _terms(doc: dict, space: TermSpace) -> tuple[list, list]:
-    """``term_indices`` and ``coefficients``, checked together with ``terms`` and the space."""
+def _term_lists(doc: dict) -> tuple[list, list, list]:
+    """``term_indices``, ``coefficients`` and ``terms``, each a list."""
     indices, coefs, names = doc["term_indices"], doc["coefficients"], doc["terms"]
     for key, value in (("term_indices", indices), ("coefficients", coefs), ("terms", names)):
         if not isinstance(value, list):
             raise ModelFormatError(f"{key!r} must be a list, got {type(value).__name__}")
+    return indices, coefs, names
+
+
+def _terms(doc: dict, space: TermSpace) -> tuple[list, list]:
+    """``term_indices`` and ``coefficients``, checked together with ``terms`` and the space."""
+    indices, coefs, names = _term_lists(doc)
     bad = [i for i in indices if not _is_int(i)]
     if bad:
         raise ModelFormatError(f"term_indices must be integers, got {bad[0]!r}")

@@ -133,22 +133,9 @@ class Identification:
                                 else (self.params.values, self.params.job))
         except (ValueError, TypeError) as exc:
             return Outcome(Code.INVALID_SETTINGS, f"invalid settings: {exc}")
-        try:
-            if record is None and bag_path:  # read off the executor, with a bound
-                try:
-                    record = await self._off_executor(lambda: self._bag(values, bag_path),
-                                                      values["job_timeout"] or LOAD_BOUND)
-                finally:
-                    self._reading = None
-            elif record is None:  # the buffer: on the executor, as its callbacks
-                record = self.recorder.record(values["min_samples"])
-        except TooFewSamplesError as exc:
-            return Outcome(Code.TOO_FEW_SAMPLES, str(exc))
-        except JobCancelledError:
-            return Outcome(Code.CANCELED, "canceled while reading the data; the previous "
-                           "model stays published")
-        except (ValueError, OSError) as exc:
-            return self._failed(Code.BAD_DATA, exc)
+        record = await self._load(values, bag_path, record)
+        if isinstance(record, Outcome):
+            return record
         if not await self._worker_ready(30.0):
             return self._failed(Code.FAILED, RuntimeError(
                 "the worker process is not ready ("
@@ -159,17 +146,9 @@ class Identification:
         self.node.get_logger().info(f"identifying on {len(record.y)} samples "
                                     f"({settings.criterion}, {settings.ga.generations} "
                                     "generations)")
-        try:
-            result = await self._in_worker(record, settings, values)
-        except JobTimeoutError as exc:
-            return self._failed(Code.TIMEOUT, exc)
-        except JobCancelledError as exc:
-            if self.cancel_requested:
-                return Outcome(Code.CANCELED, "canceled by the client; the previous "
-                               "model stays published")
-            return self._failed(Code.FAILED, exc)
-        except JobError as exc:
-            return self._failed(code_of(exc), exc)
+        result = await self._search(record, settings, values)
+        if isinstance(result, Outcome):
+            return result
         if auto:
             return Outcome(Code.NONE, result.summary("line"), result)
         try:
@@ -179,6 +158,40 @@ class Identification:
         message = result.summary("line")
         self.node.get_logger().info(f"identified: {message}")
         return Outcome(Code.DIVERGED if diverged(result) else Code.NONE, message, result)
+
+    async def _load(self, values: dict, bag_path: str, record):
+        """The record: as given, read from the bag, or the buffer's; an Outcome on failure."""
+        try:
+            if record is None and bag_path:  # read off the executor, with a bound
+                try:
+                    return await self._off_executor(lambda: self._bag(values, bag_path),
+                                                    values["job_timeout"] or LOAD_BOUND)
+                finally:
+                    self._reading = None
+            if record is None:  # the buffer: on the executor, as its callbacks
+                return self.recorder.record(values["min_samples"])
+            return record
+        except TooFewSamplesError as exc:
+            return Outcome(Code.TOO_FEW_SAMPLES, str(exc))
+        except JobCancelledError:
+            return Outcome(Code.CANCELED, "canceled while reading the data; the previous "
+                           "model stays published")
+        except (ValueError, OSError) as exc:
+            return self._failed(Code.BAD_DATA, exc)
+
+    async def _search(self, record, settings, values: dict):
+        """The job in the worker process: its result, or the Outcome of its failure."""
+        try:
+            return await self._in_worker(record, settings, values)
+        except JobTimeoutError as exc:
+            return self._failed(Code.TIMEOUT, exc)
+        except JobCancelledError as exc:
+            if self.cancel_requested:
+                return Outcome(Code.CANCELED, "canceled by the client; the previous "
+                               "model stays published")
+            return self._failed(Code.FAILED, exc)
+        except JobError as exc:
+            return self._failed(code_of(exc), exc)
 
     def can_start_automatic(self) -> bool:
         """No identification runs, manual or automatic: an automatic one may start."""

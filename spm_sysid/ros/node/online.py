@@ -128,14 +128,7 @@ class OnlinePart:
             return
         u = u[self.recorder.order] if len(u) > 1 else u[0]
         try:
-            if isinstance(session, CoupledSession):
-                samples, changed = session.feed(stamp, u,
-                                                np.asarray(y)[self.recorder.out_order])
-                names = session.outputs
-            else:
-                sample = session.feed(stamp, u, y)
-                samples, changed = [sample], sample is not None and sample.changed
-                names = (session.model.term_space.output,)
+            samples, changed, names = self._feed(session, stamp, u, y)
         except Exception as exc:  # noqa: BLE001 - counted and reported, recording goes on
             self.errors += 1
             if self.errors == 1:
@@ -153,16 +146,29 @@ class OnlinePart:
                     self.pred_pub.publish(prediction_message(sample, session.horizon,
                                                              output_name=name))
         if changed:
-            st = session.state
-            text = f"model validity: {st.state}" + (f" ({st.reason})" if st.reason else "")
-            # one call site per severity: rclpy refuses a site whose severity changes
-            if st.state == "VALID":
-                self.node.get_logger().info(text)
-            else:
-                self.node.get_logger().warning(text)
-            self.validity_pub.publish(validity_message(session, stamp))
-            if st.state == "INVALID":
-                self.on_invalid()
+            self._validity_changed(session, stamp)
+
+    def _feed(self, session, stamp: int, u, y) -> tuple[list, bool, tuple[str, ...]]:
+        """The session's new samples (one per output), whether validity changed, the names."""
+        if isinstance(session, CoupledSession):
+            samples, changed = session.feed(stamp, u, np.asarray(y)[self.recorder.out_order])
+            return samples, changed, session.outputs
+        sample = session.feed(stamp, u, y)
+        return [sample], sample is not None and sample.changed, (
+            session.model.term_space.output,)
+
+    def _validity_changed(self, session, stamp: int) -> None:
+        """Log and publish the new validity; an INVALID model calls for re-identification."""
+        st = session.state
+        text = f"model validity: {st.state}" + (f" ({st.reason})" if st.reason else "")
+        # one call site per severity: rclpy refuses a site whose severity changes
+        if st.state == "VALID":
+            self.node.get_logger().info(text)
+        else:
+            self.node.get_logger().warning(text)
+        self.validity_pub.publish(validity_message(session, stamp))
+        if st.state == "INVALID":
+            self.on_invalid()
 
     def publish_validity(self) -> None:
         self.validity_pub.publish(validity_message(self.session, self.last_stamp))
