@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -109,15 +109,28 @@ def identify(
     earlier term's, are left out of the search, and the result says so
     (``model.metadata["excluded_zero_terms"]``, ``["excluded_duplicate_terms"]``).
     """
-    options, term_space, ga, orders = _edge(settings, term_space, ga)
+    options, term_space, ga, orders, regressors = _edge(settings, term_space, ga)
     why = None
     if orders == "auto":
         term_space, why = _orders_from_data(u, y, segments, term_space, options)
+    if regressors:
+        term_space = _with_regressors(term_space, regressors, y)
     problem = Problem.from_signals(u, y, term_space, segments)
     result = identify_problem(problem, options, ga=ga, callback=callback, progress=progress)
     if why is not None:
         result.model.metadata["orders"] = why
     return result
+
+
+def _with_regressors(term_space: TermSpace, regressors: list[str], y) -> TermSpace:
+    """The term space with ``regressors`` added (presets take their scales from ``y``)."""
+    from .model.regressors import expand_presets
+
+    try:
+        return replace(term_space, regressors=term_space.regressors + tuple(
+            expand_presets(regressors, term_space.output, y)))
+    except ValueError as exc:
+        raise SettingsError(f"regressors: {exc}") from None
 
 
 def _orders_from_data(u: np.ndarray, y: np.ndarray, segments: list[tuple[int, int]] | None,
@@ -133,13 +146,14 @@ def _orders_from_data(u: np.ndarray, y: np.ndarray, segments: list[tuple[int, in
                             options.focus)
 
 
-def _edge(settings: dict, term_space, ga) -> tuple[SearchOptions, TermSpace, GAConfig, str]:
+def _edge(settings: dict, term_space, ga
+          ) -> tuple[SearchOptions, TermSpace, GAConfig, str, list[str]]:
     """The Python API's settings, checked once by the schema (see :func:`identify`)."""
     from .settings import check
 
     given = {k: v for k, v in settings.items() if v is not None}
     known = set(SEARCH_SETTINGS) | {"orders", "simulation_folds", "simulation_repeats",
-                                    *_SPACE_SETTINGS, *_GA_SETTINGS}
+                                    "regressors", *_SPACE_SETTINGS, *_GA_SETTINGS}
     validation = {n for n, s in SETTINGS.items() if s.group in ("validation", "data")}
     for name in given:
         if name in validation and name not in known:
@@ -158,9 +172,12 @@ def _edge(settings: dict, term_space, ga) -> tuple[SearchOptions, TermSpace, GAC
     term_space = TermSpace(**space) if space else (term_space or TermSpace())
     ga = GAConfig(**gas) if gas else (ga or GAConfig())
     orders = check("orders", given.pop("orders", "given"))
+    regressors = given.pop("regressors", None) or ()
+    items = [regressors] if isinstance(regressors, str) else list(regressors)
     options = SearchOptions.from_values(given)
     get_criterion(options.criterion)  # a name that is not registered fails here
-    return options, term_space, ga, orders
+    return options, term_space, ga, orders, [t.strip() for item in items
+                                             for t in str(item).split(";") if t.strip()]
 
 
 @one_blas_thread()

@@ -60,6 +60,9 @@ class Setting:
         A parameter of ``sysid_node``.
     read_only : bool
         Node parameter set at start only.
+    many : bool
+        Several values in one text, separated by ``;`` (the command line takes
+        them as separate words).
     """
 
     name: str
@@ -74,6 +77,7 @@ class Setting:
     cli: bool = True
     node: bool = True
     read_only: bool = False
+    many: bool = False
 
     @property
     def option(self) -> str:
@@ -112,6 +116,10 @@ _LIST = [
     _s("delay", int, 1, "input delay, the smallest input lag (0: u(t) acts on y(t))",
        "term_space", low=0, high=100),
     _s("constant", bool, False, "include a constant candidate term", "term_space"),
+    _s("regressors", str, "", "regressors beside the polynomial terms: 'friction' (the "
+       "sign, the absolute value and a smooth sign of the output's last step) or expressions "
+       "such as 'sign(y(t-1)-y(t-2))', separated by ';' (docs/model_format.md)",
+       "term_space", many=True),
     # -- the genetic algorithm -------------------------------------------------------------
     _s("population_size", int, 200, "GA population (paper: 200 and 100)", "ga", low=2,
        high=100_000, aliases=("--population",)),

@@ -103,7 +103,8 @@ def check_magnitudes(u: np.ndarray, y: np.ndarray, term_space: TermSpace) -> Non
             "output back")
     u2 = term_space.inputs_2d(u)
     su = np.array([power_of_two_scale(c) for c in u2.T])
-    factors = term_space.coefficient_factors(su, power_of_two_scale(y))
+    factors = term_space.coefficient_factors(su, power_of_two_scale(y),
+                                             term_space.regressor_scales(u2, y))
     bad = ~(np.isfinite(factors) & (factors >= np.finfo(float).tiny))
     if bad.any():
         term = term_space.term_names()[int(np.flatnonzero(bad)[0])]
@@ -261,13 +262,16 @@ class Problem:
         self.segments = normalise_segments(segments, len(self.y))  # checked here, once
         self.u_scale = np.array([power_of_two_scale(c) for c in self.u.T])
         self.y_scale = power_of_two_scale(self.y)
+        self.r_scale = term_space.regressor_scales(self.u, self.y)
+        scales = (self.u_scale, self.y_scale, self.r_scale) if term_space.regressors else None
         self.columns, self.target = term_space.regression(self.u / self.u_scale,
-                                                          self.y / self.y_scale, self.segments)
+                                                          self.y / self.y_scale, self.segments,
+                                                          scales=scales)
         lag = term_space.max_lag
         self.row_times = np.concatenate([np.arange(a + lag, b) for a, b in self.segments])
         self.zero, self.duplicate_of = excluded_columns(self.columns)
         self.usable = ~self.zero & (self.duplicate_of < 0)
-        self._factors = term_space.coefficient_factors(self.u_scale, self.y_scale)
+        self._factors = term_space.coefficient_factors(self.u_scale, self.y_scale, self.r_scale)
         self._evaluators: dict[float, object] = {}  # the shared numbers, by rank_tol
         self._norms: np.ndarray | None = None
 

@@ -53,7 +53,7 @@ def linear_radius(term_space, term_indices, theta) -> float:
     a[0] = 1.0
     for i, c in zip(term_indices, theta):
         t = all_terms[i]
-        if len(t) == 1 and lin[t[0]][0] < 0:
+        if len(t) == 1 and term_space.is_output_lag(t[0]):
             a[lin[t[0]][1]] -= c
     if not np.any(a[1:]):
         return 0.0
@@ -71,7 +71,7 @@ def linear_stability_check(term_space, term_indices):
     lin = term_space.linear
     all_terms = term_space.terms
     part = [(pos, lin[all_terms[i][0]][1]) for pos, i in enumerate(term_indices)
-            if len(all_terms[i]) == 1 and lin[all_terms[i][0]][0] < 0]
+            if len(all_terms[i]) == 1 and term_space.is_output_lag(all_terms[i][0])]
     ny = term_space.ny
 
     def stable(theta) -> bool:

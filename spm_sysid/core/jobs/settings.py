@@ -45,6 +45,9 @@ class JobSettings:
         ``given`` or ``auto`` (the lags and degree proposed from the data).
     validation, validation_split, correlation_lags : see the schema
     sample_period, gap_factor : see the schema
+    regressors : str
+        As given (``;``-separated); the job expands them with the record's
+        signals (:meth:`with_regressors`).
     """
 
     term_space: TermSpace = field(default_factory=TermSpace)
@@ -56,6 +59,7 @@ class JobSettings:
     correlation_lags: int = SETTINGS["correlation_lags"].default
     sample_period: float = SETTINGS["sample_period"].default
     gap_factor: float = SETTINGS["gap_factor"].default
+    regressors: str = SETTINGS["regressors"].default
 
     # the search's settings the rest of a job reads too (read-only views)
     @property
@@ -105,6 +109,26 @@ class JobSettings:
             term_space=TermSpace(**{k: raw(k) for k in _TERM_FIELDS}, inputs=tuple(inputs),
                                  output=output),
             ga=GAConfig(**{k: raw(k) for k in _GA_FIELDS}), search=search, **own)
+
+    def with_regressors(self, y) -> JobSettings:
+        """These settings with the term space holding the regressors (presets expanded on y).
+
+        Raises
+        ------
+        SettingsError
+            A regressor outside the grammar, or naming a signal the record lacks.
+        """
+        items = [t.strip() for t in self.regressors.split(";") if t.strip()]
+        if not items:
+            return self
+        from ..model.regressors import expand_presets
+
+        try:
+            texts = expand_presets(items, self.term_space.output, y)
+            space = replace(self.term_space, regressors=tuple(texts))
+        except ValueError as exc:
+            raise SettingsError(f"regressors: {exc}") from None
+        return replace(self, term_space=space)
 
     def for_signals(self, inputs: tuple[str, ...], output: str) -> JobSettings:
         """These settings with the term space naming a record's signals.

@@ -305,6 +305,11 @@ def run_mimo_job(record: Record, settings, *, progress: ProgressFn | None = None
                         "(set output_names or input_names)")
     Y, u = record.y, record.u
     base = settings.for_signals(record.input_names, names[0])
+    if base.regressors:
+        from ..errors import SettingsError
+        raise SettingsError("regressors are not yet available for several outputs (the "
+                            "coupled simulation has no regressors): identify one output at a "
+                            "time (--output NAME)")
     orders = None
     if base.orders == "auto":  # every output's proposal; the space holds the largest
         base, orders = _choose_mimo_orders(record, base)

@@ -315,6 +315,9 @@ def run_single_job(
         report(Progress("orders", elapsed=time.perf_counter() - t0))
         settings, orders = choose_orders(record, settings, est)
         est, val, data = validation_segments(record, settings)
+    if settings.regressors:  # presets take their scales from the estimation data
+        settings = settings.with_regressors(np.concatenate([y[a:b] for a, b in est]))
+        est, val, data = validation_segments(record, settings)
     space = settings.term_space
     problem = Problem.from_signals(u, y, space, est)
     ident = identify_problem(problem, settings.search, ga=settings.ga,

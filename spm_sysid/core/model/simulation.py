@@ -59,13 +59,23 @@ class CompiledModel:
     u_lags: np.ndarray   # (n_u,) int64
     u_cols: np.ndarray   # (n_u,) int64: which input each input lag belongs to
     max_lag: int
+    program: object = None  # the regressors' code (regressors.Program), None without
+    y_reach: int = 0        # the largest output lag any base reads (with regressors)
 
     @classmethod
     def from_space(cls, term_space, term_indices) -> CompiledModel:
         """The kernel form of the terms ``term_indices`` of ``term_space``."""
         lin = term_space.linear
         all_terms = term_space.terms
-        n_lin = len(lin)
+        n_lin = term_space.n_bases  # the index of the constant 1 (after any regressor)
+        program, reach = None, 0
+        if term_space.regressors:
+            from .regressors import program as compile_regressors
+
+            exprs = term_space.regressor_exprs
+            program = compile_regressors(list(exprs), term_space.output, term_space.inputs)
+            reach = max([term_space.ny] + [lag for e in exprs for name, lag in e.signals()
+                                           if name == term_space.output])
         width = max([len(all_terms[i]) for i in term_indices] + [1])
         gather = np.full((len(term_indices), width), n_lin, dtype=np.int64)
         for row, i in enumerate(term_indices):
@@ -75,7 +85,7 @@ class CompiledModel:
             y_lags=np.array([lag for src, lag in lin if src < 0], dtype=np.int64),
             u_lags=np.array([lag for src, lag in lin if src >= 0], dtype=np.int64),
             u_cols=np.array([src for src, lag in lin if src >= 0], dtype=np.int64),
-            max_lag=term_space.max_lag,
+            max_lag=term_space.max_lag, program=program, y_reach=reach,
         )
 
 
@@ -185,6 +195,11 @@ def run_model(model: CompiledModel, theta: np.ndarray, u: np.ndarray, y: np.ndar
     out = np.empty(max(n - lag0, 0))
     if n <= lag0:
         return out, None
+    if model.program is not None:
+        from .regressor_sim import run_model_r
+
+        at = run_model_r(model, theta, u, y, h, lag0, lo, hi, out)
+        return out, (None if at < 0 else int(at))
     at = _run(model.gather, model.y_lags, model.u_lags, model.u_cols,
               np.ascontiguousarray(theta, dtype=float), np.ascontiguousarray(u, dtype=float),
               np.ascontiguousarray(y, dtype=float), h, lag0, float(lo), float(hi), out)
@@ -255,6 +270,11 @@ def free_run_sensitivities(model: CompiledModel, theta: np.ndarray, u: np.ndarra
     jac = np.zeros((rows, model.gather.shape[0]))
     if rows == 0:
         return out, jac, None
+    if model.program is not None:
+        from .regressor_sim import free_run_sensitivities_r
+
+        at = free_run_sensitivities_r(model, theta, u, y, lag0, lo, hi, out, jac)
+        return out, jac, (None if at < 0 else int(at))
     at = _sens(model.gather, model.y_lags, model.u_lags, model.u_cols,
                np.ascontiguousarray(theta, dtype=float), np.ascontiguousarray(u, dtype=float),
                np.ascontiguousarray(y, dtype=float), lag0, float(lo), float(hi), out, jac)

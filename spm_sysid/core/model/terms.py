@@ -12,6 +12,11 @@ term in exactly this order:
 
 With the paper's setting (ny=4, nu=4, degree=2, delay=1, no constant) this gives
 8 linear and 36 quadratic terms: 44 in all.
+
+Regressors (:mod:`.regressors`: ``sign(y(t-1)-y(t-2))``, ...) are building
+blocks after the lagged signals: the *bases* are the lagged signals, then the
+regressors, and a term is a multiset of at most ``degree`` bases. Without
+regressors the bases are the lagged signals and the order above is unchanged.
 """
 
 from __future__ import annotations
@@ -24,6 +29,7 @@ from itertools import combinations_with_replacement
 import numpy as np
 
 from ..settings import check
+from .regressors import Expr, RegressorError, canonical, evaluate, parse
 
 __all__ = ["MAX_TERMS", "TermSpace", "power_of_two_scale"]
 
@@ -71,6 +77,9 @@ class TermSpace:
         ``nu`` and ``delay`` are single values.
     output : str
         The output's name in term names (default ``y``).
+    regressors : tuple of str
+        Expressions of lagged signals (:mod:`.regressors`), stored in their
+        canonical text; presets are expanded before (:func:`.regressors.expand_presets`).
     """
 
     ny: int = 4
@@ -80,6 +89,7 @@ class TermSpace:
     constant: bool = False
     inputs: tuple[str, ...] = ()
     output: str = "y"
+    regressors: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         # ranges and types are declared once, in the settings schema
@@ -112,12 +122,55 @@ class TermSpace:
         object.__setattr__(self, "nu", nus[0] if m == 1 else nus)
         object.__setattr__(self, "delay", delays[0] if m == 1 else delays)
         object.__setattr__(self, "inputs", names)
+        object.__setattr__(self, "regressors", self._canonical_regressors())
         if self.ny + sum(nus) == 0:
             raise ValueError("at least one of ny, nu must be positive")
         if self.n_terms > MAX_TERMS:
             raise ValueError(
                 f"this term space has {self.n_terms} candidate terms; at most {MAX_TERMS} "
                 "are supported (lower the lags or the degree)")
+
+    def _canonical_regressors(self) -> tuple[str, ...]:
+        """The regressors in canonical text, each once; a RegressorError names a bad one."""
+        given = self.regressors
+        if isinstance(given, str):
+            given = (given,)
+        texts = []
+        for text in given:
+            e = parse(text, self.output, tuple(self.inputs))
+            if not e.signals():
+                raise RegressorError(f"regressor {text!r} reads no signal (a constant is the "
+                                     "constant term)")
+            texts.append(canonical(e))
+        if len(set(texts)) != len(texts):
+            raise RegressorError(f"a regressor is listed twice: {', '.join(texts)}")
+        return tuple(texts)
+
+    @cached_property
+    def regressor_exprs(self) -> tuple[Expr, ...]:
+        """The regressors as expressions."""
+        return tuple(parse(t, self.output, tuple(self.inputs)) for t in self.regressors)
+
+    @property
+    def n_bases(self) -> int:
+        """Building blocks of the terms: the lagged signals, then the regressors."""
+        return len(self.linear) + len(self.regressors)
+
+    def base_source(self, index: int) -> int | None:
+        """The source of base ``index``: -1 output, 0.. an input; None for a regressor."""
+        lin = self.linear
+        return lin[index][0] if index < len(lin) else None
+
+    def is_output_lag(self, index: int) -> bool:
+        """Base ``index`` is a lagged output ``y(t-l)`` (not a regressor, not an input)."""
+        return index < len(self.linear) and self.linear[index][0] < 0
+
+    def reads_input(self, index: int) -> bool:
+        """Base ``index`` reads an input (a lagged input, or a regressor of one)."""
+        if index < len(self.linear):
+            return self.linear[index][0] >= 0
+        e = self.regressor_exprs[index - len(self.linear)]
+        return any(name != self.output for name, _ in e.signals())
 
     # -- the linear building blocks -------------------------------------------------
     @property
@@ -152,7 +205,8 @@ class TermSpace:
     @property
     def max_lag(self) -> int:
         """Largest lag; the first regression row is at t = max_lag."""
-        return max([self.ny] + [d + nu - 1 for nu, d in zip(self.nus, self.delays) if nu])
+        return max([self.ny] + [d + nu - 1 for nu, d in zip(self.nus, self.delays) if nu]
+                   + [lag for e in self.regressor_exprs for _, lag in e.signals()])
 
     @cached_property
     def terms(self) -> list[tuple[int, ...]]:
@@ -160,18 +214,29 @@ class TermSpace:
 
         The constant term is the empty tuple.
         """
-        n_lin = len(self.linear)
+        n_bases = self.n_bases
         out: list[tuple[int, ...]] = [()] if self.constant else []
         for deg in range(1, self.degree + 1):
-            out.extend(combinations_with_replacement(range(n_lin), deg))
+            out.extend(combinations_with_replacement(range(n_bases), deg))
         return out
+
+    @cached_property
+    def term_degrees(self) -> np.ndarray:
+        """Each term's degree, a regressor factor counting twice (a regressor is nonlinear).
+
+        What the selection reads as linear (degree 1) or not; without regressors
+        the number of factors.
+        """
+        n_lin = len(self.linear)
+        return np.array([len(t) + sum(1 for i in t if i >= n_lin) for t in self.terms],
+                        dtype=np.int64)
 
     @property
     def n_terms(self) -> int:
         """Number of candidate terms (chromosome length)."""
         from math import comb
 
-        n_lin = self.ny + sum(self.nus)
+        n_lin = self.ny + sum(self.nus) + len(self.regressors)
         return int(self.constant) + sum(
             comb(n_lin + deg - 1, deg) for deg in range(1, self.degree + 1)
         )
@@ -182,7 +247,6 @@ class TermSpace:
 
     @cached_property
     def _names(self) -> tuple[str, ...]:
-        lin = self.linear
         names = []
         for term in self.terms:
             if not term:
@@ -190,13 +254,18 @@ class TermSpace:
                 continue
             parts = []
             for idx in sorted(set(term)):
-                src, lag = lin[idx]
                 power = term.count(idx)
-                at = "t" if lag == 0 else f"t-{lag}"
-                parts.append(f"{self.signal_name(src)}({at})"
-                             + (f"^{power}" if power > 1 else ""))
+                parts.append(self.base_name(idx) + (f"^{power}" if power > 1 else ""))
             names.append("*".join(parts))
         return names
+
+    def base_name(self, index: int) -> str:
+        """``y(t-1)``, ``torque(t)`` or a regressor's text."""
+        lin = self.linear
+        if index >= len(lin):
+            return self.regressors[index - len(lin)]
+        src, lag = lin[index]
+        return f"{self.signal_name(src)}({'t' if lag == 0 else f't-{lag}'})"
 
     def term_factors(self, index: int) -> list[tuple[str, int, int]]:
         """Term ``index`` as its factors ``(signal name, lag, power)``; [] for ``1``.
@@ -205,17 +274,22 @@ class TermSpace:
         message ``NarxTerm``).
         """
         term = self.terms[index]
-        return [(self.signal_name(self.linear[i][0]), self.linear[i][1], term.count(i))
+        lin = self.linear
+        return [(self.signal_name(lin[i][0]), lin[i][1], term.count(i)) if i < len(lin)
+                else (self.regressors[i - len(lin)], 0, term.count(i))
                 for i in sorted(set(term))]
 
     def to_dict(self) -> dict:
         """Plain-data form for JSON documents (model schema version 2)."""
         one = self.n_inputs == 1
-        return {"ny": int(self.ny), "nu": int(self.nu) if one else list(self.nu),
-                "degree": int(self.degree),
-                "delay": int(self.delay) if one else list(self.delay),
-                "constant": bool(self.constant), "inputs": list(self.inputs),
-                "output": self.output}
+        out = {"ny": int(self.ny), "nu": int(self.nu) if one else list(self.nu),
+               "degree": int(self.degree),
+               "delay": int(self.delay) if one else list(self.delay),
+               "constant": bool(self.constant), "inputs": list(self.inputs),
+               "output": self.output}
+        if self.regressors:
+            out["regressors"] = list(self.regressors)
+        return out
 
     @classmethod
     def from_dict(cls, data: dict) -> TermSpace:
@@ -231,21 +305,28 @@ class TermSpace:
                    degree=data.get("degree", d["degree"].default),
                    delay=seq(data.get("delay", d["delay"].default)),
                    constant=data.get("constant", d["constant"].default),
-                   inputs=tuple(data.get("inputs") or ()), output=data.get("output", "y"))
+                   inputs=tuple(data.get("inputs") or ()), output=data.get("output", "y"),
+                   regressors=tuple(data.get("regressors") or ()))
 
-    def coefficient_factors(self, u_scale, y_scale: float) -> np.ndarray:
+    def coefficient_factors(self, u_scale, y_scale: float, r_scale=None) -> np.ndarray:
         """Per-term factors from scaled-data coefficients to the user's units, (n_terms,).
 
         The coefficients were fitted on ``u / u_scale`` (one scale per input) and
-        ``y / y_scale``. A term with ``a`` output factors and ``b_i`` factors of input
-        i has ``theta = theta_scaled * y_scale**(1 - a) * prod_i u_scale_i**(-b_i)``;
+        ``y / y_scale``, regressor columns divided by ``r_scale`` (one per
+        regressor; default 1). A term with ``a`` output factors, ``b_i`` factors
+        of input i and ``c_r`` of regressor r has ``theta = theta_scaled *
+        y_scale**(1 - a) * prod_i u_scale_i**(-b_i) * prod_r r_scale_r**(-c_r)``;
         with powers of two the factors are exact (``ldexp``, no overflow on the way).
         """
         ey = np.frexp(y_scale)[1] - 1
         eu = [np.frexp(s)[1] - 1 for s in np.atleast_1d(np.asarray(u_scale, dtype=float))]
         lin = self.linear
-        exps = np.array([ey * (1 - sum(1 for i in term if lin[i][0] < 0))
-                         - sum(eu[lin[i][0]] for i in term if lin[i][0] >= 0)
+        n_lin = len(lin)
+        er = [np.frexp(s)[1] - 1 for s in np.atleast_1d(
+            np.ones(len(self.regressors)) if r_scale is None else np.asarray(r_scale, float))]
+        exps = np.array([ey * (1 - sum(1 for i in term if i < n_lin and lin[i][0] < 0))
+                         - sum(eu[lin[i][0]] for i in term if i < n_lin and lin[i][0] >= 0)
+                         - sum(er[i - n_lin] for i in term if i >= n_lin)
                          for term in self.terms], dtype=np.int64)
         with np.errstate(over="ignore", under="ignore"):  # inf or 0: refused by identify
             return np.ldexp(np.ones(self.n_terms), exps)
@@ -260,8 +341,14 @@ class TermSpace:
                              f"{np.shape(u)}")
         return u
 
-    def lagged(self, u: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """Matrix of the linear terms, shape ``(N, n_linear)``, rows t = max_lag..len-1."""
+    def lagged(self, u: np.ndarray, y: np.ndarray, scales=None) -> np.ndarray:
+        """Matrix of the bases, shape ``(N, n_bases)``, rows t = max_lag..len-1.
+
+        The lagged signals, then the regressors. ``scales``: ``(u_scale, y_scale,
+        r_scale)`` when u and y are scaled data: regressors are evaluated on the
+        signals in the user's units (scaled back, exactly) and divided by their
+        own scale.
+        """
         u = self.inputs_2d(u)
         y = np.asarray(y, dtype=float)
         start, stop = self.max_lag, len(y)
@@ -269,12 +356,39 @@ class TermSpace:
         for src, lag in self.linear:
             sig = y if src < 0 else u[:, src]
             cols.append(sig[start - lag : stop - lag])
+        cols += self.regressor_columns(u, y, scales)
         if not cols:
             return np.empty((stop - start, 0))
         return np.column_stack(cols)
 
+    def regressor_columns(self, u: np.ndarray, y: np.ndarray, scales=None) -> list[np.ndarray]:
+        """Each regressor's values at t = max_lag..len-1 (see :meth:`lagged` for ``scales``)."""
+        if not self.regressors:
+            return []
+        u = self.inputs_2d(u)
+        y = np.asarray(y, dtype=float)
+        r_scale = np.ones(len(self.regressors))
+        if scales is not None:
+            u = u * np.asarray(scales[0], dtype=float)
+            y = y * float(scales[1])
+            r_scale = np.asarray(scales[2], dtype=float)
+        start, stop = self.max_lag, len(y)
+        index = {name: i for i, name in enumerate(self.inputs)}
+
+        def get(name: str, lag: int) -> np.ndarray:
+            sig = y if name == self.output else u[:, index[name]]
+            return sig[start - lag: stop - lag]
+
+        return [np.broadcast_to(evaluate(e, get), (max(stop - start, 0),)) / r
+                for e, r in zip(self.regressor_exprs, r_scale)]
+
+    def regressor_scales(self, u: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """The power of two nearest each regressor's RMS on u, y (the user's units)."""
+        return np.array([power_of_two_scale(c[np.isfinite(c)])
+                         for c in self.regressor_columns(u, y)])
+
     def regression_matrix(self, u: np.ndarray, y: np.ndarray,
-                          terms: Sequence[int] | None = None) -> np.ndarray:
+                          terms: Sequence[int] | None = None, scales=None) -> np.ndarray:
         """Candidate regressors, shape ``(N, n_terms)`` with ``N = len(y) - max_lag``.
 
         Column ``j`` is term ``j`` of :attr:`terms` evaluated at t = max_lag..len-1.
@@ -282,7 +396,7 @@ class TermSpace:
         each column costs one vectorised multiplication. With ``terms`` (indices),
         only those columns, in that order (a model's own regressors).
         """
-        lin = self.lagged(u, y)
+        lin = self.lagged(u, y, scales)
         n_rows, n_lin = lin.shape
         if terms is not None:
             out = np.ones((n_rows, len(terms)))
@@ -306,7 +420,8 @@ class TermSpace:
 
     def regression(self, u: np.ndarray, y: np.ndarray,
                    segments: list[tuple[int, int]] | None = None,
-                   terms: Sequence[int] | None = None) -> tuple[np.ndarray, np.ndarray]:
+                   terms: Sequence[int] | None = None,
+                   scales=None) -> tuple[np.ndarray, np.ndarray]:
         """Regression matrix and target built inside each segment, stacked.
 
         ``segments`` are ``[start, stop)`` index ranges of contiguous samples
@@ -316,9 +431,9 @@ class TermSpace:
         columns (see :meth:`regression_matrix`).
         """
         if segments is None:
-            return self.regression_matrix(u, y, terms), self.target(y)
+            return self.regression_matrix(u, y, terms, scales), self.target(y)
         width = self.n_terms if terms is None else len(terms)
-        parts = [(self.regression_matrix(u[a:b], y[a:b], terms), self.target(y[a:b]))
+        parts = [(self.regression_matrix(u[a:b], y[a:b], terms, scales), self.target(y[a:b]))
                  for a, b in segments if b - a > self.max_lag]
         if not parts:
             return np.empty((0, width)), np.empty(0)

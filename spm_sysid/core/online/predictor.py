@@ -40,11 +40,12 @@ class OnlinePredictor:
         # each selected term as indices into [linear values..., 1.0], padded with the 1.0
         terms = [space.terms[i] for i in model.term_indices]
         width = max((len(t) for t in terms), default=1) or 1
-        one = len(lin)
+        one = space.n_bases  # the constant 1, after the regressors if any
         self._factors = np.full((len(terms), width), one, dtype=np.intp)
         for r, t in enumerate(terms):
             self._factors[r, :len(t)] = t
-        self._lin = np.ones(len(lin) + 1)
+        self._space = space
+        self._lin = np.ones(one + 1)
         self.coefficients = np.asarray(model.coefficients, dtype=float).copy()
         self.reset()
 
@@ -70,8 +71,24 @@ class OnlinePredictor:
             return None
         col = self._t % self._len
         self._hist[1:, col] = u  # u(t) (delay 0 terms use it); y(t) is not used
-        self._lin[:-1] = self._hist[self._src, (col - self._lag) % self._len]
+        n_lin = len(self._src)
+        self._lin[:n_lin] = self._hist[self._src, (col - self._lag) % self._len]
+        if self._space.regressors:
+            self._lin[n_lin:-1] = self._regressor_values(col)
         return np.prod(self._lin[self._factors], axis=1)
+
+    def _regressor_values(self, col: int) -> np.ndarray:
+        """Each regressor at the current time from the history (the term space's rule)."""
+        from ..model.regressors import evaluate
+
+        space = self._space
+        rows = {name: 1 + i for i, name in enumerate(space.inputs)}
+        rows[space.output] = 0
+
+        def get(name: str, lag: int) -> float:
+            return self._hist[rows[name], (col - lag) % self._len]
+
+        return np.array([float(evaluate(e, get)) for e in space.regressor_exprs])
 
     def push(self, u, y: float) -> None:
         """Add the sample (u(t), y(t)) to the history."""

@@ -68,7 +68,7 @@ def _candidates(problem, evaluator, options) -> np.ndarray:
     from ..search.forward import forward_selection_path
 
     limit = min(MAX_JUDGED_TERMS, max(1, problem.rows // ROWS_PER_TERM))
-    degree = np.array([len(t) for t in problem.term_space.terms])[problem.usable]
+    degree = problem.term_space.term_degrees[problem.usable]
 
     def forward() -> np.ndarray:
         # forward selection over all terms and, below the space's degree, over the terms

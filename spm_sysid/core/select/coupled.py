@@ -170,7 +170,7 @@ def _terms(model: MimoModel) -> int:
 
 
 def _degree(model: MimoModel) -> int:
-    return max(max((len(m.term_space.terms[i]) for i in m.term_indices), default=0)
+    return max(max((int(m.term_space.term_degrees[i]) for i in m.term_indices), default=0)
                for m in model.models)
 
 

@@ -133,7 +133,7 @@ def finalists(screened: dict, term_space, per_size: int = PER_SIZE
     best among them.
     """
     n_terms = term_space.n_terms
-    degree = np.array([len(t) for t in term_space.terms])
+    degree = term_space.term_degrees
     groups: dict[int, dict[int, list[tuple[float, bytes]]]] = {}
     for key, (value, _) in screened.items():
         if np.isfinite(value):
@@ -184,7 +184,7 @@ class ValidatedSimulation:
             started=started,
             segments=refinement_windows(problem.segments, problem.term_space.max_lag),
             phase="screening")
-        self.degree = np.array([len(t) for t in problem.term_space.terms])
+        self.degree = problem.term_space.term_degrees
 
     def screen(self, candidates) -> list[tuple[float, bytes]]:
         """Step 1 and 2: every candidate and linear structure scored; the finalists."""

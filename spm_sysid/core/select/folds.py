@@ -154,7 +154,7 @@ def fold_excitation(problem, folds: list[Fold]) -> float:
     step holds out all the information about the input's effect, and a fit on
     the rest cannot find it). See :data:`MIN_FOLD_EXCITATION`.
     """
-    degree = np.array([len(t) for t in problem.term_space.terms])
+    degree = problem.term_space.term_degrees
     X = problem.columns[:, (degree <= 1) & problem.usable]
     if not folds or X.shape[1] == 0:
         return 1.0

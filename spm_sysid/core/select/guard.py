@@ -113,7 +113,7 @@ def shrink_to_hold(model, u, y, segments, linear_sse: float, integrating: bool =
     (``linear_sse``) is returned with its coefficients. None when none does. The
     model given is not changed.
     """
-    degree = np.array([len(model.term_space.terms[i]) for i in model.term_indices])
+    degree = model.term_space.term_degrees[list(model.term_indices)]
     nonlinear = degree > 1
     for factor in SHRINK_FACTORS:
         trial = model.with_coefficients(np.where(nonlinear, model.coefficients * factor,

@@ -105,7 +105,7 @@ class SimulationScorer:
         self.total = 0  # structures to refine, when known (progress)
         self.current: NarxModel | None = None  # the local search's current structure
         ts = problem.term_space  # the terms with an input in them: a structure needs one
-        self.driven = np.array([any(ts.linear[i][0] >= 0 for i in t) for t in ts.terms],
+        self.driven = np.array([any(ts.reads_input(i) for i in t) for t in ts.terms],
                                dtype=bool)
 
     def __call__(self, mask: np.ndarray) -> float:

@@ -97,6 +97,13 @@ JOB_TITLES = {
 #: The bag options (settings names) every data-reading command offers.
 
 
+class _JoinWords(argparse.Action):
+    """Several words of one option as one text, separated by ``;``."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        setattr(namespace, self.dest, "; ".join(values))
+
+
 def add_schema_options(p: argparse.ArgumentParser, groups: tuple[str, ...],
                        titles: dict[str, str] = JOB_TITLES, exclude: tuple[str, ...] = ()
                        ) -> None:
@@ -123,6 +130,9 @@ def add_schema_options(p: argparse.ArgumentParser, groups: tuple[str, ...],
                                help=f"{s.help}")
             elif s.choices:
                 g.add_argument(*names, dest=s.name, choices=s.choices, help=text)
+            elif s.many:  # several words, kept as one ';'-separated text
+                g.add_argument(*names, dest=s.name, nargs="+", action=_JoinWords,
+                               metavar="TEXT", help=text)
             else:
                 g.add_argument(*names, dest=s.name, type=schema_type(s.name),
                                metavar=s.kind.__name__.upper(), help=text)
