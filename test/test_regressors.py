@@ -127,6 +127,16 @@ def test_columns_runs_and_sensitivities_equal_independent_computations():
         sim[t] = float(row[0] @ model.coefficients)
     free, at = model.run(u, y)
     assert at is None and np.allclose(free, sim[lag:], rtol=0, atol=1e-12)
+    # k steps ahead: one step is the prediction; two steps chain one prediction
+    assert np.allclose(model.run(u, y, horizon=1)[0], model.predict(u, y), rtol=0, atol=1e-13)
+    chained = y.copy()
+    chained[lag:] = model.predict(u, y)  # y(t) from y(t-1) predicted, y(t-2..) measured
+    two_step = model.run(u, y, horizon=2)[0]
+    t = len(y) - 1
+    row = ts.regression_matrix(u[t - lag:t + 1],
+                               np.r_[y[t - lag:t - 1], chained[t - 1], y[t]],
+                               model.term_indices)
+    assert two_step[-1] == pytest.approx(float(row[0] @ model.coefficients), abs=1e-12)
     # sensitivities: central finite differences of the free run
     out, jac, _ = free_run_sensitivities(model.compiled, model.coefficients, ts.inputs_2d(u), y)
     assert np.allclose(out, free, rtol=0, atol=1e-12)
