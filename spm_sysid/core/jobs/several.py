@@ -289,6 +289,15 @@ def _choose_mimo_orders(record: Record, base) -> tuple[Any, dict]:
     return replace(base, term_space=chosen, orders="given"), doc
 
 
+def _no_regressors(settings) -> None:
+    """Regressors with several outputs: refused, saying what to do instead."""
+    if settings.regressors:
+        from ..errors import SettingsError
+        raise SettingsError("regressors are not yet available for several outputs (the "
+                            "coupled simulation has no regressors): identify one output at a "
+                            "time (--output NAME)")
+
+
 def run_mimo_job(record: Record, settings, *, progress: ProgressFn | None = None,
                  progress_every: int = 25, metadata: Mapping[str, Any] | None = None
                  ) -> MimoJobResult:
@@ -305,11 +314,7 @@ def run_mimo_job(record: Record, settings, *, progress: ProgressFn | None = None
                         "(set output_names or input_names)")
     Y, u = record.y, record.u
     base = settings.for_signals(record.input_names, names[0])
-    if base.regressors:
-        from ..errors import SettingsError
-        raise SettingsError("regressors are not yet available for several outputs (the "
-                            "coupled simulation has no regressors): identify one output at a "
-                            "time (--output NAME)")
+    _no_regressors(base)
     orders = None
     if base.orders == "auto":  # every output's proposal; the space holds the largest
         base, orders = _choose_mimo_orders(record, base)

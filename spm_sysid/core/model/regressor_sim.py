@@ -26,73 +26,84 @@ def _eval(code, consts, a, b, ys, u, t, sv, sg, ly):  # pragma: no cover - compi
         op = code[k, 0]
         if op <= 2:
             top += 1
+            _push(code, consts, k, ys, u, t, sv, sg, top, ly)
+        elif op <= 10 and op >= 7:
+            _unary(op, sv, sg, top, ly)
+        else:
+            top -= 1
+            _binary(op, sv, sg, top, ly)
+    return sv[0]
+
+
+@jit
+def _push(code, consts, k, ys, u, t, sv, sg, top, ly):  # pragma: no cover - compiled
+    """A lagged output (gradient 1 at its lag), a lagged input or a number."""
+    op = code[k, 0]
+    for j in range(ly):
+        sg[top, j] = 0.0
+    if op == 0:
+        sv[top] = ys[t - code[k, 1]]
+        sg[top, code[k, 1] - 1] = 1.0
+    elif op == 1:
+        sv[top] = u[t - code[k, 2], code[k, 1]]
+    else:
+        sv[top] = consts[code[k, 1]]
+
+
+@jit
+def _unary(op, sv, sg, top, ly):  # pragma: no cover - compiled
+    """neg, sign, abs, tanh on the top of the stack (chain rule on its gradient)."""
+    x = sv[top]
+    if op == 7:
+        sv[top], d = -x, -1.0
+    elif op == 8:
+        sv[top], d = (1.0 if x > 0 else (-1.0 if x < 0 else 0.0)), 0.0
+    elif op == 9:
+        sv[top], d = abs(x), (1.0 if x > 0 else (-1.0 if x < 0 else 0.0))
+    else:
+        sv[top] = np.tanh(x)
+        d = 1.0 - sv[top] * sv[top]
+    for j in range(ly):
+        sg[top, j] = d * sg[top, j] if sg[top, j] != 0.0 else 0.0
+
+
+@jit
+def _binary(op, sv, sg, top, ly):  # pragma: no cover - compiled
+    """+ - * / min max sat deadzone of ``sv[top]`` and ``sv[top + 1]`` into ``sv[top]``."""
+    x, y2 = sv[top], sv[top + 1]
+    if op == 3 or op == 4:
+        s = 1.0 if op == 3 else -1.0
+        sv[top] = x + s * y2 if op == 4 else x + y2
+        for j in range(ly):
+            sg[top, j] = sg[top, j] + s * sg[top + 1, j]
+    elif op == 5:
+        sv[top] = x * y2
+        for j in range(ly):
+            sg[top, j] = sg[top, j] * y2 + x * sg[top + 1, j]
+    elif op == 6:
+        sv[top] = x / y2
+        for j in range(ly):
+            sg[top, j] = sg[top, j] / y2
+    elif op == 11 or op == 12:
+        if (y2 < x) if op == 11 else (y2 > x):
+            sv[top] = y2
+            for j in range(ly):
+                sg[top, j] = sg[top + 1, j]
+    elif op == 13:  # sat(x, lim)
+        lim = abs(y2)
+        if x > lim or x < -lim:
+            sv[top] = lim if x > lim else -lim
             for j in range(ly):
                 sg[top, j] = 0.0
-            if op == 0:
-                sv[top] = ys[t - code[k, 1]]
-                sg[top, code[k, 1] - 1] = 1.0
-            elif op == 1:
-                sv[top] = u[t - code[k, 2], code[k, 1]]
-            else:
-                sv[top] = consts[code[k, 1]]
-            continue
-        if op == 7:  # neg
-            sv[top] = -sv[top]
-            for j in range(ly):
-                sg[top, j] = -sg[top, j]
-            continue
-        if op >= 8 and op <= 10:
-            x = sv[top]
-            if op == 8:
-                sv[top] = 1.0 if x > 0 else (-1.0 if x < 0 else 0.0)
-                d = 0.0
-            elif op == 9:
-                sv[top] = abs(x)
-                d = 1.0 if x > 0 else (-1.0 if x < 0 else 0.0)
-            else:
-                sv[top] = np.tanh(x)
-                d = 1.0 - sv[top] * sv[top]
-            for j in range(ly):
-                sg[top, j] = d * sg[top, j] if sg[top, j] != 0.0 else 0.0
-            continue
-        x, y2 = sv[top - 1], sv[top]
-        top -= 1
-        if op == 3 or op == 4:
-            s = 1.0 if op == 3 else -1.0
-            sv[top] = x + y2 if op == 3 else x - y2
-            for j in range(ly):
-                sg[top, j] = sg[top, j] + s * sg[top + 1, j]
-        elif op == 5:
-            sv[top] = x * y2
-            for j in range(ly):
-                sg[top, j] = sg[top, j] * y2 + x * sg[top + 1, j]
-        elif op == 6:
-            sv[top] = x / y2
-            for j in range(ly):
-                sg[top, j] = sg[top, j] / y2
-        elif op == 11 or op == 12:
-            take_right = (y2 < x) if op == 11 else (y2 > x)
-            if take_right:
-                sv[top] = y2
-                for j in range(ly):
-                    sg[top, j] = sg[top + 1, j]
-        elif op == 13:  # sat(x, lim)
-            lim = abs(y2)
-            if x > lim or x < -lim:
-                sv[top] = lim if x > lim else -lim
-                for j in range(ly):
-                    sg[top, j] = 0.0
-        else:  # deadzone(x, w)
-            if abs(x) <= y2:
-                sv[top] = 0.0
-                for j in range(ly):
-                    sg[top, j] = 0.0
-            else:
-                s = 1.0 if x > 0 else -1.0
-                sv[top] = x - s * y2
-                for j in range(ly):
-                    sg[top, j] = sg[top, j] - s * sg[top + 1, j]
-    return sv[0]
+    elif abs(x) <= y2:  # deadzone(x, w), inside
+        sv[top] = 0.0
+        for j in range(ly):
+            sg[top, j] = 0.0
+    else:  # deadzone, outside
+        s = 1.0 if x > 0 else -1.0
+        sv[top] = x - s * y2
+        for j in range(ly):
+            sg[top, j] = sg[top, j] - s * sg[top + 1, j]
 
 
 @jit
