@@ -249,3 +249,39 @@ def test_call_identify_uses_the_action_and_ctrl_c_cancels_the_goal(ros_env, harn
         assert json.loads(harness.latched(String, "/spm_sysid/model").data)["terms"] == EQ1
     finally:
         stop(node)
+
+
+@pytest.mark.slow
+def test_the_regressors_parameter_and_a_goals_override_reach_the_job(ros_env, harness, arm_bag):
+    """``-p regressors:=friction`` identifies with the friction bases; a goal may override
+    it, and an expression outside the grammar is refused with the reason."""
+    node = start_node(ros_env, "seed:=1", "regressors:=friction")
+    try:
+        harness.wait_ready()
+        client = IdentifyClient(harness)
+        status, result = client.result(client.send(bag_path=arm_bag), 120)
+        assert status == GoalStatus.STATUS_SUCCEEDED, result.message
+        doc = json.loads(result.document)
+        regs = doc["term_space"]["regressors"]
+        assert regs[:2] == ["sign(y(t-1)-y(t-2))", "abs(y(t-1)-y(t-2))"]
+        assert regs[2].startswith("tanh((y(t-1)-y(t-2))/") and len(regs) == 3
+        assert result.model.candidate_terms == doc_terms(doc) == 77
+
+        status, result = client.result(client.send(bag_path=arm_bag, regressors="abs(u(t-1))"),
+                                       120)
+        assert status == GoalStatus.STATUS_SUCCEEDED, result.message
+        assert json.loads(result.document)["term_space"]["regressors"] == ["abs(u(t-1))"]
+
+        status, result = client.result(client.send(bag_path=arm_bag, regressors="y(t+1)"), 60)
+        assert status == GoalStatus.STATUS_ABORTED
+        assert result.error_code == Code.INVALID_SETTINGS, result.message
+        assert "y(t+...) reads the future" in result.message
+    finally:
+        stop(node)
+
+
+def doc_terms(doc: dict) -> int:
+    """Candidate terms of a document's space, counted by the term space."""
+    from spm_sysid.core.model.terms import TermSpace
+
+    return TermSpace.from_dict(doc["term_space"]).n_terms

@@ -256,32 +256,28 @@ def canonical(e: Expr) -> str:
 
 def evaluate(e: Expr, get) -> np.ndarray:
     """The expression on arrays: ``get(name, lag)`` gives a lagged signal's values."""
-    op = e.op
-    if op == "num":
+    if e.op == "num":
         return np.float64(e.value)
-    if op == "sig":
+    if e.op == "sig":
         return get(e.signal, e.lag)
-    a = [evaluate(x, get) for x in e.args]
+    args = [evaluate(x, get) for x in e.args]
     with np.errstate(over="ignore", invalid="ignore"):
-        if op == "neg":
-            return -a[0]
-        if op in "+-*/":
-            return {"+": np.add, "-": np.subtract, "*": np.multiply,
-                    "/": np.divide}[op](a[0], a[1])
-        if op == "sign":
-            return np.sign(a[0])
-        if op == "abs":
-            return np.abs(a[0])
-        if op == "tanh":
-            return np.tanh(a[0])
-        if op == "min":
-            return np.minimum(a[0], a[1])
-        if op == "max":
-            return np.maximum(a[0], a[1])
-        if op == "sat":
-            lim = np.abs(a[1])
-            return np.minimum(np.maximum(a[0], -lim), lim)
-        return np.sign(a[0]) * np.maximum(np.abs(a[0]) - a[1], 0.0)  # deadzone
+        return _NUMPY[e.op](*args)
+
+
+def _sat(x, a):
+    lim = np.abs(a)
+    return np.minimum(np.maximum(x, -lim), lim)
+
+
+def _deadzone(x, w):
+    return np.sign(x) * np.maximum(np.abs(x) - w, 0.0)
+
+
+#: Each operation on arrays (what the kernels compute step by step).
+_NUMPY = {"neg": np.negative, "+": np.add, "-": np.subtract, "*": np.multiply,
+          "/": np.divide, "sign": np.sign, "abs": np.abs, "tanh": np.tanh, "min": np.minimum,
+          "max": np.maximum, "sat": _sat, "deadzone": _deadzone}
 
 
 # -- the compiled form ---------------------------------------------------------------------
