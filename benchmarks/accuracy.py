@@ -18,8 +18,13 @@ identified on the estimation part by the command as typed, their test part
 simulated in free run (the first 50 test samples initialise it, the benchmarks'
 convention), beside the linear ARX and the published figures.
 
+Each record also gets the friction preset (``--regressors friction``) beside
+the default polynomial space, the line under it.
+
 Records: the robot arm, the dryer and the heat exchanger (``../shared/data``;
-skipped with a line when missing), the two-tank simulator, and the two-link
+skipped with a line when missing), the two-tank simulator, the simulated joint
+with Coulomb friction (``test/helpers/joint.py``: 20 s to identify, another
+20 s to simulate; position out, so a free run drifts), and the two-link
 arm with two outputs (coupled free run, against a linear MIMO ARX fitted the
 same way; both focuses, the given space and ``--orders auto``). Under each
 NARX line: the linear/nonlinear call (the best nonlinear finalist's held-out
@@ -76,6 +81,9 @@ def _records():
         h = len(y) // 2
         yield name, (u[:h], y[:h]), (u[h:], y[h:])
     yield "two tanks (simulator)", tanks.record(1), tanks.record(2)
+    from .scale import _joint
+
+    yield "joint with Coulomb friction (simulator)", _joint(20.0, 1), _joint(20.0, 2)
 
 
 def _narx(u1, y1, settings: dict):
@@ -205,6 +213,10 @@ def run(args) -> None:
         print(_line("default, --focus simulation", y2, _narx_run(model, u2, y2),
                     f"{len(model.terms)} terms", seconds))
         print(_call(model))
+        model, seconds = _narx(u1, y1, {**base, "regressors": "friction"})
+        print(_line("default + --regressors friction", y2, _narx_run(model, u2, y2),
+                    f"{len(model.terms)} terms", seconds))
+        print(_call(model) + _regressor_terms(model))
         model, seconds = _narx(u1, y1, {**base, "orders": "auto"})
         o = model.metadata["orders"]
         print(_line(f"--orders auto (chose {o['ny']}, {o['nu']}, {o['degree']})", y2,
@@ -283,7 +295,18 @@ def benchmarks() -> None:
               f"{r:8.3f} mV  {len(model.terms):3d} terms   {seconds:6.1f} s  ({verdict} the "
               f"published polynomial NARX's {narx} mV)")
         print(_call(model))
+        model, seconds = _narx(u1, y1, {**TYPED, "regressors": "friction"})
+        r = 1e3 * rmse(y2, _narx_run(model, u2, y2), SKIP)[0]
+        print(f"  {'as typed + --regressors friction':<40} RMSE {r:8.3f} mV  "
+              f"{len(model.terms):3d} terms   {seconds:6.1f} s")
+        print(_call(model) + _regressor_terms(model))
         sys.stdout.flush()
+
+
+def _regressor_terms(model) -> str:
+    """The selected terms that hold a regressor (friction's), in a few words."""
+    names = [t for t in model.terms if any(r in t for r in model.term_space.regressors)]
+    return f"; friction terms selected: {', '.join(names) if names else 'none'}"
 
 
 def main(argv: list[str] | None = None) -> int:
