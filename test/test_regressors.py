@@ -222,3 +222,33 @@ def test_presets_take_their_scale_from_the_output_and_several_outputs_are_refuse
                                  output_names=("y1", "y2"), source="two outputs")
     with pytest.raises(SettingsError, match="several outputs"):
         run_job(record, JobSettings.from_values({"regressors": "friction", "ny": 2, "nu": 2}))
+
+
+def test_identify_with_the_preset_then_validate_reads_the_document_back(tmp_path):
+    """The commands a user types: ``identify --regressors friction --json``, then ``validate``."""
+    doc = tmp_path / "model.json"
+    run = [sys.executable, "-m", "spm_sysid.apps.main"]
+    out = subprocess.run([*run, "identify", "--regressors", "friction", "--json", str(doc),
+                          "--quiet"], capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert out.returncode == 0, out.stderr
+    model = NarxModel.load(doc)
+    assert len(model.term_space.regressors) == 3 and model.term_space.n_terms == 77
+    again = subprocess.run([*run, "validate", str(doc)], capture_output=True, text=True,
+                           cwd=ROOT, timeout=300)
+    assert again.returncode == 0, again.stderr
+    fit = model.metadata["validation"]["one_step"]["fit_percent"]
+    assert f"fit {fit:.2f} %" in again.stdout
+
+
+def test_the_simulation_focus_refines_a_structure_with_regressors():
+    """The free-run refinement runs on the regressors' sensitivities and keeps the sign."""
+    u, y = _signals(n=800, seed=5)
+    res = identify(u=u, y=y, ny=2, nu=1, degree=1, regressors="sign(y(t-1)-y(t-2))",
+                   criterion="bic", seed=1, focus="simulation")
+    model = res.model
+    assert model.metadata["focus"] == "simulation"
+    assert "sign(y(t-1)-y(t-2))" in model.terms
+    sign = model.coefficients[model.terms.index("sign(y(t-1)-y(t-2))")]
+    assert sign == pytest.approx(-0.05, abs=0.02)  # the system's own -0.05
+    free, at = model.run(u, y)
+    assert at is None
