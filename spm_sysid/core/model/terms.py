@@ -156,11 +156,6 @@ class TermSpace:
         """Building blocks of the terms: the lagged signals, then the regressors."""
         return len(self.linear) + len(self.regressors)
 
-    def base_source(self, index: int) -> int | None:
-        """The source of base ``index``: -1 output, 0.. an input; None for a regressor."""
-        lin = self.linear
-        return lin[index][0] if index < len(lin) else None
-
     def is_output_lag(self, index: int) -> bool:
         """Base ``index`` is a lagged output ``y(t-l)`` (not a regressor, not an input)."""
         return index < len(self.linear) and self.linear[index][0] < 0
