@@ -224,6 +224,7 @@ def test_presets_take_their_scale_from_the_output_and_several_outputs_are_refuse
         run_job(record, JobSettings.from_values({"regressors": "friction", "ny": 2, "nu": 2}))
 
 
+@pytest.mark.slow
 def test_identify_with_the_preset_then_validate_reads_the_document_back(tmp_path):
     """The commands a user types: ``identify --regressors friction --json``, then ``validate``."""
     doc = tmp_path / "model.json"
