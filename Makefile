@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 # ROS traffic stays on this machine; each target picks its own domain.
 export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
 
-.PHONY: setup run identify test test-quick lint bench bench-sizes bench-node bench-dask bench-certify bench-certify-scale bench-generalise bench-speed bench-online bench-mimo bench-accuracy bench-scale bag experiment report clean
+.PHONY: setup run identify test test-quick test-durations lint bench bench-sizes bench-node bench-dask bench-certify bench-certify-scale bench-generalise bench-speed bench-online bench-mimo bench-accuracy bench-scale bag experiment report clean
 
 INTERFACES := $(wildcard interfaces/spm_sysid_interfaces/*.* interfaces/spm_sysid_interfaces/*/*)
 
@@ -53,6 +53,12 @@ test: $(KERNELS) $(BROWSER)
 ## The tests without those marked slow (each over about 15 s): a quicker check while working.
 test-quick: $(KERNELS) $(BROWSER)
 	ROS_DOMAIN_ID=62 $(BIN)/python -m pytest -q -n 3 --dist loadgroup -m "not slow" test
+
+# measure every test (the whole suite, about 13 minutes) and list those over 2.5 s in
+# test/slow_tests.txt: they are marked slow, so test-quick leaves them out
+test-durations: $(KERNELS) $(BROWSER)
+	ROS_DOMAIN_ID=62 $(BIN)/python -m pytest -q -n 3 --dist loadgroup --durations=0 -vv test \
+		| tee /dev/stderr | $(BIN)/python test/helpers/slow_list.py
 
 lint: $(KERNELS)
 	$(BIN)/ruff check .

@@ -25,6 +25,24 @@ from spm_sysid.core.io.datasets import find_robot_arm  # noqa: E402
 if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
     signal.signal(signal.SIGINT, signal.default_int_handler)
 
+#: Tests over about 2.5 s under three workers on two cores, measured (`make test-durations`):
+#: marked ``slow`` here, so that ``make test-quick`` (``-m "not slow"``) stays near 2 minutes.
+SLOW_LIST = Path(__file__).with_name("slow_tests.txt")
+
+
+def slow_test_ids() -> set[str]:
+    """The node ids test/slow_tests.txt lists (lines ``seconds<TAB>node id``; # comments)."""
+    lines = SLOW_LIST.read_text().splitlines() if SLOW_LIST.exists() else []
+    return {line.split("\t", 1)[1] for line in lines if line and not line.startswith("#")}
+
+
+def pytest_collection_modifyitems(config, items):
+    slow = slow_test_ids()
+    for item in items:
+        if item.nodeid in slow:
+            item.add_marker(pytest.mark.slow)
+
+
 # ROS traffic stays on this machine, whatever the caller's environment says.
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 os.environ.setdefault("ROS_DOMAIN_ID", "62")

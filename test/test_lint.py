@@ -54,3 +54,18 @@ def test_every_link_between_the_docs_names_a_file_and_a_heading_that_exist():
             elif anchor and dest.suffix == ".md" and anchor not in anchors.get(dest, set()):
                 broken.append(f"{f.name}: {target} (no such heading)")
     assert not broken, broken
+
+
+@pytest.mark.slow
+def test_every_test_the_slow_list_names_exists():
+    """A renamed test would silently leave the slow list and slow the quick selection."""
+    from .conftest import slow_test_ids
+
+    listed = slow_test_ids()
+    assert len(listed) > 20
+    files = sorted({i.split("::")[0] for i in listed})
+    r = subprocess.run([sys.executable, "-m", "pytest", "--collect-only", "-q", "-p", "no:xdist",
+                        *files], cwd=ROOT, capture_output=True, text=True, timeout=240)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr
+    collected = {line.strip() for line in r.stdout.splitlines() if "::" in line}
+    assert listed <= collected, sorted(listed - collected)
