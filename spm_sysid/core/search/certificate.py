@@ -49,6 +49,9 @@ class Certificate:
         lower bound read at the best structure's size (``one_step_mse`` itself when
         optimal). For AIC, AICc and BIC ``value = N ln(MSE) + pen(k)``, so it is
         ``one_step_mse * exp(-gap / N)``.
+    weakest : list of WeakNode
+        When asked (``explain``) and not proved: the weakest open nodes, bounded
+        again size by size (:mod:`.explain`).
     """
 
     status: str
@@ -63,6 +66,7 @@ class Certificate:
     terms: list[str] = field(default_factory=list)
     one_step_mse: float | None = None
     mse_lower_bound: float | None = None
+    weakest: list = field(default_factory=list)
 
     @property
     def gap(self) -> float:
@@ -83,7 +87,8 @@ class Certificate:
                 "reason": self.reason, "warm_start": self.warm_start,
                 "size": int(np.count_nonzero(self.mask)),
                 "one_step_mse": json_float(self.one_step_mse),
-                "mse_lower_bound": json_float(self.mse_lower_bound)}
+                "mse_lower_bound": json_float(self.mse_lower_bound),
+                **({"weakest": [w.to_dict() for w in self.weakest]} if self.weakest else {})}
 
 
 def describe_certificate(doc: dict | None) -> str:

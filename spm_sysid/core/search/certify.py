@@ -72,6 +72,7 @@ from .certificate import (
     penalty_per_size,
     trivial_bound,
 )
+from .explain import weakest_nodes
 from .heaps import (
     MAX_OPEN_BYTES,
     OpenNodes,
@@ -185,7 +186,7 @@ def certify(
     node_limit: int | None = None, sse_scale: float = 1.0, tolerance: float = 1e-6,
     rank_tol: float = DEFAULT_RANK_TOL, progress: Callable[[int, float, float], None] | None = None,
     evaluator: StructureEvaluator | None = None, enumeration_budget: int | None = None,
-    threads: int | None = None, started: float | None = None,
+    threads: int | None = None, started: float | None = None, explain: int = 0,
 ) -> Certificate:
     """Search all structures of the columns of ``P`` exactly (see the module doc).
 
@@ -212,6 +213,10 @@ def certify(
         one with ``node_limit``; fewer when the memory bound does not hold more).
     started : float, optional
         ``time.perf_counter()`` when the caller's set-up began (default: now).
+    explain : int, optional
+        When the search stops with ``limit``: bound this many of its weakest open
+        nodes again, size by size (:attr:`Certificate.weakest`,
+        :func:`~.explain.weakest_nodes`; after the time limit, a few seconds at most).
 
     Raises
     ------
@@ -237,8 +242,11 @@ def certify(
     heaps = search.heaps(best_value, best_full)
     status, reason = search.run(heaps, budget, deadline=deadline, time_limit=time_limit,
                                 node_limit=node_limit, progress=progress)
-    return _certificate(ev, search, heaps, status, reason, t0=t0, tolerance=tolerance,
+    cert = _certificate(ev, search, heaps, status, reason, t0=t0, tolerance=tolerance,
                         warm_value=warm_value)
+    if explain and cert.status == "limit":
+        cert.weakest = weakest_nodes(heaps, search.data, search.usable, budget, explain)
+    return cert
 
 
 def _evaluator(P: np.ndarray, target: np.ndarray, crit: Criterion, *, rank_tol: float,
@@ -461,6 +469,7 @@ def certify_data(
     progress: Callable[[int, float, float], None] | None = None,
     threads: int | None = None,
     started: float | None = None,
+    explain: int = 0,
 ) -> Certificate:
     """:func:`certify` on measured signals (the term space's candidates of u, y).
 
@@ -470,7 +479,8 @@ def certify_data(
     term's, are left out as :func:`identify` leaves them out. The certificate's
     ``terms`` are the term names.
     ``started`` (``time.perf_counter()``) is when the caller's work began, e.g. a
-    warm-start GA: the time limit counts from there (default: now).
+    warm-start GA: the time limit counts from there (default: now). ``explain``: as
+    for :func:`certify`, the weakest open nodes' terms fixed in by name.
     """
     from ..fit.problem import Problem
 
@@ -486,8 +496,11 @@ def certify_data(
         np.asarray(warm_start, dtype=bool) & problem.usable)
     cert = certify(None, None, crit, warm_start=warm, time_limit=time_limit,
                    node_limit=node_limit, progress=progress, threads=threads, started=started,
-                   evaluator=problem.evaluator(crit))
+                   evaluator=problem.evaluator(crit), explain=explain)
     cert.mask = problem.expand(cert.mask)
     names = term_space.term_names()
     cert.terms = [names[i] for i in np.flatnonzero(cert.mask)]
+    columns = np.flatnonzero(problem.usable)  # the evaluator's column j is term columns[j]
+    for node in cert.weakest:
+        node.names = [names[columns[j]] for j in node.inside]
     return cert

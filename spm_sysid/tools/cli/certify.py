@@ -24,6 +24,7 @@ def cmd_certify(args) -> int:
 
     from ...core.files import atomic_write_text, document_json
     from ...core.search.certify import certify_data, check_certify_memory, describe_certificate
+    from ...core.search.explain import explain_table
 
     settings = _checked_settings(args)
     time_limit = settings.search.certify_time_limit
@@ -45,7 +46,7 @@ def cmd_certify(args) -> int:
         cert = certify_data(record.u, record.y, term_space=space, criterion=args.criterion,
                             segments=segments, warm_start=warm, time_limit=time_limit,
                             node_limit=args.node_limit, progress=bars.nodes,
-                            threads=args.threads, started=started)
+                            threads=args.threads, started=started, explain=args.explain)
     finally:
         bars.close()
     doc = cert.to_dict()
@@ -54,6 +55,8 @@ def cmd_certify(args) -> int:
     print(f"terms ({len(cert.terms)}): {' + '.join(cert.terms)}")
     print(f"{describe_certificate(doc)}; bounds: {cert.bound}; time limit {time_limit:g} s "
           "(warm start included)")
+    if args.explain:
+        print(explain_table(doc.get("weakest", []), cert.value))
     if args.json:
         doc = {**doc, "criterion": args.criterion, "source": record.source,
                "term_space": space.to_dict()}
@@ -71,6 +74,8 @@ def _checked_settings(args):
                         f"on the coefficients); certifiable: {', '.join(CERTIFIABLE)}")
     if args.threads is not None and args.threads < 1:
         raise UserError(f"--threads must be at least 1, got {args.threads}")
+    if args.explain is not None and args.explain < 0:
+        raise UserError(f"--explain must be 0 or more nodes, got {args.explain}")
     if args.node_limit is not None and args.node_limit < 1:
         raise UserError(f"--node-limit must be at least 1, got {args.node_limit}")
     settings = job_settings(args)
@@ -144,6 +149,9 @@ def add_parser(sub) -> None:
     g.add_argument("--node-limit", type=int, default=None, help="nodes before stopping")
     g.add_argument("--threads", type=int, default=None,
                    help="workers searching at once (default: the usable cores, at most 8)")
+    g.add_argument("--explain", type=int, nargs="?", const=10, default=0, metavar="N",
+                   help="when not proved: print the N weakest open nodes (default 10), each "
+                        "bounded again size by size: what holds the lower bound")
     g.add_argument("--json", metavar="PATH", help="write the certificate here")
     g.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_certify)
