@@ -183,7 +183,8 @@ def explain_table(nodes: list[dict], value: float) -> str:
                 for d in nodes)
     return "\n".join(lines + [
         f"reading: {closing} of {len(nodes)} close when expanded (open for want of time); "
-        f"{near} hold nearly dependent terms (a dependent subset counts as fitting down to "
-        f"the span bound on all-in's SSE, so their small sizes stay open); in {above} the "
+        f"{near} hold nearly dependent terms (no drop bounds: sizes above the enumerated "
+        "ones get only the span bound on all-in's SSE, and a dependent subset counts as "
+        f"fitting down to it); in {above} the "
         "weakest size is the first above those enumerated (the drop and pair bounds from "
         "all-in down hold it there)"])
