@@ -14,6 +14,7 @@ from spm_sysid.core.model.terms import TermSpace
 from spm_sysid.core.search.certify import certify, certify_data, penalty_per_size
 
 from .conftest import EQ1, EQ2, ROOT
+from .helpers.narx import smooth_narx_record
 
 
 def _all_masks(m: int) -> np.ndarray:
@@ -54,15 +55,7 @@ def _problem(kind: str, seed: int, ny: int = 2, nu: int = 2, degree: int = 2):
         return ts.regression_matrix(u, y), ts.target(y)
     # structured and hard on purpose: a NARX space of a smooth (strongly correlated)
     # input with much noise, so many structures are nearly equal
-    e = rng.standard_normal(n + 50)
-    u = np.zeros(n + 50)
-    for k in range(1, n + 50):
-        u[k] = 0.95 * u[k - 1] + e[k]
-    u = u[50:] / np.abs(u[50:]).max()
-    y = np.zeros(n)
-    for k in range(2, n):
-        y[k] = 1.2 * y[k - 1] - 0.5 * y[k - 2] + 0.4 * u[k - 1] + 0.1 * u[k - 2] * y[k - 1]
-    y += 0.3 * y.std() * rng.standard_normal(n)
+    u, y = smooth_narx_record(seed, n)
     ts = TermSpace(ny=ny, nu=nu, degree=2)  # 14 candidate terms
     return ts.regression_matrix(u, y), ts.target(y)
 

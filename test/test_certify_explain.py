@@ -13,22 +13,14 @@ from spm_sysid.core.search.certify import certify
 from spm_sysid.core.search.explain import explain_table
 
 from .conftest import ROOT
+from .helpers.narx import smooth_narx_record
 
 
 def _narx_problem(seed: int, near: bool):
     """14 candidates of a smooth input's NARX space (many structures nearly equal); with
     ``near``, one more column within rounding distance of another (the span bound's case)."""
-    rng = np.random.default_rng(seed)
-    n = 300
-    u = np.zeros(n + 50)
-    e = rng.standard_normal(n + 50)
-    for k in range(1, n + 50):
-        u[k] = 0.95 * u[k - 1] + e[k]
-    u = u[50:] / np.abs(u[50:]).max()
-    y = np.zeros(n)
-    for k in range(2, n):
-        y[k] = 1.2 * y[k - 1] - 0.5 * y[k - 2] + 0.4 * u[k - 1] + 0.1 * u[k - 2] * y[k - 1]
-    y += 0.3 * y.std() * rng.standard_normal(n)
+    u, y = smooth_narx_record(seed)
+    rng = np.random.default_rng(seed + 100)
     ts = TermSpace(ny=2, nu=2, degree=2)
     P, t = ts.regression_matrix(u, y), ts.target(y)
     if near:
