@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..compiled.registry import jit_exact as jit
+from .chain import chain_start, mark_diverged
 
 __all__ = ["free_run_sensitivities_r", "run_model_r"]
 
@@ -149,25 +150,14 @@ def _run_r(gather, y_lags, u_lags, u_cols, code, consts, start, depth, ly, theta
     work = np.empty(n)
     free = horizon >= n - lag0
     for t in range(lag0, n):
-        if free:
-            first = t
-            if t == lag0:
-                for s in range(lag0):
-                    work[s] = y[s]
-        else:
-            o = max(t - horizon, lag0 - 1)
-            for s in range(o - lag0 + 1 if o - lag0 + 1 > 0 else 0, o + 1):
-                work[s] = y[s]
-            first = o + 1
+        first = chain_start(work, y, t, horizon, lag0, free)
         for s in range(first, t + 1):
             _fill(y_lags, u_lags, u_cols, code, consts, start, work, u, s, vals, grad, sv, sg,
                   ly)
             work[s] = _value(gather, theta, vals, phi)
         v = work[t]
-        if not (v >= lo and v <= hi):
-            for s in range(t, lag0 + out.shape[0]):
-                out[s - lag0] = np.nan
-            return t
+        if not (v >= lo and v <= hi):  # also NaN
+            return mark_diverged(out, t, lag0)
         out[t - lag0] = v
     return -1
 

@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..compiled.registry import jit_exact as jit
+from .chain import chain_start, mark_diverged
 
 __all__ = ["DIVERGENCE_FACTOR", "CompiledModel", "divergence_bounds",
            "free_run_sensitivities", "run_model"]
@@ -121,13 +122,6 @@ def _buffers(gather, y_lags, u_lags):  # pragma: no cover - compiled
 
 
 @jit
-def _mark_diverged(out, t, lag0):  # pragma: no cover - compiled
-    for s in range(t, lag0 + out.shape[0]):
-        out[s - lag0] = np.nan
-    return t
-
-
-@jit
 def _run(gather, y_lags, u_lags, u_cols, theta, u, y, horizon, lag0, lo, hi,
          out):  # pragma: no cover - compiled
     """Write k-step-ahead predictions into ``out`` (rows t = lag0..n-1).
@@ -139,22 +133,12 @@ def _run(gather, y_lags, u_lags, u_cols, theta, u, y, horizon, lag0, lo, hi,
     work = np.empty(n)  # outputs seen by the chain: measured up to its origin
     free = horizon >= n - lag0
     for t in range(lag0, n):
-        # one chain from origin o = t - horizon (or the start) to t
-        if free:
-            first = t  # one chain for everything: extend it by one step
-            if t == lag0:
-                for s in range(lag0):
-                    work[s] = y[s]
-        else:
-            o = max(t - horizon, lag0 - 1)
-            for s in range(o - lag0 + 1 if o - lag0 + 1 > 0 else 0, o + 1):
-                work[s] = y[s]
-            first = o + 1
+        first = chain_start(work, y, t, horizon, lag0, free)
         for s in range(first, t + 1):
             work[s] = _predict_at(gather, theta, y_lags, u_lags, u_cols, work, u, s, vals, phi)
         v = work[t]
         if not (v >= lo and v <= hi):  # also NaN
-            return _mark_diverged(out, t, lag0)
+            return mark_diverged(out, t, lag0)
         out[t - lag0] = v
     return -1
 
@@ -227,7 +211,7 @@ def _sens(gather, y_lags, u_lags, u_cols, theta, u, y, lag0, lo, hi, out,
         acc = _predict_at(gather, theta, y_lags, u_lags, u_cols, ys, u, t, vals, phi)
         ys[t] = acc
         if not (acc >= lo and acc <= hi):
-            return _mark_diverged(out, t, lag0)
+            return mark_diverged(out, t, lag0)
         out[t - lag0] = acc
         # d yhat(t) / d y(t - lag_j): each factor that is an output lag, times the others
         for j in range(n_y):
