@@ -87,7 +87,7 @@ clean:
 bench-certify: $(KERNELS)
 	$(BIN)/python -m benchmarks.certify
 
-## The spaces users search (164 and 454 candidates) on real records, beside SCIP's MIQP.
+## The spaces users search (84, 164 and 454 candidates) on real records, beside SCIP's MIQP.
 bench-certify-scale: $(KERNELS)
 	$(BIN)/python -m pip install --quiet -e '.[bench]'
 	$(BIN)/python -m benchmarks.certify_scale

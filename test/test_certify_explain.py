@@ -122,6 +122,9 @@ def test_certify_explain_prints_the_weakest_nodes_with_term_names(tmp_path, robo
         assert set(node["in"]) <= set(names)
         assert node["n_in"] + node["n_out"] + node["n_free"] <= len(names)
     assert lines[head + 5].startswith("reading: ")
+    r = spm("--data", str(robot_arm_path), "--no-ga", "--node-limit", "2", "--quiet")
+    assert r.returncode == 0 and "what holds the bound: run again with --explain" in r.stdout
+    assert "weakest open nodes" not in r.stdout
     r = spm("--explain", "-1")
     assert r.returncode == 2 and "--explain must be 0 or more nodes, got -1" in r.stderr
 

@@ -57,6 +57,8 @@ def cmd_certify(args) -> int:
           "(warm start included)")
     if args.explain:
         print(explain_table(doc.get("weakest", []), cert.value))
+    elif cert.status == "limit":
+        print("what holds the bound: run again with --explain")
     if args.json:
         doc = {**doc, "criterion": args.criterion, "source": record.source,
                "term_space": space.to_dict()}
