@@ -88,14 +88,20 @@ def _members(words: np.ndarray, mu: int) -> list[int]:
     return [int(j) for j in np.flatnonzero(bits)]
 
 
-def _rebound(data, heap: OpenNodes, bound: float, inside: np.ndarray, free: np.ndarray,
-             budget: int, mu: int) -> WeakNode:
-    """Bound one node on a heap of its own; read its sizes off the scratch space."""
+def _rebound(data, heap: OpenNodes, incumbent: tuple, bound: float, inside: np.ndarray,
+             free: np.ndarray, budget: int, mu: int) -> WeakNode:
+    """Bound one node on a heap of its own; read its sizes off the scratch space.
+
+    ``incumbent``: (value, mask) of the stopped search, what every size is compared with.
+    """
     heap.bound[0] = bound
     heap.inside[0] = inside
     heap.free[0] = free
     heap.counts[:] = 0
     heap.counts[OPEN] = 1
+    best = float(incumbent[0])  # the certificate's value, whatever this expansion finds
+    heap.best[0] = best
+    heap.best_mask[:] = incumbent[1]
     work = heap.work
     work.small[:] = np.nan
     work.wvals[:] = np.nan
@@ -103,7 +109,6 @@ def _rebound(data, heap: OpenNodes, bound: float, inside: np.ndarray, free: np.n
     ins, fr = _members(inside, mu), _members(free, mu)
     k, f = len(ins), len(fr)
     t = k + f
-    best = float(heap.best[0])
     per_size = np.full(t + 1, np.inf)  # an unknown size was cut: it cannot beat the incumbent
     exact = k - 1
     for a in range(f + 1):  # the small sizes, exactly
@@ -135,7 +140,7 @@ def weakest_nodes(heaps: list[OpenNodes], data, usable: np.ndarray, budget: int,
 
     ``heaps``, ``data`` and ``usable`` (the evaluator's columns the search runs on)
     are a stopped search's (:mod:`.certify`); they are not changed (each node is
-    bounded on a heap of its own).
+    bounded in turn on one scratch heap, against the search's incumbent).
     """
     if count <= 0 or not any(h.size for h in heaps):
         return []
@@ -145,10 +150,12 @@ def weakest_nodes(heaps: list[OpenNodes], data, usable: np.ndarray, budget: int,
     order = np.argsort(bound, kind="stable")[:count]
     top = min(heaps, key=lambda h: h.best[0])
     mu = data.gram.shape[0] - 1
+    incumbent = (float(top.best[0]), top.best_mask.copy())
+    scratch = OpenNodes(mu, data.r_ext.shape[0], incumbent[0], incumbent[1], 1)
     out = []
     for i in order:
-        scratch = OpenNodes(mu, data.r_ext.shape[0], float(top.best[0]), top.best_mask, 1)
-        node = _rebound(data, scratch, float(bound[i]), inside[i], free[i], budget, mu)
+        node = _rebound(data, scratch, incumbent, float(bound[i]), inside[i], free[i], budget,
+                        mu)
         node.inside = [int(usable[j]) for j in node.inside]
         node.free = [int(usable[j]) for j in node.free]
         out.append(node)
