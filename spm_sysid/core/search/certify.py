@@ -209,14 +209,13 @@ def certify(
     enumeration_budget : int, optional
         Subsets of free terms a node enumerates (default :data:`ENUMERATION_BUDGET`).
     threads : int, optional
-        Workers, each with its own open nodes (default: the usable cores, at most 8;
-        one with ``node_limit``; fewer when the memory bound does not hold more).
+        Workers, each with its own open nodes (default: the usable cores, at most 8; one
+        with ``node_limit``; fewer when the memory bound does not hold more).
     started : float, optional
         ``time.perf_counter()`` when the caller's set-up began (default: now).
     explain : int, optional
-        When the search stops with ``limit``: bound this many of its weakest open
-        nodes again, size by size (:attr:`Certificate.weakest`,
-        :func:`~.explain.weakest_nodes`; after the time limit, a few seconds at most).
+        When stopped by a limit: its weakest open nodes, bounded again size by size
+        (:attr:`Certificate.weakest`, :mod:`.explain`; after the time limit).
 
     Raises
     ------
@@ -228,11 +227,8 @@ def certify(
     t0 = time.perf_counter() if started is None else started
     deadline = t0 + time_limit
     _check_limits(time_limit, node_limit, threads)
-    crit = get_criterion(criterion)
-    ev = evaluator or _evaluator(P, target, crit, rank_tol=rank_tol, sse_scale=sse_scale)
-    if ev.criterion.name != crit.name:
-        raise ValueError(f"the evaluator scores {ev.criterion.name}, not {crit.name}")
-    search = _Search.set_up(ev, crit, node_limit, threads, tolerance)
+    ev = _evaluator(evaluator, P, target, criterion, rank_tol=rank_tol, sse_scale=sse_scale)
+    search = _Search.set_up(ev, ev.criterion, node_limit, threads, tolerance)
     best_full, best_value, warm_value = _incumbent(ev, search.usable, warm_start, deadline,
                                                    time_limit)
     if time.perf_counter() >= deadline:  # the set-up used the time: nothing searched
@@ -242,16 +238,22 @@ def certify(
     heaps = search.heaps(best_value, best_full)
     status, reason = search.run(heaps, budget, deadline=deadline, time_limit=time_limit,
                                 node_limit=node_limit, progress=progress)
-    cert = _certificate(ev, search, heaps, status, reason, t0=t0, tolerance=tolerance,
-                        warm_value=warm_value)
-    if explain and cert.status == "limit":
-        cert.weakest = weakest_nodes(heaps, search.data, search.usable, budget, explain)
-    return cert
+    return _certificate(ev, search, heaps, status, reason, t0=t0, tolerance=tolerance,
+                        warm_value=warm_value, explain=(explain, budget))
 
 
-def _evaluator(P: np.ndarray, target: np.ndarray, crit: Criterion, *, rank_tol: float,
+def _evaluator(given: StructureEvaluator | None, P: np.ndarray, target: np.ndarray,
+               criterion: str | Criterion, *, rank_tol: float,
                sse_scale: float) -> StructureEvaluator:
-    """The evaluator of ``P`` and ``target``, once the memory bound holds its set-up."""
+    """The evaluator given (it must score ``criterion``), else that of ``P`` and ``target``.
+
+    A new one is built once the memory bound holds its set-up.
+    """
+    crit = get_criterion(criterion)
+    if given is not None:
+        if given.criterion.name != crit.name:
+            raise ValueError(f"the evaluator scores {given.criterion.name}, not {crit.name}")
+        return given
     P = np.asarray(P)
     check_certify_memory(*P.shape)
     return StructureEvaluator(np.asarray(P, dtype=float), np.asarray(target, dtype=float),
@@ -442,9 +444,13 @@ class _Rounds:
 
 
 def _certificate(ev: StructureEvaluator, search: _Search, heaps: list[OpenNodes], status: str,
-                 reason: str | None, *, t0: float, tolerance: float,
-                 warm_value: float | None) -> Certificate:
-    """The best structure re-scored by the evaluator, with its lower bound."""
+                 reason: str | None, *, t0: float, tolerance: float, warm_value: float | None,
+                 explain: tuple[int, int] = (0, 0)) -> Certificate:
+    """The best structure re-scored by the evaluator, with its lower bound.
+
+    ``explain``: (nodes, enumeration budget): a search stopped by a limit gets that many
+    of its weakest open nodes bounded again (:func:`~.explain.weakest_nodes`).
+    """
     best = heaps[0].best
     nodes = sum(h.nodes for h in heaps)
     lower = float(best[0]) if status == "optimal" else max(lower_bound(heaps), search.trivial)
@@ -456,10 +462,13 @@ def _certificate(ev: StructureEvaluator, search: _Search, heaps: list[OpenNodes]
         status = "limit"
         reason = "the best structure found is near rank-deficient; the evaluator scores it higher"
     lower = min(lower, float(value))
-    return Certificate(status=status, value=float(value), lower_bound=lower,
+    cert = Certificate(status=status, value=float(value), lower_bound=lower,
                        mask=mask, nodes=int(nodes), seconds=time.perf_counter() - t0,
                        reason=reason, warm_start=warm_value,
                        **mse_bounds(float(value), lower, mask, search.pen, ev.n))
+    if explain[0] and status == "limit":
+        cert.weakest = weakest_nodes(heaps, search.data, search.usable, explain[1], explain[0])
+    return cert
 
 
 def certify_data(
