@@ -90,7 +90,7 @@ def _members(words: np.ndarray, mu: int) -> list[int]:
 
 def _rebound(data, heap: OpenNodes, incumbent: tuple, bound: float, inside: np.ndarray,
              free: np.ndarray, budget: int, mu: int) -> WeakNode:
-    """Bound one node on a heap of its own; read its sizes off the scratch space.
+    """Bound one node alone on the scratch heap; read its sizes off the scratch space.
 
     ``incumbent``: (value, mask) of the stopped search, what every size is compared with.
     """
