@@ -82,9 +82,10 @@ def _ours(case: dict) -> dict:
                    auto_certify_time_limit=0, polish=True, selection="criterion")
     cert = certify_data(u, y, term_space=space, criterion=case["criterion"],
                         warm_start=res.model.mask, time_limit=limit, started=started,
-                        explain=5)
+                        node_limit=case.get("node_limit"), explain=5)
     rows = len(y) - space.max_lag
-    return {"status": cert.status, "value": cert.value, "bound": cert.lower_bound,
+    return {"status": cert.status, "reason": cert.reason, "value": cert.value,
+            "bound": cert.lower_bound,
             "gap": cert.gap, "terms": int(cert.mask.sum()), "nodes": cert.nodes,
             "seconds": time.perf_counter() - started, "rows": rows,
             "candidates": space.n_terms, "peak_mb": _peak_mb(), "mse": cert.one_step_mse,
