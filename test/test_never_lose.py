@@ -63,6 +63,10 @@ def test_the_paired_test_is_a_one_sided_t_test_on_the_log_ratios():
     t = d.mean() / (d.std(ddof=1) / np.sqrt(len(d)))
     assert paired_p_value(list(linear), list(other)) == pytest.approx(
         stats.t.sf(t, len(d) - 1), rel=1e-10)
+    worse = linear * rng.uniform(0.9, 1.5, 10)  # mostly worse: a p-value near 1, same rule
+    assert paired_p_value(list(linear), list(worse)) == pytest.approx(
+        stats.ttest_1samp(np.log(linear) - np.log(worse), 0.0, alternative="greater").pvalue,
+        rel=1e-10)
     assert paired_p_value([1.0, 2.0], [0.5, 1.0]) == 0.0  # better on every block, alike
     assert paired_p_value([1.0, 2.0], [1.0, 2.0]) == 1.0
     # a noise-free fit: errors at rounding level, whatever their spread, beat linear

@@ -63,8 +63,12 @@ def paired_p_value(reference: Sequence[float], other: Sequence[float]) -> float:
     On the log ratio of each block's two errors (blocks differ a lot in level; the
     ratio compares each block with itself); errors below 1e-12 of the largest count
     as that floor (a noise-free fit). 0 or 1 when the ratios do not vary.
+
+    Student's t distribution from :func:`scipy.special.stdtr` (the p-value of
+    ``scipy.stats.ttest_1samp(d, 0, alternative="greater")``): it spares each
+    command the import of scipy.stats (0.5-0.9 s, more than judging a small record).
     """
-    from scipy import stats
+    from scipy.special import stdtr
 
     # errors a million millions below the larger are rounding: a perfect fit is not
     # "noisy" because 1e-30 and 1e-33 differ by a factor of a thousand
@@ -72,7 +76,8 @@ def paired_p_value(reference: Sequence[float], other: Sequence[float]) -> float:
     d = np.log(np.maximum(reference, floor)) - np.log(np.maximum(other, floor))
     if len(d) < 2 or np.ptp(d) == 0:
         return 0.0 if np.all(d > 0) else 1.0
-    return float(stats.ttest_1samp(d, 0.0, alternative="greater").pvalue)
+    t = float(np.mean(d)) / (float(np.std(d, ddof=1)) / np.sqrt(len(d)))
+    return float(stdtr(len(d) - 1, -t))
 
 
 def _one_se_order(mean, stderr, terms, finite) -> list[int]:

@@ -73,7 +73,8 @@ class FoldRun:
         return self.at is not None or self.diverged_at is not None
 
 
-def fold_runs(problem, fold, mask: np.ndarray, steps: int = FOLD_STEPS
+def fold_runs(problem, fold, mask: np.ndarray, steps: int = FOLD_STEPS,
+              dead: tuple[FoldRun | None, FoldRun | None] = (None, None)
               ) -> tuple[FoldRun, FoldRun]:
     """The held-out runs of the structure fitted on the fold, one per estimator.
 
@@ -81,12 +82,20 @@ def fold_runs(problem, fold, mask: np.ndarray, steps: int = FOLD_STEPS
     error of the fold's segments (at most ``steps`` evaluations, on a long
     record's :func:`~spm_sysid.core.select.folds.refinement_windows`); a
     refinement that fails judges the least-squares fit twice.
+
+    ``dead``: an estimator's run that already left the range on an earlier fold
+    (None: none did). Its held-out error is infinite whatever this fold gives, so
+    that run is returned again instead of being computed (the refinement, the
+    costly part, is skipped); whether the fold's rows fit the structure is
+    still checked, as an unfit fold decides the structure's errors first.
     """
     u, y = problem.u, problem.y
     try:
         fit = problem.fit(mask, rows=fold.train)
     except ValueError:
         return FoldRun(), FoldRun()
+    if dead[0] is not None and dead[1] is not None:
+        return dead
     model = problem.model(mask, fit)
     lag = problem.term_space.max_lag
     at = np.concatenate([np.arange(a + lag, b) for a, b in fold.held_out])
@@ -98,10 +107,13 @@ def fold_runs(problem, fold, mask: np.ndarray, steps: int = FOLD_STEPS
         e = m.measured(y, fold.held_out) - yhat
         return FoldRun(at, e * e)
 
-    least_squares = held_out(model)
+    least_squares = dead[0] or held_out(model)
+    if dead[1] is not None:
+        return least_squares, dead[1]
     ref = refine_simulation(model, u, y, refinement_windows(fold.train_segments, lag),
                             max_evaluations=steps)
     if not (ref.success and np.isfinite(ref.sse)):
+        least_squares = held_out(model) if dead[0] is not None else least_squares
         return least_squares, least_squares
     return least_squares, held_out(model.with_coefficients(ref.coefficients))
 
@@ -214,7 +226,7 @@ class ValidatedSimulation:
                              elapsed=time.perf_counter() - self.started))
         for done, (_, key) in enumerate(finals):
             mask = key_mask(key, n)
-            both = [fold_runs(self.problem, fold, mask, steps) for fold in self.folds]
+            both = self._fold_runs(mask, steps)
             rejected = False
             for j, how in enumerate(ESTIMATORS):
                 values = sub_block_errors([b[j] for b in both], label, n_sub)
@@ -228,6 +240,15 @@ class ValidatedSimulation:
             out.scores.rejected += rejected
             self.report(Progress("held-out blocks", done + 1, len(finals),
                                  elapsed=time.perf_counter() - self.started))
+        return out
+
+    def _fold_runs(self, mask: np.ndarray, steps: int) -> list[tuple[FoldRun, FoldRun]]:
+        """Each fold's pair of runs; an estimator that left the range is not run again."""
+        out, dead = [], [None, None]
+        for fold in self.folds:
+            pair = fold_runs(self.problem, fold, mask, steps, (dead[0], dead[1]))
+            dead = [d or (r if r.diverged_at is not None else None) for d, r in zip(dead, pair)]
+            out.append(pair)
         return out
 
     def choose(self, judged: Judged) -> tuple[Call, dict]:
