@@ -238,3 +238,39 @@ def test_the_fast_stability_check_agrees_with_the_roots():
         assert linear_stability_check(ts, idx)(theta) == (radius < 1.0), (idx, theta)
         checked += 1
     assert checked > 2900
+
+
+def test_judging_skips_the_refinements_of_an_estimator_that_left_the_range(robot_arm,
+                                                                            monkeypatch):
+    """A finalist whose run left the range on one fold scores inf whatever the others give:
+    the next folds skip its refinement, and every held-out error equals the full count's."""
+    from spm_sysid.core.fit.problem import Problem
+    from spm_sysid.core.select import finalists
+    from spm_sysid.core.select.folds import informative_folds, sub_blocks
+
+    u, y = robot_arm
+    problem = Problem.from_signals(u, y)
+    folds, _ = informative_folds(problem, 3, 3)
+    label = sub_blocks(problem, folds)
+    n_sub = int(label.max()) + 1
+    refined = []
+    real = finalists.refine_simulation
+    monkeypatch.setattr(finalists, "refine_simulation",
+                        lambda *a, **k: refined.append(1) or real(*a, **k))
+    every = np.ones(problem.term_space.n_terms, dtype=bool)  # 44 terms: leaves the range
+    linear = np.zeros_like(every)
+    linear[[problem.term_space.terms.index((i,)) for i in range(8)]] = True
+    for mask, diverges in ((every, True), (linear, False)):
+        job = finalists.ValidatedSimulation.__new__(finalists.ValidatedSimulation)
+        job.problem, job.folds = problem, folds
+        refined.clear()
+        skipped = job._fold_runs(mask, 30)
+        calls_skipped = len(refined)
+        full = [finalists.fold_runs(problem, fold, mask, 30) for fold in folds]
+        assert len(refined) == calls_skipped + len(folds)  # the full count refines every fold
+        for j in range(2):
+            a = finalists.sub_block_errors([p[j] for p in skipped], label, n_sub)
+            b = finalists.sub_block_errors([p[j] for p in full], label, n_sub)
+            assert a == b
+            assert np.all(np.isinf(a)) == diverges
+        assert (calls_skipped < len(folds)) == diverges
