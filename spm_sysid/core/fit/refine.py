@@ -7,8 +7,8 @@ simulator should minimise the error of its own fed-back outputs,
 
 over every estimation segment (each simulated from its own initial
 conditions). This is a nonlinear least-squares problem; it is solved by
-Levenberg-Marquardt (``scipy.optimize.least_squares(method="lm")``) started
-from the least-squares coefficients, with the exact Jacobian from the
+Levenberg-Marquardt (:func:`~spm_sysid.core.fit.levenberg.levenberg_marquardt`)
+started from the least-squares coefficients, with the exact Jacobian from the
 sensitivity equations (:func:`~spm_sysid.core.model.simulation.free_run_sensitivities`).
 
 Stability: a step that would make the model's linear part unstable (a pole
@@ -34,6 +34,7 @@ import numpy as np
 from ..model.narx import NarxModel
 from ..model.segments import rows_segments
 from ..model.simulation import divergence_bounds, free_run_sensitivities
+from .levenberg import levenberg_marquardt
 
 __all__ = ["Refinement", "free_run_uncertainty", "linear_radius", "linear_stability_check",
            "refine_simulation"]
@@ -167,11 +168,8 @@ def refine_simulation(model: NarxModel, u: np.ndarray, y: np.ndarray,
         return Refinement(theta0, sse0, sse0, div0, 1, div0 is None,
                           "too few rows to refine; least squares kept")
     try:
-        from scipy.optimize import least_squares  # imported when a refinement runs
-
-        sol = least_squares(lambda t: simulate(t)[0], theta0, jac=lambda t: simulate(t)[1],
-                            method="lm", x_scale="jac", max_nfev=max_evaluations)
-        theta, nfev, msg = sol.x, int(sol.nfev), str(sol.message)
+        sol = levenberg_marquardt(lambda t: simulate(t)[:2], theta0, max_evaluations)
+        theta, nfev, msg = sol.x, sol.nfev, sol.message
     except (ValueError, FloatingPointError) as exc:  # pragma: no cover - numerical failure
         theta, nfev, msg = theta0, 1, f"refinement failed ({exc}); least squares kept"
     r, _, div = simulate(theta)
