@@ -160,6 +160,47 @@ def test_a_long_record_gets_a_model_that_simulates_new_data():
     assert m.metadata["selection"]["linear_or_nonlinear"]["choice"] == "nonlinear"
 
 
+def test_a_long_record_polishes_the_best_screened_structure_into_the_finalists():
+    """The one-step search missed the cubic stiffness (a wrong cubic term instead): on a
+    long record, moves from the best screened nonlinear structure find the true one, and
+    it is a finalist; a short record is judged on what was screened."""
+    from spm_sysid.core.fit.criteria import get_criterion
+    from spm_sysid.core.fit.evaluator import key_mask, mask_key
+    from spm_sysid.core.select.finalists import ValidatedSimulation
+
+    def mask_of(space, names):
+        all_names = space.term_names()
+        mask = np.zeros(space.n_terms, dtype=bool)
+        mask[[all_names.index(t) for t in names]] = True
+        return mask
+
+    space = TermSpace(ny=2, nu=2, degree=3)
+    truth = ["y(t-1)", "y(t-2)", "u(t-1)", "y(t-1)^3"]
+    missed = mask_of(space, ["y(t-1)", "y(t-2)", "u(t-1)", "y(t-1)^2*y(t-2)"])
+    for n, polished in ((30_000, True), (5_000, False)):
+        u, y = duffing(n, seed=3)
+        problem = Problem.from_signals(u, y, space, [(0, n)])
+        plan = plan_selection(problem, SearchOptions(focus="simulation"))
+        job = ValidatedSimulation(problem, plan.folds, get_criterion("aic"), 0,
+                                  lambda p: None, time.perf_counter())
+        finals = job.screen(missed[None, :])
+        key = mask_key(mask_of(space, truth))
+        assert (key in job.scorer.scored) == polished
+        cubic = space.term_names().index("y(t-1)^3")
+        found = [(v, k) for v, k in finals if key_mask(k, space.n_terms)[cubic]]
+        assert bool(found) == polished  # where the moves ended is a finalist
+        if polished:
+            assert found[0][0] < job.scorer.scored[mask_key(missed)][0] - 100
+    # a space of more than POLISH_SPACE terms: each move would try them all; not polished
+    big = TermSpace(ny=4, nu=4, degree=3)
+    assert big.n_terms > 100
+    problem = Problem.from_signals(*duffing(30_000, seed=3), big, [(0, 30_000)])
+    job = ValidatedSimulation(problem, [], get_criterion("aic"), 0, lambda p: None,
+                              time.perf_counter())
+    job.scorer(mask_of(big, ["y(t-1)", "y(t-2)", "u(t-1)", "y(t-1)^2*y(t-2)"]))
+    assert job.polish() is None
+
+
 # -- orders that cannot be fitted ---------------------------------------------------------
 
 def test_an_order_scan_with_orders_that_cannot_be_fitted_still_gives_a_document(tmp_path):

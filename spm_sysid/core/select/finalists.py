@@ -35,7 +35,16 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from ..defaults import FINALISTS, FOLD_STEPS, PER_SIZE, SEARCH_STEPS, SIGNIFICANCE
+from ..defaults import (
+    FINALISTS,
+    FOLD_STEPS,
+    LONG_POLISH_EVALUATIONS,
+    LONG_POLISH_STEPS,
+    PER_SIZE,
+    POLISH_SPACE,
+    SEARCH_STEPS,
+    SIGNIFICANCE,
+)
 from ..errors import DataError
 from ..fit.evaluator import key_mask, mask_key
 from ..fit.refine import free_run_uncertainty, refine_simulation
@@ -74,14 +83,16 @@ class FoldRun:
 
 
 def fold_runs(problem, fold, mask: np.ndarray, steps: int = FOLD_STEPS,
-              dead: tuple[FoldRun | None, FoldRun | None] = (None, None)
-              ) -> tuple[FoldRun, FoldRun]:
+              dead: tuple[FoldRun | None, FoldRun | None] = (None, None),
+              fallback: np.ndarray | None = None) -> tuple[FoldRun, FoldRun]:
     """The held-out runs of the structure fitted on the fold, one per estimator.
 
     Least squares on the fold's rows, then refined from there on the free-run
     error of the fold's segments (at most ``steps`` evaluations, on a long
     record's :func:`~spm_sysid.core.select.folds.refinement_windows`); a
-    refinement that fails judges the least-squares fit twice.
+    refinement that fails judges the least-squares fit twice, unless a
+    ``fallback`` start is given (the polished structure's screened coefficients,
+    :meth:`ValidatedSimulation._fallback`): the refinement then runs again from there.
 
     ``dead``: an estimator's run that already left the range on an earlier fold
     (None: none did). Its held-out error is infinite whatever this fold gives, so
@@ -110,8 +121,11 @@ def fold_runs(problem, fold, mask: np.ndarray, steps: int = FOLD_STEPS,
     least_squares = dead[0] or held_out(model)
     if dead[1] is not None:
         return least_squares, dead[1]
-    ref = refine_simulation(model, u, y, refinement_windows(fold.train_segments, lag),
-                            max_evaluations=steps)
+    windows = refinement_windows(fold.train_segments, lag)
+    ref = refine_simulation(model, u, y, windows, max_evaluations=steps)
+    if not (ref.success and np.isfinite(ref.sse)) and fallback is not None:
+        ref = refine_simulation(model.with_coefficients(fallback), u, y, windows,
+                                max_evaluations=steps)
     if not (ref.success and np.isfinite(ref.sse)):
         least_squares = held_out(model) if dead[0] is not None else least_squares
         return least_squares, least_squares
@@ -197,6 +211,7 @@ class ValidatedSimulation:
             segments=refinement_windows(problem.segments, problem.term_space.max_lag),
             phase="screening")
         self.degree = problem.term_space.term_degrees
+        self.polished: bytes | None = None  # the polish's end (a long record's)
 
     def screen(self, candidates) -> list[tuple[float, bytes]]:
         """Step 1 and 2: every candidate and linear structure scored; the finalists."""
@@ -204,9 +219,12 @@ class ValidatedSimulation:
         self.scorer.total = len(candidates) + len(linear)
         for mask in list(candidates) + list(linear):
             self.scorer(mask)
-        screened = self.scorer.scored
+        screened = dict(self.scorer.scored)
         finals = finalists(screened, self.problem.term_space,
                            1 if is_long(self.problem) else PER_SIZE)
+        self.polished = polished = self.polish() if is_long(self.problem) else None
+        if polished is not None and polished not in {key for _, key in finals}:
+            finals.append((self.scorer.scored[polished][0], polished))
         keys = {key for _, key in finals}
         finals += [(screened[mask_key(m)][0], mask_key(m)) for m in linear
                    if mask_key(m) not in keys and np.isfinite(screened[mask_key(m)][0])]
@@ -214,6 +232,29 @@ class ValidatedSimulation:
             raise DataError("every candidate structure's free-run simulation diverges on "
                             "the estimation data (or cannot be fitted): no model simulates")
         return finals
+
+    def polish(self) -> bytes | None:
+        """Step 1b, on a long record: moves from the best screened nonlinear structure.
+
+        The candidates come from the one-step search; what simulates best is often a
+        few terms away. :data:`~spm_sysid.core.defaults.LONG_POLISH_STEPS` moves
+        (one term of the space added or removed, warm-started, scored in-sample as
+        the screening scores) from the best nonlinear structure; where they end
+        joins the finalists (its key; None: not polished), and the held-out blocks
+        decide. Only on a long record (thousands of rows per term make the
+        in-sample score a fair guide; on a short one it would find the noise) and
+        in spaces of at most :data:`~spm_sysid.core.defaults.POLISH_SPACE` terms
+        (each move tries every term: beyond that it costs more than the rest).
+        """
+        n = self.problem.term_space.n_terms
+        nonlinear = [(value, key) for key, (value, _) in self.scorer.scored.items()
+                     if np.isfinite(value) and self.degree[key_mask(key, n)].max() > 1]
+        if not nonlinear or n > POLISH_SPACE:
+            return None
+        self.scorer.total += LONG_POLISH_STEPS * int(self.problem.usable.sum())  # at most
+        found = self.scorer.descend(key_mask(min(nonlinear)[1], n), self.problem.usable,
+                                    LONG_POLISH_STEPS, LONG_POLISH_EVALUATIONS)
+        return mask_key(found.mask)
 
     def judge(self, finals: list[tuple[float, bytes]]) -> Judged:
         """Step 3: each finalist and estimator on the held-out sub-blocks."""
@@ -226,7 +267,7 @@ class ValidatedSimulation:
                              elapsed=time.perf_counter() - self.started))
         for done, (_, key) in enumerate(finals):
             mask = key_mask(key, n)
-            both = self._fold_runs(mask, steps)
+            both = self._fold_runs(mask, steps, self._fallback(key))
             rejected = False
             for j, how in enumerate(ESTIMATORS):
                 values = sub_block_errors([b[j] for b in both], label, n_sub)
@@ -242,11 +283,26 @@ class ValidatedSimulation:
                                  elapsed=time.perf_counter() - self.started))
         return out
 
-    def _fold_runs(self, mask: np.ndarray, steps: int) -> list[tuple[FoldRun, FoldRun]]:
+    def _fallback(self, key: bytes) -> np.ndarray | None:
+        """The polished structure's start for a fold refinement whose least squares fail.
+
+        Its screened coefficients (None for any other finalist). The polish refines
+        each move from its neighbour's coefficients, never from least squares, so its
+        end may be a structure whose least-squares fit leaves the range though its
+        refined fit simulates well; on a long record (the only one polished) a
+        fold's optimum is the record's, and this start spares it a rejection its
+        refined fit does not deserve. Every other finalist starts from least squares
+        only, as it was screened.
+        """
+        model = self.scorer.scored[key][1]
+        return model.coefficients if key == self.polished and model is not None else None
+
+    def _fold_runs(self, mask: np.ndarray, steps: int, fallback: np.ndarray | None = None
+                   ) -> list[tuple[FoldRun, FoldRun]]:
         """Each fold's pair of runs; an estimator that left the range is not run again."""
         out, dead = [], [None, None]
         for fold in self.folds:
-            pair = fold_runs(self.problem, fold, mask, steps, (dead[0], dead[1]))
+            pair = fold_runs(self.problem, fold, mask, steps, (dead[0], dead[1]), fallback)
             dead = [d or (r if r.diverged_at is not None else None) for d, r in zip(dead, pair)]
             out.append(pair)
         return out

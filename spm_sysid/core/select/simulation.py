@@ -104,6 +104,7 @@ class SimulationScorer:
         self.refinements = 0
         self.total = 0  # structures to refine, when known (progress)
         self.current: NarxModel | None = None  # the local search's current structure
+        self.move_steps = SEARCH_STEPS  # evaluations of a warm-started move
         ts = problem.term_space  # the terms with an input in them: a structure needs one
         self.driven = np.array([any(ts.reads_input(i) for i in t) for t in ts.terms],
                                dtype=bool)
@@ -114,15 +115,11 @@ class SimulationScorer:
         if key in self.scored:
             return self.scored[key][0]
         problem = self.problem
-        value, model = np.inf, None
+        value, model, ref = np.inf, None, None
         if (mask & self.driven).any() and not (mask & ~problem.usable).any() and not (
                 self.max_terms and mask.sum() > self.max_terms):
-            try:
-                model = problem.model(mask)
-            except ValueError:  # linearly dependent on this data
-                model = None
+            model, ref = self._refine(mask)
         if model is not None:
-            ref = self._refine(model)
             self.refinements += 1
             if ref.success and np.isfinite(ref.sse):
                 model.coefficients = ref.coefficients
@@ -138,19 +135,31 @@ class SimulationScorer:
                              elapsed=time.perf_counter() - self.started))
         return value
 
-    def _refine(self, model: NarxModel):
+    def _refine(self, mask: np.ndarray):
+        """The structure refined: (model, refinement), or (None, None) when it cannot be fitted.
+
+        A move of the local search starts from the current structure's refined
+        coefficients (0 for a term it adds), without a least-squares fit on every
+        row (on a long record that fit costs more than the refinement); least
+        squares is the start when there is no current structure or that fails.
+        """
         u, y, segments = self.problem.u, self.problem.y, self.segments
         start = self.current
         if start is not None:  # warm start: the neighbour's refined coefficients
             theta = dict(zip(start.term_indices, start.coefficients))
-            ls = model.coefficients
-            model.coefficients = np.array([theta.get(i, 0.0) for i in model.term_indices])
-            ref = refine_simulation(model, u, y, segments, max_evaluations=SEARCH_STEPS)
+            indices = [int(i) for i in np.flatnonzero(mask)]
+            model = NarxModel(term_space=start.term_space, term_indices=indices,
+                              coefficients=np.array([theta.get(i, 0.0) for i in indices]),
+                              n_samples=self.problem.n_samples)
+            ref = refine_simulation(model, u, y, segments, max_evaluations=self.move_steps)
             if ref.success:
-                return ref
-            model.coefficients = ls
+                return model, ref
+        try:
+            model = self.problem.model(mask)
+        except ValueError:  # linearly dependent on this data
+            return None, None
         steps = {} if self.steps is None else {"max_evaluations": self.steps}
-        return refine_simulation(model, u, y, segments, **steps)
+        return model, refine_simulation(model, u, y, segments, **steps)
 
     @property
     def best_value(self) -> float:
@@ -171,15 +180,33 @@ class SimulationScorer:
         if not np.isfinite(self.scored[best][0]):
             return None
         n = self.problem.term_space.n_terms
-        self.current = self.scored[best][1]
-        pool = self.problem.usable.copy() if n <= 100 else candidates.any(axis=0)
+        return self.descend(key_mask(best, n), self.move_pool(candidates), max_steps)
 
-        def moved(mask: np.ndarray, value: float) -> None:
-            self.current = self.scored[mask_key(mask)][1]
+    def move_pool(self, candidates: np.ndarray) -> np.ndarray:
+        """The terms a move may bring in (bool over the term space).
+
+        Every usable one in spaces of at most 100, else the candidates' terms.
+        """
+        if self.problem.term_space.n_terms <= 100:
+            return self.problem.usable.copy()
+        return np.asarray(candidates, dtype=bool).any(axis=0)
+
+    def descend(self, mask: np.ndarray, pool: np.ndarray, max_steps: int,
+                evaluations: int = SEARCH_STEPS) -> SearchResult:
+        """Remove or add one term of ``pool`` at a time from ``mask`` while the value falls.
+
+        ``mask`` was scored; each move is warm-started from the current structure
+        and refined by at most ``evaluations`` Levenberg-Marquardt evaluations.
+        """
+        self.current = self.scored[mask_key(mask)][1]
+        self.move_steps = evaluations
+
+        def moved(moved_to: np.ndarray, value: float) -> None:
+            self.current = self.scored[mask_key(moved_to)][1]
 
         return local_search(lambda masks: np.array([self(m) for m in masks]),
-                            key_mask(best, n), pool, moves=("remove", "add"),
-                            start_value=self.scored[best][0], max_steps=max_steps,
+                            mask, pool, moves=("remove", "add"),
+                            start_value=self.scored[mask_key(mask)][0], max_steps=max_steps,
                             on_step=moved)
 
 

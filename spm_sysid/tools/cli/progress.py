@@ -78,6 +78,8 @@ class PhaseBars:
             self.close_bar()
             self.phase = p.phase
             self.bar = _bar(total=p.total or None, desc=p.phase, unit=_UNITS[p.phase])
+        if p.total and p.total != self.bar.total:  # a phase may learn it has more to do
+            self.bar.total = p.total
         self.bar.n = p.step
         post = {}
         if math.isfinite(p.best):
