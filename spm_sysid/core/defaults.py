@@ -194,8 +194,10 @@ LONG_POLISH_STEPS = 3
 #: find.
 LONG_POLISH_EVALUATIONS = 10
 
-#: Candidate terms of a space whose long records get those moves, at most: each move
-#: tries every term, warm-started, on the refinement windows (Wiener-Hammerstein's
+#: Candidate terms of a space, at most, in which a move of the simulation search may
+#: bring in any usable term (in larger spaces only the candidates' terms), and whose long
+#: records get those moves: each move tries every term, warm-started, on the refinement
+#: windows (Wiener-Hammerstein's
 #: (7, 7, 2) space, 120 terms and a 59-term start: 225 s instead of 55 s, and a worse
 #: model on the test part).
 POLISH_SPACE = 100

@@ -76,14 +76,17 @@ def levenberg_marquardt(evaluate: Callable[[np.ndarray], tuple[np.ndarray, np.nd
             return Solution(x, nfev, "`gtol` termination condition is satisfied.")
         model = _ScaledModel(a, g, scale)
         while True:
-            if region is None:  # MINPACK's first region: 100x the scaled start, or the step
-                region = 100.0 * (_norm(scale * x) or 1.0)
-                step, damped = model.step(region)
-                region = min(region, _norm(scale * step))
             if nfev >= max_evaluations:
                 return Solution(x, nfev, "The maximum number of function evaluations is "
                                          "exceeded.")
-            step, damped = model.step(region)
+            if region is None:  # MINPACK's first region: 100x the scaled start, or the step
+                first = 100.0 * (_norm(scale * x) or 1.0)
+                step, damped = model.step(first)
+                region = min(first, _norm(scale * step))
+                if damped and region < first:  # solved again on the smaller region
+                    step, damped = model.step(region)
+            else:
+                step, damped = model.step(region)
             size = _norm(scale * step)
             r_new, jac_new = evaluate(x + step)
             nfev += 1
@@ -146,17 +149,14 @@ class _ScaledModel:
 
     def step(self, region: float) -> tuple[np.ndarray, bool]:
         """The step in the coefficients' units, and whether it was damped (lam > 0)."""
-        lam = 0.0
-        if self._size(self.floor) > region:
-            lam = self.floor
+        lam = self.floor
+        if self._size(lam) > region:
             for _ in range(30):
                 size = self._size(lam)
                 if abs(size - region) <= 0.1 * region:
                     break
                 slope = -float(np.sum(self.coef**2 / (self.values + lam) ** 3)) / size
                 lam = max(lam - (size - region) / region * size / slope, 0.5 * lam)
-        else:
-            lam = self.floor
         p = -(self.vectors @ (self.coef / (self.values + lam)))
         return p / self.scale, lam > self.floor
 

@@ -24,7 +24,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..defaults import SEARCH_STEPS
+from ..defaults import POLISH_SPACE, SEARCH_STEPS
 from ..errors import DataError
 from ..fit.criteria import Criterion, standardised_value
 from ..fit.evaluator import key_mask, mask_key
@@ -171,8 +171,7 @@ class SimulationScorer:
     def search(self, candidates: np.ndarray, max_steps: int = 10) -> SearchResult | None:
         """Score the candidates, then remove or add one term at a time around the best.
 
-        The terms a move may bring in: every usable term in spaces of at most 100,
-        else the candidates' terms. None when no candidate simulates.
+        The terms a move may bring in: :meth:`move_pool`. None when no candidate simulates.
         """
         for mask in candidates:
             self(mask)
@@ -185,9 +184,10 @@ class SimulationScorer:
     def move_pool(self, candidates: np.ndarray) -> np.ndarray:
         """The terms a move may bring in (bool over the term space).
 
-        Every usable one in spaces of at most 100, else the candidates' terms.
+        Every usable one in spaces of at most
+        :data:`~spm_sysid.core.defaults.POLISH_SPACE` terms, else the candidates' terms.
         """
-        if self.problem.term_space.n_terms <= 100:
+        if self.problem.term_space.n_terms <= POLISH_SPACE:
             return self.problem.usable.copy()
         return np.asarray(candidates, dtype=bool).any(axis=0)
 
@@ -225,8 +225,8 @@ def select_for_simulation(
     becomes ``N ln(SSE_sim / N) + 2k``). From the best, a local search
     (:func:`~spm_sysid.core.search.local.local_search`) removes or adds one term
     at a time (terms of the candidates; every usable term in spaces of at most
-    100) while that lowers the simulation criterion. Structures whose
-    simulation diverges on the estimation data are never returned.
+    :data:`~spm_sysid.core.defaults.POLISH_SPACE`) while that lowers the simulation
+    criterion. Structures whose simulation diverges on the estimation data are never returned.
 
     Raises
     ------
