@@ -131,3 +131,20 @@ def test_every_loader_gives_one_record_type(robot_arm, robot_arm_path, tmp_path)
     both = load_record(DataSpec(data=(str(robot_arm_path), str(robot_arm_path))))
     assert len(both) == 2048 and len(both.segment_info().bounds) == 2
     assert [p["samples"] for p in both.parts] == [1024, 1024]
+
+
+def test_a_drawn_seed_is_written_and_repeats_the_run(robot_arm):
+    """No seed given: a new one each run, in the document and the answer, that repeats it."""
+    u, y = robot_arm
+    record = Record.from_samples(u, y, source="robot arm")
+    small = {"population_size": 40, "generations": 30, "validation": "none"}
+    first = run_job(record, JobSettings.from_values(small))
+    meta = first.model.metadata
+    assert meta["seed_drawn"] is True and isinstance(meta["seed"], int) and meta["seed"] >= 0
+    assert f"--seed {meta['seed']} repeats this run" in first.summary()
+    again = run_job(record, JobSettings.from_values({**small, "seed": meta["seed"]}))
+    assert "seed_drawn" not in again.model.metadata
+    assert again.model.term_indices == first.model.term_indices
+    np.testing.assert_array_equal(again.model.coefficients, first.model.coefficients)
+    other = run_job(record, JobSettings.from_values(small)).model.metadata["seed"]
+    assert other != meta["seed"]  # 1 in 2^31 of failing by chance

@@ -14,6 +14,7 @@ settings from one :class:`~spm_sysid.core.options.SearchOptions`.
 
 from __future__ import annotations
 
+import secrets
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -201,6 +202,9 @@ def identify_problem(
     ``model.metadata["warnings"]``.
     """
     options = options or SearchOptions()
+    drawn = options.seed is None
+    if drawn:  # a new seed each run, written in the document: the run can be repeated
+        options = options.with_seed(secrets.randbelow(2**31 - 1))
     crit = get_criterion(options.criterion)  # the name (checked at the edge) to its object
     started = time.perf_counter() if started is None else started
     report = progress or (lambda p: None)
@@ -217,7 +221,7 @@ def identify_problem(
                                       started)
     result.best_mask = problem.expand(result.best_mask)
     info = _search_account(problem, result, ga, options, plan, polished, certificate,
-                           data_check)
+                           data_check, seed_drawn=drawn)
     model, chosen = choose(plan, problem, evaluator, result.best_mask, result.best_score,
                            crit, options, info, report, started)
     model.metadata["selection"] = selection_account(problem, plan, model, chosen)
@@ -277,13 +281,15 @@ def _certify_within(plan: SelectionPlan, options: SearchOptions, crit: Criterion
 
 
 def _search_account(problem, result: GAResult, ga: GAConfig, options: SearchOptions,
-                    plan: SelectionPlan, polished, certificate, data_check) -> dict:
+                    plan: SelectionPlan, polished, certificate, data_check, *,
+                    seed_drawn: bool = False) -> dict:
     """What the search did, for the model document's metadata."""
     excluded = problem.excluded_terms()
     open_loop = plan.open_loop
     return {
         "ga": ga.to_dict(),
         "seed": options.seed,
+        **({"seed_drawn": True} if seed_drawn else {}),
         "generations_run": len(result.history) - 1,
         "first_best_generation": result.first_best_generation,
         "evaluations": result.evaluations,

@@ -138,13 +138,20 @@ class JobResult:
                  f"{m.mse:.4e}, {m.n_samples} samples, "
                  f"{self.seconds.get('search', self.search.elapsed):.2f} s "
                  f"({self.search.evaluations} structures fitted, cache hit rate "
-                 f"{self.search.cache_hit_rate:.0%})"]
+                 f"{self.search.cache_hit_rate:.0%}{_seed_words(m.metadata)})"]
         lines += [part for part in (selected, cert) if part]
         lines.append(m.coefficient_table())
         lines += [f"warning: {w}" for w in warnings]
         if self.report is not None:
             lines.append(self.report.summary())
         return "\n".join(lines)
+
+
+def _seed_words(meta: dict) -> str:
+    """A drawn seed, and how to repeat the run with it."""
+    seed = meta.get("seed")
+    return f"; seed {seed}, drawn: --seed {seed} repeats this run" \
+        if meta.get("seed_drawn") and seed is not None else ""
 
 
 def _certificate_words(meta: dict) -> str:
