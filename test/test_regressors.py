@@ -206,22 +206,13 @@ def test_the_friction_preset_finds_the_sign_term_of_a_joint_with_coulomb_frictio
     assert not any("sign" in t for t in without.terms)
 
 
-def test_presets_take_their_scale_from_the_output_and_several_outputs_are_refused():
+def test_presets_take_their_scale_from_the_output():
     u, y = _signals()
     texts = expand_presets(["friction", "abs(u(t-1))"], "y", y)
     median_step = float(np.median(np.abs(np.diff(y))))
     assert texts[:2] == ["sign(y(t-1)-y(t-2))", "abs(y(t-1)-y(t-2))"]
     scale = float(texts[2].split("/")[1].rstrip(")"))
     assert scale == pytest.approx(median_step, rel=1e-2) and texts[3] == "abs(u(t-1))"
-
-    from spm_sysid.core.errors import SettingsError
-    from spm_sysid.core.jobs import JobSettings, run_job
-    from spm_sysid.core.record import Record
-
-    record = Record.from_samples(u, np.column_stack([y, 0.5 * y + 0.1 * u]),
-                                 output_names=("y1", "y2"), source="two outputs")
-    with pytest.raises(SettingsError, match="several outputs"):
-        run_job(record, JobSettings.from_values({"regressors": "friction", "ny": 2, "nu": 2}))
 
 
 @pytest.mark.slow

@@ -79,12 +79,8 @@ def levenberg_marquardt(evaluate: Callable[[np.ndarray], tuple[np.ndarray, np.nd
             if nfev >= max_evaluations:
                 return Solution(x, nfev, "The maximum number of function evaluations is "
                                          "exceeded.")
-            if region is None:  # MINPACK's first region: 100x the scaled start, or the step
-                first = 100.0 * (_norm(scale * x) or 1.0)
-                step, damped = model.step(first)
-                region = min(first, _norm(scale * step))
-                if damped and region < first:  # solved again on the smaller region
-                    step, damped = model.step(region)
+            if region is None:
+                step, damped, region = model.first_step(_norm(scale * x))
             else:
                 step, damped = model.step(region)
             size = _norm(scale * step)
@@ -146,6 +142,15 @@ class _ScaledModel:
 
     def _size(self, lam: float) -> float:
         return float(np.sqrt(np.sum((self.coef / (self.values + lam)) ** 2)))
+
+    def first_step(self, size: float) -> tuple[np.ndarray, bool, float]:
+        """MINPACK's first region (100x the scaled start ``size``, or the step), its step."""
+        first = 100.0 * (size or 1.0)
+        step, damped = self.step(first)
+        region = min(first, _norm(self.scale * step))
+        if damped and region < first:  # solved again on the smaller region
+            step, damped = self.step(region)
+        return step, damped, region
 
     def step(self, region: float) -> tuple[np.ndarray, bool]:
         """The step in the coefficients' units, and whether it was damped (lam > 0)."""

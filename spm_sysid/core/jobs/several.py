@@ -289,13 +289,49 @@ def _choose_mimo_orders(record: Record, base) -> tuple[Any, dict]:
     return replace(base, term_space=chosen, orders="given"), doc
 
 
-def _no_regressors(settings) -> None:
-    """Regressors with several outputs: refused, saying what to do instead."""
-    if settings.regressors:
-        from ..errors import SettingsError
-        raise SettingsError("regressors are not yet available for several outputs (the "
-                            "coupled simulation has no regressors): identify one output at a "
-                            "time (--output NAME)")
+def _with_regressors(record: Record, base):
+    """Regressors for several outputs: presets expanded for every output, each read causally.
+
+    ``friction`` gives every output's model the friction bases of every output
+    (through the coupling a joint feels the other joints' friction), each scaled
+    from that output's estimation samples. An expression may read another output
+    at t-1 or earlier only: the coupled simulation steps all outputs together.
+
+    Raises
+    ------
+    SettingsError
+        An expression outside the grammar, naming an unknown signal, or reading
+        another output at t.
+    """
+    from ..errors import SettingsError
+    from ..model.regressors import RegressorError, expand_presets, parse
+
+    items = [t.strip() for t in base.regressors.split(";") if t.strip()]
+    if not items:
+        return base
+    names = tuple(record.output_names)
+    est, _, _ = validation_segments(record, base)
+    texts: list[str] = []
+    for item in items:
+        if item != "friction":
+            texts.append(item)
+            continue
+        for i, name in enumerate(names):
+            y = np.concatenate([record.y[a:b, i] for a, b in est])
+            texts += expand_presets([item], name, y)
+    for i, name in enumerate(names):
+        inputs = output_space(base.term_space, names, i).inputs
+        for text in texts:
+            try:
+                signals = parse(text, name, inputs).signals()
+            except RegressorError as exc:
+                raise SettingsError(f"regressors: {exc}") from None
+            now = sorted(s for s, lag in signals if s in names and s != name and lag < 1)
+            if now:
+                raise SettingsError(f"regressors: {text!r} reads {now[0]}(t), an output "
+                                    f"that is stepped with {name}; use {now[0]}(t-1) or "
+                                    "earlier")
+    return replace(base, regressors="; ".join(dict.fromkeys(texts)))
 
 
 def run_mimo_job(record: Record, settings, *, progress: ProgressFn | None = None,
@@ -313,8 +349,7 @@ def run_mimo_job(record: Record, settings, *, progress: ProgressFn | None = None
         raise DataError(f"an output and an input share a name: {', '.join(sorted(clash))} "
                         "(set output_names or input_names)")
     Y, u = record.y, record.u
-    base = settings.for_signals(record.input_names, names[0])
-    _no_regressors(base)
+    base = _with_regressors(record, settings.for_signals(record.input_names, names[0]))
     orders = None
     if base.orders == "auto":  # every output's proposal; the space holds the largest
         base, orders = _choose_mimo_orders(record, base)

@@ -7,7 +7,9 @@ from the simulated past of all of them, then written where the next step reads
 it. One compiled loop (:func:`coupled_run`) runs any set of structures: the
 signals are one matrix (inputs, then outputs), each output's linear values are
 (column, lag) pairs into it, and its terms are rows of indices into those
-values, padded with an index that points at a constant 1.
+values, padded with an index that points at a constant 1. Outputs whose term
+spaces hold regressors (:mod:`.regressors`) have those among their values,
+computed at each step from the simulated signals (:func:`.regressor_sim.coupled_run_r`).
 
 Divergence, as for one output: an output that is not finite or leaves its
 measured range widened by ``DIVERGENCE_FACTOR`` spans is NaN from that sample
@@ -40,35 +42,55 @@ class CoupledCompiled:
 
     lin_cols: np.ndarray  # (q, n_lin) int64: signal column of each linear value
     lin_lags: np.ndarray  # (q, n_lin) int64: its lag
-    gather: np.ndarray    # (q, k_max, width) int64: linear-value indices per term
+    gather: np.ndarray    # (q, k_max, width) int64: value indices per term
     n_terms: tuple[int, ...]
     n_inputs: int
     max_lag: int
+    program: object = None  # the outputs' regressors (regressors.Program), None without
 
     @classmethod
     def from_models(cls, models, n_inputs: int) -> CoupledCompiled:
-        """The kernel form of a :class:`~spm_sysid.core.model.mimo.MimoModel`'s models."""
+        """The kernel form of a :class:`~spm_sysid.core.model.mimo.MimoModel`'s models.
+
+        Each output's values: its lagged signals (padded to the longest), its
+        regressors (padded likewise), then the constant 1.
+        """
         q = len(models)
         lins = [m.term_space.linear for m in models]
         n_lin = max(len(lin) for lin in lins)
+
+        def column(i: int, src: int) -> int:  # output i's signal src in the signal matrix
+            others = [j for j in range(q) if j != i]
+            return (n_inputs + i if src < 0 else src if src < n_inputs
+                    else n_inputs + others[src - n_inputs])
+
         cols = np.zeros((q, n_lin), dtype=np.int64)
         lags = np.ones((q, n_lin), dtype=np.int64)
         for i, lin in enumerate(lins):
-            others = [j for j in range(q) if j != i]
             for j, (src, lag) in enumerate(lin):
-                cols[i, j] = (n_inputs + i if src < 0 else src if src < n_inputs
-                              else n_inputs + others[src - n_inputs])
-                lags[i, j] = lag
+                cols[i, j], lags[i, j] = column(i, src), lag
+        # the regressors each output's terms use (the others are never computed)
+        used = [sorted({f - len(lin) for t in m.term_indices for f in m.term_space.terms[t]
+                        if f >= len(lin)}) for m, lin in zip(models, lins)]
+        program = None
+        if any(used):
+            from .regressor_sim import coupled_program
+
+            program = coupled_program(
+                [([m.term_space.regressor_exprs[r] for r in rs], m.term_space.output,
+                  m.term_space.inputs) for m, rs in zip(models, used)], column)
         width = max([len(m.term_space.terms[t]) for m in models for t in m.term_indices]
                     + [1])
         k_max = max([len(m.term_indices) for m in models] + [1])
-        gather = np.full((q, k_max, width), n_lin, dtype=np.int64)  # n_lin: the constant 1
+        one = n_lin + max(len(rs) for rs in used)  # the constant 1
+        gather = np.full((q, k_max, width), one, dtype=np.int64)
         for i, m in enumerate(models):
+            at = {len(lins[i]) + r: n_lin + k for k, r in enumerate(used[i])}
             for row, t in enumerate(m.term_indices):
-                factors = m.term_space.terms[t]
+                factors = [at.get(f, f) for f in m.term_space.terms[t]]
                 gather[i, row, :len(factors)] = factors
         return cls(cols, lags, gather, tuple(len(m.term_indices) for m in models),
-                   int(n_inputs), max(m.term_space.max_lag for m in models))
+                   int(n_inputs), max(m.term_space.max_lag for m in models), program)
 
     def theta_matrix(self, thetas) -> np.ndarray:
         """Coefficients per output as one (q, k_max) array, zero-padded."""
@@ -121,8 +143,13 @@ def coupled_run(cc: CoupledCompiled, thetas, u: np.ndarray, Y: np.ndarray,
     lo = np.array([b[0] for b in bounds])
     hi = np.array([b[1] for b in bounds])
     diverged = np.full(q, -1, dtype=np.int64)
-    _coupled(cc.lin_cols, cc.lin_lags, cc.gather, cc.theta_matrix(thetas), S, cc.max_lag,
-             cc.n_inputs, lo, hi, diverged)
+    if cc.program is None:
+        _coupled(cc.lin_cols, cc.lin_lags, cc.gather, cc.theta_matrix(thetas), S, cc.max_lag,
+                 cc.n_inputs, lo, hi, diverged)
+    else:  # numba's JIT (models with regressors: not in the ahead-of-time build)
+        from .regressor_sim import coupled_run_r
+
+        coupled_run_r(cc, cc.theta_matrix(thetas), S, lo, hi, diverged)
     return (S[cc.max_lag:, cc.n_inputs:].copy(),
             [None if d < 0 else int(d) for d in diverged])
 

@@ -15,96 +15,71 @@ import numpy as np
 
 from ..compiled.registry import jit_exact as jit
 from .chain import chain_start, mark_diverged
+from .regressors import OPS, Program, program
 
-__all__ = ["free_run_sensitivities_r", "run_model_r"]
-
-
-@jit
-def _eval(code, consts, a, b, ys, u, t, sv, sg, ly):  # pragma: no cover - compiled
-    """Regressor ``code[a:b]`` at t: its value, its gradient over y(t-1..t-ly) in sg[0]."""
-    top = -1
-    for k in range(a, b):
-        op = code[k, 0]
-        if op <= 2:
-            top += 1
-            _push(code, consts, k, ys, u, t, sv, sg, top, ly)
-        elif op <= 10 and op >= 7:
-            _unary(op, sv, sg, top, ly)
-        else:
-            top -= 1
-            _binary(op, sv, sg, top, ly)
-    return sv[0]
+__all__ = ["coupled_program", "coupled_run_r", "free_run_sensitivities_r", "run_model_r"]
 
 
 @jit
-def _push(code, consts, k, ys, u, t, sv, sg, top, ly):  # pragma: no cover - compiled
-    """A lagged output (gradient 1 at its lag), a lagged input or a number."""
-    op = code[k, 0]
-    for j in range(ly):
-        sg[top, j] = 0.0
-    if op == 0:
-        sv[top] = ys[t - code[k, 1]]
-        sg[top, code[k, 1] - 1] = 1.0
-    elif op == 1:
-        sv[top] = u[t - code[k, 2], code[k, 1]]
-    else:
-        sv[top] = consts[code[k, 1]]
+def _regressors_at(code, consts, start, ys, u, t, sv, sg, ly, vals, first,
+                   grad):  # pragma: no cover - compiled
+    """Every regressor at t into ``vals[first + r]``, its gradient into ``grad[r]``.
 
-
-@jit
-def _unary(op, sv, sg, top, ly):  # pragma: no cover - compiled
-    """neg, sign, abs, tanh on the top of the stack (chain rule on its gradient)."""
-    x = sv[top]
-    if op == 7:
-        sv[top], d = -x, -1.0
-    elif op == 8:
-        sv[top], d = (1.0 if x > 0 else (-1.0 if x < 0 else 0.0)), 0.0
-    elif op == 9:
-        sv[top], d = abs(x), (1.0 if x > 0 else (-1.0 if x < 0 else 0.0))
-    else:
-        sv[top] = np.tanh(x)
-        d = 1.0 - sv[top] * sv[top]
-    for j in range(ly):
-        sg[top, j] = d * sg[top, j] if sg[top, j] != 0.0 else 0.0
-
-
-@jit
-def _binary(op, sv, sg, top, ly):  # pragma: no cover - compiled
-    """+ - * / min max sat deadzone of ``sv[top]`` and ``sv[top + 1]`` into ``sv[top]``."""
-    x, y2 = sv[top], sv[top + 1]
-    if op == 3 or op == 4:
-        s = 1.0 if op == 3 else -1.0
-        sv[top] = x + s * y2 if op == 4 else x + y2
+    The gradient is over y(t-1..t-ly). A stack machine over ``code[start[r]:start[r + 1]]``,
+    in one function: a compiled call per operation cost more than the operation.
+    """
+    for r in range(start.shape[0] - 1):
+        top = -1
+        for k in range(start[r], start[r + 1]):
+            op = code[k, 0]
+            if op <= 2:  # a lagged output (gradient 1 at its lag), a lagged input, a number
+                top += 1
+                for j in range(ly):
+                    sg[top, j] = 0.0
+                if op == 0:
+                    sv[top] = ys[t - code[k, 1]]
+                    sg[top, code[k, 1] - 1] = 1.0
+                else:
+                    sv[top] = u[t - code[k, 2], code[k, 1]] if op == 1 else consts[code[k, 1]]
+            elif op >= 7 and op <= 10:  # neg, sign, abs, tanh; the chain rule
+                x = sv[top]
+                s = 1.0 if x > 0 else (-1.0 if x < 0 else 0.0)
+                if op == 10:
+                    v = np.tanh(x)
+                    d = 1.0 - v * v
+                else:
+                    v, d = (-x, -1.0) if op == 7 else ((s, 0.0) if op == 8 else (abs(x), s))
+                sv[top] = v
+                for j in range(ly):
+                    sg[top, j] = d * sg[top, j] if sg[top, j] != 0.0 else 0.0
+            else:  # + - * / min max sat deadzone: the gradient dx g_x / div + dy g_y
+                top -= 1
+                x, y2, dx, dy, div = sv[top], sv[top + 1], 1.0, 0.0, 1.0
+                v = x
+                if op == 3 or op == 4:
+                    dy, v = (1.0, x + y2) if op == 3 else (-1.0, x + -1.0 * y2)
+                elif op == 5:
+                    v, dx, dy = x * y2, y2, x
+                elif op == 6:
+                    v, div = x / y2, y2
+                elif op == 11 or op == 12:
+                    if (y2 < x) if op == 11 else (y2 > x):
+                        v, dx, dy = y2, 0.0, 1.0
+                elif op == 13:  # sat(x, lim)
+                    lim = abs(y2)
+                    if x > lim or x < -lim:
+                        v, dx = (lim if x > lim else -lim), 0.0
+                elif abs(x) <= y2:  # deadzone(x, w), inside
+                    v, dx = 0.0, 0.0
+                else:  # deadzone, outside
+                    dy = -1.0 if x > 0 else 1.0
+                    v = x + dy * y2
+                sv[top] = v
+                for j in range(ly):
+                    sg[top, j] = dx * sg[top, j] / div + dy * sg[top + 1, j]
+        vals[first + r] = sv[0]
         for j in range(ly):
-            sg[top, j] = sg[top, j] + s * sg[top + 1, j]
-    elif op == 5:
-        sv[top] = x * y2
-        for j in range(ly):
-            sg[top, j] = sg[top, j] * y2 + x * sg[top + 1, j]
-    elif op == 6:
-        sv[top] = x / y2
-        for j in range(ly):
-            sg[top, j] = sg[top, j] / y2
-    elif op == 11 or op == 12:
-        if (y2 < x) if op == 11 else (y2 > x):
-            sv[top] = y2
-            for j in range(ly):
-                sg[top, j] = sg[top + 1, j]
-    elif op == 13:  # sat(x, lim)
-        lim = abs(y2)
-        if x > lim or x < -lim:
-            sv[top] = lim if x > lim else -lim
-            for j in range(ly):
-                sg[top, j] = 0.0
-    elif abs(x) <= y2:  # deadzone(x, w), inside
-        sv[top] = 0.0
-        for j in range(ly):
-            sg[top, j] = 0.0
-    else:  # deadzone, outside
-        s = 1.0 if x > 0 else -1.0
-        sv[top] = x - s * y2
-        for j in range(ly):
-            sg[top, j] = sg[top, j] - s * sg[top + 1, j]
+            grad[r, j] = sg[0, j]
 
 
 @jit
@@ -117,11 +92,7 @@ def _fill(y_lags, u_lags, u_cols, code, consts, start, ys, u, t, vals, grad, sv,
         vals[j] = ys[t - y_lags[j]]
     for j in range(n_u):
         vals[n_y + j] = u[t - u_lags[j], u_cols[j]]
-    for r in range(start.shape[0] - 1):
-        g = n_y + n_u + r
-        vals[g] = _eval(code, consts, start[r], start[r + 1], ys, u, t, sv, sg, ly)
-        for j in range(ly):
-            grad[r, j] = sg[0, j]
+    _regressors_at(code, consts, start, ys, u, t, sv, sg, ly, vals, n_y + n_u, grad)
 
 
 @jit
@@ -240,3 +211,84 @@ def free_run_sensitivities_r(model, theta: np.ndarray, u: np.ndarray, y: np.ndar
     return int(_sens_r(*_args(model), np.ascontiguousarray(theta, dtype=float),
                        np.ascontiguousarray(u, dtype=float), np.ascontiguousarray(y, dtype=float),
                        lag0, float(lo), float(hi), out, jac))
+
+
+# -- several outputs: the coupled free run with regressors ----------------------------------
+
+@jit
+def _coupled_r(lin_cols, lin_lags, gather, theta, S, lag0, n_inputs, lo, hi, diverged, code,
+               consts, start, depth):  # pragma: no cover - compiled
+    """:mod:`.coupled`'s coupled step with each output's regressors among its values.
+
+    ``start[i]`` delimits output i's regressors in ``code``, whose signal pushes
+    all read ``S`` (op 1: column, lag); values are lagged signals (padded to
+    ``n_lin``), then regressors (padded to ``n_reg``), then the constant 1.
+    """
+    q = gather.shape[0]
+    n_lin = lin_cols.shape[1]
+    n_reg = start.shape[1] - 1
+    vals = np.ones(n_lin + n_reg + 1)
+    new = np.empty(q)
+    sv = np.empty(depth)
+    sg = np.zeros((depth, 1))
+    grad = np.zeros((max(n_reg, 1), 1))
+    none = np.empty(1)
+    for t in range(lag0, S.shape[0]):
+        for i in range(q):
+            for j in range(n_lin):
+                vals[j] = S[t - lin_lags[i, j], lin_cols[i, j]]
+            _regressors_at(code, consts, start[i], none, S, t, sv, sg, 0, vals, n_lin, grad)
+            acc = 0.0
+            for k in range(gather.shape[1]):
+                p = 1.0
+                for w in range(gather.shape[2]):
+                    p *= vals[gather[i, k, w]]
+                acc += theta[i, k] * p
+            new[i] = acc
+        for i in range(q):
+            v = new[i]
+            if diverged[i] < 0 and not (lo[i] <= v <= hi[i]):
+                diverged[i] = t
+            S[t, n_inputs + i] = v if diverged[i] < 0 else np.nan
+
+
+def coupled_program(regressors: list, column) -> Program | None:
+    """Every output's regressors as one program over the coupled signal matrix.
+
+    ``regressors[i]``: output i's regressors (a list of
+    :class:`~.regressors.Expr`), its term space's output and inputs;
+    ``column(i, src)``: the matrix column of output i's signal ``src`` (-1: its
+    own output; else its term space's input index). ``start`` is (q, n_reg + 1):
+    output i's regressor r is ``code[start[i, r]:start[i, r + 1]]`` (empty when
+    it has fewer). None when no output has any.
+    """
+    if not any(exprs for exprs, _, _ in regressors):
+        return None
+    n_reg = max(len(exprs) for exprs, _, _ in regressors)
+    code, consts, depth = [], [], 1
+    start = np.zeros((len(regressors), n_reg + 1), dtype=np.int64)
+    for i, (exprs, output, inputs) in enumerate(regressors):
+        own = program(list(exprs), output, tuple(inputs))
+        for op, a, b in own.code[:own.start[-1]]:
+            if op == OPS["y"]:
+                op, a, b = OPS["u"], column(i, -1), a
+            elif op == OPS["u"]:
+                a = column(i, a)
+            elif op == OPS["num"]:
+                a += len(consts)
+            code.append((op, a, b))
+        consts += list(own.consts) if own.start[-1] else []
+        starts = len(code) - own.start[-1] + own.start
+        start[i, :len(starts)] = starts
+        start[i, len(starts):] = starts[-1]
+        depth = max(depth, int(own.depth))
+    return Program(np.array(code or [(0, 0, 0)], dtype=np.int64).reshape(-1, 3),
+                   np.array(consts or [0.0]), start, depth)
+
+
+def coupled_run_r(cc, theta: np.ndarray, S: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                  diverged: np.ndarray) -> None:
+    """The coupled free run of :class:`~.coupled.CoupledCompiled` ``cc`` with regressors."""
+    p = cc.program
+    _coupled_r(cc.lin_cols, cc.lin_lags, cc.gather, theta, S, cc.max_lag, cc.n_inputs, lo, hi,
+               diverged, p.code, p.consts, p.start, int(p.depth))

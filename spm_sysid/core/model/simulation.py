@@ -68,19 +68,22 @@ class CompiledModel:
         """The kernel form of the terms ``term_indices`` of ``term_space``."""
         lin = term_space.linear
         all_terms = term_space.terms
-        n_lin = term_space.n_bases  # the index of the constant 1 (after any regressor)
+        # the regressors the terms use, computed after the lagged signals (the others never)
+        used = sorted({f for i in term_indices for f in all_terms[i] if f >= len(lin)})
+        at = {f: len(lin) + k for k, f in enumerate(used)}
         program, reach = None, 0
-        if term_space.regressors:
+        if used:
             from .regressors import program as compile_regressors
 
-            exprs = term_space.regressor_exprs
-            program = compile_regressors(list(exprs), term_space.output, term_space.inputs)
+            exprs = [term_space.regressor_exprs[f - len(lin)] for f in used]
+            program = compile_regressors(exprs, term_space.output, term_space.inputs)
             reach = max([term_space.ny] + [lag for e in exprs for name, lag in e.signals()
                                            if name == term_space.output])
         width = max([len(all_terms[i]) for i in term_indices] + [1])
-        gather = np.full((len(term_indices), width), n_lin, dtype=np.int64)
+        # the constant 1 after the values
+        gather = np.full((len(term_indices), width), len(lin) + len(used), dtype=np.int64)
         for row, i in enumerate(term_indices):
-            gather[row, : len(all_terms[i])] = all_terms[i]
+            gather[row, : len(all_terms[i])] = [at.get(f, f) for f in all_terms[i]]
         return cls(
             gather=gather,
             y_lags=np.array([lag for src, lag in lin if src < 0], dtype=np.int64),
