@@ -22,6 +22,7 @@ from spm_sysid_interfaces.msg import NarxModelSet, Prediction, Validity
 from spm_sysid.core.io.bagio import read_bag_signals
 
 from .conftest import JOINT_STATE_PARAMS, ROOT, TRUE, two_output_system, write_joint_state_bag
+from .helpers.two_joints import two_joint_record
 from .ros_harness import IdentifyClient, play_bag, start_node, stop
 
 PARAMS = JOINT_STATE_PARAMS
@@ -105,6 +106,30 @@ def test_a_goal_reads_two_outputs_from_a_bag_with_the_node_topics(ros_env, harne
         assert [h.split(":")[0] for h in heads] == ["output y1", "output y2"]
         assert all("(coupled)" in h for h in heads)
         assert "joint BIC" in r.stdout
+    finally:
+        stop(node)
+
+
+@pytest.mark.slow
+def test_a_goal_with_the_friction_preset_gives_each_joint_its_sign_term(ros_env, harness,
+                                                                       tmp_path):
+    """Two joints with Coulomb friction: the goal's override ``regressors: friction``."""
+    u, Y = two_joint_record(1500, seed=5)
+    bag = write_joint_state_bag(tmp_path / "joints", u, Y)
+    node = start_node(ros_env, *PARAMS)
+    try:
+        harness.wait_ready()
+        client = IdentifyClient(harness)
+        status, result = client.result(client.send(bag_path=str(bag), regressors="friction",
+                                                   ny=2, nu=1, degree=1, criterion="bic"))
+        assert result.error_code == result.NONE, result.message
+        for name, m in zip(("y1", "y2"), result.models.models):
+            names = [t.name for t in m.terms]
+            own = f"sign({name}(t-1)-{name}(t-2))"
+            assert own in names, (name, names)
+            assert m.coefficients[names.index(own)] < 0  # against the motion
+        doc = json.loads(result.document)
+        assert all(len(d["term_space"]["regressors"]) == 6 for d in doc["models"])
     finally:
         stop(node)
 

@@ -1,8 +1,8 @@
 """Several outputs with regressors: the coupled run, the identification, the refusals.
 
-The record is made by a plain-Python loop (two coupled joints, each with a
-Coulomb-like sign term on its own last step), so the coupled simulation is
-checked against the system itself, and the identification against its terms.
+The record (test/helpers/two_joints.py) is made by a plain-Python loop, so the
+coupled simulation is checked against the system itself, and the
+identification against its terms.
 """
 
 import subprocess
@@ -20,27 +20,10 @@ from spm_sysid.core.model.terms import TermSpace
 from spm_sysid.core.record import Record
 
 from .conftest import ROOT
+from .helpers.two_joints import SIGN, TRUE
+from .helpers.two_joints import two_joint_record as _system
 
 NAMES, INPUTS = ("q1", "q2"), ("t1", "t2")
-SIGN = ("sign(q1(t-1)-q1(t-2))", "sign(q2(t-1)-q2(t-2))")
-TRUE = {"q1": {"q1(t-1)": 1.5, "q1(t-2)": -0.6, "q2(t-1)": 0.05, "t1(t-1)": 0.1, SIGN[0]: -0.02},
-        "q2": {"q2(t-1)": 1.4, "q2(t-2)": -0.55, "q1(t-1)": 0.04, "t2(t-1)": 0.1,
-               SIGN[1]: -0.015}}
-
-
-def _system(n: int, seed: int, noise: float = 5e-4) -> tuple[np.ndarray, np.ndarray]:
-    """Torques held 10 samples and the two positions, by the equations of TRUE."""
-    rng = np.random.default_rng(seed)
-    u = np.repeat(rng.uniform(-1, 1, (n // 10 + 1, 2)), 10, axis=0)[:n]
-    Y = np.zeros((n, 2))
-    for t in range(2, n):
-        s1 = np.sign(Y[t - 1, 0] - Y[t - 2, 0])
-        s2 = np.sign(Y[t - 1, 1] - Y[t - 2, 1])
-        Y[t, 0] = 1.5 * Y[t - 1, 0] - 0.6 * Y[t - 2, 0] + 0.05 * Y[t - 1, 1] + 0.1 * u[t - 1, 0] \
-            - 0.02 * s1
-        Y[t, 1] = 1.4 * Y[t - 1, 1] - 0.55 * Y[t - 2, 1] + 0.04 * Y[t - 1, 0] \
-            + 0.1 * u[t - 1, 1] - 0.015 * s2
-    return u, Y + noise * rng.standard_normal(Y.shape)
 
 
 def _space(i: int, regressors=SIGN, **kw) -> TermSpace:
