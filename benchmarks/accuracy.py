@@ -26,7 +26,8 @@ skipped with a line when missing), the two-tank simulator, the simulated joint
 with Coulomb friction (``test/helpers/joint.py``: 20 s to identify, another
 20 s to simulate; position out, so a free run drifts), and the two-link
 arm with two outputs (coupled free run, against a linear MIMO ARX fitted the
-same way; both focuses, the given space and ``--orders auto``). Under each
+same way; both focuses, the given space and ``--orders auto``; the simulation
+focus with the friction preset, every joint's bases in every output's space). Under each
 NARX line: the linear/nonlinear call (the best nonlinear finalist's held-out
 error against the best linear one's, and the paired test's p-value) and the
 chosen model's held-out error with its standard error over the blocks.
@@ -248,6 +249,12 @@ def run(args) -> None:
             print(_line(label, q2, _narx_run(model, tau2, q2), terms, seconds))
             print(_call(model))
             sys.stdout.flush()
+    model, seconds = _narx(tau1, q1, {**base, "ny": 2, "nu": 2, "regressors": "friction"})
+    terms = "+".join(str(len(m.terms)) for m in model.models) + " terms"
+    print(_line("--focus simulation (2, 2, 2) + --regressors friction", q2,
+                _narx_run(model, tau2, q2), terms, seconds))
+    print(_call(model) + "".join(f" [{m.term_space.output}]" + _regressor_terms(m)
+                                 for m in model.models))
     if args.calls:
         calls(args.calls)
 
