@@ -94,31 +94,6 @@ class CompiledModel:
 
 
 @jit
-def _term_values(gather, vals, phi):  # pragma: no cover - compiled
-    for i in range(gather.shape[0]):
-        p = 1.0
-        for q in range(gather.shape[1]):
-            p *= vals[gather[i, q]]
-        phi[i] = p
-
-
-@jit
-def _predict_at(gather, theta, y_lags, u_lags, u_cols, ys, u, t, vals,
-                phi):  # pragma: no cover - compiled
-    """The model's output at t from the outputs ``ys`` and inputs ``u`` before it."""
-    n_y = y_lags.shape[0]
-    for j in range(n_y):
-        vals[j] = ys[t - y_lags[j]]
-    for j in range(u_lags.shape[0]):
-        vals[n_y + j] = u[t - u_lags[j], u_cols[j]]
-    _term_values(gather, vals, phi)
-    acc = 0.0
-    for i in range(phi.shape[0]):
-        acc += theta[i] * phi[i]
-    return acc
-
-
-@jit
 def _buffers(gather, y_lags, u_lags):  # pragma: no cover - compiled
     """Work arrays: the lagged values (and a trailing 1) and the term values."""
     return np.ones(y_lags.shape[0] + u_lags.shape[0] + 1), np.empty(gather.shape[0])
@@ -129,16 +104,29 @@ def _run(gather, y_lags, u_lags, u_cols, theta, u, y, horizon, lag0, lo, hi,
          out):  # pragma: no cover - compiled
     """Write k-step-ahead predictions into ``out`` (rows t = lag0..n-1).
 
-    Returns the first diverged t, or -1.
+    Returns the first diverged t, or -1. A step's arithmetic is written out
+    here rather than called: a compiled call with arrays cost about a third of
+    a step.
     """
     n = y.shape[0]
+    n_y = y_lags.shape[0]
     vals, phi = _buffers(gather, y_lags, u_lags)
     work = np.empty(n)  # outputs seen by the chain: measured up to its origin
     free = horizon >= n - lag0
     for t in range(lag0, n):
         first = chain_start(work, y, t, horizon, lag0, free)
-        for s in range(first, t + 1):
-            work[s] = _predict_at(gather, theta, y_lags, u_lags, u_cols, work, u, s, vals, phi)
+        for s in range(first, t + 1):  # the model's output at s from work and u before it
+            for j in range(n_y):
+                vals[j] = work[s - y_lags[j]]
+            for j in range(u_lags.shape[0]):
+                vals[n_y + j] = u[s - u_lags[j], u_cols[j]]
+            acc = 0.0
+            for i in range(gather.shape[0]):
+                p = 1.0
+                for q in range(gather.shape[1]):
+                    p *= vals[gather[i, q]]
+                acc += theta[i] * p
+            work[s] = acc
         v = work[t]
         if not (v >= lo and v <= hi):  # also NaN
             return mark_diverged(out, t, lag0)
@@ -210,8 +198,19 @@ def _sens(gather, y_lags, u_lags, u_cols, theta, u, y, lag0, lo, hi, out,
     dy = np.zeros(n_y)    # d yhat(t) / d yhat(t - y_lags[j]) at the current t
     for s in range(lag0):
         ys[s] = y[s]
-    for t in range(lag0, n):
-        acc = _predict_at(gather, theta, y_lags, u_lags, u_cols, ys, u, t, vals, phi)
+    for t in range(lag0, n):  # the output at t (as _run's step), its term values in phi
+        for j in range(n_y):
+            vals[j] = ys[t - y_lags[j]]
+        for j in range(u_lags.shape[0]):
+            vals[n_y + j] = u[t - u_lags[j], u_cols[j]]
+        acc = 0.0
+        for i in range(k):
+            p = 1.0
+            for q in range(width):
+                p *= vals[gather[i, q]]
+            phi[i] = p
+        for i in range(k):
+            acc += theta[i] * phi[i]
         ys[t] = acc
         if not (acc >= lo and acc <= hi):
             return mark_diverged(out, t, lag0)
