@@ -163,18 +163,25 @@ def test_the_online_predictor_predicts_as_the_model_does():
 
 @pytest.mark.parametrize("criterion", ["aic", "bic"])
 def test_the_certified_optimum_with_regressors_equals_every_subset_by_least_squares(criterion):
+    """Every subset of the candidate terms (products of two regressors are none)."""
     from spm_sysid.core.search.certify import certify_data
 
     u, y = _signals(n=400, seed=3)
     ts = TermSpace(ny=1, nu=1, degree=2,
                    regressors=("sign(y(t-1)-y(t-2))", "tanh(u(t-1)/0.5)"))
     assert ts.n_terms == 14
+    # products of two regressors are no candidates (one expression if a user wants one)
+    names = ts.term_names()
+    assert sorted(names[j] for j in np.flatnonzero(ts.regressor_products)) == sorted(
+        ["sign(y(t-1)-y(t-2))^2", "sign(y(t-1)-y(t-2))*tanh(u(t-1)/0.5)",
+         "tanh(u(t-1)/0.5)^2"])
+    offered = [j for j in range(ts.n_terms) if not ts.regressor_products[j]]
     P, target = ts.regression(u, y)
     crit = get_criterion(criterion)
     n = len(target)
     best = np.inf
-    for code in range(1, 2 ** ts.n_terms):
-        cols = [j for j in range(ts.n_terms) if code >> j & 1]
+    for code in range(1, 2 ** len(offered)):
+        cols = [j for i, j in enumerate(offered) if code >> i & 1]
         A = P[:, cols]
         coef, *_ = np.linalg.lstsq(A, target, rcond=None)
         if np.linalg.matrix_rank(A) < len(cols):
@@ -184,6 +191,11 @@ def test_the_certified_optimum_with_regressors_equals_every_subset_by_least_squa
     cert = certify_data(u, y, term_space=ts, criterion=criterion, time_limit=120)
     assert cert.status == "optimal"
     assert cert.value == pytest.approx(best, rel=1e-9, abs=1e-6)
+    from spm_sysid.core.fit.problem import Problem
+
+    assert not Problem.from_signals(u, y, ts).usable[ts.regressor_products].any()
+    meta = identify(u=u, y=y, term_space=ts, criterion=criterion, seed=0).model.metadata
+    assert meta["excluded_regressor_products"] == 3
 
 
 def test_the_friction_preset_finds_the_sign_term_of_a_joint_with_coulomb_friction():

@@ -300,6 +300,8 @@ def _search_account(problem, result: GAResult, ga: GAConfig, options: SearchOpti
         **({"excluded_zero_terms": excluded["zero"]} if excluded["zero"] else {}),
         **({"excluded_duplicate_terms": excluded["duplicate"]} if excluded["duplicate"]
            else {}),
+        **({"excluded_regressor_products": excluded["regressor_products"]}
+           if excluded["regressor_products"] else {}),
         **({"certificate": certificate} if certificate is not None else {}),
         **({"data_check": data_check.to_dict()} if data_check is not None else {}),
         **({"open_loop": {**open_loop.to_dict(),

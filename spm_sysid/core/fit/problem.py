@@ -249,7 +249,8 @@ class Problem:
     duplicate_of : ndarray of int, shape (n_terms,)
         See :func:`excluded_columns`.
     usable : ndarray of bool, shape (n_terms,)
-        Columns the search may use (neither zero nor a repeat).
+        Columns the search may use (neither zero nor a repeat, nor a product of
+        regressors: :attr:`~spm_sysid.core.model.terms.TermSpace.regressor_products`).
     row_times : ndarray of int, shape (rows,)
         The sample index t of each regression row.
     """
@@ -270,7 +271,7 @@ class Problem:
         lag = term_space.max_lag
         self.row_times = np.concatenate([np.arange(a + lag, b) for a, b in self.segments])
         self.zero, self.duplicate_of = excluded_columns(self.columns)
-        self.usable = ~self.zero & (self.duplicate_of < 0)
+        self.usable = ~self.zero & (self.duplicate_of < 0) & ~term_space.regressor_products
         self._factors = term_space.coefficient_factors(self.u_scale, self.y_scale, self.r_scale)
         self._evaluators: dict[float, object] = {}  # the shared numbers, by rank_tol
         self._norms: np.ndarray | None = None
@@ -347,11 +348,15 @@ class Problem:
         return self._norms
 
     def excluded_terms(self) -> dict[str, dict]:
-        """The terms set aside, by reason: ``{"zero": [...], "duplicate": {term: first}}``."""
+        """The terms set aside, by reason.
+
+        ``{"zero": [...], "duplicate": {term: first}, "regressor_products": count}``.
+        """
         names = self.term_space.term_names()
         return {"zero": [names[i] for i in np.flatnonzero(self.zero)],
                 "duplicate": {names[i]: names[self.duplicate_of[i]]
-                              for i in np.flatnonzero(self.duplicate_of >= 0)}}
+                              for i in np.flatnonzero(self.duplicate_of >= 0)},
+                "regressor_products": int(self.term_space.regressor_products.sum())}
 
     # -- the search's view: the usable columns --------------------------------------------
     def evaluator(self, criterion: str | Criterion = "aic", rank_tol: float = DEFAULT_RANK_TOL,

@@ -157,6 +157,9 @@ def _seed_words(meta: dict) -> str:
 def _certificate_words(meta: dict) -> str:
     """The certificate in words, after what the polish improved (if it did)."""
     cert = describe_certificate(meta.get("certificate"))
+    if cert and meta.get("excluded_regressor_products"):
+        cert += (f"; the {meta['excluded_regressor_products']} products of two regressors "
+                 "are not candidates")
     pol = meta.get("polish") or {}
     if pol.get("value") is not None and pol["value"] < pol["ga_value"]:
         cert = (f"the polish after the GA improved its best from {pol['ga_value']:.2f} "

@@ -226,6 +226,20 @@ class TermSpace:
         return np.array([len(t) + sum(1 for i in t if i >= n_lin) for t in self.terms],
                         dtype=np.int64)
 
+    @cached_property
+    def regressor_products(self) -> np.ndarray:
+        """Terms with two or more regressor factors (bool per term): no search offers them.
+
+        A product of regressors is one function of the signals, which a user who
+        wants it writes as one expression (``sign(y(t-1)-y(t-2))*abs(u(t-1))``);
+        the friction preset's are functions of one step that repeat the others or
+        nearly (``sign(x)*abs(x) = x``, ``sign(x)^2 = 1`` off zero steps,
+        ``abs(x)^2 = x^2``) and only invite overfits. The term space keeps them,
+        so documents keep their term numbers.
+        """
+        n_lin = len(self.linear)
+        return np.array([sum(1 for i in t if i >= n_lin) >= 2 for t in self.terms], dtype=bool)
+
     @property
     def n_terms(self) -> int:
         """Number of candidate terms (chromosome length)."""
