@@ -159,9 +159,7 @@ def _sens_r(gather, y_lags, u_lags, u_cols, code, consts, start, depth, ly, thet
         acc = _value(gather, theta, vals, phi)
         ys[t] = acc
         if not (acc >= lo and acc <= hi):
-            for s in range(t, lag0 + out.shape[0]):
-                out[s - lag0] = np.nan
-            return t
+            return mark_diverged(out, t, lag0)
         out[t - lag0] = acc
         for j in range(ly):
             dy[j] = 0.0
