@@ -1,5 +1,7 @@
 """The refinements' Levenberg-Marquardt, against scipy's MINPACK on the same problems."""
 
+import warnings
+
 import numpy as np
 import pytest
 from scipy.optimize import least_squares
@@ -67,6 +69,26 @@ def test_a_step_to_non_finite_residuals_is_rejected_and_a_non_finite_start_kept(
                                     np.array([1.0, 2.0]), 10)
     assert inf_start.nfev == 1 and inf_start.x == pytest.approx([1.0, 2.0])
     assert "not finite" in inf_start.message
+
+
+def test_a_step_to_sensitivities_out_of_range_is_rejected_without_an_overflow():
+    """A free run whose linearisation grows without bound gives Jacobians of 1e200: their
+    J'J overflows, so such a point is no step (and no warning reaches the user)."""
+    evaluate, start = _decay_problem(2)
+
+    def exploding(p):  # finite residuals everywhere, sensitivities out of range beyond 0.6
+        r, jac = evaluate(p)
+        return (r, jac * 1e200) if p[1] > 0.6 else (r, jac)
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        sol = levenberg_marquardt(exploding, start, 300)
+        kept = levenberg_marquardt(lambda p: (np.ones(3), np.full((3, 2), 1e200)),
+                                   np.array([1.0, 2.0]), 10)
+    r0, r = evaluate(start)[0], evaluate(sol.x)[0]
+    assert sol.x[1] <= 0.6 and r @ r < r0 @ r0
+    assert kept.nfev == 1 and kept.x == pytest.approx([1.0, 2.0])
+    assert "out of floating-point range" in kept.message
 
 
 def test_the_steps_do_not_depend_on_the_coefficients_units():

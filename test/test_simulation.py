@@ -9,6 +9,7 @@ import pytest
 
 from spm_sysid.core.fit.problem import fit_structure
 from spm_sysid.core.fit.refine import (
+    free_run_uncertainty,
     linear_radius,
     linear_stability_check,
     refine_simulation,
@@ -133,6 +134,38 @@ def test_refinement_recovers_an_output_error_system():
     np.testing.assert_allclose(ref.coefficients, true, atol=0.02)
     assert _free_run_sse(ls, u, y, ref.coefficients) == pytest.approx(ref.sse)
     assert linear_radius(space, ls.term_indices, ref.coefficients) < 1
+
+
+def test_free_run_uncertainty_covers_the_truth_and_refuses_an_unstable_linearisation():
+    """A Gauss-Newton covariance only where the free run's linearisation is bounded.
+
+    The chaotic logistic map stays inside the measured range, but its sensitivities grow
+    like e^(0.5 t): 400 samples overflow them, and the covariance would print standard
+    errors of exactly zero. It is refused with the reason, and the table says it.
+    """
+    rng = np.random.default_rng(3)
+    n = 3000
+    u = rng.uniform(-1, 1, n)
+    x = np.zeros(n)
+    for t in range(1, n):
+        x[t] = 0.7 * x[t - 1] + 0.5 * u[t - 1]
+    y = x + 0.05 * rng.standard_normal(n)
+    space = TermSpace(ny=1, nu=1, degree=1)
+    ref = refine_simulation(NarxModel(space, [0, 1], np.array([0.6, 0.4])), u, y)
+    found, why = free_run_uncertainty(NarxModel(space, [0, 1], ref.coefficients), u, y)
+    assert why == "" and np.all(found.standard_errors > 0)
+    assert np.all(np.abs(ref.coefficients - [0.7, 0.5]) < 4 * found.standard_errors)
+
+    logistic = np.zeros(400)
+    logistic[0] = 0.3
+    for t in range(1, 400):
+        logistic[t] = 3.9 * logistic[t - 1] * (1 - logistic[t - 1]) + 0.002 * u[t - 1]
+    chaos = NarxModel(TermSpace(ny=1, nu=1, degree=2), [0, 1, 2], np.array([3.9, 0.002, -3.9]))
+    assert np.isfinite(chaos.run(u[:400], logistic)[0]).all()  # it stays in range
+    found, why = free_run_uncertainty(chaos, u[:400], logistic)
+    assert found is None and "grow without bound" in why
+    chaos.metadata = {"simulation": {"no_uncertainty": why}}
+    assert f"(no coefficient uncertainty: {why})" in chaos.coefficient_table()
 
 
 def _free_run_sse(model: NarxModel, u, y, theta=None) -> float:

@@ -33,6 +33,11 @@ __all__ = ["Solution", "levenberg_marquardt"]
 #: MINPACK's (and scipy's) default tolerances.
 TOLERANCE = 1e-8
 
+#: Largest Jacobian entry whose square, summed over 10^5 rows, stays a float:
+#: a point whose sensitivities are larger (a free run whose linearisation grows
+#: without bound) gives no quadratic model, so it is never a step.
+JACOBIAN_LIMIT = 1e150
+
 
 @dataclass(frozen=True)
 class Solution:
@@ -65,6 +70,9 @@ def levenberg_marquardt(evaluate: Callable[[np.ndarray], tuple[np.ndarray, np.nd
     f = float(r @ r)
     if not np.isfinite(f):
         return Solution(x, 1, "the start's residuals are not finite")
+    if not _bounded(jac):
+        return Solution(x, 1, "the start's sensitivities are out of floating-point range "
+                              "(its free run's linearisation grows without bound)")
     scale = np.zeros(len(x))
     region, nfev = None, 1
     while True:
@@ -86,7 +94,7 @@ def levenberg_marquardt(evaluate: Callable[[np.ndarray], tuple[np.ndarray, np.nd
             size = _norm(scale * step)
             r_new, jac_new = evaluate(x + step)
             nfev += 1
-            f_new = float(r_new @ r_new)
+            f_new = float(r_new @ r_new) if _bounded(jac_new) else np.inf
             predicted = -float(2.0 * step @ g + step @ (a @ step))
             actual = f - f_new if np.isfinite(f_new) else -np.inf
             rho = actual / predicted if predicted > 0 else -np.inf
@@ -102,6 +110,11 @@ def levenberg_marquardt(evaluate: Callable[[np.ndarray], tuple[np.ndarray, np.nd
                 return Solution(x, nfev, "`xtol` termination condition is satisfied.")
             if accepted:
                 break
+
+
+def _bounded(jac: np.ndarray) -> bool:
+    """Whether ``J'J`` of this Jacobian is finite (every entry below :data:`JACOBIAN_LIMIT`)."""
+    return bool(jac.size == 0 or np.max(np.abs(jac)) < JACOBIAN_LIMIT)
 
 
 def _new_region(region: float, size: float, rho: float, actual: float, slope: float,

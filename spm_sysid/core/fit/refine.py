@@ -34,6 +34,7 @@ import numpy as np
 from ..model.narx import NarxModel
 from ..model.segments import rows_segments
 from ..model.simulation import divergence_bounds, free_run_sensitivities
+from ..model.uncertainty import Uncertainty, from_jacobian
 from .levenberg import levenberg_marquardt
 
 __all__ = ["Refinement", "free_run_uncertainty", "linear_radius", "linear_stability_check",
@@ -113,15 +114,24 @@ def _segments(y: np.ndarray, segments, lag0: int) -> list[tuple[int, int]]:
     return rows_segments(segments, len(y), lag0)
 
 
+#: Growth of the free run's sensitivities along a segment (largest over the
+#: segment / largest over its first half) beyond which its linearisation is
+#: unstable: a bounded model grows them by far less (an integrator by about the
+#: record's length), one whose linearisation diverges by e^(rate * samples).
+SENSITIVITY_GROWTH = 1e6
+
+
 def free_run_uncertainty(model: NarxModel, u: np.ndarray, y: np.ndarray,
-                         segments: list[tuple[int, int]] | None = None):
-    """The coefficients' covariance for the free-run problem (Gauss-Newton), or None.
+                         segments: list[tuple[int, int]] | None = None
+                         ) -> tuple[Uncertainty | None, str]:
+    """The coefficients' covariance for the free-run problem (Gauss-Newton), or None and why.
 
-    None when the simulation diverges on u, y (there is no local quadratic
-    model of the error there). See :mod:`spm_sysid.core.model.uncertainty`.
+    None when the simulation diverges on u, y, or when its sensitivities grow
+    without bound along the record (the free run stays in range but its
+    linearisation does not: a Gauss-Newton covariance would then claim standard
+    errors of about zero), or when the Jacobian is singular. See
+    :mod:`spm_sysid.core.model.uncertainty`.
     """
-    from ..model.uncertainty import from_jacobian
-
     ts = model.term_space
     u = ts.inputs_2d(u)
     y = np.asarray(y, dtype=float)
@@ -131,14 +141,32 @@ def free_run_uncertainty(model: NarxModel, u: np.ndarray, y: np.ndarray,
         yhat, jac, at = free_run_sensitivities(model.compiled, model.coefficients, u[a:b],
                                                y[a:b], bounds)
         if at is not None:
-            return None
+            return None, f"the free run leaves the measured range at sample {a + at}"
+        if _grows(jac):
+            return None, ("the free run's sensitivities to the coefficients grow without "
+                          "bound along the record (its linearisation is unstable), so a "
+                          "local covariance would claim a certainty the model does not have")
         e = y[a + ts.max_lag:b] - yhat
         sse += float(e @ e)
         jacs.append(jac)
     J = np.vstack(jacs)
-    if J.shape[0] <= J.shape[1] or not np.all(np.isfinite(J)):
-        return None
-    return from_jacobian(J, sse)
+    if J.shape[0] <= J.shape[1]:
+        return None, "too few rows for the coefficients"
+    found = from_jacobian(J, sse)
+    se = found.standard_errors
+    if not np.all(np.isfinite(se) & (se > 0)):
+        return None, "the free-run Jacobian is singular (terms the free run cannot tell apart)"
+    return found, ""
+
+
+def _grows(jac: np.ndarray) -> bool:
+    """Whether the sensitivities grow by more than :data:`SENSITIVITY_GROWTH` along the rows."""
+    if len(jac) < 4:
+        return False
+    with np.errstate(invalid="ignore"):
+        whole = float(np.max(np.abs(jac)))
+        head = float(np.max(np.abs(jac[:len(jac) // 2])))
+    return not np.isfinite(whole) or (head > 0 and whole > SENSITIVITY_GROWTH * head)
 
 
 def refine_simulation(model: NarxModel, u: np.ndarray, y: np.ndarray,

@@ -116,7 +116,9 @@ class NarxModel:
         if self.uncertainty is None:
             rows = [head] + [f"  {t:<{width}}  {c:>12.5g}" for t, c in
                              zip(terms, self.coefficients)]
-            return "\n".join(rows + ["  (no coefficient uncertainty for this model)"])
+            why = (self.metadata.get("simulation") or {}).get("no_uncertainty")
+            return "\n".join(rows + [f"  (no coefficient uncertainty: {why})" if why else
+                                      "  (no coefficient uncertainty for this model)"])
         se = self.uncertainty.standard_errors
         iv = self.uncertainty.intervals(self.coefficients, level)
         zero = self.uncertainty.spans_zero(self.coefficients, level)

@@ -375,9 +375,9 @@ class ValidatedSimulation:
                         mse=float(one_step @ one_step) / len(one_step),
                         criterion_value=simulation_value(crit, sse, problem.rows, mask,
                                                          model.coefficients, problem))
-        model.uncertainty = free_run_uncertainty(model, u, y, segments)
+        model.uncertainty, why = free_run_uncertainty(model, u, y, segments)
         model.metadata = {"simulation": {
-            "estimator": estimator,
+            "estimator": estimator, **({"no_uncertainty": why} if why else {}),
             "refinement": final.message if final is not None else "none: least squares "
                           "simulated the held-out blocks better",
             "free_run_sse": sse,

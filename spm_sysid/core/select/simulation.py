@@ -262,9 +262,10 @@ def select_for_simulation(
     model.mse = float(one_step @ one_step) / len(one_step)
     model.criterion, model.criterion_value = criterion.name, value
     model.n_samples = problem.n_samples
-    model.uncertainty = free_run_uncertainty(model, u, y, segments)
+    model.uncertainty, why = free_run_uncertainty(model, u, y, segments)
     model.metadata = {**(metadata or {}), "simulation": {
-        **account, "candidates": len(candidates), "refinements": scorer.refinements + 1,
+        **account, **({"no_uncertainty": why} if why else {}),
+        "candidates": len(candidates), "refinements": scorer.refinements + 1,
         "local_search_steps": found.steps,
         "criterion_meaning": f"{criterion.name.upper()} of the free-run simulation error "
                              "(SSE of the simulated output) on the estimation data"}}
