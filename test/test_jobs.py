@@ -142,6 +142,8 @@ def test_a_drawn_seed_is_written_and_repeats_the_run(robot_arm):
     meta = first.model.metadata
     assert meta["seed_drawn"] is True and isinstance(meta["seed"], int) and meta["seed"] >= 0
     assert f"--seed {meta['seed']} repeats this run" in first.summary()
+    assert f"seed {meta['seed']}, drawn: the setting seed={meta['seed']} repeats this run" \
+        in first.summary("line")  # the node's answer and log
     again = run_job(record, JobSettings.from_values({**small, "seed": meta["seed"]}))
     assert "seed_drawn" not in again.model.metadata
     assert again.model.term_indices == first.model.term_indices

@@ -132,7 +132,8 @@ class JobResult:
                 text += f" ({_validation_words(self.report)})"
             if warnings:
                 text += "; WARNING: " + "; WARNING: ".join(warnings)
-            return text + f", {self.seconds.get('total', 0.0):.2f} s"
+            return text + f", {self.seconds.get('total', 0.0):.2f} s" + _seed_words(
+                m.metadata, "the setting seed={seed}")
         lines = [m.equation(),
                  f"criterion {crit} = {value:.2f}, {len(m.term_indices)} terms, one-step MSE "
                  f"{m.mse:.4e}, {m.n_samples} samples, "
@@ -147,10 +148,10 @@ class JobResult:
         return "\n".join(lines)
 
 
-def _seed_words(meta: dict) -> str:
-    """A drawn seed, and how to repeat the run with it."""
+def _seed_words(meta: dict, repeat: str = "--seed {seed}") -> str:
+    """A drawn seed, and how to repeat the run with it (``repeat``: the command's words)."""
     seed = meta.get("seed")
-    return f"; seed {seed}, drawn: --seed {seed} repeats this run" \
+    return f"; seed {seed}, drawn: {repeat.format(seed=seed)} repeats this run" \
         if meta.get("seed_drawn") and seed is not None else ""
 
 
