@@ -246,7 +246,7 @@ def as_array_check(dtype: str, ndim: int, contiguous: bool, mutable: bool
 #: The modules that define kernels, under ``spm_sysid.core`` (a test checks that none is
 #: missing); a kernel's key is its module's last name and its own.
 KERNEL_MODULES = ("compiled.kernels", "model.chain", "model.simulation", "search.branch_bound",
-                  "model.coupled")
+                  "model.coupled", "model.regressor_sim")
 _FORMAT = 1
 _HERE = Path(__file__).resolve().parent
 _BUILD_LOCK = threading.Lock()

@@ -93,6 +93,8 @@ def _warm_up(say: Callable[[str], None]) -> None:
     run_job(record, JobSettings.from_values({**ga, "ny": 2, "nu": 2, "seed": 0,
                                              "focus": "simulation", "horizon": 3,
                                              "shortlist": 3}))
+    say("compiling the runs of models with regressors ...")
+    _warm_up_regressors(u, y)
     say("compiling the coupled simulation of several outputs ...")
     y2 = np.zeros(n)
     for t in range(1, n):
@@ -102,3 +104,24 @@ def _warm_up(say: Callable[[str], None]) -> None:
     run_job(both, JobSettings.from_values({**ga, "ny": 1, "nu": 1, "seed": 0,
                                            "focus": "simulation", "horizon": 3,
                                            "shortlist": 2}))
+
+
+def _warm_up_regressors(u: np.ndarray, y: np.ndarray) -> None:
+    """Free run, k-step run and sensitivities of a model with a regressor.
+
+    Called directly: a small job need not choose a regressor, and a kernel that
+    no warm-up called is left out of the build.
+    """
+    from ..model.narx import NarxModel
+    from ..model.simulation import divergence_bounds, free_run_sensitivities
+    from ..model.terms import TermSpace
+
+    space = TermSpace(ny=2, nu=1, degree=2, regressors=("sign(y(t-1)-y(t-2))",))
+    names = space.term_names()
+    terms = sorted(names.index(n) for n in ("y(t-1)", "u(t-1)", "sign(y(t-1)-y(t-2))",
+                                            "y(t-1)*sign(y(t-1)-y(t-2))"))
+    model = NarxModel(space, terms, np.array([0.5, 0.4, 0.01, 0.01]))
+    model.run(u, y)
+    model.run(u, y, horizon=3)
+    lo, hi = divergence_bounds(y)
+    free_run_sensitivities(model.compiled, model.coefficients, space.inputs_2d(u), y, (lo, hi))

@@ -9,7 +9,8 @@ signals are one matrix (inputs, then outputs), each output's linear values are
 (column, lag) pairs into it, and its terms are rows of indices into those
 values, padded with an index that points at a constant 1. Outputs whose term
 spaces hold regressors (:mod:`.regressors`) have those among their values,
-computed at each step from the simulated signals (:func:`.regressor_sim.coupled_run_r`).
+computed at each step from the simulated signals in the same kernel
+(:func:`.regressor_sim.regressors_at`).
 
 Divergence, as for one output: an output that is not finite or leaves its
 measured range widened by ``DIVERGENCE_FACTOR`` spans is NaN from that sample
@@ -30,6 +31,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..compiled.registry import jit_exact as jit
+from .regressor_sim import coupled_program, regressors_at
+from .regressors import Program
 from .simulation import divergence_bounds
 from .uncertainty import from_jacobian
 
@@ -46,7 +49,7 @@ class CoupledCompiled:
     n_terms: tuple[int, ...]
     n_inputs: int
     max_lag: int
-    program: object = None  # the outputs' regressors (regressors.Program), None without
+    program: Program  # the outputs' regressors (none: an empty program)
 
     @classmethod
     def from_models(cls, models, n_inputs: int) -> CoupledCompiled:
@@ -72,13 +75,9 @@ class CoupledCompiled:
         # the regressors each output's terms use (the others are never computed)
         used = [sorted({f - len(lin) for t in m.term_indices for f in m.term_space.terms[t]
                         if f >= len(lin)}) for m, lin in zip(models, lins)]
-        program = None
-        if any(used):
-            from .regressor_sim import coupled_program
-
-            program = coupled_program(
-                [([m.term_space.regressor_exprs[r] for r in rs], m.term_space.output,
-                  m.term_space.inputs) for m, rs in zip(models, used)], column)
+        program = coupled_program(
+            [([m.term_space.regressor_exprs[r] for r in rs], m.term_space.output,
+              m.term_space.inputs) for m, rs in zip(models, used)], column)
         width = max([len(m.term_space.terms[t]) for m in models for t in m.term_indices]
                     + [1])
         k_max = max([len(m.term_indices) for m in models] + [1])
@@ -101,17 +100,30 @@ class CoupledCompiled:
 
 
 @jit
-def _coupled(lin_cols, lin_lags, gather, theta, S, lag0, n_inputs, lo, hi,
-             diverged):  # pragma: no cover - compiled
-    """Step every output from lag0 on, writing into S's output columns."""
+def _coupled(lin_cols, lin_lags, gather, theta, S, lag0, n_inputs, lo, hi, diverged, code,
+             consts, start, depth):  # pragma: no cover - compiled
+    """Step every output from lag0 on, writing into S's output columns.
+
+    Each output's values: its lagged signals (padded to ``n_lin``), its
+    regressors (padded to ``n_reg``: ``start[i]`` delimits output i's in
+    ``code``, whose signal pushes all read ``S`` as op 1, column, lag), then the
+    constant 1. Without regressors ``start`` is (q, 1) and none is computed.
+    """
     q = gather.shape[0]
     n_lin = lin_cols.shape[1]
-    vals = np.ones(n_lin + 1)
+    n_reg = start.shape[1] - 1
+    vals = np.ones(n_lin + n_reg + 1)
     new = np.empty(q)
+    sv = np.empty(depth)
+    sg = np.zeros((depth, 1))
+    grad = np.zeros((max(n_reg, 1), 1))
+    none = np.empty(1)
     for t in range(lag0, S.shape[0]):
         for i in range(q):
             for j in range(n_lin):
                 vals[j] = S[t - lin_lags[i, j], lin_cols[i, j]]
+            if n_reg > 0:
+                regressors_at(code, consts, start[i], none, S, t, sv, sg, 0, vals, n_lin, grad)
             acc = 0.0
             for k in range(gather.shape[1]):
                 p = 1.0
@@ -143,13 +155,9 @@ def coupled_run(cc: CoupledCompiled, thetas, u: np.ndarray, Y: np.ndarray,
     lo = np.array([b[0] for b in bounds])
     hi = np.array([b[1] for b in bounds])
     diverged = np.full(q, -1, dtype=np.int64)
-    if cc.program is None:
-        _coupled(cc.lin_cols, cc.lin_lags, cc.gather, cc.theta_matrix(thetas), S, cc.max_lag,
-                 cc.n_inputs, lo, hi, diverged)
-    else:  # numba's JIT (models with regressors: not in the ahead-of-time build)
-        from .regressor_sim import coupled_run_r
-
-        coupled_run_r(cc, cc.theta_matrix(thetas), S, lo, hi, diverged)
+    p = cc.program
+    _coupled(cc.lin_cols, cc.lin_lags, cc.gather, cc.theta_matrix(thetas), S, cc.max_lag,
+             cc.n_inputs, lo, hi, diverged, p.code, p.consts, p.start, int(p.depth))
     return (S[cc.max_lag:, cc.n_inputs:].copy(),
             [None if d < 0 else int(d) for d in diverged])
 

@@ -6,7 +6,9 @@ each step the regressors are computed from the outputs and inputs before it
 (the model's own outputs in a free run) by their postfix code, with their
 derivatives with respect to the lagged outputs, so the sensitivity equations
 stay exact. Models without regressors never come here (their kernels are
-unchanged, and built ahead of time); these kernels run on numba's JIT.
+unchanged). The coupled model of several outputs computes its regressors with
+:func:`regressors_at` in its own kernel (:mod:`.coupled`). Built ahead of time
+with the other kernels.
 """
 
 from __future__ import annotations
@@ -17,11 +19,11 @@ from ..compiled.registry import jit_exact as jit
 from .chain import chain_start, mark_diverged
 from .regressors import OPS, Program, program
 
-__all__ = ["coupled_program", "coupled_run_r", "free_run_sensitivities_r", "run_model_r"]
+__all__ = ["coupled_program", "free_run_sensitivities_r", "regressors_at", "run_model_r"]
 
 
 @jit
-def _regressors_at(code, consts, start, ys, u, t, sv, sg, ly, vals, first,
+def regressors_at(code, consts, start, ys, u, t, sv, sg, ly, vals, first,
                    grad):  # pragma: no cover - compiled
     """Every regressor at t into ``vals[first + r]``, its gradient into ``grad[r]``.
 
@@ -92,7 +94,7 @@ def _fill(y_lags, u_lags, u_cols, code, consts, start, ys, u, t, vals, grad, sv,
         vals[j] = ys[t - y_lags[j]]
     for j in range(n_u):
         vals[n_y + j] = u[t - u_lags[j], u_cols[j]]
-    _regressors_at(code, consts, start, ys, u, t, sv, sg, ly, vals, n_y + n_u, grad)
+    regressors_at(code, consts, start, ys, u, t, sv, sg, ly, vals, n_y + n_u, grad)
 
 
 @jit
@@ -213,44 +215,7 @@ def free_run_sensitivities_r(model, theta: np.ndarray, u: np.ndarray, y: np.ndar
 
 # -- several outputs: the coupled free run with regressors ----------------------------------
 
-@jit
-def _coupled_r(lin_cols, lin_lags, gather, theta, S, lag0, n_inputs, lo, hi, diverged, code,
-               consts, start, depth):  # pragma: no cover - compiled
-    """:mod:`.coupled`'s coupled step with each output's regressors among its values.
-
-    ``start[i]`` delimits output i's regressors in ``code``, whose signal pushes
-    all read ``S`` (op 1: column, lag); values are lagged signals (padded to
-    ``n_lin``), then regressors (padded to ``n_reg``), then the constant 1.
-    """
-    q = gather.shape[0]
-    n_lin = lin_cols.shape[1]
-    n_reg = start.shape[1] - 1
-    vals = np.ones(n_lin + n_reg + 1)
-    new = np.empty(q)
-    sv = np.empty(depth)
-    sg = np.zeros((depth, 1))
-    grad = np.zeros((max(n_reg, 1), 1))
-    none = np.empty(1)
-    for t in range(lag0, S.shape[0]):
-        for i in range(q):
-            for j in range(n_lin):
-                vals[j] = S[t - lin_lags[i, j], lin_cols[i, j]]
-            _regressors_at(code, consts, start[i], none, S, t, sv, sg, 0, vals, n_lin, grad)
-            acc = 0.0
-            for k in range(gather.shape[1]):
-                p = 1.0
-                for w in range(gather.shape[2]):
-                    p *= vals[gather[i, k, w]]
-                acc += theta[i, k] * p
-            new[i] = acc
-        for i in range(q):
-            v = new[i]
-            if diverged[i] < 0 and not (lo[i] <= v <= hi[i]):
-                diverged[i] = t
-            S[t, n_inputs + i] = v if diverged[i] < 0 else np.nan
-
-
-def coupled_program(regressors: list, column) -> Program | None:
+def coupled_program(regressors: list, column) -> Program:
     """Every output's regressors as one program over the coupled signal matrix.
 
     ``regressors[i]``: output i's regressors (a list of
@@ -258,10 +223,8 @@ def coupled_program(regressors: list, column) -> Program | None:
     ``column(i, src)``: the matrix column of output i's signal ``src`` (-1: its
     own output; else its term space's input index). ``start`` is (q, n_reg + 1):
     output i's regressor r is ``code[start[i, r]:start[i, r + 1]]`` (empty when
-    it has fewer). None when no output has any.
+    it has fewer). Without any, ``start`` is (q, 1): no regressor is computed.
     """
-    if not any(exprs for exprs, _, _ in regressors):
-        return None
     n_reg = max(len(exprs) for exprs, _, _ in regressors)
     code, consts, depth = [], [], 1
     start = np.zeros((len(regressors), n_reg + 1), dtype=np.int64)
@@ -282,11 +245,3 @@ def coupled_program(regressors: list, column) -> Program | None:
         depth = max(depth, int(own.depth))
     return Program(np.array(code or [(0, 0, 0)], dtype=np.int64).reshape(-1, 3),
                    np.array(consts or [0.0]), start, depth)
-
-
-def coupled_run_r(cc, theta: np.ndarray, S: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-                  diverged: np.ndarray) -> None:
-    """The coupled free run of :class:`~.coupled.CoupledCompiled` ``cc`` with regressors."""
-    p = cc.program
-    _coupled_r(cc.lin_cols, cc.lin_lags, cc.gather, theta, S, cc.max_lag, cc.n_inputs, lo, hi,
-               diverged, p.code, p.consts, p.start, int(p.depth))
