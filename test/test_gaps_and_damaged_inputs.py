@@ -327,6 +327,7 @@ def test_corrupt_and_truncated_gzip_files(tmp_path, robot_arm_path):
 
 
 @pytest.mark.parametrize("scale", [1e100, 1e-100])
+@pytest.mark.filterwarnings("error::RuntimeWarning")  # no overflow reaches the user either
 def test_extreme_scales_identify_like_the_original(robot_arm, scale):
     u, y = robot_arm
     ref = identify(u=u, y=y, criterion="aic", seed=1, ga=FAST)

@@ -27,13 +27,16 @@ __all__ = ["Scores", "candidate_structures", "cv_scores", "mean_and_stderr"]
 def mean_and_stderr(values: Sequence[float]) -> tuple[float, float]:
     """Mean of held-out errors and its standard error; (inf, inf) when one is not finite.
 
-    A single value has no spread: its standard error is 0.
+    A single value has no spread: its standard error is 0. Computed on the values
+    over a power of two near their largest (exact: the same bits), so errors of a
+    record in huge units (1e100) do not overflow when squared.
     """
     values = np.asarray(values, dtype=float)
     if not len(values) or not np.all(np.isfinite(values)):
         return np.inf, np.inf
-    stderr = float(np.std(values, ddof=1) / np.sqrt(len(values))) if len(values) > 1 else 0.0
-    return float(np.mean(values)), stderr
+    top = float(np.exp2(np.floor(np.log2(np.max(np.abs(values)))))) if np.any(values) else 1.0
+    spread = float(np.std(values / top, ddof=1)) * top if len(values) > 1 else 0.0
+    return float(np.mean(values)), float(spread / np.sqrt(len(values)))
 
 
 @dataclass
