@@ -67,12 +67,10 @@ def levenberg_marquardt(evaluate: Callable[[np.ndarray], tuple[np.ndarray, np.nd
     """
     x = np.array(x0, dtype=float)
     r, jac = evaluate(x)
-    f = float(r @ r)
+    f = _cost(r, jac)
     if not np.isfinite(f):
-        return Solution(x, 1, "the start's residuals are not finite")
-    if not _bounded(jac):
-        return Solution(x, 1, "the start's sensitivities are out of floating-point range "
-                              "(its free run's linearisation grows without bound)")
+        return Solution(x, 1, "the start's residuals are not finite, or its sensitivities are "
+                              "out of floating-point range")
     scale = np.zeros(len(x))
     region, nfev = None, 1
     while True:
@@ -94,7 +92,7 @@ def levenberg_marquardt(evaluate: Callable[[np.ndarray], tuple[np.ndarray, np.nd
             size = _norm(scale * step)
             r_new, jac_new = evaluate(x + step)
             nfev += 1
-            f_new = float(r_new @ r_new) if _bounded(jac_new) else np.inf
+            f_new = _cost(r_new, jac_new)
             predicted = -float(2.0 * step @ g + step @ (a @ step))
             actual = f - f_new if np.isfinite(f_new) else -np.inf
             rho = actual / predicted if predicted > 0 else -np.inf
@@ -112,9 +110,10 @@ def levenberg_marquardt(evaluate: Callable[[np.ndarray], tuple[np.ndarray, np.nd
                 break
 
 
-def _bounded(jac: np.ndarray) -> bool:
-    """Whether ``J'J`` of this Jacobian is finite (every entry below :data:`JACOBIAN_LIMIT`)."""
-    return bool(jac.size == 0 or np.max(np.abs(jac)) < JACOBIAN_LIMIT)
+def _cost(r: np.ndarray, jac: np.ndarray) -> float:
+    """The sum of squares, infinite where ``J'J`` would overflow (see :data:`JACOBIAN_LIMIT`)."""
+    bounded = jac.size == 0 or np.max(np.abs(jac)) < JACOBIAN_LIMIT
+    return float(r @ r) if bounded else np.inf
 
 
 def _new_region(region: float, size: float, rho: float, actual: float, slope: float,
