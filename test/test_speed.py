@@ -138,6 +138,14 @@ def test_the_polish_budget_is_a_count_so_results_repeat():
 
     assert a.metadata["polish"]["structures"] <= POLISH_STRUCTURES
     assert a.metadata["polish"]["kicks"] >= 1  # the iterated search ran
+    # 84 candidates of a dryer, where a swap step is dear and swaps wait for the end:
+    # still within its budget (the kicks leave a quarter), never worse, reproducible
+    u, y = CASES["dryer-0"]()
+    big = Problem.from_signals(u, y, TermSpace(ny=3, nu=3, degree=3, constant=True))
+    pol = identify_problem(big, options).model.metadata["polish"]
+    assert identify_problem(big, options).model.metadata["polish"] == pol
+    assert pol["kicks"] >= 1 and "swap" in pol["moves"]
+    assert pol["structures"] <= pol["budget"] and pol["value"] <= pol["ga_value"]
 
 
 def test_the_python_api_certifies_by_default(robot_arm):

@@ -195,8 +195,15 @@ def _best_neighbour(score: Callable[[np.ndarray], np.ndarray], current: np.ndarr
 
 
 #: A kicked structure whose add/remove descent ends within this of the best so far is
-#: searched with swaps too (swaps cost k (n - k) structures a step: only for the promising).
+#: searched with swaps too, while a swap step (k (n - k) structures) costs at most
+#: 1 / POLISH_SWAP_SHARE of the budget; beyond, swap searches after every kick spend
+#: the budget on a few kicks, and only the best is searched with swaps, at the end.
+#: Measured: at 84 candidates (robot arm and dryer, AIC, 20 GA seeds each) swaps at
+#: the end reach the best known structure on 8 and 3 seeds instead of 5 and 0 with the
+#: same budget; on the paper's 44 candidates swaps after each kick reach it more often
+#: (171 of 180 runs against 168 with swaps at the end), so they stay there.
 POLISH_SLACK = 2.0
+POLISH_SWAP_SHARE = 40
 
 
 @dataclass
@@ -225,10 +232,12 @@ def polish(score: Callable[[np.ndarray], np.ndarray], mask: np.ndarray, allowed:
     of more than :data:`POLISH_TERMS` terms; swaps only where they fit the
     budget, judged on ``usable_terms``), an iterated local search: the GA's
     best is usually a local optimum of single-term moves, so it is kicked
-    (:data:`POLISH_FLIPS` terms of ``kick_terms`` flipped), descended cheaply
-    (additions and removals), and the promising ones searched with swaps too,
-    keeping the best. The kicks are drawn from the structure itself, so the
-    polish is reproducible.
+    (:data:`POLISH_FLIPS` terms of ``kick_terms`` flipped) and descended cheaply
+    (additions and removals), keeping the best. Swaps: where a swap step is cheap
+    (:data:`POLISH_SWAP_SHARE`), after each kick whose descent ends near the
+    best (:data:`POLISH_SLACK`); in larger spaces only once, from the best the
+    kicks found, on the quarter of the budget they leave. The kicks are drawn
+    from the structure itself, so the polish is reproducible.
     """
     if kick_terms is None:
         res = local_search(score, mask, allowed, start_value=value, deadline=deadline)
@@ -245,22 +254,46 @@ def polish(score: Callable[[np.ndarray], np.ndarray], mask: np.ndarray, allowed:
     rng = np.random.default_rng(zlib.crc32(np.packbits(mask).tobytes()))
     cheap = ("remove", "add")
     low, high = POLISH_FLIPS[0], min(POLISH_FLIPS[1], len(kick_terms) // 2 + 1)
-    kicks = 0
-    while kicks < POLISH_KICKS and scored < budget and high > low:
+    kicks, improved = 0, False
+    # swaps after each promising kick while a swap step is cheap; else only at the end
+    swap_each = moves != cheap and k * (n - k) <= budget // POLISH_SWAP_SHARE
+    kick_budget = budget - (budget // 4 if moves != cheap and not swap_each else 0)
+    while kicks < POLISH_KICKS and scored < kick_budget and high > low:
         kicks += 1
         start = best_mask.copy()
         flip = rng.choice(kick_terms, size=int(rng.integers(low, high)), replace=False)
         start[flip] = ~start[flip]
         if not start.any():
             continue
-        r = local_search(score, start, allowed, moves=cheap, max_scored=budget - scored,
-                         deadline=deadline)
+        r, cost = _descend(score, start, allowed, moves if swap_each else cheap, best_value,
+                           kick_budget - scored, budget - scored, deadline)
+        scored += cost
+        if r.value < best_value - 1e-9:
+            best_mask, best_value, steps, improved = r.mask, float(r.value), steps + r.steps, True
+    if improved and moves != cheap and not swap_each:
+        r = local_search(score, best_mask, allowed, moves=moves, start_value=best_value,
+                         max_scored=budget - scored, deadline=deadline)
         scored += r.scored
-        if moves != cheap and r.value < best_value + POLISH_SLACK:
-            r = local_search(score, r.mask, allowed, moves=moves, start_value=r.value,
-                             max_scored=budget - scored, deadline=deadline)
-            scored += r.scored
         if r.value < best_value - 1e-9:
             best_mask, best_value, steps = r.mask, float(r.value), steps + r.steps
     return PolishResult(best_mask, best_value, steps, scored, kicks, moves,
                         "budget" if scored >= budget else res.stopped, budget)
+
+
+def _descend(score, start: np.ndarray, allowed: np.ndarray, moves: Sequence[str],
+             best_value: float, cheap_room: int, room: int, deadline: float | None
+             ) -> tuple[SearchResult, int]:
+    """A kicked structure descended by additions and removals, then maybe by swaps.
+
+    Swaps when ``moves`` hold them and the first descent ended within
+    :data:`POLISH_SLACK` of ``best_value``. Returns the search's end and the
+    structures scored (at most ``cheap_room``, then ``room`` in all).
+    """
+    r = local_search(score, start, allowed, moves=("remove", "add"), max_scored=cheap_room,
+                     deadline=deadline)
+    scored = r.scored
+    if "swap" in moves and r.value < best_value + POLISH_SLACK:
+        r = local_search(score, r.mask, allowed, moves=moves, start_value=r.value,
+                         max_scored=room - scored, deadline=deadline)
+        scored += r.scored
+    return r, scored
