@@ -22,7 +22,7 @@ $(STAMP): setup.py package.xml interfaces/build_in_venv.py $(INTERFACES)
 # compile the numeric kernels now (numba's disk cache) and build their ahead-of-time
 # extension, not in the first command; again whenever a kernel module changes
 KERNELS := $(VENV)/.kernels
-KERNEL_SOURCES := $(addprefix spm_sysid/core/,compiled/kernels.py model/chain.py model/simulation.py search/branch_bound.py model/coupled.py model/regressor_sim.py compiled/registry.py compiled/aot.py jobs/warmup.py)
+KERNEL_SOURCES := $(addprefix spm_sysid/core/,compiled/kernels.py model/chain.py model/simulation.py search/branch_bound.py model/coupled.py model/regressor_sim.py fit/levenberg.py fit/free_run.py compiled/registry.py compiled/aot.py jobs/warmup.py)
 $(KERNELS): $(STAMP) $(KERNEL_SOURCES)
 	$(BIN)/spm-sysid compile
 	touch $(KERNELS)

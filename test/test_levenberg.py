@@ -121,3 +121,30 @@ def test_the_point_returned_is_the_best_evaluated():
                                   allowed)
         r = _rosenbrock(sol.x)[0]
         assert r @ r == pytest.approx(min(seen), rel=1e-12)
+
+
+@pytest.mark.parametrize("segments", [None, [(0, 400), (450, 1024)]])
+def test_the_compiled_refinement_takes_the_python_solvers_steps(robot_arm, segments):
+    """A refinement runs as one compiled call (solver and simulations); the same code run in
+    Python on the same residuals (evaluate_free_run) takes the same steps to the same point,
+    and both lower the free-run error of the least-squares start."""
+    from spm_sysid.core.fit.free_run import FreeRun
+    from spm_sysid.core.fit.levenberg import evaluate_free_run, refine_free_run
+    from spm_sysid.core.fit.problem import fit_structure
+    from spm_sysid.core.model.terms import TermSpace
+
+    u, y = robot_arm
+    ts = TermSpace(ny=3, nu=3, degree=2)
+    names = ts.term_names()
+    keep = ["y(t-1)", "y(t-2)", "y(t-3)", "u(t-1)", "u(t-2)", "u(t-3)", "y(t-1)*u(t-1)"]
+    mask = np.isin(names, keep)
+    model = fit_structure(u, y, mask, ts)
+    run = FreeRun(model, u, y, segments, guard=True)
+    compiled = refine_free_run(run, model.coefficients, 30)
+    plain = levenberg_marquardt(lambda t: evaluate_free_run(run, t)[:2], model.coefficients, 30)
+    assert compiled.nfev == plain.nfev and compiled.message == plain.message
+    assert compiled.x == pytest.approx(plain.x, rel=1e-9, abs=1e-12)
+    r0 = evaluate_free_run(run, model.coefficients)[0]
+    r = evaluate_free_run(run, compiled.x)[0]
+    assert compiled.sse_start == pytest.approx(r0 @ r0, rel=1e-12)
+    assert compiled.sse == pytest.approx(r @ r, rel=1e-12) and compiled.sse < 0.9 * (r0 @ r0)

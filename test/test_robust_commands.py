@@ -142,6 +142,55 @@ def test_an_unreadable_numba_cache_entry_is_compiled_again(tmp_path):
         assert again.returncode == 0 and "warning" not in again.stderr
 
 
+CALLER_MODULE = """
+from spm_sysid.core.compiled.registry import jit_exact
+from callee import scale
+
+
+@jit_exact
+def caller(x):
+    return scale(x)
+
+
+print(caller(2.0), sum(caller.jit.stats.cache_hits.values()))
+"""
+
+CALLEE_MODULE = """
+from spm_sysid.core.compiled.registry import jit_exact
+
+
+@jit_exact
+def scale(x):
+    return {factor} * x
+"""
+
+
+@pytest.mark.slow
+def test_a_cached_kernel_is_compiled_again_when_a_kernel_module_changes(tmp_path):
+    """numba renews a cache entry when its own function's file changes, not when a kernel
+    it calls in another module does: a caller compiled with the old callee would run it.
+    The entries are keyed by the kernel sources' hash, so a change there compiles again."""
+    (tmp_path / "callee.py").write_text(CALLEE_MODULE.format(factor=3.0))
+    (tmp_path / "caller.py").write_text(CALLER_MODULE)
+    env = {**os.environ, "SPM_SYSID_AOT": "0", "PYTHONPATH": f"{tmp_path}:{ROOT}"}
+    env.pop("NUMBA_CACHE_DIR", None)
+
+    def call(sources: str) -> tuple[float, int]:
+        code = ("from spm_sysid.core.compiled import registry\n"
+                f"registry.source_hash = lambda: {sources!r}\nimport caller")
+        r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                           env=env, cwd=tmp_path, timeout=300)
+        assert r.returncode == 0, r.stderr
+        value, hits = r.stdout.split()
+        return float(value), int(hits)
+
+    assert call("first sources") == (6.0, 0)   # compiled and cached
+    assert call("first sources") == (6.0, 1)   # loaded from the cache
+    (tmp_path / "callee.py").write_text(CALLEE_MODULE.format(factor=5.0))
+    assert call("second sources") == (10.0, 0)  # the sources changed: compiled anew
+    assert call("second sources") == (10.0, 1)
+
+
 def test_no_writable_cache_location_compiles_in_memory_with_one_warning(monkeypatch, capsys):
     from numba.core.caching import CacheImpl
 

@@ -159,7 +159,11 @@ def _dispatcher(numba, fn: Callable, fastmath: bool):
 
     Where numba finds no writable cache location it compiles in memory only
     (one warning line); a cache entry that cannot be read (a truncated file) is
-    taken as missing: the kernel is compiled again and the entry rewritten.
+    taken as missing: the kernel is compiled again and the entry rewritten. A
+    cache entry is keyed by :func:`source_hash` too: numba renews an entry
+    when its own function's file changes, not when a kernel it calls in
+    another module does (the refinement's solver calls the simulation's), and
+    would run the old callee compiled into the caller.
     """
     options = {"fastmath": {"reassoc", "contract"}} if fastmath else {}
     try:
@@ -168,10 +172,27 @@ def _dispatcher(numba, fn: Callable, fastmath: bool):
         _warn_once("locator", f"numba cannot cache the compiled kernels ({exc}); they are "
                    "compiled again in each process (set NUMBA_CACHE_DIR to a writable folder)")
         return numba.njit(cache=False, nogil=True, **options)(fn)
-    cache_file = getattr(getattr(dispatcher, "_cache", None), "_cache_file", None)
+    cache = getattr(dispatcher, "_cache", None)
+    if cache is not None and hasattr(cache, "_index_key"):
+        cache.__class__ = _keyed(type(cache))
+    cache_file = getattr(cache, "_cache_file", None)
     if cache_file is not None:
         cache_file.__class__ = _tolerant(type(cache_file))
     return dispatcher
+
+
+_KEYED: dict[type, type] = {}
+
+
+def _keyed(base: type) -> type:
+    """The cache class of numba with its entries keyed by the kernel sources as well."""
+    if base not in _KEYED:
+        class KeyedCache(base):
+            def _index_key(self, sig, codegen):
+                return (*super()._index_key(sig, codegen), source_hash())
+
+        _KEYED[base] = KeyedCache
+    return _KEYED[base]
 
 
 _TOLERANT: dict[type, type] = {}
@@ -246,7 +267,7 @@ def as_array_check(dtype: str, ndim: int, contiguous: bool, mutable: bool
 #: The modules that define kernels, under ``spm_sysid.core`` (a test checks that none is
 #: missing); a kernel's key is its module's last name and its own.
 KERNEL_MODULES = ("compiled.kernels", "model.chain", "model.simulation", "search.branch_bound",
-                  "model.coupled", "model.regressor_sim")
+                  "model.coupled", "model.regressor_sim", "fit.levenberg", "fit.free_run")
 _FORMAT = 1
 _HERE = Path(__file__).resolve().parent
 _BUILD_LOCK = threading.Lock()

@@ -1,4 +1,4 @@
-"""Levenberg-Marquardt for the free-run refinements: small problems, many of them.
+"""Levenberg-Marquardt for the free-run refinements: small problems, many of them, compiled.
 
 A simulation-focused selection refines hundreds of structures by a few dozen
 steps each (screening, held-out folds). On problems of a few thousand rows and
@@ -16,6 +16,16 @@ stopping rules (``ftol``, ``xtol``, ``gtol``) and messages. Each evaluation
 gives residuals and Jacobian together (the sensitivity equations run with the
 simulation), so a rejected step costs one evaluation, as in MINPACK.
 
+The solver is a kernel (:func:`lm_solve`) that calls the free run's
+evaluation (:func:`~spm_sysid.core.fit.free_run.residuals`), so a refinement
+(:func:`refine_free_run`) is one compiled call, its steps and simulations
+without returning to Python: the loop in Python cost twice the simulations
+themselves on the robot arm. A compiled function passed as an argument would
+keep numba from caching the kernel and the ahead-of-time build from exporting
+it; so :func:`levenberg_marquardt`, the same solver for any problem (a Python
+``evaluate``; the tests compare it with MINPACK), runs the kernel's own code in
+Python with that call bound to ``evaluate``.
+
 On the structures a simulation focus screens (robot arm, dryer, heat
 exchanger) it takes the evaluations MINPACK takes and ends at the same sum of
 squares on most of them; the selections they make are the same.
@@ -25,10 +35,15 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from types import FunctionType
 
 import numpy as np
 
-__all__ = ["Solution", "levenberg_marquardt"]
+from ..compiled.registry import jit_exact as jit
+from .free_run import FreeRun, residuals
+
+__all__ = ["MESSAGES", "FreeRunSolution", "Solution", "evaluate_free_run", "levenberg_marquardt",
+           "lm_solve", "refine_free_run"]
 
 #: MINPACK's (and scipy's) default tolerances.
 TOLERANCE = 1e-8
@@ -37,6 +52,16 @@ TOLERANCE = 1e-8
 #: a point whose sensitivities are larger (a free run whose linearisation grows
 #: without bound) gives no quadratic model, so it is never a step.
 JACOBIAN_LIMIT = 1e150
+
+#: Why :func:`lm_solve` stopped, by the code it returns.
+MESSAGES = (
+    "`gtol` termination condition is satisfied.",
+    "`ftol` termination condition is satisfied.",
+    "`xtol` termination condition is satisfied.",
+    "The maximum number of function evaluations is exceeded.",
+    "the start's residuals are not finite, or its sensitivities are out of floating-point "
+    "range",
+)
 
 
 @dataclass(frozen=True)
@@ -48,10 +73,55 @@ class Solution:
     message: str
 
 
+@dataclass(frozen=True)
+class FreeRunSolution(Solution):
+    """A refinement's end, and the free run's sum of squares at its start and at its end.
+
+    A sum is infinite where the run left the measured range; ``diverged_*``:
+    the first sample that did, or None.
+    """
+
+    sse_start: float = np.inf
+    diverged_start: int | None = None
+    sse: float = np.inf
+    diverged: int | None = None
+
+
+def refine_free_run(run: FreeRun, theta0: np.ndarray, max_evaluations: int,
+                    tol: float = TOLERANCE) -> FreeRunSolution:
+    """Levenberg-Marquardt on ``run``'s free-run residuals from ``theta0``, compiled.
+
+    At most ``max_evaluations`` simulations with their Jacobian, the first (at
+    ``theta0``) included.
+    """
+    m = len(run.measured)
+    x, nfev, stop, sse0, at0, sse, at = _refine_entry(
+        *run.args, np.ascontiguousarray(theta0, dtype=float), max(int(max_evaluations), 1),
+        float(tol), np.empty(m), np.empty((m, run.k)))
+    return FreeRunSolution(x, int(nfev), MESSAGES[stop],
+                           float(sse0) if at0 < 0 else np.inf, None if at0 < 0 else int(at0),
+                           float(sse) if at < 0 else np.inf, None if at < 0 else int(at))
+
+
+def evaluate_free_run(run: FreeRun, theta: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray, int | None]:
+    """``run``'s residuals and Jacobian at ``theta``, and the first sample out of range.
+
+    None: no sample left the measured range. The refinement's kernel, with no step.
+    """
+    m = len(run.measured)
+    r, jac = np.empty(m), np.empty((m, run.k))
+    *_, at = _refine_entry(*run.args, np.ascontiguousarray(theta, dtype=float), 0,
+                           TOLERANCE, r, jac)
+    return r, jac, (None if at < 0 else int(at))
+
+
 def levenberg_marquardt(evaluate: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
                         x0: np.ndarray, max_evaluations: int, tol: float = TOLERANCE
                         ) -> Solution:
     """Minimise ``|r(x)|^2`` from ``x0`` in at most ``max_evaluations`` evaluations.
+
+    :func:`lm_solve`'s code, run in Python with ``evaluate`` as its evaluation.
 
     Parameters
     ----------
@@ -59,65 +129,136 @@ def levenberg_marquardt(evaluate: Callable[[np.ndarray], tuple[np.ndarray, np.nd
         ``x -> (r, J)``: residuals (m,) and their Jacobian (m, k); a non-finite
         sum of squares rejects the step.
     x0 : ndarray, shape (k,)
-        The start (least squares' coefficients, for a refinement).
+        The start.
     max_evaluations : int
         Evaluations at most, the first (at ``x0``) included.
     tol : float
         ``ftol``, ``xtol`` and ``gtol`` (as scipy's ``least_squares``).
     """
-    x = np.array(x0, dtype=float)
-    r, jac = evaluate(x)
+    x0 = np.array(x0, dtype=float)
+    first = [evaluate(x0)]  # its shapes size the buffers; it is the solver's first call
+
+    def fill(args, x, r, jac) -> int:
+        r_x, jac_x = first.pop() if first else evaluate(x)
+        r[:], jac[:] = r_x, jac_x
+        return -1
+
+    code = lm_solve.py_func
+    solve = FunctionType(code.__code__, {**code.__globals__, "residuals": fill})
+    m, k = len(first[0][0]), len(x0)
+    x, nfev, stop = solve((), x0, np.empty(m), np.empty((m, k)), np.empty(m),
+                          np.empty((m, k)), max_evaluations, tol)
+    return Solution(x, int(nfev), MESSAGES[stop])
+
+
+@jit
+def _refine_entry(gather, y_lags, u_lags, u_cols, code, consts, start, depth, ly, u, y,
+                  seg_a, seg_b, lag0, lo, hi, guard, part_pos, part_lag, ny, measured,
+                  theta0, max_evaluations, tol, r, jac):  # pragma: no cover - compiled
+    """:func:`lm_solve` on the free-run residuals of these arrays (:class:`FreeRun`'s).
+
+    Returns the solution, evaluations and stop, and the sum of squares and first
+    diverged sample (-1: none) at the start and at the solution, whose residuals
+    and Jacobian are left in ``r`` and ``jac``. ``max_evaluations`` 0: no
+    refinement, the residuals at ``theta0`` (one export serves both).
+    """
+    args = (gather, y_lags, u_lags, u_cols, code, consts, start, depth, ly, u, y, seg_a,
+            seg_b, lag0, lo, hi, guard, part_pos, part_lag, ny, measured)
+    m, k = measured.shape[0], theta0.shape[0]
+    at0 = residuals(args, theta0, r, jac)
+    sse0 = r @ r
+    if max_evaluations < 1:
+        return theta0.copy(), 1, 3, sse0, at0, sse0, at0
+    x, nfev, stop = lm_solve(args, theta0, r, jac, np.empty(m), np.empty((m, k)),
+                             max_evaluations, tol)
+    at = residuals(args, x, r, jac)
+    return x, nfev, stop, sse0, at0, r @ r, at
+
+
+@jit
+def lm_solve(args, x0, r, jac, r_new, jac_new, max_evaluations,
+             tol):  # pragma: no cover - compiled
+    """Minimise ``|r(x)|^2`` from ``x0``; returns ``(x, evaluations, stop)``.
+
+    ``residuals(args, x, r, jac)`` writes the residuals and their Jacobian at x
+    into ``r`` (m,) and ``jac`` (m, k); ``r_new``, ``jac_new`` are a second set
+    of buffers (the trial step's). ``stop`` indexes :data:`MESSAGES`.
+    """
+    x = x0.copy()
+    residuals(args, x, r, jac)
     f = _cost(r, jac)
     if not np.isfinite(f):
-        return Solution(x, 1, "the start's residuals are not finite, or its sensitivities are "
-                              "out of floating-point range")
-    scale = np.zeros(len(x))
-    region, nfev = None, 1
+        return x, 1, 4
+    scale = np.zeros(x.shape[0])
+    region, nfev = -1.0, 1
     while True:
         a, g = jac.T @ jac, jac.T @ r
-        norms = np.sqrt(a.diagonal())
-        scale = np.maximum(scale, norms)
-        scale[scale == 0] = 1.0
-        if f == 0.0 or np.max(np.abs(g) / np.where(norms > 0, norms, 1.0)) <= tol * np.sqrt(f):
-            return Solution(x, nfev, "`gtol` termination condition is satisfied.")
-        model = _ScaledModel(a, g, scale)
+        norms = np.sqrt(np.diag(a).copy())
+        if f == 0.0 or _gradient_small(g, norms, tol * np.sqrt(f)):
+            return x, nfev, 0
+        scale = _scales(scale, norms)
+        values, vectors, coef, floor = _scaled_model(a, g, scale)
         while True:
             if nfev >= max_evaluations:
-                return Solution(x, nfev, "The maximum number of function evaluations is "
-                                         "exceeded.")
-            if region is None:
-                step, damped, region = model.first_step(_norm(scale * x))
+                return x, nfev, 3
+            if region < 0.0:
+                step, damped, region = _first_step(values, vectors, coef, floor, scale,
+                                                   _norm(scale * x))
             else:
-                step, damped = model.step(region)
+                step, damped = _step(values, vectors, coef, floor, scale, region)
             size = _norm(scale * step)
-            r_new, jac_new = evaluate(x + step)
+            trial = x + step
+            residuals(args, trial, r_new, jac_new)
             nfev += 1
             f_new = _cost(r_new, jac_new)
-            predicted = -float(2.0 * step @ g + step @ (a @ step))
+            predicted = -(2.0 * (step @ g) + step @ (a @ step))
             actual = f - f_new if np.isfinite(f_new) else -np.inf
             rho = actual / predicted if predicted > 0 else -np.inf
-            region = _new_region(region, size, rho, actual, float(step @ g), f, f_new, damped)
+            region = _new_region(region, size, rho, actual, step @ g, f, f_new, damped)
             accepted = rho >= 1e-4
+            f_old = f
             if accepted:
-                x, r, jac, f_old, f = x + step, r_new, jac_new, f, f_new
-            else:
-                f_old = f
+                x, f = trial, f_new
+                r, r_new = r_new, r
+                jac, jac_new = jac_new, jac
             if abs(actual) <= tol * f_old and predicted <= tol * f_old and rho <= 2.0:
-                return Solution(x, nfev, "`ftol` termination condition is satisfied.")
+                return x, nfev, 1
             if region <= tol * _norm(scale * x):
-                return Solution(x, nfev, "`xtol` termination condition is satisfied.")
+                return x, nfev, 2
             if accepted:
                 break
 
 
-def _cost(r: np.ndarray, jac: np.ndarray) -> float:
+@jit
+def _cost(r, jac):  # pragma: no cover - compiled
     """The sum of squares, infinite where ``J'J`` would overflow (see :data:`JACOBIAN_LIMIT`)."""
-    bounded = jac.size == 0 or np.max(np.abs(jac)) < JACOBIAN_LIMIT
-    return float(r @ r) if bounded else np.inf
+    for v in jac.ravel():
+        if not abs(v) < JACOBIAN_LIMIT:
+            return np.inf
+    return r @ r
 
 
-def _new_region(region: float, size: float, rho: float, actual: float, slope: float,
-                f: float, f_new: float, damped: bool) -> float:
+@jit
+def _gradient_small(g, norms, bound):  # pragma: no cover - compiled
+    """MINPACK's ``gtol`` test: every scaled gradient entry at most ``bound``."""
+    for i in range(g.shape[0]):
+        if not abs(g[i]) / (norms[i] if norms[i] > 0 else 1.0) <= bound:
+            return False
+    return True
+
+
+@jit
+def _scales(scale, norms):  # pragma: no cover - compiled
+    """The columns' scales: the largest norm seen, 1 for a column that is zero throughout."""
+    out = np.maximum(scale, norms)
+    for i in range(out.shape[0]):
+        if out[i] == 0.0:
+            out[i] = 1.0
+    return out
+
+
+@jit
+def _new_region(region, size, rho, actual, slope, f, f_new, damped):  # pragma: no cover
     """MINPACK's update of the trust region's radius after a step of scaled ``size``.
 
     ``slope``: the sum of squares' derivative along the step, halved (``p'J'r``).
@@ -125,8 +266,10 @@ def _new_region(region: float, size: float, rho: float, actual: float, slope: fl
     if rho <= 0.25:
         if actual >= 0:
             shrink = 0.5
-        else:  # the sum of squares rose: where a quadratic along the step is least
-            shrink = 0.5 * slope / (slope + 0.5 * actual) if np.isfinite(actual) else 0.0
+        elif np.isfinite(actual):  # the sum of squares rose: where a quadratic is least
+            shrink = 0.5 * slope / (slope + 0.5 * actual)
+        else:
+            shrink = 0.0
         if not f_new <= 100.0 * f or shrink < 0.1:
             shrink = 0.1
         return shrink * min(region, 10.0 * size)
@@ -135,48 +278,58 @@ def _new_region(region: float, size: float, rho: float, actual: float, slope: fl
     return region
 
 
-class _ScaledModel:
-    """The quadratic model ``|r + J p|^2`` in scaled steps, solved on a trust region.
+@jit
+def _scaled_model(a, g, scale):  # pragma: no cover - compiled
+    """The quadratic model ``|r + J p|^2`` in scaled steps, in the eigenbasis of ``J'J``.
 
-    With ``A = J'J`` and the column scales ``D``: ``p(lam) = -(A + lam D^2)^-1 g``,
-    and ``lam`` the one (Newton on the secular equation, as MINPACK's ``lmpar``)
-    that puts ``|D p|`` within 10 % of the region's radius, or 0 when the
-    Gauss-Newton step lies inside it. One eigendecomposition of the scaled
-    ``D^-1 A D^-1`` serves every radius.
+    With ``A = J'J`` and the column scales ``D``: ``p(lam) = -(A + lam D^2)^-1 g``;
+    one eigendecomposition of the scaled ``D^-1 A D^-1`` serves every radius.
+    Returns the eigenvalues, the eigenvectors, the scaled gradient in their
+    basis and the smallest damping.
     """
-
-    def __init__(self, a: np.ndarray, g: np.ndarray, scale: np.ndarray) -> None:
-        values, vectors = np.linalg.eigh(a / np.outer(scale, scale))
-        self.values = np.maximum(values, 0.0)
-        self.vectors, self.scale = vectors, scale
-        self.coef = vectors.T @ (g / scale)  # the scaled gradient in the eigenbasis
-        self.floor = 1e-12 * max(float(self.values[-1]), 1e-300)
-
-    def _size(self, lam: float) -> float:
-        return float(np.sqrt(np.sum((self.coef / (self.values + lam)) ** 2)))
-
-    def first_step(self, size: float) -> tuple[np.ndarray, bool, float]:
-        """MINPACK's first region (100x the scaled start ``size``, or the step), its step."""
-        first = 100.0 * (size or 1.0)
-        step, damped = self.step(first)
-        region = min(first, _norm(self.scale * step))
-        if damped and region < first:  # solved again on the smaller region
-            step, damped = self.step(region)
-        return step, damped, region
-
-    def step(self, region: float) -> tuple[np.ndarray, bool]:
-        """The step in the coefficients' units, and whether it was damped (lam > 0)."""
-        lam = self.floor
-        if self._size(lam) > region:
-            for _ in range(30):
-                size = self._size(lam)
-                if abs(size - region) <= 0.1 * region:
-                    break
-                slope = -float(np.sum(self.coef**2 / (self.values + lam) ** 3)) / size
-                lam = max(lam - (size - region) / region * size / slope, 0.5 * lam)
-        p = -(self.vectors @ (self.coef / (self.values + lam)))
-        return p / self.scale, lam > self.floor
+    values, vectors = np.linalg.eigh(a / np.outer(scale, scale))
+    values = np.maximum(values, 0.0)
+    coef = vectors.T @ (g / scale)
+    floor = 1e-12 * max(values[-1], 1e-300)
+    return values, vectors, coef, floor
 
 
-def _norm(v: np.ndarray) -> float:
-    return float(np.sqrt(v @ v))
+@jit
+def _size(values, coef, lam):  # pragma: no cover - compiled
+    return np.sqrt(np.sum((coef / (values + lam)) ** 2))
+
+
+@jit
+def _first_step(values, vectors, coef, floor, scale, size):  # pragma: no cover - compiled
+    """MINPACK's first region (100x the scaled start ``size``, or the step), its step."""
+    first = 100.0 * (size if size != 0.0 else 1.0)
+    step, damped = _step(values, vectors, coef, floor, scale, first)
+    region = min(first, _norm(scale * step))
+    if damped and region < first:  # solved again on the smaller region
+        step, damped = _step(values, vectors, coef, floor, scale, region)
+    return step, damped, region
+
+
+@jit
+def _step(values, vectors, coef, floor, scale, region):  # pragma: no cover - compiled
+    """The step in the coefficients' units, and whether it was damped (lam > floor).
+
+    ``lam``: 0 (the floor) when the Gauss-Newton step lies inside the region,
+    else Newton on the secular equation (as MINPACK's ``lmpar``) until the
+    scaled step is within 10 % of the radius.
+    """
+    lam = floor
+    if _size(values, coef, lam) > region:
+        for _ in range(30):
+            size = _size(values, coef, lam)
+            if abs(size - region) <= 0.1 * region:
+                break
+            slope = -np.sum(coef**2 / (values + lam) ** 3) / size
+            lam = max(lam - (size - region) / region * size / slope, 0.5 * lam)
+    p = -(vectors @ (coef / (values + lam)))
+    return p / scale, lam > floor
+
+
+@jit
+def _norm(v):  # pragma: no cover - compiled
+    return np.sqrt(v @ v)

@@ -7,7 +7,7 @@ simulator should minimise the error of its own fed-back outputs,
 
 over every estimation segment (each simulated from its own initial
 conditions). This is a nonlinear least-squares problem; it is solved by
-Levenberg-Marquardt (:func:`~spm_sysid.core.fit.levenberg.levenberg_marquardt`)
+Levenberg-Marquardt (:func:`~spm_sysid.core.fit.levenberg.refine_free_run`, compiled)
 started from the least-squares coefficients, with the exact Jacobian from the
 sensitivity equations (:func:`~spm_sysid.core.model.simulation.free_run_sensitivities`).
 
@@ -32,10 +32,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..model.narx import NarxModel
-from ..model.segments import rows_segments
-from ..model.simulation import divergence_bounds, free_run_sensitivities
 from ..model.uncertainty import Uncertainty, from_jacobian
-from .levenberg import levenberg_marquardt
+from .free_run import FreeRun, _output_lags, _stable
+from .levenberg import evaluate_free_run, refine_free_run
 
 __all__ = ["Refinement", "free_run_uncertainty", "linear_radius", "linear_stability_check",
            "refine_simulation"]
@@ -68,33 +67,11 @@ def linear_stability_check(term_space, term_indices):
     Returns ``stable(theta) -> bool``: the characteristic polynomial's roots all
     lie inside the unit circle, decided by the Schur-Cohn step-down recursion
     (reflection coefficients of modulus below 1) instead of computing the roots:
-    a few microseconds, called at every step of a refinement.
+    the compiled test every step of a refinement runs (:mod:`.free_run`).
     """
-    lin = term_space.linear
-    all_terms = term_space.terms
-    part = [(pos, lin[all_terms[i][0]][1]) for pos, i in enumerate(term_indices)
-            if len(all_terms[i]) == 1 and term_space.is_output_lag(all_terms[i][0])]
-    ny = term_space.ny
-
-    def stable(theta) -> bool:
-        if not part:
-            return True
-        a = [0.0] * (ny + 1)
-        a[0] = 1.0
-        for pos, lag in part:
-            a[lag] -= float(theta[pos])
-        while len(a) > 1 and a[-1] == 0.0:
-            a.pop()
-        while len(a) > 1:
-            k = a[-1] / a[0]
-            if not abs(k) < 1.0:
-                return False
-            scale = 1.0 - k * k
-            n = len(a) - 1
-            a = [(a[j] - k * a[n - j]) / scale for j in range(n)]
-        return True
-
-    return stable
+    pos, lags = _output_lags(term_space, term_indices)
+    ny = int(term_space.ny)
+    return lambda theta: bool(_stable(np.ascontiguousarray(theta, dtype=float), pos, lags, ny))
 
 
 @dataclass(frozen=True)
@@ -108,10 +85,6 @@ class Refinement:
     evaluations: int
     success: bool
     message: str
-
-
-def _segments(y: np.ndarray, segments, lag0: int) -> list[tuple[int, int]]:
-    return rows_segments(segments, len(y), lag0)
 
 
 #: Growth of the free run's sensitivities along a segment (largest over the
@@ -132,27 +105,18 @@ def free_run_uncertainty(model: NarxModel, u: np.ndarray, y: np.ndarray,
     errors of about zero), or when the Jacobian is singular. See
     :mod:`spm_sysid.core.model.uncertainty`.
     """
-    ts = model.term_space
-    u = ts.inputs_2d(u)
-    y = np.asarray(y, dtype=float)
-    bounds = divergence_bounds(y)
-    jacs, sse = [], 0.0
-    for a, b in _segments(y, segments, ts.max_lag):
-        yhat, jac, at = free_run_sensitivities(model.compiled, model.coefficients, u[a:b],
-                                               y[a:b], bounds)
-        if at is not None:
-            return None, f"the free run leaves the measured range at sample {a + at}"
-        if _grows(jac):
-            return None, ("the free run's sensitivities to the coefficients grow without "
-                          "bound along the record (its linearisation is unstable), so a "
-                          "local covariance would claim a certainty the model does not have")
-        e = y[a + ts.max_lag:b] - yhat
-        sse += float(e @ e)
-        jacs.append(jac)
-    J = np.vstack(jacs)
+    run = FreeRun(model, u, y, segments, guard=False)
+    r, J, at = evaluate_free_run(run, model.coefficients)
+    if at is not None:
+        return None, f"the free run leaves the measured range at sample {at}"
+    ends = np.cumsum([b - a - model.term_space.max_lag for a, b in run.segs])
+    if any(_grows(part) for part in np.split(J, ends[:-1])):
+        return None, ("the free run's sensitivities to the coefficients grow without "
+                      "bound along the record (its linearisation is unstable), so a "
+                      "local covariance would claim a certainty the model does not have")
     if J.shape[0] <= J.shape[1]:
         return None, "too few rows for the coefficients"
-    found = from_jacobian(J, sse)
+    found = from_jacobian(J, float(r @ r))
     se = found.standard_errors
     if not np.all(np.isfinite(se) & (se > 0)):
         return None, "the free-run Jacobian is singular (terms the free run cannot tell apart)"
@@ -188,22 +152,18 @@ def refine_simulation(model: NarxModel, u: np.ndarray, y: np.ndarray,
     """
     ts = model.term_space
     theta0 = np.asarray(model.coefficients, dtype=float)
-    simulate = _FreeRunResiduals(model, u, y, segments,
-                                 guard=linear_radius(ts, model.term_indices, theta0) < 1.0)
-    r0, _, div0 = simulate(theta0)
-    sse0 = float(r0 @ r0) if div0 is None else float("inf")
-    if len(simulate.measured) <= len(theta0):
-        return Refinement(theta0, sse0, sse0, div0, 1, div0 is None,
-                          "too few rows to refine; least squares kept")
+    stable = linear_stability_check(ts, model.term_indices)
+    run = FreeRun(model, u, y, segments, guard=stable(theta0))
+    if len(run.measured) <= len(theta0):
+        return _kept(run, theta0, "too few rows to refine; least squares kept")
     try:
-        sol = levenberg_marquardt(lambda t: simulate(t)[:2], theta0, max_evaluations)
-        theta, nfev, msg = sol.x, sol.nfev, sol.message
+        sol = refine_free_run(run, theta0, max_evaluations)
     except (ValueError, FloatingPointError) as exc:  # pragma: no cover - numerical failure
-        theta, nfev, msg = theta0, 1, f"refinement failed ({exc}); least squares kept"
-    r, _, div = simulate(theta)
-    sse = float(r @ r) if div is None else float("inf")
-    radius = linear_radius(ts, model.term_indices, theta)
-    if radius >= 1.0 and div is None:
+        return _kept(run, theta0, f"refinement failed ({exc}); least squares kept")
+    theta, nfev, msg = sol.x, sol.nfev, sol.message
+    sse0, div0, sse, div = sol.sse_start, sol.diverged_start, sol.sse, sol.diverged
+    if div is None and not stable(theta):
+        radius = linear_radius(ts, model.term_indices, theta)
         return Refinement(theta, float("inf"), sse0, div0, nfev, False,
                           f"the refined model's linear part is unstable (pole radius "
                           f"{radius:.4f}): it may fit this record and fail on any other")
@@ -217,53 +177,8 @@ def refine_simulation(model: NarxModel, u: np.ndarray, y: np.ndarray,
     return Refinement(theta, sse, sse0, div0, nfev, True, msg)
 
 
-class _FreeRunResiduals:
-    """Free-run residuals and their Jacobian at theta, over every segment (the last cached).
-
-    ``guard``: a stable start stays stable; coefficients whose linear part is
-    unstable cost as much as a divergence at the first sample. Beyond a
-    divergence the simulation holds the range's nearest edge, with no gradient.
-    Returns ``(residuals, jacobian, first sample diverged or None)``.
-    """
-
-    def __init__(self, model: NarxModel, u: np.ndarray, y: np.ndarray,
-                 segments: list[tuple[int, int]] | None, guard: bool) -> None:
-        ts = model.term_space
-        self.compiled = model.compiled
-        self.u = ts.inputs_2d(u)
-        self.y = np.asarray(y, dtype=float)
-        self.lag0 = ts.max_lag
-        self.segs = _segments(self.y, segments, self.lag0)
-        self.bounds = divergence_bounds(self.y)
-        self.measured = np.concatenate([self.y[a + self.lag0:b] for a, b in self.segs])
-        self.guard = guard
-        self.stable = linear_stability_check(ts, model.term_indices)
-        self.cache: dict[bytes, tuple[np.ndarray, np.ndarray, int | None]] = {}
-
-    def __call__(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, int | None]:
-        key = theta.tobytes()
-        if key not in self.cache:
-            self.cache.clear()  # least_squares asks for fun, then jac, of the same theta
-            self.cache[key] = self._evaluate(theta)
-        return self.cache[key]
-
-    def _evaluate(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, int | None]:
-        measured, bounds, lag0 = self.measured, self.bounds, self.lag0
-        if self.guard and not self.stable(theta):
-            r = measured - np.where(measured >= 0.5 * (bounds[0] + bounds[1]),
-                                    bounds[0], bounds[1])
-            return r, np.zeros((len(measured), len(theta))), self.segs[0][0] + lag0
-        outs, jacs, first = [], [], None
-        for a, b in self.segs:
-            yhat, jac, at = free_run_sensitivities(self.compiled, theta, self.u[a:b],
-                                                   self.y[a:b], bounds)
-            if at is not None:
-                if first is None:
-                    first = a + at
-                bad = ~np.isfinite(yhat)
-                last = yhat[~bad][-1] if (~bad).any() else self.y[a + lag0 - 1]
-                yhat[bad] = bounds[1] if last >= 0.5 * (bounds[0] + bounds[1]) else bounds[0]
-                jac[bad] = 0.0
-            outs.append(yhat)
-            jacs.append(jac)
-        return measured - np.concatenate(outs), -np.vstack(jacs), first
+def _kept(run: FreeRun, theta0: np.ndarray, why: str) -> Refinement:
+    """The start kept without a refinement (a success when its free run stays in range)."""
+    r0, _, div0 = evaluate_free_run(run, theta0)
+    sse0 = float(r0 @ r0) if div0 is None else float("inf")
+    return Refinement(theta0, sse0, sse0, div0, 1, div0 is None, why)

@@ -26,18 +26,19 @@ __all__ = ["run_job", "warm_up"]
 
 
 def warm_up() -> None:
-    """Load (or, the first time, compile) the compiled kernels once.
+    """Load (or, the first time, compile) the compiled kernels every job runs, once.
 
     The node's worker process calls it before it reports ready, so the time of a
-    job (and its ``job_timeout``) is the job's own.
+    job (and its ``job_timeout``) is the job's own. The refinement's kernels
+    (simulation focus) are not among them: where ``spm-sysid compile`` has not
+    cached them (a colcon install tree), compiling them takes about 30 s, which
+    the first job that refines pays once, not every start of the node.
     """
     from ..fit.evaluator import StructureEvaluator
-    from ..model.simulation import free_run_sensitivities
 
     StructureEvaluator(np.eye(3), np.ones(3)).evaluate(np.eye(3, dtype=bool))
     model = NarxModel(TermSpace(ny=1, nu=1, degree=1), [0, 1], np.array([0.5, 0.1]))
     model.run(np.zeros(6), np.ones(6), horizon=2)
-    free_run_sensitivities(model.compiled, model.coefficients, np.zeros((6, 1)), np.ones(6))
 
 
 @one_blas_thread()

@@ -107,13 +107,13 @@ def _warm_up(say: Callable[[str], None]) -> None:
 
 
 def _warm_up_regressors(u: np.ndarray, y: np.ndarray) -> None:
-    """Free run, k-step run and sensitivities of a model with a regressor.
+    """Free run, k-step run and refinement of a model with a regressor.
 
     Called directly: a small job need not choose a regressor, and a kernel that
     no warm-up called is left out of the build.
     """
+    from ..fit.refine import refine_simulation
     from ..model.narx import NarxModel
-    from ..model.simulation import divergence_bounds, free_run_sensitivities
     from ..model.terms import TermSpace
 
     space = TermSpace(ny=2, nu=1, degree=2, regressors=("sign(y(t-1)-y(t-2))",))
@@ -123,5 +123,4 @@ def _warm_up_regressors(u: np.ndarray, y: np.ndarray) -> None:
     model = NarxModel(space, terms, np.array([0.5, 0.4, 0.01, 0.01]))
     model.run(u, y)
     model.run(u, y, horizon=3)
-    lo, hi = divergence_bounds(y)
-    free_run_sensitivities(model.compiled, model.coefficients, space.inputs_2d(u), y, (lo, hi))
+    refine_simulation(model, u, y, max_evaluations=3)

@@ -136,8 +136,8 @@ def _run_r(gather, y_lags, u_lags, u_cols, code, consts, start, depth, ly, theta
 
 
 @jit
-def _sens_r(gather, y_lags, u_lags, u_cols, code, consts, start, depth, ly, theta, u, y, lag0,
-            lo, hi, out, jac):  # pragma: no cover - compiled
+def sens_kernel_r(gather, y_lags, u_lags, u_cols, code, consts, start, depth, ly, theta, u, y,
+                  lag0, lo, hi, out, jac):  # pragma: no cover - compiled
     """Free-run output into ``out``, d out / d theta into ``jac``; the first diverged t or -1."""
     n = y.shape[0]
     n_y = y_lags.shape[0]
@@ -208,7 +208,7 @@ def free_run_sensitivities_r(model, theta: np.ndarray, u: np.ndarray, y: np.ndar
                              lag0: int, lo: float, hi: float, out: np.ndarray,
                              jac: np.ndarray) -> int:
     """:func:`~.simulation.free_run_sensitivities`' loop for a model with regressors."""
-    return int(_sens_r(*_args(model), np.ascontiguousarray(theta, dtype=float),
+    return int(sens_kernel_r(*_args(model), np.ascontiguousarray(theta, dtype=float),
                        np.ascontiguousarray(u, dtype=float), np.ascontiguousarray(y, dtype=float),
                        lag0, float(lo), float(hi), out, jac))
 

@@ -182,19 +182,44 @@ def run_model(model: CompiledModel, theta: np.ndarray, u: np.ndarray, y: np.ndar
 
 
 @jit
-def _sens(gather, y_lags, u_lags, u_cols, theta, u, y, lag0, lo, hi, out,
+def _factors(gather, n_y, pad):  # pragma: no cover - compiled
+    """Per term: its factors' count (the padding 1s left out), where its output lags are.
+
+    Multiplying by the padding's 1.0 is exact, so a product over the factors
+    alone is the same number; the sensitivity step then loops over what each
+    term has, not over the widest term's width twice. ``pad``: the padding's
+    index (a term's factors come first).
+    """
+    k, width = gather.shape
+    count = np.zeros(k, dtype=np.int64)
+    lags = np.zeros(k, dtype=np.int64)
+    where = np.zeros((k, max(width, 1)), dtype=np.int64)
+    for i in range(k):
+        for q in range(width):
+            g = gather[i, q]
+            if g != pad:
+                count[i] = q + 1
+            if g < n_y:
+                where[i, lags[i]] = q
+                lags[i] += 1
+    return count, lags, where
+
+
+@jit
+def sens_kernel(gather, y_lags, u_lags, u_cols, theta, u, y, lag0, lo, hi, out,
           jac):  # pragma: no cover - compiled
     """Write the free-run output into ``out`` and d out / d theta into ``jac``.
 
-    Returns the first diverged t, or -1.
+    Returns the first diverged t, or -1. The sensitivities of the outputs
+    before ``lag0`` (measured, not simulated) are zero; later ones are read
+    back from ``jac``.
     """
     n = y.shape[0]
     n_y = y_lags.shape[0]
     k = gather.shape[0]
-    width = gather.shape[1]
     vals, phi = _buffers(gather, y_lags, u_lags)
+    count, lags, where = _factors(gather, n_y, n_y + u_lags.shape[0])
     ys = np.empty(n)
-    S = np.zeros((n, k))  # sensitivities of the simulated output; zero for the initial
     dy = np.zeros(n_y)    # d yhat(t) / d yhat(t - y_lags[j]) at the current t
     for s in range(lag0):
         ys[s] = y[s]
@@ -206,7 +231,7 @@ def _sens(gather, y_lags, u_lags, u_cols, theta, u, y, lag0, lo, hi, out,
         acc = 0.0
         for i in range(k):
             p = 1.0
-            for q in range(width):
+            for q in range(count[i]):
                 p *= vals[gather[i, q]]
             phi[i] = p
         for i in range(k):
@@ -219,20 +244,20 @@ def _sens(gather, y_lags, u_lags, u_cols, theta, u, y, lag0, lo, hi, out,
         for j in range(n_y):
             dy[j] = 0.0
         for i in range(k):
-            for q in range(width):
-                g = gather[i, q]
-                if g < n_y:
-                    p = theta[i]
-                    for r in range(width):
-                        if r != q:
-                            p *= vals[gather[i, r]]
-                    dy[g] += p
+            for f in range(lags[i]):
+                q = where[i, f]
+                p = theta[i]
+                for r in range(count[i]):
+                    if r != q:
+                        p *= vals[gather[i, r]]
+                dy[gather[i, q]] += p
+        row = t - lag0
         for i in range(k):
             acc = phi[i]
             for j in range(n_y):
-                acc += dy[j] * S[t - y_lags[j], i]
-            S[t, i] = acc
-            jac[t - lag0, i] = acc
+                src = row - y_lags[j]
+                acc += dy[j] * (jac[src, i] if src >= 0 else 0.0)
+            jac[row, i] = acc
     return -1
 
 
@@ -261,7 +286,8 @@ def free_run_sensitivities(model: CompiledModel, theta: np.ndarray, u: np.ndarra
 
         at = free_run_sensitivities_r(model, theta, u, y, lag0, lo, hi, out, jac)
         return out, jac, (None if at < 0 else int(at))
-    at = _sens(model.gather, model.y_lags, model.u_lags, model.u_cols,
-               np.ascontiguousarray(theta, dtype=float), np.ascontiguousarray(u, dtype=float),
-               np.ascontiguousarray(y, dtype=float), lag0, float(lo), float(hi), out, jac)
+    at = sens_kernel(model.gather, model.y_lags, model.u_lags, model.u_cols,
+                     np.ascontiguousarray(theta, dtype=float),
+                     np.ascontiguousarray(u, dtype=float), np.ascontiguousarray(y, dtype=float),
+                     lag0, float(lo), float(hi), out, jac)
     return out, jac, (None if at < 0 else int(at))
