@@ -11,7 +11,10 @@
 2. **the GA** at the paper's settings in-process (median of repeats, a fresh
    evaluator each), without and with the polish;
 3. **simulation focus**: the robot-arm data (paper's space, default settings)
-   and the two-tank records (``ny = nu = 3``, degree 3, constant, BIC);
+   and the two-tank records (``ny = nu = 3``, degree 3, constant, BIC); and
+   the refinement alone: the robot arm's free-run refinements (30 evaluations
+   at most, as a fold's) as one compiled call each, against the same solver's
+   code run in Python over the compiled residuals, and their ratio;
 4. with ``--large``: a GA run of 454 candidates (``ny = nu = 6``, degree 3)
    on the robot-arm data with BIC and with AIC (SPM 0.15).
 
@@ -160,6 +163,51 @@ def simulation_times(repeats: int) -> list[tuple[str, float, int]]:
     return out
 
 
+def refinement_times(repeats: int, structures: int = 12) -> tuple[float, float, int]:
+    """Median seconds of refining ``structures`` structures compiled and in Python; evaluations.
+
+    Random structures of the (3, 3, 2) space holding every linear term, on the
+    robot-arm data; both solvers take the same steps (a test checks it).
+    """
+    import numpy as np
+
+    from spm_sysid.core.fit.free_run import FreeRun
+    from spm_sysid.core.fit.levenberg import (
+        evaluate_free_run,
+        levenberg_marquardt,
+        refine_free_run,
+    )
+    from spm_sysid.core.fit.problem import fit_structure
+    from spm_sysid.core.model.terms import TermSpace
+    from spm_sysid.core.record import DataSpec, load_record
+
+    rec = load_record(DataSpec())
+    ts = TermSpace(ny=3, nu=3, degree=2)
+    rng = np.random.default_rng(0)
+    runs = []
+    while len(runs) < structures:
+        mask = np.array([len(t) == 1 for t in ts.terms])
+        mask[rng.choice(ts.n_terms, size=4, replace=False)] = True
+        model = fit_structure(rec.u, rec.y, mask, ts)
+        runs.append((FreeRun(model, rec.u, rec.y, None, guard=True), model.coefficients))
+
+    def compiled() -> int:
+        return sum(refine_free_run(run, theta, 30).nfev for run, theta in runs)
+
+    def python() -> int:
+        return sum(levenberg_marquardt(lambda t, r=run: evaluate_free_run(r, t)[:2], theta,
+                                       30).nfev for run, theta in runs)
+
+    compiled(), python()  # load the kernels
+    times: dict = {compiled: [], python: []}
+    for _ in range(repeats):
+        for solve in (compiled, python):
+            t0 = time.perf_counter()
+            evaluations = solve()
+            times[solve].append(time.perf_counter() - t0)
+    return statistics.median(times[compiled]), statistics.median(times[python]), evaluations
+
+
 def large_space() -> list[tuple[str, float, int, float]]:
     """(criterion, GA seconds, terms, value) for 454 candidates on the robot-arm data."""
     from spm_sysid.core.fit.problem import Problem
@@ -224,6 +272,10 @@ def main(argv: list[str] | None = None) -> int:
     print("\n3. simulation focus, default settings (validated selection), in-process")
     for label, sec, k in simulation_times(max(1, min(a.repeats, 3))):
         print(f"   {label:<42} {sec:6.2f} s  ({k} terms)")
+    one, plain, evaluations = refinement_times(a.repeats)
+    print(f"   12 refinements of robot-arm structures ({evaluations} evaluations): one compiled "
+          f"call each {one:.3f} s, the same solver in Python {plain:.3f} s "
+          f"(ratio {plain / one:.2f}x)")
 
     if a.large:
         print("\n4. 454 candidates (ny=nu=6, degree 3), robot arm, SPM 0.15, seed 1: one GA run")
