@@ -118,9 +118,10 @@ def test_a_worker_killed_mid_study_loses_no_run(cluster, tmp_path):
 
 def test_an_interrupted_study_resumes_without_redoing_runs(cluster, tmp_path):
     out = tmp_path / "resume"
-    # runs of about 0.2 s each (the study's 12 runs of 40 generations took 0.2 s in all:
-    # on a busy machine they all finished before the interrupt arrived)
-    study_args = (*STUDY[:-1], "--generations", "1000", "--quiet")
+    # runs of about 0.5 s each (the study's 12 runs of 40 generations took 0.2 s in all, and
+    # with runs of 0.2 s a busy machine let the worker finish all twelve while the parent,
+    # short of CPU, had written two lines: they all finished before the interrupt arrived)
+    study_args = (*STUDY[:-1], "--generations", "2500", "--quiet")
     args = [sys.executable, "-m", "spm_sysid.apps.main", *study_args, "--out", str(out),
             "--workers", "1"]
     study = subprocess.Popen(args, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
