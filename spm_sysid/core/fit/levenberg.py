@@ -146,8 +146,8 @@ def levenberg_marquardt(evaluate: Callable[[np.ndarray], tuple[np.ndarray, np.nd
     code = lm_solve.py_func
     solve = FunctionType(code.__code__, {**code.__globals__, "residuals": fill})
     m, k = len(first[0][0]), len(x0)
-    x, nfev, stop = solve((), x0, np.empty(m), np.empty((m, k)), np.empty(m),
-                          np.empty((m, k)), max_evaluations, tol)
+    x, nfev, stop, _, _ = solve((), x0, np.empty(m), np.empty((m, k)), np.empty(m),
+                                np.empty((m, k)), max_evaluations, tol, -2)
     return Solution(x, int(nfev), MESSAGES[stop])
 
 
@@ -158,9 +158,9 @@ def _refine_entry(gather, y_lags, u_lags, u_cols, code, consts, start, depth, ly
     """:func:`lm_solve` on the free-run residuals of these arrays (:class:`FreeRun`'s).
 
     Returns the solution, evaluations and stop, and the sum of squares and first
-    diverged sample (-1: none) at the start and at the solution, whose residuals
-    and Jacobian are left in ``r`` and ``jac``. ``max_evaluations`` 0: no
-    refinement, the residuals at ``theta0`` (one export serves both).
+    diverged sample (-1: none) at the start and at the solution. ``max_evaluations``
+    0: no refinement, the residuals and Jacobian at ``theta0`` left in ``r`` and
+    ``jac`` (one export serves both).
     """
     args = (gather, y_lags, u_lags, u_cols, code, consts, start, depth, ly, u, y, seg_a,
             seg_b, lag0, lo, hi, guard, part_pos, part_lag, ny, measured)
@@ -169,38 +169,41 @@ def _refine_entry(gather, y_lags, u_lags, u_cols, code, consts, start, depth, ly
     sse0 = r @ r
     if max_evaluations < 1:
         return theta0.copy(), 1, 3, sse0, at0, sse0, at0
-    x, nfev, stop = lm_solve(args, theta0, r, jac, np.empty(m), np.empty((m, k)),
-                             max_evaluations, tol)
-    at = residuals(args, x, r, jac)
-    return x, nfev, stop, sse0, at0, r @ r, at
+    x, nfev, stop, sse, at = lm_solve(args, theta0, r, jac, np.empty(m), np.empty((m, k)),
+                                      max_evaluations, tol, at0)
+    return x, nfev, stop, sse0, at0, sse, at
 
 
 @jit
-def lm_solve(args, x0, r, jac, r_new, jac_new, max_evaluations,
-             tol):  # pragma: no cover - compiled
-    """Minimise ``|r(x)|^2`` from ``x0``; returns ``(x, evaluations, stop)``.
+def lm_solve(args, x0, r, jac, r_new, jac_new, max_evaluations, tol,
+             at):  # pragma: no cover - compiled
+    """Minimise ``|r(x)|^2`` from ``x0``; returns ``(x, evaluations, stop, |r(x)|^2, at)``.
 
     ``residuals(args, x, r, jac)`` writes the residuals and their Jacobian at x
-    into ``r`` (m,) and ``jac`` (m, k); ``r_new``, ``jac_new`` are a second set
-    of buffers (the trial step's). ``stop`` indexes :data:`MESSAGES`.
+    into ``r`` (m,) and ``jac`` (m, k) and returns the first diverged sample
+    (``at`` of the result: x's); ``r_new``, ``jac_new`` are a second set of
+    buffers (the trial step's). ``at`` given as -2: ``x0`` is evaluated here;
+    else ``r`` and ``jac`` hold its evaluation already, and ``at`` is its. ``stop``
+    indexes :data:`MESSAGES`.
     """
     x = x0.copy()
-    residuals(args, x, r, jac)
+    if at == -2:
+        at = residuals(args, x, r, jac)
     f = _cost(r, jac)
     if not np.isfinite(f):
-        return x, 1, 4
+        return x, 1, 4, r @ r, at
     scale = np.zeros(x.shape[0])
     region, nfev = -1.0, 1
     while True:
         a, g = jac.T @ jac, jac.T @ r
         norms = np.sqrt(np.diag(a).copy())
         if f == 0.0 or _gradient_small(g, norms, tol * np.sqrt(f)):
-            return x, nfev, 0
+            return x, nfev, 0, r @ r, at
         scale = _scales(scale, norms)
         values, vectors, coef, floor = _scaled_model(a, g, scale)
         while True:
             if nfev >= max_evaluations:
-                return x, nfev, 3
+                return x, nfev, 3, r @ r, at
             if region < 0.0:
                 step, damped, region = _first_step(values, vectors, coef, floor, scale,
                                                    _norm(scale * x))
@@ -208,7 +211,7 @@ def lm_solve(args, x0, r, jac, r_new, jac_new, max_evaluations,
                 step, damped = _step(values, vectors, coef, floor, scale, region)
             size = _norm(scale * step)
             trial = x + step
-            residuals(args, trial, r_new, jac_new)
+            at_new = residuals(args, trial, r_new, jac_new)
             nfev += 1
             f_new = _cost(r_new, jac_new)
             predicted = -(2.0 * (step @ g) + step @ (a @ step))
@@ -218,13 +221,13 @@ def lm_solve(args, x0, r, jac, r_new, jac_new, max_evaluations,
             accepted = rho >= 1e-4
             f_old = f
             if accepted:
-                x, f = trial, f_new
+                x, f, at = trial, f_new, at_new
                 r, r_new = r_new, r
                 jac, jac_new = jac_new, jac
             if abs(actual) <= tol * f_old and predicted <= tol * f_old and rho <= 2.0:
-                return x, nfev, 1
+                return x, nfev, 1, r @ r, at
             if region <= tol * _norm(scale * x):
-                return x, nfev, 2
+                return x, nfev, 2, r @ r, at
             if accepted:
                 break
 
