@@ -47,7 +47,7 @@ def test_the_build_exports_the_kernels_commands_call(built):
     # the entry points the commands call are in it
     assert {"kernels.fit_structures", "branch_bound.expand", "simulation._run",
             "levenberg._refine_entry", "free_run._stable", "coupled._coupled",
-            "kernels.qr_structures"} <= set(
+            "coupled._coupled_sens", "kernels.qr_structures"} <= set(
         table["exports"])
 
 

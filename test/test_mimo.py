@@ -152,7 +152,7 @@ def test_identify_with_two_output_columns_on_the_command_line(tmp_path):
 
 
 def test_joint_refinement_lowers_the_coupled_free_run_error_and_reports_it_truly():
-    from spm_sysid.core.model.coupled import refine_coupled
+    from spm_sysid.core.fit.refine_coupled import refine_coupled
     from spm_sysid.core.select.coupled import fit_least_squares
 
     u, Y = two_output_system(800, seed=7)
@@ -179,6 +179,33 @@ def test_joint_refinement_lowers_the_coupled_free_run_error_and_reports_it_truly
     # refined again from its own optimum: kept, nothing worse
     again, info2 = refine_coupled(refined, u, Y)
     assert info2["after"] <= info2["before"] * (1 + 1e-9)
+
+
+def test_the_coupled_sensitivities_equal_finite_differences_of_the_coupled_run():
+    """The refinement's Jacobian: every output against every output's coefficients."""
+    from spm_sysid.core.model.coupled import CoupledCompiled, coupled_run, coupled_sensitivities
+    from spm_sysid.core.model.simulation import divergence_bounds
+
+    u, Y = two_output_system(400, seed=3, noise=0.02)
+    model = known_model()
+    cc = CoupledCompiled.from_models(model.models, 2)
+    bounds = [divergence_bounds(Y[:, i]) for i in range(2)]
+    theta = np.concatenate([m.coefficients for m in model.models])
+    sizes = np.cumsum([0] + [len(m.coefficients) for m in model.models])
+
+    def run(th):
+        return coupled_run(cc, [th[sizes[i]:sizes[i + 1]] for i in range(2)], u, Y, bounds)[0]
+
+    sim, sens, diverged = coupled_sensitivities(
+        cc, [m.coefficients for m in model.models], u, Y, bounds)
+    assert not diverged and sens.shape == (len(Y) - 1, 2, len(theta))
+    np.testing.assert_array_equal(sim, run(theta))  # the same run
+    h = 1e-6
+    fd = np.stack([(run(theta + h * e) - run(theta - h * e)) / (2 * h)
+                   for e in np.eye(len(theta))], axis=-1)
+    np.testing.assert_allclose(sens, fd, rtol=0, atol=1e-6 * np.abs(fd).max())
+    # the cross terms carry the coupling: y1 moves with y2's coefficients
+    assert np.abs(sens[:, 0, sizes[1]:]).max() > 0.01
 
 
 def test_a_diverging_output_is_nan_from_there_on_in_every_output_that_uses_it():

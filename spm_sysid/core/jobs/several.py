@@ -16,7 +16,7 @@ and validated jointly:
   single-output free-run band (other outputs measured) is left out, since it
   would not describe the coupled run;
 * with simulation focus, the coefficients of all outputs are refined jointly on
-  the coupled free-run error (:func:`spm_sysid.core.model.coupled.refine_coupled`)
+  the coupled free-run error (:func:`spm_sysid.core.fit.refine_coupled.refine_coupled`)
   and each output validated again with them;
 * the one-step residuals of every pair of outputs are cross-correlated
   (``cross_<a>_<b>``, lags -L..L without lag 0: correlated noise at the same

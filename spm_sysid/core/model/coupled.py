@@ -16,17 +16,16 @@ Divergence, as for one output: an output that is not finite or leaves its
 measured range widened by ``DIVERGENCE_FACTOR`` spans is NaN from that sample
 on (and so is every output that uses it).
 
-:func:`refine_coupled` -- simulation focus for several outputs: the structures
-stay those selected per output; their coefficients are refined **jointly**
-(Levenberg-Marquardt over all outputs' coefficients at once) on the coupled
-free-run error, each output's error over its standard deviation so that
-outputs of different units weigh alike. A refinement that does not lower that
-error, or diverges, is not taken.
+:func:`coupled_sensitivities` -- the same run of structures without
+regressors, with the derivatives of every simulated output with respect to
+every output's coefficients (the sensitivity equations, stepped with the
+run): the Jacobian of the joint refinement
+(:mod:`spm_sysid.core.fit.refine_coupled`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -34,9 +33,8 @@ from ..compiled.registry import jit_exact as jit
 from .regressor_sim import coupled_program, regressors_at
 from .regressors import Program
 from .simulation import divergence_bounds
-from .uncertainty import from_jacobian
 
-__all__ = ["CoupledCompiled", "coupled_run", "refine_coupled"]
+__all__ = ["CoupledCompiled", "coupled_run", "coupled_sensitivities"]
 
 
 @dataclass(frozen=True)
@@ -138,6 +136,65 @@ def _coupled(lin_cols, lin_lags, gather, theta, S, lag0, n_inputs, lo, hi, diver
             S[t, n_inputs + i] = v if diverged[i] < 0 else np.nan
 
 
+@jit
+def _coupled_sens(lin_cols, lin_lags, gather, n_terms, offsets, theta, S, lag0, n_inputs, lo,
+                  hi, diverged, D):  # pragma: no cover - compiled
+    """:func:`_coupled` without regressors, with the sensitivities of every output.
+
+    ``D[t, i, :]``: d S[t, n_inputs + i] / d theta, theta all outputs' coefficients
+    in one vector (output i's from ``offsets[i]``); zero on the measured start
+    and from an output's divergence on (whose samples are NaN). Each term's
+    derivative: its value (its own coefficient) plus its coefficient times the
+    product of its other factors times each lagged output factor's sensitivity.
+    """
+    q = gather.shape[0]
+    n_lin = lin_cols.shape[1]
+    width = gather.shape[2]
+    n_par = D.shape[2]
+    vals = np.ones(n_lin + 1)
+    out = np.full(n_lin + 1, -1)  # the output a value is a lag of (-1: an input, the 1)
+    row = np.zeros(n_lin + 1, dtype=np.int64)  # its sample
+    new = np.empty(q)
+    dnew = np.zeros((q, n_par))
+    for t in range(lag0, S.shape[0]):
+        for i in range(q):
+            for j in range(n_lin):
+                c, lag = lin_cols[i, j], lin_lags[i, j]
+                vals[j] = S[t - lag, c]
+                out[j] = c - n_inputs if c >= n_inputs else -1
+                row[j] = t - lag
+            for p in range(n_par):
+                dnew[i, p] = 0.0
+            acc = 0.0
+            for k in range(n_terms[i]):
+                value = 1.0
+                for w in range(width):
+                    value *= vals[gather[i, k, w]]
+                acc += theta[i, k] * value
+                dnew[i, offsets[i] + k] += value
+                for w in range(width):
+                    g = gather[i, k, w]
+                    if out[g] < 0:
+                        continue
+                    c = theta[i, k]
+                    for w2 in range(width):
+                        if w2 != w:
+                            c *= vals[gather[i, k, w2]]
+                    if c != 0.0:
+                        src, o = row[g], out[g]
+                        for p in range(n_par):
+                            dnew[i, p] += c * D[src, o, p]
+            new[i] = acc
+        for i in range(q):
+            v = new[i]
+            if diverged[i] < 0 and not (lo[i] <= v <= hi[i]):
+                diverged[i] = t
+            ok = diverged[i] < 0
+            S[t, n_inputs + i] = v if ok else np.nan
+            for p in range(n_par):
+                D[t, i, p] = dnew[i, p] if ok else 0.0
+
+
 def coupled_run(cc: CoupledCompiled, thetas, u: np.ndarray, Y: np.ndarray,
                 bounds: list[tuple[float, float]] | None = None
                 ) -> tuple[np.ndarray, list[int | None]]:
@@ -162,112 +219,29 @@ def coupled_run(cc: CoupledCompiled, thetas, u: np.ndarray, Y: np.ndarray,
             [None if d < 0 else int(d) for d in diverged])
 
 
-def refine_coupled(model, u: np.ndarray, Y: np.ndarray,
-                   segments: list[tuple[int, int]] | None = None,
-                   max_evaluations: int = 100):
-    """All outputs' coefficients refined together on the coupled free-run error.
+def coupled_sensitivities(cc: CoupledCompiled, thetas, u: np.ndarray, Y: np.ndarray,
+                          bounds: list[tuple[float, float]]
+                          ) -> tuple[np.ndarray, np.ndarray, bool]:
+    """:func:`coupled_run` with its sensitivities, for structures without regressors.
 
-    Parameters
-    ----------
-    model : MimoModel
-        The structures and the starting coefficients.
-    u, Y : ndarray
-        The estimation record(s).
-    segments : list of (start, stop), optional
-        Contiguous parts, each simulated from its own start (None: the whole record).
-    max_evaluations : int
-        Most cost evaluations of Levenberg-Marquardt (finite-difference
-        Jacobian: each costs one coupled run per coefficient).
-
-    Returns
-    -------
-    model : MimoModel
-        With the refined coefficients (and their free-run Jacobian uncertainty),
-        or the model given when refinement did not help.
-    info : dict
-        ``before``/``after`` (normalised coupled free-run SSE), ``evaluations``,
-        ``taken`` and a ``message``.
+    Returns the simulated outputs for t = max_lag..n-1, shape (n - max_lag, q);
+    their derivatives with respect to all outputs' coefficients (output 0's
+    first), shape (n - max_lag, q, coefficients), zero where an output has
+    diverged (NaN); and whether any output diverged.
     """
-    from scipy.optimize import least_squares  # imported when a refinement runs
-
-    run = _CoupledResiduals(model, u, Y, segments)
-    theta0 = np.concatenate([np.asarray(m.coefficients, dtype=float) for m in model.models])
-    r0 = run.residuals(theta0)
-    before = float(r0 @ r0)
-    info = {"before": before, "after": before, "evaluations": 1, "taken": False}
-    if run.measured.size <= theta0.size:
-        info["message"] = "too few rows to refine"
-        return model, info
-    try:
-        sol = least_squares(run.residuals, theta0, method="lm", x_scale="jac",
-                            max_nfev=max_evaluations)
-    except (ValueError, FloatingPointError) as exc:  # pragma: no cover - numerical failure
-        info["message"] = f"refinement failed ({exc})"
-        return model, info
-    sim, div = run.simulate(sol.x)
-    after = float(sol.fun @ sol.fun)
-    info.update(after=after, evaluations=int(sol.nfev))
-    if div or not after < before:
-        info["message"] = ("the refined coefficients diverge" if div else
-                           "the coefficients given simulate best together; kept")
-        return model, info
-    info.update(taken=True, message=str(sol.message))
-    return replace(model, models=run.refined_models(model, sol, sim)), info
-
-
-class _CoupledResiduals:
-    """The coupled free run of all outputs over the segments, and its scaled residuals.
-
-    Residuals are divided by each output's spread; a sample past a divergence
-    costs ten times its output's range.
-    """
-
-    def __init__(self, model, u: np.ndarray, Y: np.ndarray,
-                 segments: list[tuple[int, int]] | None) -> None:
-        u = np.asarray(u, dtype=float)
-        self.u = u[:, None] if u.ndim == 1 else u
-        self.Y = np.asarray(Y, dtype=float)
-        self.q = q = self.Y.shape[1]
-        self.cc = CoupledCompiled.from_models(model.models, self.u.shape[1])
-        lag = self.cc.max_lag
-        self.segs = [(a, b) for a, b in (segments or [(0, len(self.Y))]) if b - a > lag]
-        self.bounds = [divergence_bounds(self.Y[:, i]) for i in range(q)]
-        self.scale = np.array([float(np.std(self.Y[:, i])) or 1.0 for i in range(q)])
-        self.measured = np.concatenate([self.Y[a + lag:b] for a, b in self.segs])  # (rows, q)
-        self.sizes = np.cumsum((0,) + self.cc.n_terms)
-        self.penalty = 10.0 * np.array([(hi - lo) for lo, hi in self.bounds]) / self.scale
-
-    def split(self, theta: np.ndarray) -> list[np.ndarray]:
-        """Each output's coefficients."""
-        return [theta[self.sizes[i]:self.sizes[i + 1]] for i in range(self.q)]
-
-    def simulate(self, theta: np.ndarray) -> tuple[np.ndarray, bool]:
-        """The coupled free run over every segment, and whether any output diverged."""
-        runs, diverged = [], False
-        for a, b in self.segs:
-            sim, div = coupled_run(self.cc, self.split(theta), self.u[a:b], self.Y[a:b],
-                                   self.bounds)
-            runs.append(sim)
-            diverged |= any(d is not None for d in div)
-        return np.concatenate(runs), diverged
-
-    def residuals(self, theta: np.ndarray) -> np.ndarray:
-        """Scaled free-run residuals of all outputs, one vector."""
-        sim, _ = self.simulate(theta)
-        r = (self.measured - sim) / self.scale
-        return np.where(np.isfinite(r), r, self.penalty).ravel()
-
-    def refined_models(self, model, sol, sim: np.ndarray) -> list:
-        """Each output's model with its refined coefficients and their uncertainty.
-
-        Each output's uncertainty comes from its rows and columns of the joint Jacobian.
-        """
-        jac = sol.jac.reshape(len(self.measured), self.q, -1)  # d(r)/d(theta)
-        models = []
-        for i, (m, th) in enumerate(zip(model.models, self.split(sol.x))):
-            J = -jac[:, i, self.sizes[i]:self.sizes[i + 1]] * self.scale[i]  # d(sim_i)/d(th)
-            e = self.measured[:, i] - sim[:, i]
-            unc = from_jacobian(J, float(e @ e)) if np.all(np.isfinite(J)) else m.uncertainty
-            meta = {**m.metadata, "coupled_refinement": True}
-            models.append(replace(m, coefficients=np.array(th), uncertainty=unc, metadata=meta))
-        return models
+    if cc.program.start.shape[1] > 1:
+        raise ValueError("coupled sensitivities need structures without regressors")
+    u = np.asarray(u, dtype=float)
+    u = u[:, None] if u.ndim == 1 else u
+    Y = np.asarray(Y, dtype=float)
+    q = Y.shape[1]
+    S = np.ascontiguousarray(np.column_stack([u, Y]))
+    n_terms = np.array(cc.n_terms, dtype=np.int64)
+    offsets = np.concatenate([[0], np.cumsum(n_terms)[:-1]]).astype(np.int64)
+    D = np.zeros((len(Y), q, int(n_terms.sum())))
+    diverged = np.full(q, -1, dtype=np.int64)
+    _coupled_sens(cc.lin_cols, cc.lin_lags, cc.gather, n_terms, offsets,
+                  cc.theta_matrix(thetas), S, cc.max_lag, cc.n_inputs,
+                  np.array([b[0] for b in bounds]), np.array([b[1] for b in bounds]),
+                  diverged, D)
+    return (S[cc.max_lag:, cc.n_inputs:].copy(), D[cc.max_lag:], bool(np.any(diverged >= 0)))

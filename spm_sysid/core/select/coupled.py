@@ -8,7 +8,7 @@ free run:
 
 * **finalists** -- the outputs' own choices put together, as they are and
   jointly refined on the coupled free-run error
-  (:func:`~spm_sysid.core.model.coupled.refine_coupled`); and the linear MIMO
+  (:func:`~spm_sysid.core.fit.refine_coupled.refine_coupled`); and the linear MIMO
   ARX structure of every order in the space (each output's constant, own lags,
   the inputs' and the other outputs' lags up to that order), by least squares
   and jointly refined;
@@ -39,7 +39,8 @@ import numpy as np
 from ..defaults import COUPLED_FOLDS, JOINT_FOLD_STEPS, SIGNIFICANCE, STRESS_FACTOR
 from ..files import json_float
 from ..fit.criteria import get_criterion, standardised_value
-from ..model.coupled import CoupledCompiled, coupled_run, refine_coupled
+from ..fit.refine_coupled import refine_coupled
+from ..model.coupled import CoupledCompiled, coupled_run
 from ..model.mimo import MimoModel, augmented_inputs
 from ..model.narx import NarxModel
 from ..model.segments import rows_segments
