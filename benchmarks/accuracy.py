@@ -18,13 +18,15 @@ identified on the estimation part by the command as typed, their test part
 simulated in free run (the first 50 test samples initialise it, the benchmarks'
 convention), beside the linear ARX and the published figures.
 
-Each record also gets the friction preset (``--regressors friction``) beside
-the default polynomial space, the line under it.
+Each record also gets the friction and the saturation presets
+(``--regressors friction``, ``--regressors saturation``) beside the default
+polynomial space, the lines under it.
 
 Records: the robot arm, the dryer and the heat exchanger (``../shared/data``;
 skipped with a line when missing), the two-tank simulator, the simulated joint
 with Coulomb friction (``test/helpers/joint.py``: 20 s to identify, another
-20 s to simulate; position out, so a free run drifts), and the two-link
+20 s to simulate; position out, so a free run drifts), the velocity loop whose
+amplifier clips (``benchmarks/actuator.py``: 4 s at 1 kHz each), and the two-link
 arm with two outputs (coupled free run, against a linear MIMO ARX fitted the
 same way; both focuses, the given space and ``--orders auto``; the simulation
 focus with the friction preset, every joint's bases in every output's space). Under each
@@ -85,6 +87,10 @@ def _records():
     from .scale import _joint
 
     yield "joint with Coulomb friction (simulator)", _joint(20.0, 1), _joint(20.0, 2)
+    from . import actuator
+
+    yield "velocity loop, saturating amplifier (simulator)", actuator.record(4000, 0), \
+        actuator.record(4000, 1)
 
 
 def _narx(u1, y1, settings: dict):
@@ -218,6 +224,10 @@ def run(args) -> None:
         print(_line("default + --regressors friction", y2, _narx_run(model, u2, y2),
                     f"{len(model.terms)} terms", seconds))
         print(_call(model) + _regressor_terms(model))
+        model, seconds = _narx(u1, y1, {**base, "regressors": "saturation"})
+        print(_line("default + --regressors saturation", y2, _narx_run(model, u2, y2),
+                    f"{len(model.terms)} terms", seconds))
+        print(_call(model) + _regressor_terms(model))
         model, seconds = _narx(u1, y1, {**base, "orders": "auto"})
         o = model.metadata["orders"]
         print(_line(f"--orders auto (chose {o['ny']}, {o['nu']}, {o['degree']})", y2,
@@ -311,9 +321,9 @@ def benchmarks() -> None:
 
 
 def _regressor_terms(model) -> str:
-    """The selected terms that hold a regressor (friction's), in a few words."""
+    """The selected terms that hold a regressor (a preset's), in a few words."""
     names = [t for t in model.terms if any(r in t for r in model.term_space.regressors)]
-    return f"; friction terms selected: {', '.join(names) if names else 'none'}"
+    return f"; regressor terms selected: {', '.join(names) if names else 'none'}"
 
 
 def main(argv: list[str] | None = None) -> int:

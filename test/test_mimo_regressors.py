@@ -133,6 +133,24 @@ def test_friction_on_two_outputs_finds_each_joints_sign_and_simulates_a_new_reco
     np.testing.assert_array_equal(again.simulate(u2, Y2)[0], with_friction.simulate(u2, Y2)[0])
 
 
+def test_the_saturation_preset_clips_the_shared_inputs_at_each_outputs_level():
+    """Two outputs driven through one amplifier that clips at 1.0 (benchmarks/actuator.py)."""
+    from benchmarks.actuator import LIMIT, record
+    from spm_sysid.core.jobs.several import _with_regressors
+
+    u, v = record(2000, seed=0)
+    Y = np.column_stack([v, 0.5 * v + 0.01 * np.random.default_rng(0).standard_normal(2000)])
+    U = np.column_stack([u, np.random.default_rng(1).uniform(-1, 1, 2000)])
+    rec = Record.from_samples(U, Y, output_names=NAMES, input_names=INPUTS, source="loop")
+    base = JobSettings.from_values({"ny": 2, "nu": 2, "degree": 1, "regressors": "saturation",
+                                    "validation_fraction": 0.0})
+    texts = _with_regressors(rec, base.for_signals(INPUTS, NAMES[0])).regressors.split("; ")
+    clipped = {t.split(",")[0] for t in texts}
+    assert clipped == {"sat(t1(t-1)", "sat(t1(t-2)", "sat(t2(t-1)", "sat(t2(t-2)"}
+    levels = {float(t.split(",")[1].rstrip(")")) for t in texts if t.startswith("sat(t1")}
+    assert all(abs(level - LIMIT) < 0.02 for level in levels)  # both outputs see the limit
+
+
 def test_a_regressor_reading_another_output_at_t_is_refused_with_one_line():
     u, Y = _system(400, seed=0)
     record = Record.from_samples(u, Y, output_names=NAMES, input_names=INPUTS, source="joints")

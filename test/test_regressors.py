@@ -227,6 +227,42 @@ def test_presets_take_their_scale_from_the_output():
     assert scale == pytest.approx(median_step, rel=1e-2) and texts[3] == "abs(u(t-1))"
 
 
+def test_the_saturation_preset_finds_the_actuators_limit_and_its_model():
+    """A velocity loop whose amplifier clips at 1.0 (benchmarks/actuator.py).
+
+    The plant, written out: v(t) = 1.78 v(t-1) - 0.784 v(t-2) + 0.01 sat(u(t-2), 1).
+    """
+    from benchmarks.actuator import LIMIT, record
+    from spm_sysid.core.model.regressors import saturation_level
+
+    u, y = record(2000, seed=0)
+    u2, y2 = record(2000, seed=1)
+    texts = expand_presets(["saturation"], "y", y, [("u", (1, 2), u)], ny=2)
+    level = float(texts[0].split(",")[1].rstrip(")"))
+    assert texts == [f"sat(u(t-1),{level!r})", f"sat(u(t-2),{level!r})"]
+    assert level == pytest.approx(LIMIT, rel=0.02)  # not one of the command's own levels
+    settings = dict(u=u, y=y, ny=2, nu=2, degree=1, criterion="bic", seed=1,
+                    focus="simulation")
+    model = identify(**settings, regressors="saturation").model
+    assert sorted(model.terms) == sorted(["y(t-1)", "y(t-2)", f"sat(u(t-2),{level!r})"])
+    th = dict(zip(model.terms, model.coefficients))
+    assert th["y(t-1)"] == pytest.approx(1.78, abs=0.01)
+    assert th["y(t-2)"] == pytest.approx(-0.784, abs=0.01)
+    assert th[f"sat(u(t-2),{level!r})"] == pytest.approx(0.01, rel=0.1)
+    without = identify(**settings).model
+
+    def free_run_rmse(m):
+        sim, at = m.run(u2, y2)
+        assert at is None
+        return float(np.sqrt(np.mean((y2[m.term_space.max_lag:] - sim) ** 2)))
+
+    assert 5 * free_run_rmse(model) < free_run_rmse(without)
+    # an input that never moves clips to nothing; an input at lag 0 is read at t
+    assert expand_presets(["saturation"], "y", y, [("u", (1,), np.zeros(2000))]) == []
+    assert saturation_level(y, [("u", (0,), u)], 0, ny=2) is not None
+    assert expand_presets(["saturation"], "y", y, [("u", (0,), u)])[0].startswith("sat(u(t),")
+
+
 @pytest.mark.slow
 def test_identify_with_the_preset_then_validate_reads_the_document_back(tmp_path):
     """The commands a user types: ``identify --regressors friction --json``, then ``validate``."""

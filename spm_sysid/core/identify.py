@@ -115,7 +115,7 @@ def identify(
     if orders == "auto":
         term_space, why = _orders_from_data(u, y, segments, term_space, options)
     if regressors:
-        term_space = _with_regressors(term_space, regressors, y)
+        term_space = _with_regressors(term_space, regressors, y, u)
     problem = Problem.from_signals(u, y, term_space, segments)
     result = identify_problem(problem, options, ga=ga, callback=callback, progress=progress)
     if why is not None:
@@ -123,13 +123,14 @@ def identify(
     return result
 
 
-def _with_regressors(term_space: TermSpace, regressors: list[str], y) -> TermSpace:
-    """The term space with ``regressors`` added (presets take their scales from ``y``)."""
-    from .model.regressors import expand_presets
+def _with_regressors(term_space: TermSpace, regressors: list[str], y, u) -> TermSpace:
+    """The term space with ``regressors`` added (presets take their scales from y, u)."""
+    from .model.regressors import expand_presets, preset_inputs
 
     try:
         return replace(term_space, regressors=term_space.regressors + tuple(
-            expand_presets(regressors, term_space.output, y)))
+            expand_presets(regressors, term_space.output, y, preset_inputs(term_space, u),
+                           term_space.ny)))
     except ValueError as exc:
         raise SettingsError(f"regressors: {exc}") from None
 

@@ -117,8 +117,9 @@ _LIST = [
        "term_space", low=0, high=100),
     _s("constant", bool, False, "include a constant candidate term", "term_space"),
     _s("regressors", str, "", "regressors beside the polynomial terms: 'friction' (the "
-       "sign, the absolute value and a smooth sign of the output's last step) or expressions "
-       "such as 'sign(y(t-1)-y(t-2))', separated by ';' (docs/model_format.md)",
+       "sign, the absolute value and a smooth sign of the output's last step), 'saturation' "
+       "(each input's lags clipped at the level the data prefer) or expressions such as "
+       "'sign(y(t-1)-y(t-2))', separated by ';' (docs/model_format.md)",
        "term_space", many=True),
     # -- the genetic algorithm -------------------------------------------------------------
     _s("population_size", int, 200, "GA population (paper: 200 and 100)", "ga", low=2,

@@ -110,8 +110,8 @@ class JobSettings:
                                  output=output),
             ga=GAConfig(**{k: raw(k) for k in _GA_FIELDS}), search=search, **own)
 
-    def with_regressors(self, y) -> JobSettings:
-        """These settings with the term space holding the regressors (presets expanded on y).
+    def with_regressors(self, y, u=None) -> JobSettings:
+        """These settings with the term space holding the regressors (presets expanded on y, u).
 
         Raises
         ------
@@ -121,10 +121,11 @@ class JobSettings:
         items = [t.strip() for t in self.regressors.split(";") if t.strip()]
         if not items:
             return self
-        from ..model.regressors import expand_presets
+        from ..model.regressors import expand_presets, preset_inputs
 
         try:
-            texts = expand_presets(items, self.term_space.output, y)
+            texts = expand_presets(items, self.term_space.output, y,
+                                   preset_inputs(self.term_space, u), self.term_space.ny)
             space = replace(self.term_space, regressors=tuple(texts))
         except ValueError as exc:
             raise SettingsError(f"regressors: {exc}") from None

@@ -294,8 +294,10 @@ def _with_regressors(record: Record, base):
 
     ``friction`` gives every output's model the friction bases of every output
     (through the coupling a joint feels the other joints' friction), each scaled
-    from that output's estimation samples. An expression may read another output
-    at t-1 or earlier only: the coupled simulation steps all outputs together.
+    from that output's estimation samples; ``saturation`` clips the record's
+    inputs at the level each output's linear ARX prefers (one set per output).
+    An expression may read another output at t-1 or earlier only: the coupled
+    simulation steps all outputs together.
 
     Raises
     ------
@@ -304,7 +306,7 @@ def _with_regressors(record: Record, base):
         another output at t.
     """
     from ..errors import SettingsError
-    from ..model.regressors import RegressorError, expand_presets, parse
+    from ..model.regressors import RegressorError, expand_presets, parse, preset_inputs
 
     items = [t.strip() for t in base.regressors.split(";") if t.strip()]
     if not items:
@@ -313,12 +315,13 @@ def _with_regressors(record: Record, base):
     est, _, _ = validation_segments(record, base)
     texts: list[str] = []
     for item in items:
-        if item != "friction":
+        if item in ("friction", "saturation"):
+            u = preset_inputs(base.term_space, np.concatenate([record.u[a:b] for a, b in est]))
+            for i, name in enumerate(names):
+                y = np.concatenate([record.y[a:b, i] for a, b in est])
+                texts += expand_presets([item], name, y, u, base.term_space.ny)
+        else:
             texts.append(item)
-            continue
-        for i, name in enumerate(names):
-            y = np.concatenate([record.y[a:b, i] for a, b in est])
-            texts += expand_presets([item], name, y)
     for i, name in enumerate(names):
         inputs = output_space(base.term_space, names, i).inputs
         for text in texts:

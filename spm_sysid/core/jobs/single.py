@@ -327,7 +327,8 @@ def run_single_job(
         settings, orders = choose_orders(record, settings, est)
         est, val, data = validation_segments(record, settings)
     if settings.regressors:  # presets take their scales from the estimation data
-        settings = settings.with_regressors(np.concatenate([y[a:b] for a, b in est]))
+        settings = settings.with_regressors(np.concatenate([y[a:b] for a, b in est]),
+                                            np.concatenate([u[a:b] for a, b in est]))
         est, val, data = validation_segments(record, settings)
     space = settings.term_space
     problem = Problem.from_signals(u, y, space, est)
