@@ -71,7 +71,7 @@ def refine_coupled(model, u: np.ndarray, Y: np.ndarray,
         info["message"] = f"refinement failed ({exc})"
         return model, info
     sim, div = run.simulate(x)
-    r = run.residuals(x)
+    r = run.scaled(sim)
     after = float(r @ r)
     info.update(after=after, evaluations=evaluations)
     if div or not after < before:
@@ -119,13 +119,14 @@ class _CoupledResiduals:
             diverged |= any(d is not None for d in div)
         return np.concatenate(runs), diverged
 
-    def _scaled(self, sim: np.ndarray) -> np.ndarray:
+    def scaled(self, sim: np.ndarray) -> np.ndarray:
+        """The residuals of a run over the segments: scaled, a penalty past a divergence."""
         r = (self.measured - sim) / self.scale
         return np.where(np.isfinite(r), r, self.penalty).ravel()
 
     def residuals(self, theta: np.ndarray) -> np.ndarray:
         """Scaled free-run residuals of all outputs, one vector (sample by sample)."""
-        return self._scaled(self.simulate(theta)[0])
+        return self.scaled(self.simulate(theta)[0])
 
     def evaluate(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The residuals and their Jacobian, from the coupled sensitivities."""
@@ -135,26 +136,31 @@ class _CoupledResiduals:
                                                  self.Y[a:b], self.bounds)
             sims.append(sim)
             jacs.append((sens / -self.scale[:, None]).reshape(-1, len(theta)))
-        return self._scaled(np.concatenate(sims)), np.concatenate(jacs)
+        return self.scaled(np.concatenate(sims)), np.concatenate(jacs)
 
     def solve(self, theta0: np.ndarray, max_evaluations: int
-              ) -> tuple[np.ndarray, int, str, np.ndarray]:
-        """Levenberg-Marquardt from theta0: the end, evaluations, message, Jacobian there."""
+              ) -> tuple[np.ndarray, int, str, np.ndarray | None]:
+        """Levenberg-Marquardt from theta0: the end, evaluations, message, Jacobian there.
+
+        The Jacobian is None where the sensitivities give it on demand.
+        """
         if self.exact:
             sol = levenberg_marquardt(self.evaluate, theta0, max_evaluations)
-            return sol.x, sol.nfev, sol.message, self.evaluate(sol.x)[1]
+            return sol.x, sol.nfev, sol.message, None
         from scipy.optimize import least_squares  # imported when a refinement runs
 
         sol = least_squares(self.residuals, theta0, method="lm", x_scale="jac",
                             max_nfev=max_evaluations)
         return sol.x, int(sol.nfev), str(sol.message), sol.jac
 
-    def refined_models(self, model, theta: np.ndarray, jac: np.ndarray,
+    def refined_models(self, model, theta: np.ndarray, jac: np.ndarray | None,
                        sim: np.ndarray) -> list:
         """Each output's model with its refined coefficients and their uncertainty.
 
-        Each output's uncertainty comes from its rows and columns of the joint Jacobian.
+        Each output's uncertainty comes from its rows and columns of the joint
+        Jacobian (None: from the sensitivities at theta).
         """
+        jac = self.evaluate(theta)[1] if jac is None else jac
         jac = jac.reshape(len(self.measured), self.q, -1)  # d(r)/d(theta)
         models = []
         for i, (m, th) in enumerate(zip(model.models, self.split(theta))):

@@ -352,10 +352,11 @@ def run_mimo_job(record: Record, settings, *, progress: ProgressFn | None = None
         raise DataError(f"an output and an input share a name: {', '.join(sorted(clash))} "
                         "(set output_names or input_names)")
     Y, u = record.y, record.u
-    base = _with_regressors(record, settings.for_signals(record.input_names, names[0]))
+    base = settings.for_signals(record.input_names, names[0])
     orders = None
     if base.orders == "auto":  # every output's proposal; the space holds the largest
         base, orders = _choose_mimo_orders(record, base)
+    base = _with_regressors(record, base)  # presets on the chosen lags
     lock = threading.Lock()
 
     def relay(p: Progress) -> None:
