@@ -287,6 +287,11 @@ def validation_segments(record: Record, settings: JobSettings
 
 
 @one_blas_thread()
+def _rows(x: np.ndarray, segments: list[tuple[int, int]]) -> np.ndarray:
+    """The samples of the segments, one after the other."""
+    return np.concatenate([x[a:b] for a, b in segments])
+
+
 def run_single_job(
     record: Record, settings: JobSettings, *, progress: ProgressFn | None = None,
     progress_every: int = 25, metadata: Mapping[str, Any] | None = None,
@@ -327,8 +332,7 @@ def run_single_job(
         settings, orders = choose_orders(record, settings, est)
         est, val, data = validation_segments(record, settings)
     if settings.regressors:  # presets take their scales from the estimation data
-        settings = settings.with_regressors(np.concatenate([y[a:b] for a, b in est]),
-                                            np.concatenate([u[a:b] for a, b in est]))
+        settings = settings.with_regressors(_rows(y, est), _rows(u, est))
         est, val, data = validation_segments(record, settings)
     space = settings.term_space
     problem = Problem.from_signals(u, y, space, est)
