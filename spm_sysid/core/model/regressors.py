@@ -376,11 +376,8 @@ def preset_inputs(term_space, u: np.ndarray | None
         return []
     u = np.asarray(u, dtype=float)
     u = u[:, None] if u.ndim == 1 else u
-    m = u.shape[1]
-    delays = term_space.delays * (m if len(term_space.delays) == 1 else 1)
-    nus = term_space.nus * (m if len(term_space.nus) == 1 else 1)
-    return [(name, tuple(range(d, d + k)), u[:, j]) for j, (name, d, k)
-            in enumerate(zip(term_space.inputs[:m], delays, nus))]
+    return [(name, tuple(lag for src, lag in term_space.linear if src == j), u[:, j])
+            for j, name in enumerate(term_space.inputs[:u.shape[1]])]
 
 
 def _friction(output: str, y: np.ndarray | None) -> list[str]:
