@@ -181,6 +181,77 @@ def test_joint_refinement_lowers_the_coupled_free_run_error_and_reports_it_truly
     assert info2["after"] <= info2["before"] * (1 + 1e-9)
 
 
+def test_the_joint_refinement_steps_only_along_the_directions_the_record_identifies(
+        monkeypatch):
+    """A linear MIMO ARX of order 6 on the two-link arm, whose torques excite few lags.
+
+    Free Levenberg-Marquardt steps lower the training error along directions the
+    record sees poorly and the start's residuals do not call for, and simulate
+    another record of the same arm 4x worse; the refinement stays out of them and
+    simulates it better than least squares.
+    """
+    from dataclasses import replace
+
+    import spm_sysid.core.fit.refine_coupled as joint
+    from spm_sysid.core.select.coupled import fit_least_squares
+
+    tau, q = record(1000, seed=0)
+    tau2, q2 = record(1000, seed=1)
+    space = TermSpace(ny=6, nu=6, degree=1, inputs=("tau1", "tau2"), output="q")
+    models = []
+    for i in range(2):
+        sp = output_space(space, ("q1", "q2"), i)
+        linear = [j for j, d in enumerate(sp.term_degrees) if d == 1]
+        models.append(NarxModel(sp, linear, np.zeros(len(linear))))
+    start = fit_least_squares(MimoModel(("q1", "q2"), ("tau1", "tau2"), models), tau, q,
+                              [(0, len(q))])
+    theta0 = np.concatenate([m.coefficients for m in start.models])
+    sizes = np.cumsum([0] + [len(m.coefficients) for m in start.models])
+    std = q.std(axis=0)
+
+    def with_theta(theta):
+        return replace(start, models=[replace(m, coefficients=theta[a:b]) for m, a, b
+                                      in zip(start.models, sizes[:-1], sizes[1:])])
+
+    def error(model, u, Y):  # the refinement's measure: scaled coupled free-run SSE
+        sim, _ = model.simulate(u, Y)
+        r = (Y[model.max_lag:] - sim) / std
+        return float(np.sum(r * r))
+
+    # the directions the record sees poorly and the start's residuals do not call
+    # for, from central differences
+    # of the coupled run (independent of the sensitivities)
+    sim0 = start.simulate(tau, q)[0]
+    r = ((q[start.max_lag:] - sim0) / std).ravel()
+    jac = np.empty((r.size, theta0.size))
+    for j in range(theta0.size):
+        h = 1e-6 * max(abs(theta0[j]), 1e-3)
+        e = np.zeros_like(theta0)
+        e[j] = h
+        jac[:, j] = -((with_theta(theta0 + e).simulate(tau, q)[0]
+                       - with_theta(theta0 - e).simulate(tau, q)[0]) / (2 * h) / std).ravel()
+    norms = np.linalg.norm(jac, axis=0)
+    left, s, vt = np.linalg.svd(jac / norms, full_matrices=False)
+    sigma = np.sqrt(r @ r / (r.size - s.size))
+    weak = vt[(s < 0.5 * joint.JOINT_RCOND * s[0])
+              & (np.abs(left.T @ r) < 0.5 * joint.JOINT_SIGNIFICANCE * sigma)]
+    assert len(weak) >= 10
+
+    def step_in_weak_directions(model):
+        step = (np.concatenate([m.coefficients for m in model.models]) - theta0) * norms
+        return float(np.linalg.norm(weak @ step) / np.linalg.norm(step))
+
+    refined, info = joint.refine_coupled(start, tau, q, max_evaluations=30)
+    assert info["taken"] and info["after"] < info["before"]
+    assert step_in_weak_directions(refined) < 1e-3
+    assert error(refined, tau2, q2) < error(start, tau2, q2)
+    monkeypatch.setattr(joint, "JOINT_RCOND", 0.0)  # every direction: what it avoids
+    free, info_free = joint.refine_coupled(start, tau, q, max_evaluations=30)
+    assert info_free["after"] < info["after"]  # more training gain ...
+    assert step_in_weak_directions(free) > 0.5  # ... from the weak directions
+    assert error(free, tau2, q2) > 2 * error(start, tau2, q2)  # and lost off the record
+
+
 def test_the_coupled_sensitivities_equal_finite_differences_of_the_coupled_run():
     """The refinement's Jacobian: every output against every output's coefficients."""
     from spm_sysid.core.model.coupled import CoupledCompiled, coupled_run, coupled_sensitivities
