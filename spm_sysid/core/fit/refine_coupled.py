@@ -186,6 +186,8 @@ class _CoupledResiduals:
         norms = np.linalg.norm(jac, axis=0)
         norms[~(norms > 0)] = 1.0
         left, s, vt = np.linalg.svd(jac / norms, full_matrices=False)
+        if not (s.size and s[0] > 0):  # nothing to step along: the solver says so
+            return np.eye(theta0.size)
         sigma = np.sqrt(r @ r / max(r.size - s.size, 1))
         keep = (s >= JOINT_RCOND * s[0]) | (np.abs(left.T @ r) > JOINT_SIGNIFICANCE * sigma)
         return vt[keep].T / norms[:, None]
