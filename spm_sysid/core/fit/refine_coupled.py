@@ -178,19 +178,26 @@ class _CoupledResiduals:
         i is ``u_i . r / s_i``, its noise ``sigma / s_i`` (white residuals of the
         start's spread); kept when ``|u_i . r|`` exceeds
         :data:`JOINT_SIGNIFICANCE` ``sigma``. Mapped back to unscaled
-        coefficients: a step is ``basis @ z``.
+        coefficients: a step is ``basis @ z``. From the eigenvectors of the
+        scaled ``J'J`` (coefficients by coefficients), not an SVD of ``J`` (rows
+        by coefficients: another Jacobian's memory on a long record).
         """
         r, jac = self.evaluate(theta0)
         if not (np.all(np.isfinite(jac)) and np.all(np.isfinite(r))):
             return np.eye(theta0.size)  # the solver stops at such a start, and says why
         norms = np.linalg.norm(jac, axis=0)
         norms[~(norms > 0)] = 1.0
-        left, s, vt = np.linalg.svd(jac / norms, full_matrices=False)
-        if not (s.size and s[0] > 0):  # nothing to step along: the solver says so
+        scaled = jac / norms
+        power, vectors = np.linalg.eigh(scaled.T @ scaled)
+        s = np.sqrt(np.clip(power, 0.0, None))
+        if not (s.size and s.max() > 0):  # nothing to step along: the solver says so
             return np.eye(theta0.size)
+        # u_i . r = v_i . J'r / s_i, where s_i is resolved (above rounding of J'J)
+        resolved = s > 1e-6 * s.max()
+        along = np.abs(vectors.T @ (scaled.T @ r)) / np.where(resolved, s, np.inf)
         sigma = np.sqrt(r @ r / max(r.size - s.size, 1))
-        keep = (s >= JOINT_RCOND * s[0]) | (np.abs(left.T @ r) > JOINT_SIGNIFICANCE * sigma)
-        return vt[keep].T / norms[:, None]
+        keep = (s >= JOINT_RCOND * s.max()) | (along > JOINT_SIGNIFICANCE * sigma)
+        return vectors[:, keep] / norms[:, None]
 
     def refined_models(self, model, theta: np.ndarray, jac: np.ndarray | None,
                        sim: np.ndarray) -> list:
