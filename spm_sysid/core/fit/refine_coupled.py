@@ -185,16 +185,16 @@ class _CoupledResiduals:
         r, jac = self.evaluate(theta0)
         if not (np.all(np.isfinite(jac)) and np.all(np.isfinite(r))):
             return np.eye(theta0.size)  # the solver stops at such a start, and says why
-        norms = np.linalg.norm(jac, axis=0)
+        gram = jac.T @ jac  # scaled below, without a scaled copy of the Jacobian
+        norms = np.sqrt(np.diag(gram).copy())
         norms[~(norms > 0)] = 1.0
-        scaled = jac / norms
-        power, vectors = np.linalg.eigh(scaled.T @ scaled)
+        power, vectors = np.linalg.eigh(gram / np.outer(norms, norms))
         s = np.sqrt(np.clip(power, 0.0, None))
         if not (s.size and s.max() > 0):  # nothing to step along: the solver says so
             return np.eye(theta0.size)
         # u_i . r = v_i . J'r / s_i, where s_i is resolved (above rounding of J'J)
         resolved = s > 1e-6 * s.max()
-        along = np.abs(vectors.T @ (scaled.T @ r)) / np.where(resolved, s, np.inf)
+        along = np.abs(vectors.T @ ((jac.T @ r) / norms)) / np.where(resolved, s, np.inf)
         sigma = np.sqrt(r @ r / max(r.size - s.size, 1))
         keep = (s >= JOINT_RCOND * s.max()) | (along > JOINT_SIGNIFICANCE * sigma)
         return vectors[:, keep] / norms[:, None]
