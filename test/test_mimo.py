@@ -219,8 +219,8 @@ def test_the_joint_refinement_steps_only_along_the_directions_the_record_identif
         return float(np.sum(r * r))
 
     # the directions the record sees poorly and the start's residuals do not call
-    # for, from central differences
-    # of the coupled run (independent of the sensitivities)
+    # for, from central differences of the coupled run (independent of the
+    # sensitivities)
     sim0 = start.simulate(tau, q)[0]
     r = ((q[start.max_lag:] - sim0) / std).ravel()
     jac = np.empty((r.size, theta0.size))

@@ -154,9 +154,13 @@ class _CoupledResiduals:
         The Jacobian is None where the sensitivities give it on demand.
         """
         if self.exact:
-            basis = self.identified_directions(theta0)
+            r0, jac0 = self.evaluate(theta0)
+            basis = self.identified_directions(r0, jac0)
+            first = [(r0, jac0 @ basis)]  # the solver's first evaluation is at theta0
 
             def evaluate(z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                if first:
+                    return first.pop()
                 r, jac = self.evaluate(theta0 + basis @ z)
                 return r, jac @ basis
 
@@ -168,10 +172,12 @@ class _CoupledResiduals:
                             max_nfev=max_evaluations)
         return sol.x, int(sol.nfev), str(sol.message), sol.jac
 
-    def identified_directions(self, theta0: np.ndarray) -> np.ndarray:
+    @staticmethod
+    def identified_directions(r: np.ndarray, jac: np.ndarray) -> np.ndarray:
         """The directions of coefficient space the record identifies, as columns.
 
-        The right singular vectors of the start's Jacobian (columns scaled to unit
+        ``r`` and ``jac``: the residuals and Jacobian at the start. The right
+        singular vectors of the start's Jacobian (columns scaled to unit
         norm) that the record sees well (singular value at least
         :data:`JOINT_RCOND` times the largest) or along which the start's
         residuals call for a step: the Gauss-Newton step's component along vector
@@ -182,16 +188,16 @@ class _CoupledResiduals:
         scaled ``J'J`` (coefficients by coefficients), not an SVD of ``J`` (rows
         by coefficients: another Jacobian's memory on a long record).
         """
-        r, jac = self.evaluate(theta0)
+        k = jac.shape[1]
         if not (np.all(np.isfinite(jac)) and np.all(np.isfinite(r))):
-            return np.eye(theta0.size)  # the solver stops at such a start, and says why
+            return np.eye(k)  # the solver stops at such a start, and says why
         gram = jac.T @ jac  # scaled below, without a scaled copy of the Jacobian
         norms = np.sqrt(np.diag(gram).copy())
         norms[~(norms > 0)] = 1.0
         power, vectors = np.linalg.eigh(gram / np.outer(norms, norms))
         s = np.sqrt(np.clip(power, 0.0, None))
         if not (s.size and s.max() > 0):  # nothing to step along: the solver says so
-            return np.eye(theta0.size)
+            return np.eye(k)
         # u_i . r = v_i . J'r / s_i, where s_i is resolved (above rounding of J'J)
         resolved = s > 1e-6 * s.max()
         along = np.abs(vectors.T @ ((jac.T @ r) / norms)) / np.where(resolved, s, np.inf)
