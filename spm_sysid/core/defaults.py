@@ -63,6 +63,23 @@ POLISH_KICKS = 1000
 #: Terms a kick flips: from POLISH_FLIPS[0] to POLISH_FLIPS[1] - 1 (the GA's best and the
 #: optimum typically differ in 8-11 terms when the GA misses: a kick must reach that far).
 POLISH_FLIPS = (4, 12)
+#: Neighbourhoods the polish ranks when it can rank them from the least-squares factor
+#: (:class:`~spm_sysid.core.search.neighbourhood.MoveScreen`; criteria of the SSE and the
+#: size): a count, as POLISH_STRUCTURES. About a second at 84 candidates.
+POLISH_STEPS = 3000
+#: Kicks in a row that do not improve the current structure before the polish restarts
+#: from a larger kick of the best (POLISH_RESTART_FLIPS terms flipped), and restarts in a
+#: row without a new best after which it stops. Measured at 84 candidates (robot arm,
+#: dryer, heat exchanger; AIC and BIC; 20 GA seeds each): without restarts the kicks
+#: from the best saturate (dryer BIC 5 of 20 at the best known value with 3000 steps,
+#: 6 with 10 000); with them 6-7 (docs/results.md has the table).
+POLISH_PATIENCE = 15
+POLISH_RESTART_FLIPS = (8, 16)
+POLISH_RESTARTS = 20
+#: Descents in a row that lead back to the best structure itself, after which the polish
+#: stops: every kick falls back into the best's basin (small spaces: the paper's 44
+#: candidates, where the GA's best is usually the optimum).
+POLISH_HOME = 30
 
 #: Spaces of at most this many usable terms are certified after the GA by default.
 AUTO_CERTIFY_TERMS = 120

@@ -33,6 +33,7 @@ from .options import SEARCH_SETTINGS, SearchOptions
 from .progress import Progress, ProgressFn
 from .search.ga import GAConfig, GAResult, GenerationStats, run_ga
 from .search.local import polish
+from .search.neighbourhood import MoveScreen
 from .select.choose import choose, overfit_warnings, selection_account
 from .select.plan import SelectionPlan, plan_selection
 from .select.simulation import select_for_simulation
@@ -321,8 +322,10 @@ def _polish(problem: Problem, evaluator, result: GAResult) -> dict:
         return {"ga_value": None, "value": None, "steps": 0, "structures": 0}
     usable = np.flatnonzero(problem.usable) if len(problem.usable) == evaluator.n_terms \
         else np.arange(evaluator.n_terms)
+    screen = MoveScreen(evaluator) if MoveScreen.usable(evaluator) else None
     res = polish(evaluator.score, result.best_mask, np.ones(evaluator.n_terms, dtype=bool),
-                 value=ga_value, kick_terms=usable, usable_terms=int(problem.usable.sum()))
+                 value=ga_value, kick_terms=usable, usable_terms=int(problem.usable.sum()),
+                 screen=screen)
     if res.value < ga_value:
         result.best_mask, result.best_score = res.mask.copy(), res.value
     return {"ga_value": ga_value, "value": float(result.best_score), "steps": res.steps,

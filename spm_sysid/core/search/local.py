@@ -27,13 +27,22 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..defaults import POLISH_FLIPS, POLISH_KICKS, POLISH_STRUCTURES, POLISH_TERMS
+from ..defaults import (
+    POLISH_FLIPS,
+    POLISH_HOME,
+    POLISH_KICKS,
+    POLISH_PATIENCE,
+    POLISH_RESTART_FLIPS,
+    POLISH_RESTARTS,
+    POLISH_STEPS,
+    POLISH_STRUCTURES,
+    POLISH_TERMS,
+)
+from .neighbourhood import MOVES, MoveScreen
 
 __all__ = ["MOVES", "POLISH_STRUCTURES", "PolishResult", "SearchResult", "local_search",
            "neighbours", "polish"]
 
-#: The moves a step may take.
-MOVES = ("remove", "add", "swap")
 
 #: Neighbours scored at once (bounds memory: a batch of structures over M terms
 #: takes BATCH_BITS / 8 bytes of masks).
@@ -222,7 +231,8 @@ class PolishResult:
 
 def polish(score: Callable[[np.ndarray], np.ndarray], mask: np.ndarray, allowed: np.ndarray,
            *, value: float | None = None, kick_terms: np.ndarray | None = None,
-           usable_terms: int | None = None, deadline: float | None = None) -> PolishResult:
+           usable_terms: int | None = None, deadline: float | None = None,
+           screen: MoveScreen | None = None) -> PolishResult:
     """Improve a structure by single-term moves, then by kicks: the one polish.
 
     Without ``kick_terms``: a local search (terms added, removed or swapped,
@@ -238,11 +248,18 @@ def polish(score: Callable[[np.ndarray], np.ndarray], mask: np.ndarray, allowed:
     best (:data:`POLISH_SLACK`); in larger spaces only once, from the best the
     kicks found, on the quarter of the budget they leave. The kicks are drawn
     from the structure itself, so the polish is reproducible.
+
+    With a ``screen`` as well (criteria of the SSE and the size:
+    :meth:`~.neighbourhood.MoveScreen.usable`), every move of every descent is
+    ranked from the least-squares factor instead, swaps included, and the
+    search restarts when its kicks stop helping (:func:`_screened_polish`).
     """
     if kick_terms is None:
         res = local_search(score, mask, allowed, start_value=value, deadline=deadline)
         return PolishResult(res.mask, float(res.value), res.steps, res.scored, 0, MOVES,
                             res.stopped, None)
+    if screen is not None:
+        return _screened_polish(score, mask, allowed, value, kick_terms, screen, deadline)
     n = usable_terms if usable_terms is not None else int(allowed.sum())
     k = int(mask.sum())
     budget = min(POLISH_STRUCTURES, int(POLISH_STRUCTURES * (POLISH_TERMS / max(k, 1)) ** 2))
@@ -278,6 +295,77 @@ def polish(score: Callable[[np.ndarray], np.ndarray], mask: np.ndarray, allowed:
             best_mask, best_value, steps = r.mask, float(r.value), steps + r.steps
     return PolishResult(best_mask, best_value, steps, scored, kicks, moves,
                         "budget" if scored >= budget else res.stopped, budget)
+
+
+#: A screened descent's end is scored by the evaluator when its value from the
+#: screen is within this of the best (the two agree to rounding on well-conditioned
+#: structures; near the rank tolerance the evaluator has the last word).
+SCREEN_MARGIN = 1e-3
+
+
+def _screened_polish(score, mask, allowed, value, kick_terms, screen: MoveScreen,
+                     deadline: float | None) -> PolishResult:
+    """The iterated local search with every move ranked by ``screen``, restarted when stuck.
+
+    Descents take the best of every addition, removal and swap by the screen's
+    values (:meth:`~.neighbourhood.MoveScreen.descend`); an end that may beat
+    the best is scored by the evaluator. Kicks (:data:`POLISH_FLIPS` terms
+    flipped) start from the current structure, which moves to a kick's end when
+    that is better; after :data:`POLISH_PATIENCE` kicks in a row that are not,
+    a larger kick from the best (:data:`POLISH_RESTART_FLIPS`) becomes the
+    current one, so the search leaves a basin the small kicks cannot. It stops
+    after :data:`POLISH_RESTARTS` restarts in a row without a new best, after
+    :data:`POLISH_HOME` descents in a row that lead back to the best itself, or
+    after :data:`POLISH_STEPS` neighbourhoods ranked.
+    """
+    best_mask = np.asarray(mask, dtype=bool).copy()
+    best_value = float(score(best_mask[None, :])[0]) if value is None else float(value)
+    rng = np.random.default_rng(zlib.crc32(np.packbits(best_mask).tobytes()))
+    search = _Kicks(rng, kick_terms)
+    current, current_value = best_mask, np.inf  # the first descent starts at the GA's best
+    left, scored, kicks, since, restarts, steps, home = POLISH_STEPS, 0, 0, 0, 0, 0, 0
+    start = best_mask.copy()
+    while left > 0 and restarts <= POLISH_RESTARTS and home < POLISH_HOME:
+        if deadline is not None and time.perf_counter() >= deadline:
+            break
+        end, approx, used = screen.descend(start, allowed, left)
+        left -= used
+        restarted = since >= POLISH_PATIENCE
+        if restarted or approx < current_value - 1e-9:
+            current, current_value, since = end, approx, 0
+            restarts += restarted
+        else:
+            since += 1
+        home = home + 1 if np.array_equal(end, best_mask) else 0
+        if approx < best_value + SCREEN_MARGIN and not home:
+            end_value = float(score(end[None, :])[0])
+            scored += 1
+            if end_value < best_value - 1e-9:
+                best_mask, best_value, steps, restarts = end, end_value, steps + used, 0
+        kicks += 1
+        start = search.kick(best_mask if since >= POLISH_PATIENCE else current,
+                            since >= POLISH_PATIENCE)
+    stopped = "budget" if left <= 0 else "restarts" if home < POLISH_HOME else "home"
+    return PolishResult(best_mask, best_value, steps, scored, kicks - 1, MOVES, stopped,
+                        POLISH_STEPS)
+
+
+@dataclass
+class _Kicks:
+    """Random flips of a structure's terms, drawn reproducibly."""
+
+    rng: np.random.Generator
+    terms: np.ndarray
+
+    def kick(self, mask: np.ndarray, large: bool) -> np.ndarray:
+        """``mask`` with :data:`POLISH_FLIPS` (``large``: :data:`POLISH_RESTART_FLIPS`) flipped."""
+        low, high = POLISH_RESTART_FLIPS if large else POLISH_FLIPS
+        high = max(min(high, len(self.terms) // 2 + 1), low + 1)
+        start = mask.copy()
+        flip = self.rng.choice(self.terms, size=min(int(self.rng.integers(low, high)),
+                                                    len(self.terms)), replace=False)
+        start[flip] = ~start[flip]
+        return start if start.any() else mask.copy()
 
 
 def _descend(score, start: np.ndarray, allowed: np.ndarray, moves: Sequence[str],
