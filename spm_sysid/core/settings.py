@@ -169,8 +169,9 @@ _LIST = [
        "criterion", low=0, high=100_000),
     _s("polish", bool, True, "after the GA, a local search (one term added, removed or "
        "swapped) from its best while that improves the criterion, then kicks of a few terms "
-       "each followed by the same search, within a fixed number of structures (off in the "
-       "paper's study, which measures the GA alone)", "criterion"),
+       "each followed by the same search, restarted when the kicks stop helping, within a "
+       "fixed count of steps (off in the paper's study, which measures the GA alone)",
+       "criterion"),
     _s("auto_certify_time_limit", float, 10.0, "seconds of certification after every GA "
        "with aic, aicc or bic whose structure is chosen by the criterion (focus prediction) "
        f"on spaces of at most {AUTO_CERTIFY_TERMS} usable terms: the answer then says "
