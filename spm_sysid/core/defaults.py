@@ -70,9 +70,9 @@ POLISH_STEPS = 3000
 #: Kicks in a row that do not improve the current structure before the polish restarts
 #: from a larger kick of the best (POLISH_RESTART_FLIPS terms flipped), and restarts in a
 #: row without a new best after which it stops. Measured at 84 candidates (robot arm,
-#: dryer, heat exchanger; AIC and BIC; 20 GA seeds each): without restarts the kicks
-#: from the best saturate (dryer BIC 5 of 20 at the best known value with 3000 steps,
-#: 6 with 10 000); with them 6-7 (docs/results.md has the table).
+#: dryer, heat exchanger; AIC, BIC; 20 GA seeds each; runs at the best value known):
+#: kicks from the best only, 3 000 steps: 16/20/15/5/0/1 of 20; with the restarts
+#: 18/20/19/6/0/5 (docs/results.md has the table).
 POLISH_PATIENCE = 15
 POLISH_RESTART_FLIPS = (8, 16)
 POLISH_RESTARTS = 20
