@@ -260,6 +260,12 @@ def polish(score: Callable[[np.ndarray], np.ndarray], mask: np.ndarray, allowed:
                             res.stopped, None)
     if screen is not None:
         return _screened_polish(score, mask, allowed, value, kick_terms, screen, deadline)
+    return _counted_polish(score, mask, allowed, value, kick_terms, usable_terms, deadline)
+
+
+def _counted_polish(score, mask, allowed, value, kick_terms, usable_terms, deadline
+                    ) -> PolishResult:
+    """The iterated local search within a count of structures scored (see :func:`polish`)."""
     n = usable_terms if usable_terms is not None else int(allowed.sum())
     k = int(mask.sum())
     budget = min(POLISH_STRUCTURES, int(POLISH_STRUCTURES * (POLISH_TERMS / max(k, 1)) ** 2))
