@@ -103,3 +103,20 @@ def test_the_polish_at_84_candidates_is_reproducible_and_ends_at_a_local_optimum
     again = local_search(ev.score, problem.restrict(model.mask),
                          np.ones(ev.n_terms, dtype=bool))
     assert again.value >= model.criterion_value - 1e-9
+
+
+def test_spaces_past_the_screen_limit_keep_the_polish_that_counts_structures(monkeypatch):
+    import spm_sysid.core.identify as identify_module
+    from spm_sysid.core.search.local import POLISH_STEPS, POLISH_STRUCTURES
+
+    u, y = CASES["ar-0.90"]()
+    problem = Problem.from_signals(u, y, TermSpace())
+    options = SearchOptions(criterion="aic", seed=3, auto_certify_time_limit=0,
+                            selection="criterion")
+    ranked = identify_problem(problem, options).model.metadata["polish"]
+    assert ranked["budget"] == POLISH_STEPS  # 44 candidates: ranked moves
+    monkeypatch.setattr(identify_module, "POLISH_SCREEN_TERMS", 43)
+    counted = identify_problem(problem, options).model.metadata["polish"]
+    assert counted["budget"] <= POLISH_STRUCTURES and counted["stopped"] not in (
+        "restarts", "home")
+    assert counted["value"] <= counted["ga_value"]
