@@ -106,7 +106,7 @@ def test_the_polish_at_84_candidates_is_reproducible_and_ends_at_a_local_optimum
 
 
 def test_spaces_past_the_screen_limit_keep_the_polish_that_counts_structures(monkeypatch):
-    import spm_sysid.core.identify as identify_module
+    import spm_sysid.core.search.neighbourhood as neighbourhood_module
     from spm_sysid.core.search.local import POLISH_STEPS, POLISH_STRUCTURES
 
     u, y = CASES["ar-0.90"]()
@@ -115,7 +115,7 @@ def test_spaces_past_the_screen_limit_keep_the_polish_that_counts_structures(mon
                             selection="criterion")
     ranked = identify_problem(problem, options).model.metadata["polish"]
     assert ranked["budget"] == POLISH_STEPS  # 44 candidates: ranked moves
-    monkeypatch.setattr(identify_module, "POLISH_SCREEN_TERMS", 43)
+    monkeypatch.setattr(neighbourhood_module, "POLISH_SCREEN_TERMS", 43)
     counted = identify_problem(problem, options).model.metadata["polish"]
     assert counted["budget"] <= POLISH_STRUCTURES and counted["stopped"] not in (
         "restarts", "home")

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from .blas import one_blas_thread
-from .defaults import AUTO_CERTIFY_TERMS, POLISH_SCREEN_TERMS
+from .defaults import AUTO_CERTIFY_TERMS
 from .errors import DataError, SettingsError
 from .fit.criteria import CERTIFIABLE, Criterion, get_criterion
 from .fit.problem import Problem, check_samples, validate_signals
@@ -322,10 +322,7 @@ def _polish(problem: Problem, evaluator, result: GAResult) -> dict:
         return {"ga_value": None, "value": None, "steps": 0, "structures": 0}
     usable = np.flatnonzero(problem.usable) if len(problem.usable) == evaluator.n_terms \
         else np.arange(evaluator.n_terms)
-    # ranked moves where a step is cheap (a step costs about rows x k x (n - k): at 454
-    # candidates 3 000 of them took 51 s); larger spaces keep the counted polish
-    screen = MoveScreen(evaluator) if MoveScreen.usable(evaluator) \
-        and evaluator.n_terms <= POLISH_SCREEN_TERMS else None
+    screen = MoveScreen(evaluator) if MoveScreen.usable(evaluator) else None
     res = polish(evaluator.score, result.best_mask, np.ones(evaluator.n_terms, dtype=bool),
                  value=ga_value, kick_terms=usable, usable_terms=int(problem.usable.sum()),
                  screen=screen)

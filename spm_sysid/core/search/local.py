@@ -249,8 +249,8 @@ def polish(score: Callable[[np.ndarray], np.ndarray], mask: np.ndarray, allowed:
     kicks found, on the quarter of the budget they leave. The kicks are drawn
     from the structure itself, so the polish is reproducible.
 
-    With a ``screen`` as well (criteria of the SSE and the size:
-    :meth:`~.neighbourhood.MoveScreen.usable`), every move of every descent is
+    With a ``screen`` as well (criteria of the SSE and the size, spaces of at
+    most 120 terms: :meth:`~.neighbourhood.MoveScreen.usable`), every move of every descent is
     ranked from the least-squares factor instead, swaps included, and the
     search restarts when its kicks stop helping (:func:`_screened_polish`).
     """

@@ -28,6 +28,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from ..defaults import POLISH_SCREEN_TERMS
+
 __all__ = ["MOVES", "MoveScreen"]
 
 #: The moves a step may take.
@@ -52,8 +54,14 @@ class MoveScreen:
 
     @staticmethod
     def usable(evaluator) -> bool:
-        """Whether the evaluator's criterion depends on SSE and size only (no coefficients)."""
-        return not evaluator.criterion.needs_coefficients
+        """Whether ranking suits the evaluator (else the polish that counts structures).
+
+        Its criterion must depend on the SSE and the size only, and the space hold
+        at most :data:`~spm_sysid.core.defaults.POLISH_SCREEN_TERMS` terms (a step
+        costs about rows x k x (n - k)).
+        """
+        return (not evaluator.criterion.needs_coefficients
+                and evaluator.n_terms <= POLISH_SCREEN_TERMS)
 
     def sse(self, mask: np.ndarray, allowed: np.ndarray, moves: Sequence[str]
             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float] | None:
