@@ -73,6 +73,23 @@ def test_moves_into_a_column_the_structure_reproduces_are_left_out(arm84):
     assert MoveScreen(ev).sse(dependent, np.ones(ev.n_terms, dtype=bool), ("add",)) is None
 
 
+def test_a_collinear_start_loses_the_terms_its_earlier_terms_reproduce(arm84):
+    P, target = arm84
+    twin = P[:, 3] - 0.5 * P[:, 10]  # reproduced by columns 3 and 10
+    P = np.column_stack([P, twin, 3.0 * P[:, 20]])
+    ev = StructureEvaluator(P, target, "bic")
+    screen, allowed = MoveScreen(ev), np.ones(ev.n_terms, dtype=bool)
+    mask = np.zeros(ev.n_terms, dtype=bool)
+    mask[[3, 10, 20, 33, ev.n_terms - 2, ev.n_terms - 1]] = True
+    assert screen.sse(mask, allowed, ("add",)) is None
+    kept = screen.independent(mask)
+    assert np.flatnonzero(kept).tolist() == [3, 10, 20, 33]  # the two later copies go
+    assert screen.sse(kept, allowed, ("add",)) is not None
+    assert np.array_equal(screen.independent(kept), kept)
+    end, value, _ = screen.descend(mask, allowed, 500)  # the kick is not wasted
+    assert np.isfinite(value) and value == pytest.approx(ev.cached_score(end), abs=1e-6)
+
+
 def test_the_screened_descent_ends_where_the_exact_local_search_finds_no_better(arm84):
     P, target = arm84
     for criterion in ("aic", "bic"):
@@ -103,6 +120,28 @@ def test_the_polish_at_84_candidates_is_reproducible_and_ends_at_a_local_optimum
     again = local_search(ev.score, problem.restrict(model.mask),
                          np.ones(ev.n_terms, dtype=bool))
     assert again.value >= model.criterion_value - 1e-9
+
+
+def test_the_polish_reports_its_progress_as_the_phase_after_the_search():
+    from spm_sysid.core.progress import PHASES
+    from spm_sysid.core.search.local import POLISH_STEPS
+
+    u, y = CASES["dryer-0"]()
+    problem = Problem.from_signals(u, y, SPACE)
+    options = SearchOptions(criterion="bic", seed=3, auto_certify_time_limit=0,
+                            selection="criterion")
+    records = []
+    model = identify_problem(problem, options, progress=records.append).model
+    phases = [p.phase for p in records]
+    assert list(dict.fromkeys(phases)) == ["search", "polish"]
+    assert PHASES.index("search") + 1 == PHASES.index("polish")
+    polish = [p for p in records if p.phase == "polish"]
+    assert polish[0].step == 0 and polish[0].best == model.metadata["polish"]["ga_value"]
+    assert all(p.total in (0, POLISH_STEPS) and p.step <= POLISH_STEPS for p in polish)
+    assert [p.step for p in polish] == sorted(p.step for p in polish)
+    bests = [p.best for p in polish]
+    assert bests == sorted(bests, reverse=True) and bests[-1] >= model.criterion_value - 1e-9
+    assert polish[-1].best_model() is not None  # a job stopped here keeps its best model
 
 
 def test_spaces_past_the_screen_limit_keep_the_polish_that_counts_structures(monkeypatch):

@@ -65,8 +65,10 @@ POLISH_KICKS = 1000
 POLISH_FLIPS = (4, 12)
 #: Neighbourhoods the polish ranks when it can rank them from the least-squares factor
 #: (:class:`~spm_sysid.core.search.neighbourhood.MoveScreen`; criteria of the SSE and the
-#: size): a count, as POLISH_STRUCTURES. About a second at 84 candidates.
-POLISH_STEPS = 3000
+#: size): a count, as POLISH_STRUCTURES. One to two seconds at 84 candidates, up to
+#: about 3 s at 120 (the polish reports its progress). 3 000 before 2026-12-04 (second
+#: session): 6 000 reach the best known value on more GA seeds (docs/results.md).
+POLISH_STEPS = 6000
 #: Kicks in a row that do not improve the current structure before the polish restarts
 #: from a larger kick of the best (POLISH_RESTART_FLIPS terms flipped), and restarts in a
 #: row without a new best after which it stops. Measured at 84 candidates (robot arm,
@@ -81,9 +83,9 @@ POLISH_RESTARTS = 20
 #: candidates, where the GA's best is usually the optimum).
 POLISH_HOME = 30
 #: Spaces of at most this many usable terms get the ranked polish; a step costs about
-#: rows x k x (n - k), so on larger spaces its 3 000 steps are dear (454 candidates, the
-#: robot arm's first half, AIC: 51 s against 0.2 s; 164: 3.8 s against 0.2 s), and
-#: they keep the polish that counts structures.
+#: rows x k x (n - k), so on larger spaces its steps are dear (3 000 of them on 454
+#: candidates, the robot arm's first half, AIC: 51 s against 0.2 s; on 164: 3.8 s
+#: against 0.2 s), and they keep the polish that counts structures.
 POLISH_SCREEN_TERMS = 120
 
 #: Spaces of at most this many usable terms are certified after the GA by default.

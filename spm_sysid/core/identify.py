@@ -214,7 +214,7 @@ def identify_problem(
     data_check = _check_data(problem, crit) if check_data else None
     evaluator = problem.evaluator(crit, max_terms=options.max_terms)
     result = _search(problem, evaluator, ga, options, callback, report, started)
-    polished = _polish(problem, evaluator, result) if options.polish else None
+    polished = _polish(problem, evaluator, result, report, started) if options.polish else None
     plan = plan_selection(problem, options)
     certificate = None
     within = _certify_within(plan, options, crit, problem)
@@ -243,12 +243,7 @@ def _check_data(problem: Problem, crit: Criterion):
 def _search(problem, evaluator, ga: GAConfig, options: SearchOptions, callback, report,
             started) -> GAResult:
     """The GA with SPM; a search that fits nothing is an error naming the likely cause."""
-    def best_so_far():
-        best = evaluator.ranked(1)
-        if not len(best):
-            return None
-        return problem.model(problem.expand(best[0]), criterion=evaluator.criterion.name,
-                             criterion_value=float(evaluator.cached_score(best[0])))
+    best_so_far = _best_so_far(problem, evaluator)
 
     def on_generation(stats: GenerationStats):
         report(Progress("search", stats.generation, ga.generations, stats.best,
@@ -312,20 +307,47 @@ def _search_account(problem, result: GAResult, ga: GAConfig, options: SearchOpti
     }
 
 
-def _polish(problem: Problem, evaluator, result: GAResult) -> dict:
+#: Seconds between the polish's progress reports (at least).
+POLISH_REPORT_EVERY = 0.5
+
+
+def _best_so_far(problem: Problem, evaluator) -> Callable[[], NarxModel | None]:
+    """Builds the best model the evaluator has scored so far (for a job stopped early)."""
+    def best_so_far():
+        best = evaluator.ranked(1)
+        if not len(best):
+            return None
+        return problem.model(problem.expand(best[0]), criterion=evaluator.criterion.name,
+                             criterion_value=float(evaluator.cached_score(best[0])))
+    return best_so_far
+
+
+def _polish(problem: Problem, evaluator, result: GAResult, report: ProgressFn,
+            started: float) -> dict:
     """The polish (:func:`~spm_sysid.core.search.local.polish`) of the GA's best, in place.
 
-    What it did, for the document.
+    Reported as the phase ``polish`` (its work done of its budget). What it did,
+    for the document.
     """
     ga_value = float(result.best_score)
     if not np.isfinite(ga_value):
         return {"ga_value": None, "value": None, "steps": 0, "structures": 0}
+    best_so_far, last = _best_so_far(problem, evaluator), [-np.inf]
+
+    def on_kick(done: int, budget: int, best: float) -> None:  # at most twice a second
+        now = time.perf_counter()
+        if now - last[0] >= POLISH_REPORT_EVERY:
+            last[0] = now
+            report(Progress("polish", done, budget, best, evaluator.evaluations,
+                            elapsed=now - started, best_model=best_so_far))
+
+    on_kick(0, 0, ga_value)
     usable = np.flatnonzero(problem.usable) if len(problem.usable) == evaluator.n_terms \
         else np.arange(evaluator.n_terms)
     screen = MoveScreen(evaluator) if MoveScreen.usable(evaluator) else None
     res = polish(evaluator.score, result.best_mask, np.ones(evaluator.n_terms, dtype=bool),
                  value=ga_value, kick_terms=usable, usable_terms=int(problem.usable.sum()),
-                 screen=screen)
+                 screen=screen, progress=on_kick)
     if res.value < ga_value:
         result.best_mask, result.best_score = res.mask.copy(), res.value
     return {"ga_value": ga_value, "value": float(result.best_score), "steps": res.steps,

@@ -1,12 +1,12 @@
 """Where a job is: one progress record for progress bars, logs and ROS feedback.
 
 A job goes through phases (:data:`PHASES`): checking the data, choosing the
-orders from the data (``orders: auto``), the GA search, the certification
-(branch and bound), the simulation focus's screening of structures and its
-judgement of finalists on held-out blocks, the refinement of the chosen model,
-and the validation. Each reports :class:`Progress` records to a callback; the
-command line draws them as progress bars, the node logs them and sends them as
-an action's feedback.
+orders from the data (``orders: auto``), the GA search, its polish (the local
+search after it), the certification (branch and bound), the simulation focus's
+screening of structures and its judgement of finalists on held-out blocks, the
+refinement of the chosen model, and the validation. Each reports
+:class:`Progress` records to a callback; the command line draws them as
+progress bars, the node logs them and sends them as an action's feedback.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 __all__ = ["PHASES", "Progress", "ProgressFn"]
 
 #: The phases of a job, in order.
-PHASES = ("checking data", "orders", "search", "certification", "screening",
+PHASES = ("checking data", "orders", "search", "polish", "certification", "screening",
           "held-out blocks", "refinement", "validation")
 
 
@@ -31,7 +31,8 @@ class Progress:
     phase : str
         One of :data:`PHASES`.
     step : int
-        Generation (search), nodes explored (certification), structures refined
+        Generation (search), work done (polish: neighbourhoods ranked or
+        structures scored), nodes explored (certification), structures refined
         (refinement).
     total : int
         Steps in the phase when known (generations, structures to refine); 0

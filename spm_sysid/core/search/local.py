@@ -229,10 +229,15 @@ class PolishResult:
     budget: int | None
 
 
+#: ``progress(done, budget, best)``: the polish's work done of its budget, and its best.
+PolishProgress = Callable[[int, int, float], None]
+
+
 def polish(score: Callable[[np.ndarray], np.ndarray], mask: np.ndarray, allowed: np.ndarray,
            *, value: float | None = None, kick_terms: np.ndarray | None = None,
            usable_terms: int | None = None, deadline: float | None = None,
-           screen: MoveScreen | None = None) -> PolishResult:
+           screen: MoveScreen | None = None, progress: PolishProgress | None = None
+           ) -> PolishResult:
     """Improve a structure by single-term moves, then by kicks: the one polish.
 
     Without ``kick_terms``: a local search (terms added, removed or swapped,
@@ -253,18 +258,27 @@ def polish(score: Callable[[np.ndarray], np.ndarray], mask: np.ndarray, allowed:
     most 120 terms: :meth:`~.neighbourhood.MoveScreen.usable`), every move of every descent is
     ranked from the least-squares factor instead, swaps included, and the
     search restarts when its kicks stop helping (:func:`_screened_polish`).
+
+    ``progress(done, budget, best)`` is called after each kick's descent (work
+    done of the budget: neighbourhoods ranked or structures scored).
     """
     if kick_terms is None:
         res = local_search(score, mask, allowed, start_value=value, deadline=deadline)
         return PolishResult(res.mask, float(res.value), res.steps, res.scored, 0, MOVES,
                             res.stopped, None)
     if screen is not None:
-        return _screened_polish(score, mask, allowed, value, kick_terms, screen, deadline)
-    return _counted_polish(score, mask, allowed, value, kick_terms, usable_terms, deadline)
+        return _screened_polish(score, mask, allowed, value, kick_terms, screen, deadline,
+                                progress or _quiet)
+    return _counted_polish(score, mask, allowed, value, kick_terms, usable_terms, deadline,
+                           progress or _quiet)
 
 
-def _counted_polish(score, mask, allowed, value, kick_terms, usable_terms, deadline
-                    ) -> PolishResult:
+def _quiet(done: int, budget: int, best: float) -> None:
+    """No progress reports."""
+
+
+def _counted_polish(score, mask, allowed, value, kick_terms, usable_terms, deadline,
+                    progress: PolishProgress) -> PolishResult:
     """The iterated local search within a count of structures scored (see :func:`polish`)."""
     n = usable_terms if usable_terms is not None else int(allowed.sum())
     k = int(mask.sum())
@@ -293,6 +307,7 @@ def _counted_polish(score, mask, allowed, value, kick_terms, usable_terms, deadl
         scored += cost
         if r.value < best_value - 1e-9:
             best_mask, best_value, steps, improved = r.mask, float(r.value), steps + r.steps, True
+        progress(scored, budget, best_value)
     if improved and moves != cheap and not swap_each:
         r = local_search(score, best_mask, allowed, moves=moves, start_value=best_value,
                          max_scored=budget - scored, deadline=deadline)
@@ -310,7 +325,7 @@ SCREEN_MARGIN = 1e-3
 
 
 def _screened_polish(score, mask, allowed, value, kick_terms, screen: MoveScreen,
-                     deadline: float | None) -> PolishResult:
+                     deadline: float | None, progress: PolishProgress) -> PolishResult:
     """The iterated local search with every move ranked by ``screen``, restarted when stuck.
 
     Descents take the best of every addition, removal and swap by the screen's
@@ -349,6 +364,7 @@ def _screened_polish(score, mask, allowed, value, kick_terms, screen: MoveScreen
             if end_value < best_value - 1e-9:
                 best_mask, best_value, steps, restarts = end, end_value, steps + used, 0
         kicks += 1
+        progress(POLISH_STEPS - max(left, 0), POLISH_STEPS, best_value)
         start = search.kick(best_mask if since >= POLISH_PATIENCE else current,
                             since >= POLISH_PATIENCE)
     stopped = "budget" if left <= 0 else "restarts" if home < POLISH_HOME else "home"

@@ -139,20 +139,46 @@ class MoveScreen:
             values = np.where(k > ev.max_terms, np.inf, values)
         return drop, add, values[:-1], float(values[-1])
 
+    def independent(self, mask: np.ndarray) -> np.ndarray:
+        """``mask`` without each term its earlier terms reproduce to the rank tolerance.
+
+        Terms are taken in index order, as :meth:`sse` factors them: a term stays
+        when the squared norm of its column's part outside the span of the terms
+        kept before it is at least the evaluator's rank tolerance (the pivot that
+        QR would give it), so what is left passes :meth:`sse`'s test.
+        """
+        kept = np.asarray(mask, dtype=bool).copy()
+        basis = np.zeros((self.factor.shape[0], 0))
+        for j in np.flatnonzero(kept):
+            column = self.factor[:, j]
+            for _ in range(2):  # Gram-Schmidt twice: orthogonal to rounding
+                column = column - basis @ (basis.T @ column)
+            norm2 = float(column @ column)
+            if norm2 < self.ev.rank_tol:
+                kept[j] = False
+            else:
+                basis = np.column_stack([basis, column / np.sqrt(norm2)])
+        return kept
+
     def descend(self, mask: np.ndarray, allowed: np.ndarray, max_steps: int,
                 tolerance: float = 1e-9) -> tuple[np.ndarray, float, int]:
         """Best-improvement descent by additions, removals and swaps, ranked here.
 
         Returns where it ended, its value here, and the neighbourhoods ranked
         (at most ``max_steps``: the cost). It ends at a local optimum, after
-        ``max_steps``, or at a rank-deficient structure (value +inf). Its value
-        is the caller's to confirm with the evaluator.
+        ``max_steps``, or at a rank-deficient structure (value +inf); a start
+        whose terms are collinear first loses those its earlier terms reproduce
+        (:meth:`independent`). Its value is the caller's to confirm with the
+        evaluator.
         """
         current = np.asarray(mask, dtype=bool).copy()
         allowed = np.asarray(allowed, dtype=bool)
         value = np.inf
         for step in range(max_steps):
             moved = self.values(current, allowed)
+            if moved is None and step == 0:  # a kick into collinear terms: drop those first
+                current = self.independent(current)
+                moved = self.values(current, allowed)
             if moved is None:
                 return current, np.inf, step + 1
             drop, add, values, value = moved

@@ -29,7 +29,8 @@ from ...core.progress import Progress
 
 __all__ = ["LINE_EVERY", "PhaseBars", "count_bar"]
 
-_UNITS = {"search": "gen", "certification": " nodes", "refinement": " structures",
+_UNITS = {"search": "gen", "polish": " steps", "certification": " nodes",
+          "refinement": " structures",
           "orders": " orders", "screening": " structures", "held-out blocks": " finalists"}
 
 #: Seconds between progress lines off a terminal (at most).
