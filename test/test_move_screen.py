@@ -144,18 +144,25 @@ def test_the_polish_reports_its_progress_as_the_phase_after_the_search():
     assert polish[-1].best_model() is not None  # a job stopped here keeps its best model
 
 
-def test_spaces_past_the_screen_limit_keep_the_polish_that_counts_structures(monkeypatch):
-    import spm_sysid.core.search.neighbourhood as neighbourhood_module
-    from spm_sysid.core.search.local import POLISH_STEPS, POLISH_STRUCTURES
+def test_large_spaces_rank_fewer_steps_as_each_step_costs_more(arm84, robot_arm):
+    from spm_sysid.core.defaults import POLISH_STEP_WORK
+    from spm_sysid.core.search.local import POLISH_STEPS
 
-    u, y = CASES["ar-0.90"]()
-    problem = Problem.from_signals(u, y, TermSpace())
-    options = SearchOptions(criterion="aic", seed=3, auto_certify_time_limit=0,
+    P, target = arm84
+    small = MoveScreen(StructureEvaluator(P, target, "aic"))  # 84 candidates
+    assert all(small.step_budget(k) == POLISH_STEPS for k in (1, 20, 42, 83))
+    rng = np.random.default_rng(0)
+    large = MoveScreen(StructureEvaluator(rng.standard_normal((2000, 454)),
+                                          rng.standard_normal(2000), "aic"))
+    work = 455 * 100 * 354
+    assert large.step_budget(100) == int(POLISH_STEPS * POLISH_STEP_WORK / work)
+    assert 1 <= large.step_budget(227) <= large.step_budget(100) < POLISH_STEPS
+    # 164 candidates, AIC: the ranked polish on a budget of its work, better than the GA
+    u, y = robot_arm
+    h = len(y) // 2
+    problem = Problem.from_signals(u[:h], y[:h], TermSpace(ny=4, nu=4, degree=3))
+    options = SearchOptions(criterion="aic", seed=1, auto_certify_time_limit=0,
                             selection="criterion")
-    ranked = identify_problem(problem, options).model.metadata["polish"]
-    assert ranked["budget"] == POLISH_STEPS  # 44 candidates: ranked moves
-    monkeypatch.setattr(neighbourhood_module, "POLISH_SCREEN_TERMS", 43)
-    counted = identify_problem(problem, options).model.metadata["polish"]
-    assert counted["budget"] <= POLISH_STRUCTURES and counted["stopped"] not in (
-        "restarts", "home")
-    assert counted["value"] <= counted["ga_value"]
+    pol = identify_problem(problem, options).model.metadata["polish"]
+    assert pol["moves"] == ["remove", "add", "swap"] and pol["budget"] < POLISH_STEPS
+    assert pol["value"] < pol["ga_value"] - 1.0

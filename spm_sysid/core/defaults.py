@@ -82,11 +82,13 @@ POLISH_RESTARTS = 20
 #: stops: every kick falls back into the best's basin (small spaces: the paper's 44
 #: candidates, where the GA's best is usually the optimum).
 POLISH_HOME = 30
-#: Spaces of at most this many usable terms get the ranked polish; a step costs about
-#: rows x k x (n - k), so on larger spaces its steps are dear (3 000 of them on 454
-#: candidates, the robot arm's first half, AIC: 51 s against 0.2 s; on 164: 3.8 s
-#: against 0.2 s), and they keep the polish that counts structures.
-POLISH_SCREEN_TERMS = 120
+#: The work of one ranked polish step (about (n + 1) k (n - k) for n candidate terms and
+#: k in the structure) up to which the polish takes all POLISH_STEPS steps; beyond,
+#: POLISH_STEPS x POLISH_STEP_WORK / work of them (a count, as the others): about 3 s at
+#: most here. 454 candidates, a 100-term structure: about 110 steps, 2 s. Until the
+#: second session of 2026-12-04 spaces of more than 120 terms kept the polish that
+#: counts structures, which did almost nothing there (docs/results.md).
+POLISH_STEP_WORK = 300_000
 
 #: Spaces of at most this many usable terms are certified after the GA by default.
 AUTO_CERTIFY_TERMS = 120

@@ -40,8 +40,8 @@ from ..defaults import (
 )
 from .neighbourhood import MOVES, MoveScreen
 
-__all__ = ["MOVES", "POLISH_STRUCTURES", "PolishResult", "SearchResult", "local_search",
-           "neighbours", "polish"]
+__all__ = ["MOVES", "POLISH_STEPS", "POLISH_STRUCTURES", "PolishResult", "SearchResult",
+           "local_search", "neighbours", "polish"]
 
 
 #: Neighbours scored at once (bounds memory: a batch of structures over M terms
@@ -254,8 +254,8 @@ def polish(score: Callable[[np.ndarray], np.ndarray], mask: np.ndarray, allowed:
     kicks found, on the quarter of the budget they leave. The kicks are drawn
     from the structure itself, so the polish is reproducible.
 
-    With a ``screen`` as well (criteria of the SSE and the size, spaces of at
-    most 120 terms: :meth:`~.neighbourhood.MoveScreen.usable`), every move of every descent is
+    With a ``screen`` as well (criteria of the SSE and the size:
+    :meth:`~.neighbourhood.MoveScreen.usable`), every move of every descent is
     ranked from the least-squares factor instead, swaps included, and the
     search restarts when its kicks stop helping (:func:`_screened_polish`).
 
@@ -337,14 +337,16 @@ def _screened_polish(score, mask, allowed, value, kick_terms, screen: MoveScreen
     current one, so the search leaves a basin the small kicks cannot. It stops
     after :data:`POLISH_RESTARTS` restarts in a row without a new best, after
     :data:`POLISH_HOME` descents in a row that lead back to the best itself, or
-    after :data:`POLISH_STEPS` neighbourhoods ranked.
+    after :data:`POLISH_STEPS` neighbourhoods ranked (fewer in large spaces:
+    :meth:`~.neighbourhood.MoveScreen.step_budget`).
     """
     best_mask = np.asarray(mask, dtype=bool).copy()
     best_value = float(score(best_mask[None, :])[0]) if value is None else float(value)
     rng = np.random.default_rng(zlib.crc32(np.packbits(best_mask).tobytes()))
     search = _Kicks(rng, kick_terms)
     current, current_value = best_mask, np.inf  # the first descent starts at the GA's best
-    left, scored, kicks, since, restarts, steps, home = POLISH_STEPS, 0, 0, 0, 0, 0, 0
+    budget = screen.step_budget(int(best_mask.sum()))
+    left, scored, kicks, since, restarts, steps, home = budget, 0, 0, 0, 0, 0, 0
     start = best_mask.copy()
     while left > 0 and restarts <= POLISH_RESTARTS and home < POLISH_HOME:
         if deadline is not None and time.perf_counter() >= deadline:
@@ -364,12 +366,12 @@ def _screened_polish(score, mask, allowed, value, kick_terms, screen: MoveScreen
             if end_value < best_value - 1e-9:
                 best_mask, best_value, steps, restarts = end, end_value, steps + used, 0
         kicks += 1
-        progress(POLISH_STEPS - max(left, 0), POLISH_STEPS, best_value)
+        progress(budget - max(left, 0), budget, best_value)
         start = search.kick(best_mask if since >= POLISH_PATIENCE else current,
                             since >= POLISH_PATIENCE)
     stopped = "budget" if left <= 0 else "restarts" if home < POLISH_HOME else "home"
     return PolishResult(best_mask, best_value, steps, scored, kicks - 1, MOVES, stopped,
-                        POLISH_STEPS)
+                        budget)
 
 
 @dataclass

@@ -28,7 +28,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from ..defaults import POLISH_SCREEN_TERMS
+from ..defaults import POLISH_STEP_WORK, POLISH_STEPS
 
 __all__ = ["MOVES", "MoveScreen"]
 
@@ -56,12 +56,20 @@ class MoveScreen:
     def usable(evaluator) -> bool:
         """Whether ranking suits the evaluator (else the polish that counts structures).
 
-        Its criterion must depend on the SSE and the size only, and the space hold
-        at most :data:`~spm_sysid.core.defaults.POLISH_SCREEN_TERMS` terms (a step
-        costs about rows x k x (n - k)).
+        Its criterion must depend on the SSE and the size only (AIC, AICc, BIC).
         """
-        return (not evaluator.criterion.needs_coefficients
-                and evaluator.n_terms <= POLISH_SCREEN_TERMS)
+        return not evaluator.criterion.needs_coefficients
+
+    def step_budget(self, size: int) -> int:
+        """Neighbourhoods a polish may rank from a structure of ``size`` terms.
+
+        :data:`~spm_sysid.core.defaults.POLISH_STEPS`, fewer where a step's work
+        ((n + 1) k (n - k)) passes :data:`~spm_sysid.core.defaults.POLISH_STEP_WORK`:
+        the polish of a large space takes seconds, not minutes. At least one.
+        """
+        n = self.ev.n_terms
+        work = (n + 1) * max(size, 1) * max(n - size, 1)
+        return max(1, int(POLISH_STEPS * min(1.0, POLISH_STEP_WORK / work)))
 
     def sse(self, mask: np.ndarray, allowed: np.ndarray, moves: Sequence[str]
             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float] | None:
