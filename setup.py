@@ -99,9 +99,10 @@ setup(
             "ros-jazzy-rosidl-typesupport-introspection-c",
             "ros-jazzy-rosidl-typesupport-introspection-cpp",
         ],
-        # benchmark-only: the forward-selection baseline of `spm-sysid bench-sizes --fastcan`
-        # and SCIP, the MIQP anchor of `make bench-certify-scale`
-        "bench": ["fastcan>=0.4", "deap>=1.4", "pyscipopt>=5"],
+        # benchmark-only: the forward-selection baseline of `spm-sysid bench-sizes --fastcan`,
+        # SCIP, the MIQP anchor of `make bench-certify-scale`, and El0ps, its regularised
+        # exact peer (its pybnb loads mpi4py, which needs an MPI library: the mpich wheel)
+        "bench": ["fastcan>=0.4", "deap>=1.4", "pyscipopt>=5", "el0ps>=0.0.4", "mpich>=4"],
         # studies and batches on a Dask cluster (`--scheduler`); not needed on the robot
         "dask": ["dask>=2024.1", "distributed>=2024.1"],
         "test": [

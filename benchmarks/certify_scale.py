@@ -20,13 +20,20 @@ the 164-candidate space (ny = nu = 4, degree 3; BIC and AICc) and the
   least-squares coefficient of the full model -- for the sizes around the size
   of our best structure (k - 1, k, k + 1), each with the same time limit:
   status, its best value and its lower bound turned into the criterion's units,
-  gap, seconds.
+  gap, seconds;
+* **El0ps** (the ``bench`` extra, with the mpich wheel its MPI layer loads;
+  84 candidates only, ``--skip-el0ps`` to leave it out): an exact branch and
+  bound for least squares + lambda ||x||_0 + a ridge (:data:`EL0PS_RIDGE`) on
+  unit-norm columns, lambda the criterion's price of one term at our SSE. It
+  solves that regularised problem, not AIC/BIC (a log of the SSE) and not
+  least squares without a ridge; its support is refitted without the ridge
+  and valued by the criterion beside ours. A reference for speed at the same
+  size. L0BnB 1.0.0 (2021) does not run on NumPy 2 (``np.Inf``).
 
 Each run is its own process, so the peak memory is that run's. Figures, not
 assertions; long: about 2 x 3 x 2 x (60 + 3 x 60) s + 3 x (600 + 3 x 600) s,
 2.8 h, with the defaults (``--large-time-limit 120``: 56 min; ``--skip-scip
---orders 3``: 6 min). The regularised exact solvers the issue names as peers
-(L0BnB, El0ps) are not in this workplace's package registry; SCIP is the peer.
+--skip-el0ps --orders 3``: 6 min), El0ps another 6 x 60 s or more.
 """
 
 from __future__ import annotations
@@ -145,6 +152,61 @@ def _scip(case: dict) -> dict:
             "rss": best * problem.sse_scale if np.isfinite(best) else None}
 
 
+#: The ridge of the El0ps run, on unit-norm columns and target. Smaller ridges leave its
+#: root relaxation weak: at 1e-8 (robot arm, (3, 3, 3), BIC) one node took 180 s, three
+#: times its time limit, and returned the empty model.
+EL0PS_RIDGE = 1e-4
+
+
+def _el0ps(case: dict) -> dict:
+    """El0ps's branch and bound on the same columns: least squares + lambda ||x||_0 + ridge.
+
+    Exact for that regularised problem, not for AIC/BIC: lambda is the criterion's
+    price of one term at our structure's SSE (0.5 SSE units: SSE / n for AIC,
+    SSE ln(n) / (2 n) for BIC and AICc's leading term), columns and target scaled
+    to unit norm, ridge :data:`EL0PS_RIDGE`. Its support is refitted without the
+    ridge and valued by the criterion, beside ours.
+    """
+    from el0ps.datafit import Leastsquares
+    from el0ps.penalty import L2norm
+    from el0ps.solver import BnbSolver
+
+    from spm_sysid.core.fit.criteria import get_criterion
+    from spm_sysid.core.fit.problem import Problem
+    from spm_sysid.core.model.terms import TermSpace
+
+    u, y = _record(case["file"])
+    space = TermSpace(ny=case["order"], nu=case["order"], degree=case["degree"],
+                      constant=case["order"] == 3)
+    problem = Problem.from_signals(u, y, space)
+    usable = np.flatnonzero(problem.usable)
+    X, t = problem.columns[:, usable], problem.target
+    A = np.asfortranarray(X / np.linalg.norm(X, axis=0))
+    target = t / np.linalg.norm(t)
+    rows = len(target)
+
+    def sse_of(support: np.ndarray) -> float:
+        coef = np.linalg.lstsq(A[:, support], target, rcond=None)[0]
+        r = target - A[:, support] @ coef
+        return float(r @ r)
+
+    ours = np.isin(usable, case["mask"])
+    per_term = 2.0 if case["criterion"] == "aic" else float(np.log(rows))
+    lam = 0.5 * sse_of(ours) / rows * per_term
+    t0 = time.perf_counter()
+    res = BnbSolver(time_limit=case["time_limit"], relative_gap=1e-6).solve(
+        Leastsquares(target), L2norm(EL0PS_RIDGE), A, lam)
+    seconds = time.perf_counter() - t0
+    support = np.abs(np.asarray(res.x).ravel()) > 1e-12
+    crit = get_criterion(case["criterion"])
+    value = None
+    if support.any():
+        sse = sse_of(support) * float(t @ t) * problem.sse_scale
+        value = float(crit(np.array([sse]), rows, np.array([support.sum()]), None)[0])
+    return {"status": str(res.status.value), "nodes": int(res.iter_count), "seconds": seconds,
+            "terms": int(support.sum()), "value": value, "peak_mb": _peak_mb()}
+
+
 def _child(kind: str, case: dict, timeout: float) -> dict:
     p = subprocess.run([sys.executable, "-m", "benchmarks.certify_scale", "--one", kind,
                         json.dumps(case)], capture_output=True, text=True,
@@ -152,6 +214,32 @@ def _child(kind: str, case: dict, timeout: float) -> dict:
     if p.returncode != 0:
         return {"error": (p.stderr.strip().splitlines() or ["failed"])[-1]}
     return json.loads(p.stdout.strip().splitlines()[-1])
+
+
+def _have_el0ps(args) -> bool:
+    if args.skip_el0ps:
+        return False
+    try:
+        import el0ps.solver  # noqa: F401 - needs an MPI library (the mpich wheel)
+    except (ImportError, RuntimeError) as exc:
+        print(f"El0ps: not usable here ({str(exc).splitlines()[0]}; pip install -e "
+              f"'.[bench]'); its rows are skipped")
+        return False
+    return True
+
+
+def _print_el0ps(case: dict, ours: dict) -> None:
+    """El0ps on the same space, beside ours (84 candidates only: a reference for speed)."""
+    res = _child("el0ps", {**case, "mask": ours["mask"]}, case["time_limit"] * 4 + 300)
+    if "error" in res:
+        print(f"    El0ps: failed: {res['error']}")
+        return
+    value = "-" if res["value"] is None else f"{res['value']:.2f}"
+    print(f"    El0ps (least squares + lambda ||x||_0 + ridge {EL0PS_RIDGE:g}; exact for that "
+          f"problem, not for {case['criterion'].upper()}): {res['status']}, "
+          f"{res['nodes']} nodes, {res['seconds']:.1f} s, peak {res['peak_mb']:.0f} MB; its "
+          f"{res['terms']} terms refitted without the ridge: {value} (ours {ours['value']:.2f})")
+    sys.stdout.flush()
 
 
 def run(args) -> None:
@@ -162,6 +250,7 @@ def run(args) -> None:
         have_scip = False
         print("SCIP: pyscipopt is not installed (pip install -e '.[bench]'); its columns "
               "are skipped")
+    have_el0ps = _have_el0ps(args)
     cases = []
     present = [(name, file) for name, file in RECORDS if _record(file) is not None]
     for name, file in RECORDS:
@@ -196,6 +285,8 @@ def run(args) -> None:
         if ours.get("reading"):
             print(f"    what holds the bound, {ours['reading']}")
         sys.stdout.flush()
+        if have_el0ps and order == 3:
+            _print_el0ps(case, ours)
         if not have_scip:
             continue
         k = ours["terms"]
@@ -224,12 +315,13 @@ def main(argv: list[str] | None = None) -> int:
                    "3 (84 candidates), 4 (164), 6 (454); default all")
     p.add_argument("--large-time-limit", type=float, default=600.0,
                    help="seconds per 454-candidate run")
-    p.add_argument("--skip-scip", action="store_true", help="our runs only")
+    p.add_argument("--skip-scip", action="store_true", help="no SCIP runs")
+    p.add_argument("--skip-el0ps", action="store_true", help="no El0ps runs")
     p.add_argument("--one", nargs=2, metavar=("KIND", "CASE"), help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.one:
         kind, case = args.one
-        out = (_ours if kind == "ours" else _scip)(json.loads(case))
+        out = {"ours": _ours, "scip": _scip, "el0ps": _el0ps}[kind](json.loads(case))
         print(json.dumps(out))
         return 0
     run(args)
