@@ -71,16 +71,29 @@ def _peak_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+def _space(case: dict):
+    """The case's term space: ny = nu = order, its degree, the constant at order 3."""
+    from spm_sysid.core.model.terms import TermSpace
+
+    return TermSpace(ny=case["order"], nu=case["order"], degree=case["degree"],
+                     constant=case["order"] == 3)
+
+
+def _problem(case: dict):
+    """The case's regression problem on the first half of its record."""
+    from spm_sysid.core.fit.problem import Problem
+
+    return Problem.from_signals(*_record(case["file"]), _space(case))
+
+
 def _ours(case: dict) -> dict:
     """The GA, then the branch and bound (one process)."""
     from spm_sysid.core.identify import identify
-    from spm_sysid.core.model.terms import TermSpace
     from spm_sysid.core.search.certify import certify_data, ensure_compiled
     from spm_sysid.core.search.explain import explain_table
 
     u, y = _record(case["file"])
-    space = TermSpace(ny=case["order"], nu=case["order"], degree=case["degree"],
-                      constant=case["order"] == 3)
+    space = _space(case)
     ensure_compiled()
     started = time.perf_counter()
     limit = case["time_limit"]
@@ -107,13 +120,8 @@ def _scip(case: dict) -> dict:
     import pyscipopt
 
     from spm_sysid.core.fit.criteria import get_criterion
-    from spm_sysid.core.fit.problem import Problem
-    from spm_sysid.core.model.terms import TermSpace
 
-    u, y = _record(case["file"])
-    space = TermSpace(ny=case["order"], nu=case["order"], degree=case["degree"],
-                      constant=case["order"] == 3)
-    problem = Problem.from_signals(u, y, space)
+    problem = _problem(case)
     X = problem.columns[:, problem.usable]
     t = problem.target
     n, m = X.shape
@@ -162,8 +170,8 @@ def _el0ps(case: dict) -> dict:
     """El0ps's branch and bound on the same columns: least squares + lambda ||x||_0 + ridge.
 
     Exact for that regularised problem, not for AIC/BIC: lambda is the criterion's
-    price of one term at our structure's SSE (0.5 SSE units: SSE / n for AIC,
-    SSE ln(n) / (2 n) for BIC and AICc's leading term), columns and target scaled
+    price of one term at our structure's SSE (0.5 SSE units: SSE / n for AIC and
+    AICc's leading term, SSE ln(n) / (2 n) for BIC), columns and target scaled
     to unit norm, ridge :data:`EL0PS_RIDGE`. Its support is refitted without the
     ridge and valued by the criterion, beside ours.
     """
@@ -172,13 +180,8 @@ def _el0ps(case: dict) -> dict:
     from el0ps.solver import BnbSolver
 
     from spm_sysid.core.fit.criteria import get_criterion
-    from spm_sysid.core.fit.problem import Problem
-    from spm_sysid.core.model.terms import TermSpace
 
-    u, y = _record(case["file"])
-    space = TermSpace(ny=case["order"], nu=case["order"], degree=case["degree"],
-                      constant=case["order"] == 3)
-    problem = Problem.from_signals(u, y, space)
+    problem = _problem(case)
     usable = np.flatnonzero(problem.usable)
     X, t = problem.columns[:, usable], problem.target
     A = np.asfortranarray(X / np.linalg.norm(X, axis=0))
@@ -191,7 +194,7 @@ def _el0ps(case: dict) -> dict:
         return float(r @ r)
 
     ours = np.isin(usable, case["mask"])
-    per_term = 2.0 if case["criterion"] == "aic" else float(np.log(rows))
+    per_term = float(np.log(rows)) if case["criterion"] == "bic" else 2.0  # AIC(c): 2
     lam = 0.5 * sse_of(ours) / rows * per_term
     t0 = time.perf_counter()
     res = BnbSolver(time_limit=case["time_limit"], relative_gap=1e-6).solve(

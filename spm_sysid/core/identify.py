@@ -332,12 +332,13 @@ def _polish(problem: Problem, evaluator, result: GAResult, report: ProgressFn,
     ga_value = float(result.best_score)
     if not np.isfinite(ga_value):
         return {"ga_value": None, "value": None, "steps": 0, "structures": 0}
-    best_so_far, last = _best_so_far(problem, evaluator), [-np.inf]
+    best_so_far, last = _best_so_far(problem, evaluator), -np.inf
 
     def on_kick(done: int, budget: int, best: float) -> None:  # at most twice a second
+        nonlocal last
         now = time.perf_counter()
-        if now - last[0] >= POLISH_REPORT_EVERY:
-            last[0] = now
+        if now - last >= POLISH_REPORT_EVERY:
+            last = now
             report(Progress("polish", done, budget, best, evaluator.evaluations,
                             elapsed=now - started, best_model=best_so_far))
 
