@@ -58,6 +58,9 @@ HOSTILE = {
     "a fraction as text": ({"validation": {"correlation_tests": [
         {"name": "ee", "passed": True, "fraction_inside": "0.5", "band": 0.06}]}},
         "correlation_tests[0].fraction_inside must be a number from 0 to 1"),
+    "decimation of zero": ({"decimation": {"factor": 0}},
+                           "metadata.decimation.factor must be an integer >= 1"),
+    "decimation text": ({"decimation": "5"}, "metadata.decimation must be an object"),
 }
 
 

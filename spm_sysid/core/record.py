@@ -74,6 +74,8 @@ class Record:
         ``{"source", "samples"}`` per data file when files were read.
     notes : list of str
         Things a user should know about this data (printed by the commands).
+    decimation : dict or None
+        How the samples were decimated (:meth:`decimated`); None: as recorded.
     """
 
     u: np.ndarray
@@ -89,6 +91,7 @@ class Record:
     parts: list[dict] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
     output_names: tuple[str, ...] = ()
+    decimation: dict | None = None
 
     def __post_init__(self) -> None:
         self.u = np.asarray(self.u, dtype=float)
@@ -153,6 +156,36 @@ class Record:
             return SegmentInfo([(0, len(self.y))] if len(self.y) else [])
         return find_segments(self.stamps_ns, period_ns, gap_factor)
 
+    def decimated(self, factor: int, period_ns: int | None = None, gap_factor: float = 1.5
+                  ) -> Record:
+        """The record decimated by ``factor`` (:mod:`spm_sysid.core.model.decimation`).
+
+        Blocks stay inside the segments (:meth:`segment_info` with ``period_ns``
+        and ``gap_factor``); the decimated record keeps them as its segments, its
+        stamps are the blocks' first, and :attr:`decimation` and a note say what
+        was done and how many samples at segment ends were not used.
+        """
+        if factor <= 1:
+            return self
+        from .model.decimation import (
+            INPUTS_RULE,
+            OUTPUTS_RULE,
+            decimate_blocks,
+            describe_decimation,
+        )
+
+        info = self.segment_info(period_ns, gap_factor)
+        u, y, bounds, first = decimate_blocks(self.u, self.y, info.bounds, factor)
+        doc = {"factor": int(factor), "samples": len(self.y), "kept": len(y),
+               "unused": info.n_samples - len(y) * factor, "inputs": INPUTS_RULE,
+               "outputs": OUTPUTS_RULE}
+        period = None if info.period_ns is None else info.period_ns * factor
+        segments = SegmentInfo([b for b in bounds if b[1] > b[0]], period, info.period_source,
+                               info.gaps, info.missing_samples, info.restarts)
+        stamps = None if self.stamps_ns is None else self.stamps_ns[first]
+        return replace(self, u=u, y=y, stamps_ns=stamps, segments=segments, decimation=doc,
+                       notes=[*self.notes, describe_decimation(doc)])
+
     def row_seconds(self, segments, lag0: int) -> np.ndarray | None:
         """Seconds (from the first sample) of the regression rows of ``segments``.
 
@@ -176,6 +209,8 @@ class Record:
             out["last_stamp_ns"] = int(self.stamps_ns[-1])
         if self.unset_stamps:
             out["unset_stamps"] = int(self.unset_stamps)
+        if self.decimation:
+            out["decimation"] = dict(self.decimation)
         return out
 
 

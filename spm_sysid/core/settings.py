@@ -196,6 +196,10 @@ _LIST = [
        "(0: estimated from the stamps)", "data", low=0.0, high=3600.0, cli=False),
     _s("gap_factor", float, 1.5, "a stamp difference above gap_factor periods is a gap",
        "data", low=1.01, high=1000.0, cli=False),
+    _s("decimate", int, 1, "identify at a slower rate: blocks of this many samples become "
+       "one (inputs averaged, outputs the block's first; for records sampled much faster "
+       "than their dynamics, e.g. a 1 kHz joint; 1: the record's rate)", "data", low=1,
+       high=10_000),
     # -- the node's own ---------------------------------------------------------------------
     _s("input_topic", str, "/robot_arm/torque", "input signal topic(s): one, or a comma "
        "list, one per input (inputs on one topic share its messages)", "node",

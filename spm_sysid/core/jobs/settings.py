@@ -44,7 +44,7 @@ class JobSettings:
     orders : str
         ``given`` or ``auto`` (the lags and degree proposed from the data).
     validation, validation_split, correlation_lags : see the schema
-    sample_period, gap_factor : see the schema
+    sample_period, gap_factor, decimate : see the schema
     regressors : str
         As given (``;``-separated); the job expands them with the record's
         signals (:meth:`with_regressors`).
@@ -59,6 +59,7 @@ class JobSettings:
     correlation_lags: int = SETTINGS["correlation_lags"].default
     sample_period: float = SETTINGS["sample_period"].default
     gap_factor: float = SETTINGS["gap_factor"].default
+    decimate: int = SETTINGS["decimate"].default
     regressors: str = SETTINGS["regressors"].default
 
     # the search's settings the rest of a job reads too (read-only views)

@@ -275,7 +275,7 @@ def validation_segments(record: Record, settings: JobSettings
         raise DataError(
             f"no contiguous segment is longer than the largest lag ({space.max_lag}): "
             f"{len(record)} samples in {len(segments.bounds)} segment(s) with "
-            f"{segments.gaps} gap(s)")
+            f"{segments.gaps} gap(s)" + _decimation_words(record))
     est = val = bounds
     if settings.validation == "holdout":
         est, val = split_segments(bounds, len(record), settings.validation_split,
@@ -284,6 +284,13 @@ def validation_segments(record: Record, settings: JobSettings
         check_correlation_lags(settings.correlation_lags,
                                sum(b - a - space.max_lag for a, b in val))
     return est, val, data
+
+
+def _decimation_words(record: Record) -> str:
+    """Where a decimated record came from, for an error about its size."""
+    doc = record.decimation
+    return (f", after decimating by {doc['factor']} ({doc['samples']} samples recorded; "
+            "a smaller --decimate keeps more)") if doc else ""
 
 
 @one_blas_thread()

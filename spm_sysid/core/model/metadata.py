@@ -229,6 +229,11 @@ def _count_or_text(value, path: str) -> None:
 #: The data account (``metadata.data``).
 DATA = mapping(_count_or_text)
 
+#: How the identification's record was decimated (validate and the monitor repeat it).
+DECIMATION = fields({"factor": integer(1, null=False), "samples": integer(),
+                     "kept": integer(), "unused": integer(), "inputs": text(),
+                     "outputs": text()}, required=("factor",))
+
 #: Every field of ``metadata`` that the product reads.
 METADATA = fields({
     "focus": text(choices=("prediction", "simulation")),
@@ -272,12 +277,14 @@ METADATA = fields({
         "correlation_tests_skipped": text(), "correlation_tests": items(TEST)}),
     "monitor": lambda v, p: check_monitor(v, p),
     "interrupted": fields({"phase": text(), "model": text()}),
+    "decimation": DECIMATION,
 })
 
 #: The several-output document's own metadata (each output's model has its own).
 MIMO_METADATA = fields({"cross_correlation_tests": items(TEST),
                         "joint_criterion": fields({"value": number(), "name": text()}),
-                        "warnings": items(text(null=False)), "data": DATA})
+                        "warnings": items(text(null=False)), "data": DATA,
+                        "decimation": DECIMATION})
 
 
 def check_metadata(metadata, path: str = "metadata") -> dict:

@@ -9,6 +9,11 @@ reason naming the output; each output's own state is kept for the messages.
 A k-step prediction (``horizon`` > 1) of one output uses the other outputs'
 measured values in between (it is the output's own k-step prediction, not the
 coupled one).
+
+A model identified on a decimated record (``metadata.decimation``) is fed the
+stream decimated once, here, before the outputs' sessions: the other outputs
+it reads as inputs are outputs (block starts), not block means. A gap inside a
+block is seen by the sessions only when it spans more than a decimated step.
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from ..model.decimation import BlockDecimator, decimate_blocks, decimation_factor
 from ..model.mimo import MimoModel, augmented_inputs
 from .monitor import MonitorState
 from .session import OnlineSample, OnlineSession, held_out_mse
@@ -44,13 +50,16 @@ class CoupledSession:
         self.model = model
         self.outputs = tuple(model.outputs)
         res = None if residuals is None else np.asarray(residuals, dtype=float)
+        factor = _factor(model)
+        self.decimator = BlockDecimator(factor) if factor > 1 else None
         self.sessions = [OnlineSession(m, None if res is None or res.ndim != 2
-                                       else res[:, i], **options)
+                                       else res[:, i], decimate=1, **options)
                          for i, m in enumerate(model.models)]
         self.horizon = self.sessions[0].horizon
         self.tracker = None  # tracking per output: each session's tracker
         self._state = "VALID"
         self.transitions: list[tuple[int, str, str]] = []
+        self.raw_samples = 0  # samples fed before decimation (with a decimator)
 
     def feed(self, stamp_ns: int, u, y) -> tuple[list[OnlineSample | None], bool]:
         """One paired sample (``y`` one value per output).
@@ -60,6 +69,12 @@ class CoupledSession:
         """
         y = np.asarray(y, dtype=float)
         u = np.atleast_1d(np.asarray(u, dtype=float))
+        if self.decimator is not None:  # one sample per block, at its end
+            self.raw_samples += 1
+            block = self.decimator.push(stamp_ns, u, y)
+            if block is None:
+                return [None] * len(self.sessions), False
+            stamp_ns, u, y = block
         samples = [s.feed(stamp_ns, augmented_inputs(u[None, :], y[None, :], i)[0], float(y[i]))
                    for i, s in enumerate(self.sessions)]
         state = self.state.state
@@ -99,6 +114,9 @@ class CoupledSession:
                                              for s in self.sessions)
         for name, st in zip(self.outputs, self.output_states):
             out[f"state_{name}"] = st.state
+        if self.decimator is not None:
+            out.update(samples=self.raw_samples, decimate=self.decimator.factor,
+                       decimation_dropped=self.decimator.dropped)
         return out
 
 
@@ -108,8 +126,16 @@ def coupled_held_out_mse(model: MimoModel, u: np.ndarray, Y: np.ndarray) -> floa
     Outputs of different units weigh alike; inf when any output cannot be predicted.
     """
     Y = np.asarray(Y, dtype=float)
+    factor = _factor(model)
+    if factor > 1:  # decimated once: the other outputs stay outputs
+        u, Y, _, _ = decimate_blocks(np.asarray(u, dtype=float), Y, [(0, len(Y))], factor)
     total = 0.0
     for i, m in enumerate(model.models):
         var = float(np.var(Y[:, i])) or 1.0
-        total += held_out_mse(m, augmented_inputs(u, Y, i), Y[:, i]) / var
+        total += held_out_mse(m, augmented_inputs(u, Y, i), Y[:, i], decimate=1) / var
     return total
+
+
+def _factor(model: MimoModel) -> int:
+    """The decimation of a coupled model: its document's, else its first output's."""
+    return max(decimation_factor(model.metadata), decimation_factor(model.models[0].metadata))

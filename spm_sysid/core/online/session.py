@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..model.decimation import BlockDecimator, decimate_blocks, decimation_factor
 from ..model.narx import NarxModel
 from .monitor import MonitorReference, MonitorState, ValidityMonitor
 from .predictor import OnlinePredictor
@@ -68,14 +69,21 @@ class OnlineSession:
     horizon : int
         Also predict k = ``horizon`` steps ahead: y(t) from the measured samples
         up to t - k and the model's own outputs in between (1: one-step only).
+    decimate : int or None
+        Samples per block of the model's rate (None: as its document says,
+        ``metadata.decimation``). Above 1 the stream is decimated as the
+        identification's record was (:class:`~spm_sysid.core.model.decimation.BlockDecimator`)
+        and a prediction comes once per block; a gap drops the partial block.
     """
 
     def __init__(self, model: NarxModel, residuals: np.ndarray | None = None, *,
                  monitor_window: int = 200, tracking: bool = False,
                  forgetting: float = 0.99, sample_period: float = 0.0,
                  gap_factor: float = 1.5, input_std: float | None = None,
-                 horizon: int = 1) -> None:
+                 horizon: int = 1, decimate: int | None = None) -> None:
         self.model = model
+        factor = decimation_factor(model.metadata) if decimate is None else int(decimate)
+        self.decimator = BlockDecimator(factor) if factor > 1 else None
         self.predictor = OnlinePredictor(model)
         self._compiled = model.compiled
         stored = model.metadata.get("monitor") if isinstance(model.metadata, dict) else None
@@ -145,6 +153,14 @@ class OnlineSession:
             self.monitor.gap()
             self._win_u.clear()
             self._win_y.clear()
+            if self.decimator is not None:
+                self.decimator.reset()
+        if self.decimator is not None:  # one prediction per block, at its end
+            block = self.decimator.push(stamp_ns, u, y)
+            if block is None:
+                self.seconds += time.perf_counter() - t0
+                return None
+            stamp_ns, u, y = block
         if self.horizon > 1:
             self._win_u.append(u)
             self._win_y.append(y)
@@ -203,14 +219,23 @@ class OnlineSession:
                 "microseconds_per_sample": (1e6 * self.seconds / self.samples
                                             if self.samples else math.nan),
                 "tracker_updates": self.tracker.updates if self.tracker else 0,
-                "tracker_frozen": self.tracker.frozen if self.tracker else 0}
+                "tracker_frozen": self.tracker.frozen if self.tracker else 0,
+                "decimate": self.decimator.factor if self.decimator else 1,
+                "decimation_dropped": self.decimator.dropped if self.decimator else 0}
 
 
-def held_out_mse(model: NarxModel, u: np.ndarray, y: np.ndarray) -> float:
+def held_out_mse(model: NarxModel, u: np.ndarray, y: np.ndarray,
+                 decimate: int | None = None) -> float:
     """One-step MSE of ``model`` on held-out samples (inf when it cannot predict them).
 
-    How an automatic re-identification is compared with the current model.
+    How an automatic re-identification is compared with the current model. The
+    samples are decimated by ``decimate`` first (None: as the model's document
+    says), so a model of a slower rate is judged at its rate.
     """
+    factor = decimation_factor(model.metadata) if decimate is None else int(decimate)
+    if factor > 1:
+        u, y, _, _ = decimate_blocks(np.asarray(u, dtype=float), np.asarray(y, dtype=float),
+                                     [(0, len(y))], factor)
     try:
         e = model.residuals(u, y)
     except (ValueError, IndexError):

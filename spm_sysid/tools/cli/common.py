@@ -92,6 +92,7 @@ JOB_TITLES = {
     "ga": "genetic algorithm (default: the paper's settings)",
     "criterion": "criterion and seed",
     "validation": "validation",
+    "data": "the data's rate",
 }
 
 #: The bag options (settings names) every data-reading command offers.

@@ -112,9 +112,10 @@ def _written(record, result, several: bool) -> Written:
 
 def data_notes(account: dict, metadata: dict) -> list[str]:
     """What a user should know about the data an identification used."""
+    from ...core.model.decimation import describe_decimation
     from ...core.model.segments import describe_data
 
-    notes = []
+    notes = [describe_decimation(metadata.get("decimation"))]
     if account["gaps"] or account["rejected_samples"] or account["unpaired_samples"]:
         notes.append(f"the data has gaps; used {describe_data(account)}; no regression row "
                      "crosses a gap")
@@ -132,13 +133,13 @@ def data_notes(account: dict, metadata: dict) -> list[str]:
         notes.append(f"{len(repeats)} candidate term(s) repeat an earlier term on this data "
                      f"and were left out of the search (e.g. {term} is proportional to "
                      f"{first}); is an input constant, or equal to another signal?")
-    return notes
+    return [n for n in notes if n]
 
 
 def add_parser(sub) -> None:
     p = sub.add_parser("identify", help="select and fit a NARX model on data")
     add_data_options(p)
-    add_schema_options(p, ("term_space", "ga", "criterion", "validation"))
+    add_schema_options(p, ("term_space", "ga", "criterion", "validation", "data"))
     g = p.add_argument_group("output")
     g.add_argument("--json", metavar="PATH", help="write the model document here")
     g.add_argument("--plots", metavar="DIR", help="write validation figures here")

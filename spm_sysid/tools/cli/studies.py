@@ -228,7 +228,7 @@ def _add_batch_parser(sub) -> None:
     for name in BAG_OPTIONS:
         g.add_argument(SETTINGS[name].option, dest=name, default=None,
                        help=f"bags: {SETTINGS[name].help}")
-    add_schema_options(p, ("term_space", "ga", "criterion", "validation"))
+    add_schema_options(p, ("term_space", "ga", "criterion", "validation", "data"))
     p.set_defaults(func=cmd_batch)
 
 

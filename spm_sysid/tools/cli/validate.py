@@ -15,7 +15,7 @@ from .common import (
 )
 from .outputs import Written, write_outputs
 
-__all__ = ["add_parser", "cmd_validate", "load_by_names"]
+__all__ = ["add_parser", "at_model_rate", "cmd_validate", "load_by_names"]
 
 
 def cmd_validate(args) -> int:
@@ -38,7 +38,8 @@ def _validate_one(args, model) -> int:
     from ...core.validate.validation import validate_model
     from ..html_report import OutputSection
 
-    record = load_by_names(args, model.term_space.inputs, (model.term_space.output,))
+    record = at_model_rate(load_by_names(args, model.term_space.inputs,
+                                         (model.term_space.output,)), model.metadata)
     segments = validated_segments(args, record, model.term_space.max_lag)
     print(f"model: {args.model}")
     print(model.equation())
@@ -71,7 +72,8 @@ def _validate_several(args, model) -> int:
     from ...core.validate.validation import validate_model
     from ..html_report import OutputSection
 
-    record = load_by_names(args, model.inputs, model.outputs, several=True)
+    record = at_model_rate(load_by_names(args, model.inputs, model.outputs, several=True),
+                           model.metadata)
     if record.output_names != model.outputs or record.n_inputs != len(model.inputs):
         raise UserError(f"the model has outputs {', '.join(model.outputs)} and "
                         f"{len(model.inputs)} input(s); the data has outputs "
@@ -129,6 +131,23 @@ def load_by_names(args, inputs, outputs, several: bool = False):
         return load(args, several)
     print(f"note: columns chosen by the model's signal names: inputs {', '.join(inputs)}, "
           f"output {', '.join(outputs)}")
+    return record
+
+
+def at_model_rate(record, metadata: dict):
+    """The record decimated as the model's data were (``metadata.decimation``), said in a note.
+
+    A model identified at a slower rate predicts and simulates samples of that
+    rate; validating it on the record's own would compare it with the wrong steps.
+    """
+    from ...core.model.decimation import decimation_factor, describe_decimation
+
+    factor = decimation_factor(metadata)
+    if factor <= 1:
+        return record
+    record = record.decimated(factor)
+    print(f"note: the model runs at 1/{factor} of the data's rate (it was identified so); "
+          f"the data {describe_decimation(record.decimation)}")
     return record
 
 
