@@ -18,6 +18,10 @@ identified on the estimation part by the command as typed, their test part
 simulated in free run (the first 50 test samples initialise it, the benchmarks'
 convention), beside the linear ARX and the published figures.
 
+The joint is also identified at a fifth of its rate (``--decimate 5``), with
+and without the friction preset, and the Coulomb force read from the friction
+term on five records, at both rates.
+
 Each record also gets the friction and the saturation presets
 (``--regressors friction``, ``--regressors saturation``) beside the default
 polynomial space, the lines under it.
@@ -239,6 +243,7 @@ def run(args) -> None:
                     _narx_run(model, u2, y2), f"{len(model.terms)} terms", seconds))
         print(_call(model))
         sys.stdout.flush()
+    joint_rates()
     benchmarks()
     tau1, q1 = two_link.record(args.samples, seed=0)
     tau2, q2 = two_link.record(args.samples, seed=1)
@@ -267,6 +272,54 @@ def run(args) -> None:
                                  for m in model.models))
     if args.calls:
         calls(args.calls)
+
+
+#: The joint's decimation in :func:`joint_rates` (1 kHz to 200 Hz).
+DECIMATE = 5
+
+
+def joint_rates(seeds: int = 5) -> None:
+    """The simulated joint at 1/``DECIMATE`` of its rate, and the Coulomb force read from it.
+
+    The held-out record is decimated as the first was, so its RMSE is over the
+    decimated samples. Then the force (the sign term over the input terms' sum,
+    as docs/cli.md reads it) of ``--ny 2 --nu 2 --degree 1 --regressors friction
+    --criterion bic`` on 20 s records of several seeds, at both rates.
+    """
+    from spm_sysid.core.record import Record
+
+    from .scale import _joint
+
+    (u1, y1), (u2, y2) = _joint(20.0, 1), _joint(20.0, 2)
+    held = Record.from_samples(u2, y2, source="second record").decimated(DECIMATE)
+    print(f"joint with Coulomb friction at 1/{DECIMATE} of its rate (--decimate {DECIMATE}; "
+          "the second record decimated alike)")
+    base = {"focus": "simulation", "constant": True, "criterion": "bic", "seed": 1,
+            "decimate": DECIMATE}
+    for label, extra in (("default", {}), ("default + friction", {"regressors": "friction"})):
+        model, seconds = _narx(u1, y1, {**base, **extra})
+        print(_line(f"{label}, --decimate {DECIMATE}", held.y,
+                    _narx_run(model, held.u, held.y), f"{len(model.terms)} terms", seconds))
+        force = _coulomb(model)
+        print(_call(model) + _regressor_terms(model)
+              + (f"; Coulomb force {force:.3f} N m (true 0.3)" if force else ""))
+    settings = {"ny": 2, "nu": 2, "degree": 1, "regressors": "friction", "criterion": "bic",
+                "seed": 1}
+    for decimate in (1, DECIMATE):
+        forces = [_coulomb(_narx(*_joint(20.0, s), {**settings, "decimate": decimate})[0])
+                  for s in range(seeds)]
+        print(f"  Coulomb force, --decimate {decimate}, seeds 0-{seeds - 1} (N m, true 0.3): "
+              + ", ".join("none" if f is None else f"{f:.3f}" for f in forces))
+    sys.stdout.flush()
+
+
+def _coulomb(model) -> float | None:
+    """The Coulomb force a joint model's sign term says (None without the term)."""
+    th = dict(zip(model.terms, model.coefficients))
+    sign = f"sign({model.term_space.output}(t-1)-{model.term_space.output}(t-2))"
+    if sign not in th:
+        return None
+    return -th[sign] / sum(v for k, v in th.items() if k.startswith("u("))
 
 
 #: ``spm-sysid identify --focus simulation --orders auto``, as a user types it (AIC, no
