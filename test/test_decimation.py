@@ -103,6 +103,15 @@ def test_the_joints_coulomb_force_within_ten_percent_at_a_fifth_of_its_rate(tmp_
          "seed": 1})).model
     assert abs(_force(at_1khz.terms, at_1khz.coefficients) / Joint().coulomb - 1) > 0.25
 
+    # certify reads the same options: the same decimated data, the preset expanded on it
+    # (it ignored --regressors before), and proves the model's structure the best
+    cert = subprocess.run([*cli, "certify", "--data", str(data), "--decimate", "5", *common,
+                           "--json", str(tmp_path / "c.json")], capture_output=True, text=True,
+                          timeout=300)
+    assert cert.returncode == 0, cert.stderr
+    doc = json.loads((tmp_path / "c.json").read_text())
+    assert doc["status"] == "optimal" and sorted(doc["terms"]) == sorted(model.terms)
+    assert doc["value"] == pytest.approx(model.criterion_value, rel=1e-9)
     checked = subprocess.run([*cli, "validate", str(tmp_path / "m.json"), "--data", str(data)],
                              capture_output=True, text=True, timeout=300)
     assert checked.returncode == 0, checked.stderr

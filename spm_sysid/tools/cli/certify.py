@@ -9,6 +9,7 @@ from .common import (
     check_outputs,
     job_settings,
     load,
+    record_settings,
     schema_type,
     seed_type,
     usable_segments,
@@ -29,8 +30,8 @@ def cmd_certify(args) -> int:
     settings = _checked_settings(args)
     time_limit = settings.search.certify_time_limit
     check_outputs(args)
-    record = load(args)
-    settings = settings.for_signals(record.input_names, record.output_name)
+    record = load(args, decimate=True)
+    settings = record_settings(settings, record)
     space = settings.term_space
     segments = usable_segments(record, space.max_lag)
     check_certify_memory(sum(b - a - space.max_lag for a, b in segments),
@@ -135,7 +136,7 @@ def add_parser(sub) -> None:
     p = sub.add_parser("certify", help="prove the best structure of the whole term space "
                        "(branch and bound; AIC, AICc, BIC), or bound the gap")
     add_data_options(p)
-    add_schema_options(p, ("term_space", "ga"))
+    add_schema_options(p, ("term_space", "ga", "data"))
     g = p.add_argument_group("certification")
     g.add_argument("--criterion", default=SETTINGS["criterion"].default,
                    choices=CERTIFIABLE,

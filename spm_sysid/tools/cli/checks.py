@@ -10,6 +10,7 @@ from .common import (
     job_settings,
     load,
     positive_int,
+    record_settings,
     schema_type,
     usable_segments,
 )
@@ -22,8 +23,8 @@ def cmd_check_data(args) -> int:
     from ...core.validate.excitation import check_problem
 
     settings = job_settings(args)
-    record = load(args)
-    settings = settings.for_signals(record.input_names, record.output_name)
+    record = load(args, decimate=True)
+    settings = record_settings(settings, record)
     space = settings.term_space
     segments = usable_segments(record, space.max_lag)
     problem = Problem.from_signals(record.u, record.y, space, segments)
@@ -40,7 +41,7 @@ def cmd_check_data(args) -> int:
 def cmd_propose_lags(args) -> int:
     from ...core.validate.orders import propose_orders
 
-    record = load(args)
+    record = load(args, decimate=True)
     info = record.segment_info()
     if info.gaps or len(info.bounds) > 1:
         raise UserError(f"{record.source} has gaps or several records; propose lags on one "
@@ -81,7 +82,7 @@ def add_parsers(sub) -> None:
     p = sub.add_parser("check-data", help="can these data identify this space? excitation, "
                        "conditioning, terms that cannot be identified")
     add_data_options(p)
-    add_schema_options(p, ("term_space",))
+    add_schema_options(p, ("term_space", "data"))
     p.set_defaults(func=cmd_check_data)
 
     p = sub.add_parser("propose-lags", help="propose lags and degree from the data")
@@ -90,6 +91,9 @@ def add_parsers(sub) -> None:
                    help="largest lag order (default 10)")
     p.add_argument("--max-degree", type=positive_int, default=3,
                    help="largest degree (default 3)")
+    p.add_argument("--decimate", type=schema_type("decimate"), default=1,
+                   help="propose for the data decimated so, as identify --decimate "
+                   "identifies (default 1: the record's rate)")
     p.add_argument("--delay", type=schema_type("delay"), default=1,
                    help="input delay of the candidates (default 1)")
     p.add_argument("--criterion", choices=("aic", "bic"), default="bic",

@@ -18,7 +18,8 @@ from ...core.settings import BAG_OPTIONS, SETTINGS, check
 __all__ = ["JOB_TITLES", "PER_INPUT", "Parser", "UserError", "add_data_options",
            "add_schema_options", "announce_compile", "check_correlation_lags_option",
            "check_outputs", "check_report_name", "data_spec", "job_settings", "load",
-           "positive_int", "read_yaml", "schema_type", "seed_type", "usable_segments"]
+           "positive_int", "read_yaml", "record_settings", "schema_type", "seed_type",
+           "usable_segments"]
 
 
 class UserError(Exception):
@@ -178,6 +179,22 @@ def job_settings(args):
         raise UserError(str(exc)) from None
 
 
+def record_settings(settings, record):
+    """The settings naming the record's signals, its regressors expanded on the record.
+
+    For commands that run no job (``certify``, ``check-data``): presets take
+    their scales from the whole record, as a job takes them from its
+    estimation samples.
+    """
+    from ...core.errors import SettingsError
+
+    try:
+        return settings.for_signals(record.input_names, record.output_name).with_regressors(
+            record.y, record.u)
+    except SettingsError as exc:
+        raise UserError(as_option(exc)) from None
+
+
 def data_spec(args):
     """Where the command's data come from (:class:`~spm_sysid.core.record.DataSpec`)."""
     from ...core.record import DataSpec
@@ -189,16 +206,20 @@ def data_spec(args):
     return DataSpec.from_values(values, data=data, bag=getattr(args, "bag", None))
 
 
-def load(args, several: bool = False):
+def load(args, several: bool = False, decimate: bool = False):
     """The command's data as a :class:`~spm_sysid.core.record.Record`; its notes printed.
 
     ``several``: the command takes several outputs (else one clear error).
+    ``decimate``: decimated here by ``--decimate`` (commands that run no job;
+    a job decimates its record itself, :func:`~spm_sysid.core.jobs.run_job`).
     """
     from ...core.record import load_record
 
     record = load_record(data_spec(args))
     if not several:
         record.require_one_output(f"spm-sysid {getattr(args, 'command', '')}".strip())
+    if decimate and (getattr(args, "decimate", None) or 1) > 1:
+        record = record.decimated(args.decimate)
     for note in record.notes:
         print(f"note: {note}")
     return record
