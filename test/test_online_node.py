@@ -127,6 +127,42 @@ def test_the_robot_arm_bag_replayed_again_stays_valid_and_scaled_by_one_and_a_ha
         stop(node)
 
 
+def test_a_decimated_model_is_predicted_once_a_block_on_the_live_stream(
+        ros_env, harness, robot_arm, tmp_path):
+    """``decimate:=2``: the node identifies at half the rate and monitors at it too."""
+    from spm_sysid.core.record import Record
+
+    u, y = robot_arm
+    arm = write_io_bag(tmp_path / "arm", u, y)
+    node = start_node(ros_env, "seed:=1", "decimate:=2")
+    try:
+        harness.wait_ready()
+        play_bag(ros_env, arm)
+        harness.wait_buffer(lambda kv: int(kv["samples"]) >= len(y))
+        res = harness.call("/spm_sysid/identify")
+        assert res.success and f"decimated by 2 from {len(y)} samples" in res.message
+        doc = json.loads(harness.latched(String, "/spm_sysid/model", 30).data)
+        assert doc["metadata"]["decimation"]["factor"] == 2
+        assert doc["metadata"]["decimation"]["kept"] == len(y) // 2
+        model = NarxModel.from_dict(doc)
+        slow = Record.from_samples(u, y, source="arm").decimated(2)
+        expected = model.predict(slow.u, slow.y)  # one per block after the lags
+        predictions = []
+        sub = harness.node.create_subscription(Prediction, "/spm_sysid/prediction",
+                                               predictions.append, 2000)
+        play_bag(ros_env, arm)
+        harness.spin_until(lambda: len(predictions) >= len(expected), 30)
+        harness.node.destroy_subscription(sub)
+        assert len(predictions) == len(expected)
+        got = np.array([p.predicted for p in predictions])
+        assert np.allclose(got, expected, rtol=1e-9, atol=1e-12)
+        stamps = read_bag_stamps(arm)[::2][model.term_space.max_lag:]
+        assert [p.header.stamp.sec * 10**9 + p.header.stamp.nanosec
+                for p in predictions[:3]] == stamps[:3]  # stamped with the block's first
+    finally:
+        stop(node)
+
+
 @pytest.mark.slow
 def test_a_restored_model_is_monitored_as_the_fresh_one(ros_env, harness, robot_arm, tmp_path):
     """A model from model_path: VALID on its own data, INVALID scaled by 1.5 (issue 30)."""

@@ -24,6 +24,7 @@ from ..blas import one_blas_thread
 from ..errors import DataError
 from ..fit.problem import Problem
 from ..identify import identify_problem
+from ..model.decimation import decimation_phrase
 from ..model.narx import NarxModel
 from ..model.segments import describe_data, segment_report
 from ..online.monitor import store_monitor_reference
@@ -126,7 +127,8 @@ class JobResult:
         warnings = m.metadata.get("warnings") or []
         if style == "line":
             text = (f"{m.equation()} | {crit} {value:.2f}, {len(m.term_indices)} terms, "
-                    f"one-step MSE {m.mse:.4e}, {describe_data(self.data)}")
+                    f"one-step MSE {m.mse:.4e}, {describe_data(self.data)}"
+                    + decimation_phrase(m.metadata.get("decimation")))
             text += "".join(f", {part}" for part in (selected, cert) if part)
             if self.report is not None:
                 text += f" ({_validation_words(self.report)})"

@@ -29,7 +29,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["BlockDecimator", "decimate_blocks", "decimation_factor", "describe_decimation"]
+__all__ = ["BlockDecimator", "decimate_blocks", "decimation_factor", "decimation_phrase",
+           "describe_decimation"]
 
 #: How a block becomes one sample, in the document's words.
 INPUTS_RULE = "mean over the block"
@@ -94,6 +95,14 @@ def describe_decimation(doc: dict | None) -> str:
         text += (f"; {doc['unused']} sample(s) at segment ends, too few for a block, "
                  "not used")
     return text
+
+
+def decimation_phrase(doc: dict | None) -> str:
+    """The decimation in a clause for one-line answers ('' when there was none)."""
+    if not doc or int(doc.get("factor", 1)) <= 1:
+        return ""
+    unused = f", {doc['unused']} unused at segment ends" if doc.get("unused") else ""
+    return f" (decimated by {doc['factor']} from {doc['samples']} samples{unused})"
 
 
 class BlockDecimator:
