@@ -284,7 +284,9 @@ def joint_rates(seeds: int = 5) -> None:
     The held-out record is decimated as the first was, so its RMSE is over the
     decimated samples. Then the force (the sign term over the input terms' sum,
     as docs/cli.md reads it) of ``--ny 2 --nu 2 --degree 1 --regressors friction
-    --criterion bic`` on 20 s records of several seeds, at both rates.
+    --criterion bic`` on 20 s records of several seeds, at both rates, and at the
+    slower one with the sign of the velocity at t-1 instead (the preset's sign is
+    the previous block's motion's).
     """
     from spm_sysid.core.record import Record
 
@@ -305,18 +307,26 @@ def joint_rates(seeds: int = 5) -> None:
               + (f"; Coulomb force {force:.3f} N m (true 0.3)" if force else ""))
     settings = {"ny": 2, "nu": 2, "degree": 1, "regressors": "friction", "criterion": "bic",
                 "seed": 1}
-    for decimate in (1, DECIMATE):
-        forces = [_coulomb(_narx(*_joint(20.0, s), {**settings, "decimate": decimate})[0])
+    for decimate, sign in ((1, SIGN), (DECIMATE, SIGN), (DECIMATE, VELOCITY_SIGN)):
+        extra = {"decimate": decimate} if sign == SIGN else {"decimate": decimate,
+                                                             "regressors": sign}
+        forces = [_coulomb(_narx(*_joint(20.0, s), {**settings, **extra})[0], sign)
                   for s in range(seeds)]
-        print(f"  Coulomb force, --decimate {decimate}, seeds 0-{seeds - 1} (N m, true 0.3): "
+        what = "friction" if sign == SIGN else f'"{sign}"'
+        print(f"  Coulomb force, --decimate {decimate}, --regressors {what}, seeds 0-"
+              f"{seeds - 1} (N m, true 0.3): "
               + ", ".join("none" if f is None else f"{f:.3f}" for f in forces))
     sys.stdout.flush()
 
 
-def _coulomb(model) -> float | None:
-    """The Coulomb force a joint model's sign term says (None without the term)."""
+#: The friction preset's sign term, and the sign of the velocity at t-1 (second order).
+SIGN = "sign(y(t-1)-y(t-2))"
+VELOCITY_SIGN = "sign(3*y(t-1)-4*y(t-2)+y(t-3))"
+
+
+def _coulomb(model, sign: str = SIGN) -> float | None:
+    """The Coulomb force a joint model's ``sign`` term says (None without the term)."""
     th = dict(zip(model.terms, model.coefficients))
-    sign = f"sign({model.term_space.output}(t-1)-{model.term_space.output}(t-2))"
     if sign not in th:
         return None
     return -th[sign] / sum(v for k, v in th.items() if k.startswith("u("))
