@@ -176,3 +176,21 @@ def test_a_coupled_model_is_decimated_once_before_its_outputs_sessions():
     np.testing.assert_allclose([s.residual for s in got], e, rtol=1e-9, atol=1e-12)
     assert session.stats()["samples"] == len(q) and session.stats()["decimate"] == 3
     assert np.isfinite(coupled_held_out_mse(model, tau, q))
+
+
+def test_the_python_api_decimates_as_a_job_does(robot_arm):
+    from spm_sysid.core.errors import SettingsError
+    from spm_sysid.core.identify import identify
+
+    u, y = robot_arm
+    api = identify(u=u, y=y, decimate=2, seed=1).model
+    job = run_job(Record.from_samples(u, y, source="arm"),
+                  JobSettings.from_values({"decimate": 2, "seed": 1})).model
+    assert api.terms == job.terms
+    np.testing.assert_allclose(api.coefficients, job.coefficients, rtol=1e-12)
+    assert api.metadata["decimation"] == job.metadata["decimation"]
+    assert api.metadata["decimation"]["kept"] == len(y) // 2
+    with pytest.raises(SettingsError, match="decimate must be between 1 and 10000, got 0"):
+        identify(u=u, y=y, decimate=0)
+    with pytest.raises(SettingsError, match="gap_factor is a setting of a record's timeline"):
+        identify(u=u, y=y, gap_factor=2.0)

@@ -38,6 +38,7 @@ from .select.choose import choose, overfit_warnings, selection_account
 from .select.plan import SelectionPlan, plan_selection
 from .select.simulation import select_for_simulation
 from .settings import SETTINGS
+from .settings import check as check_setting
 
 __all__ = ["FOCUS", "SELECTION", "IdentificationResult", "check_samples", "identify",
            "identify_problem", "select_for_simulation", "validate_signals"]
@@ -92,7 +93,9 @@ def identify(
         coefficients)``), ``seed``, ``focus``, ``selection``, ``shortlist``,
         ``max_terms``, ``polish``, ``certify``, ``certify_time_limit``,
         ``auto_certify_time_limit``, ``horizon``, ``orders`` (``auto``: the lags
-        and degree proposed from the data), the term space's and the GA's. A
+        and degree proposed from the data), ``decimate`` (identify at 1/N of the
+        rate: :mod:`spm_sysid.core.model.decimation`; the model's metadata says
+        so), the term space's and the GA's. A
         ``certify_time_limit`` given alone asks for the certification. The
         validation's settings are refused: ``identify`` fits; validation is
         :func:`~spm_sysid.core.validate.validation.validate_model`'s (or a job's).
@@ -111,7 +114,12 @@ def identify(
     earlier term's, are left out of the search, and the result says so
     (``model.metadata["excluded_zero_terms"]``, ``["excluded_duplicate_terms"]``).
     """
+    decimate = settings.pop("decimate", None)
+    decimate = 1 if decimate is None else check_setting("decimate", decimate)
     options, term_space, ga, orders, regressors = _edge(settings, term_space, ga)
+    decimation = None
+    if decimate > 1:  # identified at the slower rate, as a job does (Record.decimated)
+        u, y, segments, decimation = _decimated(u, y, segments, decimate)
     why = None
     if orders == "auto":
         term_space, why = _orders_from_data(u, y, segments, term_space, options)
@@ -121,7 +129,21 @@ def identify(
     result = identify_problem(problem, options, ga=ga, callback=callback, progress=progress)
     if why is not None:
         result.model.metadata["orders"] = why
+    if decimation is not None:
+        result.model.metadata["decimation"] = decimation
     return result
+
+
+def _decimated(u, y, segments, factor: int):
+    """The arrays decimated by ``factor`` inside their segments, the segments, the account."""
+    from .model.decimation import decimate_blocks, decimation_doc
+    from .model.segments import normalise_segments
+
+    u, y = np.asarray(u, dtype=float), np.asarray(y, dtype=float)
+    bounds = normalise_segments(segments, len(y))
+    u2, y2, out, _ = decimate_blocks(u, y, bounds, factor)
+    doc = decimation_doc(factor, len(y), len(y2), sum(b - a for a, b in bounds))
+    return u2, y2, [b for b in out if b[1] > b[0]], doc
 
 
 def _with_regressors(term_space: TermSpace, regressors: list[str], y, u) -> TermSpace:
@@ -157,11 +179,16 @@ def _edge(settings: dict, term_space, ga
     given = {k: v for k, v in settings.items() if v is not None}
     known = set(SEARCH_SETTINGS) | {"orders", "simulation_folds", "simulation_repeats",
                                     "regressors", *_SPACE_SETTINGS, *_GA_SETTINGS}
-    validation = {n for n, s in SETTINGS.items() if s.group in ("validation", "data")}
+    validation = {n for n, s in SETTINGS.items() if s.group == "validation"}
+    timeline = {n for n, s in SETTINGS.items() if s.group == "data"}
     for name in given:
         if name in validation and name not in known:
             raise SettingsError(f"identify() does not validate: {name} is a setting of the "
                                 "validation (validate_model, or run_job for a whole job)")
+        if name in timeline and name not in known:
+            raise SettingsError(f"identify() takes samples without stamps: {name} is a "
+                                "setting of a record's timeline (give segments, or run_job "
+                                "with a Record)")
         if name not in known:
             raise SettingsError(f"identify() has no setting {name!r} (spm-sysid settings "
                                 "lists them all)")

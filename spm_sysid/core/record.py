@@ -167,18 +167,11 @@ class Record:
         """
         if factor <= 1:
             return self
-        from .model.decimation import (
-            INPUTS_RULE,
-            OUTPUTS_RULE,
-            decimate_blocks,
-            describe_decimation,
-        )
+        from .model.decimation import decimate_blocks, decimation_doc, describe_decimation
 
         info = self.segment_info(period_ns, gap_factor)
         u, y, bounds, first = decimate_blocks(self.u, self.y, info.bounds, factor)
-        doc = {"factor": int(factor), "samples": len(self.y), "kept": len(y),
-               "unused": info.n_samples - len(y) * factor, "inputs": INPUTS_RULE,
-               "outputs": OUTPUTS_RULE}
+        doc = decimation_doc(factor, len(self.y), len(y), info.n_samples)
         period = None if info.period_ns is None else info.period_ns * factor
         segments = SegmentInfo([b for b in bounds if b[1] > b[0]], period, info.period_source,
                                info.gaps, info.missing_samples, info.restarts)

@@ -29,8 +29,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["BlockDecimator", "decimate_blocks", "decimation_factor", "decimation_phrase",
-           "describe_decimation"]
+__all__ = ["BlockDecimator", "decimate_blocks", "decimation_doc", "decimation_factor",
+           "decimation_phrase", "describe_decimation"]
 
 #: How a block becomes one sample, in the document's words.
 INPUTS_RULE = "mean over the block"
@@ -76,6 +76,17 @@ def decimate_blocks(u: np.ndarray, y: np.ndarray, bounds: list[tuple[int, int]],
     empty_u, empty_y = u[:0], y[:0]
     return (np.concatenate(us) if us else empty_u, np.concatenate(ys) if ys else empty_y,
             out, np.concatenate(firsts) if firsts else np.zeros(0, dtype=int))
+
+
+def decimation_doc(factor: int, samples: int, kept: int, in_segments: int) -> dict:
+    """What a model document records of a decimation (``metadata.decimation``).
+
+    ``samples`` recorded, ``kept`` blocks, ``in_segments`` samples inside the
+    segments (those of them no block took are ``unused``).
+    """
+    return {"factor": int(factor), "samples": int(samples), "kept": int(kept),
+            "unused": int(in_segments - kept * factor), "inputs": INPUTS_RULE,
+            "outputs": OUTPUTS_RULE}
 
 
 def decimation_factor(metadata: Any) -> int:
