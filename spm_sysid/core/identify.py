@@ -114,12 +114,8 @@ def identify(
     earlier term's, are left out of the search, and the result says so
     (``model.metadata["excluded_zero_terms"]``, ``["excluded_duplicate_terms"]``).
     """
-    decimate = settings.pop("decimate", None)
-    decimate = 1 if decimate is None else check_setting("decimate", decimate)
+    u, y, segments, decimation = _decimated(u, y, segments, settings.pop("decimate", None))
     options, term_space, ga, orders, regressors = _edge(settings, term_space, ga)
-    decimation = None
-    if decimate > 1:  # identified at the slower rate, as a job does (Record.decimated)
-        u, y, segments, decimation = _decimated(u, y, segments, decimate)
     why = None
     if orders == "auto":
         term_space, why = _orders_from_data(u, y, segments, term_space, options)
@@ -127,18 +123,22 @@ def identify(
         term_space = _with_regressors(term_space, regressors, y, u)
     problem = Problem.from_signals(u, y, term_space, segments)
     result = identify_problem(problem, options, ga=ga, callback=callback, progress=progress)
-    if why is not None:
-        result.model.metadata["orders"] = why
-    if decimation is not None:
-        result.model.metadata["decimation"] = decimation
+    result.model.metadata.update({k: v for k, v in (("orders", why),
+                                                    ("decimation", decimation)) if v})
     return result
 
 
-def _decimated(u, y, segments, factor: int):
-    """The arrays decimated by ``factor`` inside their segments, the segments, the account."""
+def _decimated(u, y, segments, factor: int | None):
+    """The arrays decimated by ``factor`` inside their segments, the segments, the account.
+
+    As a job decimates its record (:meth:`~spm_sysid.core.record.Record.decimated`);
+    a factor of None or 1 leaves them as they are (no account).
+    """
     from .model.decimation import decimate_blocks, decimation_doc
     from .model.segments import normalise_segments
 
+    if factor is None or check_setting("decimate", factor) == 1:
+        return u, y, segments, None
     u, y = np.asarray(u, dtype=float), np.asarray(y, dtype=float)
     bounds = normalise_segments(segments, len(y))
     u2, y2, out, _ = decimate_blocks(u, y, bounds, factor)
