@@ -282,11 +282,13 @@ def joint_rates(seeds: int = 5) -> None:
     """The simulated joint at 1/``DECIMATE`` of its rate, and the Coulomb force read from it.
 
     The held-out record is decimated as the first was, so its RMSE is over the
-    decimated samples. Then the force (the sign term over the input terms' sum,
-    as docs/cli.md reads it) of ``--ny 2 --nu 2 --degree 1 --regressors friction
-    --criterion bic`` on 20 s records of several seeds, at both rates, and at the
-    slower one with the sign of the velocity at t-1 instead (the preset's sign is
-    the previous block's motion's).
+    decimated samples; the default space without regressors, with the friction
+    preset, and with the sign of the velocity at t-1 (``VELOCITY_SIGN``). Then
+    the force (the sign term over the input terms' sum, as docs/cli.md reads it)
+    of ``--ny 2 --nu 2 --degree 1 --regressors friction --criterion bic`` on 20 s
+    records of several seeds, at both rates, and at the slower one with the sign
+    of the velocity at t-1 instead (the preset's sign is the previous block's
+    motion's).
     """
     from spm_sysid.core.record import Record
 
@@ -298,11 +300,13 @@ def joint_rates(seeds: int = 5) -> None:
           "the second record decimated alike)")
     base = {"focus": "simulation", "constant": True, "criterion": "bic", "seed": 1,
             "decimate": DECIMATE}
-    for label, extra in (("default", {}), ("default + friction", {"regressors": "friction"})):
-        model, seconds = _narx(u1, y1, {**base, **extra})
+    for label, regressors, sign in (("default", "", SIGN),
+                                    ("default + friction", "friction", SIGN),
+                                    ("default + velocity sign", VELOCITY_SIGN, VELOCITY_SIGN)):
+        model, seconds = _narx(u1, y1, {**base, "regressors": regressors})
         print(_line(f"{label}, --decimate {DECIMATE}", held.y,
                     _narx_run(model, held.u, held.y), f"{len(model.terms)} terms", seconds))
-        force = _coulomb(model)
+        force = _coulomb(model, sign)
         print(_call(model) + _regressor_terms(model)
               + (f"; Coulomb force {force:.3f} N m (true 0.3)" if force else ""))
     settings = {"ny": 2, "nu": 2, "degree": 1, "regressors": "friction", "criterion": "bic",
