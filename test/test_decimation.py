@@ -194,3 +194,28 @@ def test_the_python_api_decimates_as_a_job_does(robot_arm):
         identify(u=u, y=y, decimate=0)
     with pytest.raises(SettingsError, match="gap_factor is a setting of a record's timeline"):
         identify(u=u, y=y, gap_factor=2.0)
+
+
+def test_the_data_check_says_when_a_record_is_sampled_far_faster_than_it_moves(robot_arm):
+    """The 1 kHz joint is flagged with a decimation to try; the same joint decimated, the
+    robot arm (acceleration, a broadband torque) and white noise are not."""
+    from spm_sysid.core.validate.excitation import oversampling
+
+    tau, q = joint_record(20.0, seed=0)
+    assert oversampling(tau, q, [(0, len(q))]) == 20
+    slow = Record.from_samples(tau, q, source="joint").decimated(5)
+    assert oversampling(slow.u, slow.y, slow.segments.bounds) == 0
+    u, y = robot_arm
+    assert oversampling(u, y, None) == 0
+    rng = np.random.default_rng(0)
+    assert oversampling(rng.standard_normal(5000), rng.standard_normal(5000), None) == 0
+    # by hand: a 2 Hz sine sampled at 1 kHz (250x) and at 50 Hz (12.5x), the power
+    # of a sine sits at its frequency
+    t = np.arange(20000) / 1000.0
+    assert oversampling(np.sin(2 * np.pi * 2 * t), np.cos(2 * np.pi * 2 * t), None) == 100
+    t = np.arange(2000) / 50.0
+    assert oversampling(np.sin(2 * np.pi * 2 * t), np.cos(2 * np.pi * 2 * t), None) == 10
+    model = run_job(Record.from_samples(tau, q, source="joint"), JobSettings.from_values(
+        {"ny": 2, "nu": 2, "degree": 1, "seed": 0, "generations": 5})).model
+    assert any("sampled about 20x faster" in w and "--decimate 5" in w
+               for w in model.metadata["warnings"])

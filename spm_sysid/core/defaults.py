@@ -41,6 +41,13 @@ COLLINEAR_LIMIT = 600
 #: is a glitch (a spike, a wrong unit, a bad read).
 GLITCH_FACTOR = 50.0
 
+#: The data check calls a record sampled K times faster than it moves when every input
+#: and the output hold this share of their power below 1/(2K) of the sampling rate ...
+OVERSAMPLED_POWER = 0.95
+
+#: ... for the largest K of these (none: the check says nothing).
+OVERSAMPLING_FACTORS = (10, 20, 50, 100)
+
 #: Squared relative pivot below which a term is a combination of the others: a term
 #: reproduced by the others to within a relative residual of about 3e-5.
 RANK_TOL = 1e-9

@@ -16,7 +16,8 @@ For a :class:`~spm_sysid.core.fit.problem.Problem` it reports:
 * a **refusal** when nothing can be identified (no candidate term varies), and
   **warnings** otherwise: too few rows per candidate, an input too simple for
   its lags, terms that cannot be identified, an ill-conditioned matrix, a
-  constant output.
+  constant output, a record sampled far faster than its signals move
+  (:func:`oversampling`: then ``--decimate`` may fit better).
 
 ``spm-sysid check-data`` prints the report; ``identify`` prints its warnings
 first; the node's answer, ``/diagnostics`` and the model document carry them.
@@ -29,11 +30,19 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..compiled.kernels import pivoted_qr
-from ..defaults import COLLINEAR_LIMIT, CONDITION_WARN, GLITCH_FACTOR, PE_TOL, ROWS_PER_TERM
+from ..defaults import (
+    COLLINEAR_LIMIT,
+    CONDITION_WARN,
+    GLITCH_FACTOR,
+    OVERSAMPLED_POWER,
+    OVERSAMPLING_FACTORS,
+    PE_TOL,
+    ROWS_PER_TERM,
+)
 from ..errors import DataError
 
 __all__ = ["COLLINEAR_LIMIT", "DataCheck", "check_problem", "describe_check",
-           "describe_glitches", "excitation_order", "glitches"]
+           "describe_glitches", "excitation_order", "glitches", "oversampling"]
 
 #: Terms named on one line of the report (the document lists them all).
 SHOWN_TERMS = 20
@@ -104,6 +113,34 @@ def excitation_order(u: np.ndarray, segments, max_order: int) -> int:
             break
         order = n
     return order
+
+
+def oversampling(u: np.ndarray, y: np.ndarray, segments) -> int:
+    """How many times faster than its signals move a record is sampled (0: not notably).
+
+    The largest K of :data:`OVERSAMPLING_FACTORS` for which every input and the
+    output hold :data:`OVERSAMPLED_POWER` of their power (Welch's estimate, mean
+    removed, on the longest segment) below 1/(2K) of the sampling rate. A joint
+    sampled at 1 kHz that moves at a few hertz is such a record: its output's
+    second difference is mostly measurement noise, which biases least squares
+    on lagged outputs (docs/cli.md, ``--decimate``).
+    """
+    from scipy.signal import welch
+
+    a, b = max(segments, key=lambda s: s[1] - s[0]) if segments else (0, len(y))
+    signals = np.column_stack([np.asarray(u, dtype=float).reshape(len(y), -1)[a:b],
+                               np.asarray(y, dtype=float)[a:b]])
+    if b - a < 64 or np.any(np.ptp(signals, axis=0) == 0):
+        return 0
+    freq, power = welch(signals - signals.mean(axis=0), nperseg=min(4096, (b - a) // 4),
+                        axis=0)
+    total = power.sum(axis=0)
+    found = 0
+    for k in OVERSAMPLING_FACTORS:
+        low = power[freq <= 0.5 / k].sum(axis=0)
+        if np.all(low >= OVERSAMPLED_POWER * total):
+            found = k
+    return found
 
 
 @dataclass
@@ -256,4 +293,13 @@ def _warn(check: DataCheck, problem, criterion: str | None = None) -> None:
     y = problem.y
     if np.ptp(y) == 0:
         w.append(f"the output {ts.output} is constant")
+    factor = oversampling(problem.u, problem.y, problem.segments)
+    if factor:
+        w.append(f"every input and the output hold {OVERSAMPLED_POWER:.0%} of their power "
+                 f"below 1/{2 * factor} of the sampling rate: the record is sampled about "
+                 f"{factor}x faster than they move, so the step from one sample to the next "
+                 "may be small against measurement noise, which biases the fit of lagged "
+                 "outputs (gains, "
+                 f"friction); a slower rate may fit better: --decimate {factor // 4} "
+                 "(docs/cli.md)")
 
