@@ -54,6 +54,11 @@ def test_blocks_average_the_inputs_take_the_first_output_and_stay_inside_segment
     assert "3 sample(s) at segment ends" in d.notes[-1]
     assert d.metadata()["decimation"]["factor"] == 4
     assert record.decimated(1) is record
+    twice = record.decimated(2).decimated(2)  # the same blocks as decimating by 4
+    np.testing.assert_allclose(twice.u, d.u, rtol=1e-12)
+    np.testing.assert_array_equal(twice.y, d.y)
+    assert twice.segments.bounds == d.segments.bounds
+    assert twice.decimation == d.decimation
 
 
 def test_the_stream_decimates_as_the_record_does_and_counts_partial_blocks():

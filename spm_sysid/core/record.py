@@ -163,15 +163,23 @@ class Record:
         Blocks stay inside the segments (:meth:`segment_info` with ``period_ns``
         and ``gap_factor``); the decimated record keeps them as its segments, its
         stamps are the blocks' first, and :attr:`decimation` and a note say what
-        was done and how many samples at segment ends were not used.
+        was done and how many samples at segment ends were not used. A record
+        decimated again is decimated by the product of the factors (exactly so).
         """
         if factor <= 1:
             return self
-        from .model.decimation import decimate_blocks, decimation_doc, describe_decimation
+        from .model.decimation import (
+            compose,
+            decimate_blocks,
+            decimation_doc,
+            describe_decimation,
+        )
 
         info = self.segment_info(period_ns, gap_factor)
         u, y, bounds, first = decimate_blocks(self.u, self.y, info.bounds, factor)
         doc = decimation_doc(factor, len(self.y), len(y), info.n_samples)
+        if self.decimation:  # decimated before: one decimation by the product
+            doc = compose(self.decimation, doc)
         period = None if info.period_ns is None else info.period_ns * factor
         segments = SegmentInfo([b for b in bounds if b[1] > b[0]], period, info.period_source,
                                info.gaps, info.missing_samples, info.restarts)

@@ -29,8 +29,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["BlockDecimator", "decimate_blocks", "decimation_doc", "decimation_factor",
-           "decimation_phrase", "describe_decimation"]
+__all__ = ["BlockDecimator", "compose", "decimate_blocks", "decimation_doc",
+           "decimation_factor", "decimation_phrase", "describe_decimation"]
 
 #: How a block becomes one sample, in the document's words.
 INPUTS_RULE = "mean over the block"
@@ -89,6 +89,17 @@ def decimation_doc(factor: int, samples: int, kept: int, in_segments: int) -> di
             "outputs": OUTPUTS_RULE}
 
 
+def compose(earlier: dict, later: dict) -> dict:
+    """Two decimations one after the other, as one decimation.
+
+    Blocks of ``a`` then of ``b`` are blocks of ``a b``: a mean of equal means is
+    the mean, a first of firsts is the first.
+    """
+    factor = int(earlier["factor"]) * int(later["factor"])
+    return {**later, "factor": factor, "samples": earlier["samples"],
+            "unused": earlier["unused"] + later["unused"] * int(earlier["factor"])}
+
+
 def decimation_factor(metadata: Any) -> int:
     """The factor a model document says its model runs at (1: the record's own rate)."""
     doc = metadata.get("decimation") if isinstance(metadata, dict) else None
@@ -128,12 +139,11 @@ class BlockDecimator:
             raise ValueError(f"the decimation factor must be >= 1, got {factor}")
         self.factor = int(factor)
         self.dropped = 0  # samples of partial blocks given up at gaps
-        self.reset()
+        self._count, self._sum, self._first = 0, 0.0, None
 
     def reset(self) -> None:
         """Start a new block (the samples of a partial one are counted in ``dropped``)."""
-        if getattr(self, "_count", 0):
-            self.dropped += self._count
+        self.dropped += self._count
         self._count, self._sum, self._first = 0, 0.0, None
 
     def push(self, stamp_ns: int, u, y) -> tuple[int, Any, Any] | None:
