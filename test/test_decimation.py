@@ -224,3 +224,16 @@ def test_the_data_check_says_when_a_record_is_sampled_far_faster_than_it_moves(r
         {"ny": 2, "nu": 2, "degree": 1, "seed": 0, "generations": 5})).model
     assert any("sampled about 20x faster" in w and "--decimate 5" in w
                for w in model.metadata["warnings"])
+
+
+def test_a_study_config_that_asks_for_decimation_gets_it(tmp_path):
+    """``decimate`` in a study's --config is a job setting like the others: not ignored."""
+    config = tmp_path / "study.yaml"
+    config.write_text("criteria: [bic]\npopulations: [50]\nspm_fractions: [0.15]\nruns: 2\n"
+                      "generations: 10\ndecimate: 2\n")
+    out = subprocess.run([sys.executable, "-m", "spm_sysid.apps.main", "experiment",
+                          "--config", str(config), "--out", str(tmp_path / "study"), "--quiet",
+                          "--no-certify"], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert "note: decimated by 2: 1024 samples to 512" in out.stdout
+    assert "2 runs on robot-arm data" in out.stdout and "512 samples" in out.stdout

@@ -48,6 +48,9 @@ def cmd_experiment(args) -> int:
     info = record.segment_info()
     if info.gaps or len(info.bounds) > 1:
         raise UserError(f"{record.source} has gaps; the study needs one contiguous record")
+    if config.decimate > 1:  # a study's config may ask for it as a job's settings do
+        record = record.decimated(config.decimate)
+        print(f"note: {record.notes[-1]}")
     n_runs = (len(config.criteria) * len(config.populations) * len(config.spm_fractions)
               * config.runs)
     print(f"study: {n_runs} runs on {record.source}, {len(record.y)} samples")
