@@ -93,9 +93,8 @@ def identify(
         coefficients)``), ``seed``, ``focus``, ``selection``, ``shortlist``,
         ``max_terms``, ``polish``, ``certify``, ``certify_time_limit``,
         ``auto_certify_time_limit``, ``horizon``, ``orders`` (``auto``: the lags
-        and degree proposed from the data), ``decimate`` (identify at 1/N of the
-        rate: :mod:`spm_sysid.core.model.decimation`; the model's metadata says
-        so), the term space's and the GA's. A
+        and degree proposed from the data), ``decimate`` (at 1/N of the rate:
+        :mod:`~spm_sysid.core.model.decimation`), the term space's and the GA's. A
         ``certify_time_limit`` given alone asks for the certification. The
         validation's settings are refused: ``identify`` fits; validation is
         :func:`~spm_sysid.core.validate.validation.validate_model`'s (or a job's).
@@ -116,9 +115,8 @@ def identify(
     """
     u, y, segments, decimation = _decimated(u, y, segments, settings.pop("decimate", None))
     options, term_space, ga, orders, regressors = _edge(settings, term_space, ga)
-    why = None
-    if orders == "auto":
-        term_space, why = _orders_from_data(u, y, segments, term_space, options)
+    term_space, why = (_orders_from_data(u, y, segments, term_space, options)
+                       if orders == "auto" else (term_space, None))
     if regressors:
         term_space = _with_regressors(term_space, regressors, y, u)
     problem = Problem.from_signals(u, y, term_space, segments)
