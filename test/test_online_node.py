@@ -50,6 +50,14 @@ def read_bag_stamps(bag) -> list[int]:
     return [int(t) for t in read_bag_signals(bag).stamps_ns]
 
 
+def identify_replayed(env, harness, bag, samples: int):
+    """The node's answer to ``~/identify`` once ``bag``'s ``samples`` are in its buffer."""
+    harness.wait_ready()
+    play_bag(env, bag)
+    harness.wait_buffer(lambda kv: int(kv["samples"]) >= samples)
+    return harness.call("/spm_sysid/identify")
+
+
 def latest(harness, msg_type, topic, predicate, timeout=30.0):
     got = []
     sub = harness.node.create_subscription(msg_type, topic, got.append, 10)
@@ -68,10 +76,7 @@ def test_the_robot_arm_bag_replayed_again_stays_valid_and_scaled_by_one_and_a_ha
     scaled = write_io_bag(tmp_path / "scaled", 1.5 * u, 1.5 * y)
     node = start_node(ros_env, "seed:=1", "prediction_horizon:=5")
     try:
-        harness.wait_ready()
-        play_bag(ros_env, arm)
-        harness.wait_buffer(lambda kv: int(kv["samples"]) >= len(y))
-        res = harness.call("/spm_sysid/identify")
+        res = identify_replayed(ros_env, harness, arm, len(y))
         assert res.success and "8 terms" in res.message
         v = harness.latched(Validity, "/spm_sysid/validity")
         assert v.state == Validity.VALID and v.samples == 0
@@ -136,10 +141,7 @@ def test_a_decimated_model_is_predicted_once_a_block_on_the_live_stream(
     arm = write_io_bag(tmp_path / "arm", u, y)
     node = start_node(ros_env, "seed:=1", "decimate:=2")
     try:
-        harness.wait_ready()
-        play_bag(ros_env, arm)
-        harness.wait_buffer(lambda kv: int(kv["samples"]) >= len(y))
-        res = harness.call("/spm_sysid/identify")
+        res = identify_replayed(ros_env, harness, arm, len(y))
         assert res.success and f"decimated by 2 from {len(y)} samples" in res.message
         doc = json.loads(harness.latched(String, "/spm_sysid/model", 30).data)
         assert doc["metadata"]["decimation"]["factor"] == 2
@@ -172,10 +174,7 @@ def test_a_restored_model_is_monitored_as_the_fresh_one(ros_env, harness, robot_
     saved = tmp_path / "model.json"
     node = start_node(ros_env, "seed:=1", f"model_path:={saved}")
     try:
-        harness.wait_ready()
-        play_bag(ros_env, arm)
-        harness.wait_buffer(lambda kv: int(kv["samples"]) >= len(y))
-        assert harness.call("/spm_sysid/identify").success
+        assert identify_replayed(ros_env, harness, arm, len(y)).success
     finally:
         stop(node)
     doc = json.loads(saved.read_text())
