@@ -17,7 +17,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from spm_sysid.core.fit.free_run import FreeRun
+from spm_sysid.core.fit.levenberg import refine_free_run
 from spm_sysid.core.fit.problem import Problem
+from spm_sysid.core.fit.refine import linear_radius, refine_simulation, stabilised_start
 from spm_sysid.core.jobs import JobSettings, describe_selection, run_job
 from spm_sysid.core.model.mimo import read_model_document
 from spm_sysid.core.model.terms import TermSpace
@@ -295,3 +298,65 @@ def test_a_pd_controlled_joint_with_friction_is_judged_and_beats_arx_on_its_free
     assert ours < theirs, (ours, theirs)
     assert any(t.startswith("u(") for t in m.terms)  # a model of the torque's effect
     assert json.loads(json.dumps(m.to_dict(), allow_nan=False))
+
+
+# -- an integrator that least squares puts beyond 1 -------------------------------------
+
+def test_a_stabilised_start_scales_every_pole_and_keeps_the_structure():
+    space = TermSpace(ny=3, nu=1, degree=1, constant=True)
+    names = ["y(t-1)", "y(t-3)", "u(t-1)"]  # y(t-2) is not in the structure
+    indices = [space.term_names().index(n) for n in names]
+    theta = np.array([1.2, -0.19, 0.7])  # z^3 - 1.2 z^2 + 0.19: a pole beyond 1
+    radius = linear_radius(space, indices, theta)
+    assert radius > 1.0
+    start = stabilised_start(space, indices, theta)
+    assert linear_radius(space, indices, start) == pytest.approx(0.999, abs=1e-9)
+    r = 0.999 / radius  # each y(t-l) times r**l (every pole times r), the input's as it was
+    assert start == pytest.approx([1.2 * r, -0.19 * r ** 3, 0.7], rel=1e-12)
+    assert stabilised_start(space, indices, np.array([0.5, -0.1, 0.7])) is None  # stable
+
+
+def test_an_integrator_least_squares_puts_beyond_one_is_refined_from_inside_the_circle():
+    """At 1 kHz least squares puts a drive's integrator beyond 1 (1.005 here), and the
+    refinement from there ended beyond 1 too: the structure was lost. It now starts again
+    with the poles scaled inside, guarded, and keeps the integrator."""
+    tau, q = joint_record(10.0, seed=0)
+    space = TermSpace(ny=2, nu=2, degree=1, constant=True)
+    model = Problem.from_signals(tau, q, space).model(np.ones(space.n_terms, dtype=bool))
+    assert linear_radius(space, model.term_indices, model.coefficients) > 1.001
+    plain = refine_free_run(FreeRun(model, tau, q, None, guard=False), model.coefficients, 30)
+    assert linear_radius(space, model.term_indices, plain.x) > 1.0  # where it used to end
+    ref = refine_simulation(model, tau, q, None, max_evaluations=30)
+    assert ref.success and np.isfinite(ref.sse), ref.message
+    assert "poles scaled inside the unit circle" in ref.message
+    assert 0.999 <= linear_radius(space, model.term_indices, ref.coefficients) < 1.0
+    yhat, diverged = model.with_coefficients(ref.coefficients).run(tau, q)
+    assert diverged is None
+    e = q[space.max_lag:] - yhat
+    assert float(e @ e) == pytest.approx(ref.sse, rel=1e-9)
+    assert ref.sse < 0.5 * float(np.sum((q - q.mean()) ** 2))  # it simulates the record
+
+
+@pytest.mark.slow
+def test_a_long_joint_record_gets_a_model_that_integrates(tmp_path):
+    """100 s of the joint at 1 kHz: every structure's refinement ended beyond 1 and the
+    command as typed stopped with 'no finalist structure simulates within the output's
+    range'. It returns a model that keeps the integrator and simulates another record."""
+    tau, q = joint_record(100.0, seed=3)
+    data = tmp_path / "joint.csv"
+    np.savetxt(data, np.column_stack([tau, q]), delimiter=",", header="torque,q",
+               comments="", fmt="%.9g")
+    out = subprocess.run([EXE, "identify", "--data", str(data), "--inputs", "torque",
+                          "--output", "q", "--focus", "simulation", "--orders", "auto",
+                          "--seed", "1", "--json", str(tmp_path / "m.json")],
+                         capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    m, _ = read_model_document(tmp_path / "m.json")
+    assert m.metadata["open_loop"]["kind"] == "integrating"
+    assert 0.99 < linear_radius(m.term_space, m.term_indices, m.coefficients) < 1.0
+    assert any(t.startswith("torque(") for t in m.terms)
+    tau2, q2 = joint_record(100.0, seed=5)
+    yhat, diverged = m.run(tau2, q2)
+    assert diverged is None
+    rmse = float(np.sqrt(np.mean((q2[m.term_space.max_lag:] - yhat) ** 2)))
+    assert rmse < 0.8 * float(np.std(q2)), rmse

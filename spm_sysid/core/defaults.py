@@ -247,6 +247,12 @@ REAL_ANGLE = 0.05
 #: still simulates over a held-out block.
 INTEGRATOR_MARGIN = 2e-3
 
+#: Where a refinement whose least-squares start is unstable starts again, when its first
+#: try ends unstable: the start's poles scaled so that the largest lies at this radius
+#: (:func:`~spm_sysid.core.fit.refine.stabilised_start`). At 1 kHz a drive's integrator
+#: then starts with a time constant of 1 000 samples, and the refinement, guarded, moves it.
+STABLE_START_RADIUS = 0.999
+
 #: The open-loop check's ARX order at least (the output's lags when more, up to 10): an
 #: ARX of order 2 or 3 on a drive at 1 kHz with friction puts its integrator at
 #: 1.002-1.005 (equation-error bias), order 4 at 1.001.

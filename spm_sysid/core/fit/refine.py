@@ -31,13 +31,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..defaults import STABLE_START_RADIUS
 from ..model.narx import NarxModel
 from ..model.uncertainty import Uncertainty, from_jacobian
 from .free_run import FreeRun, _output_lags, _stable
 from .levenberg import evaluate_free_run, refine_free_run
 
 __all__ = ["Refinement", "free_run_uncertainty", "linear_radius", "linear_stability_check",
-           "refine_simulation"]
+           "refine_simulation", "stabilised_start"]
 
 
 def linear_radius(term_space, term_indices, theta) -> float:
@@ -164,17 +165,63 @@ def refine_simulation(model: NarxModel, u: np.ndarray, y: np.ndarray,
     sse0, div0, sse, div = sol.sse_start, sol.diverged_start, sol.sse, sol.diverged
     if div is None and not stable(theta):
         radius = linear_radius(ts, model.term_indices, theta)
-        return Refinement(theta, float("inf"), sse0, div0, nfev, False,
-                          f"the refined model's linear part is unstable (pole radius "
-                          f"{radius:.4f}): it may fit this record and fail on any other")
+        return _stabilised(model, u, y, segments, max_evaluations, sse0, div0) or Refinement(
+            theta, float("inf"), sse0, div0, nfev, False,
+            f"the refined model's linear part is unstable (pole radius {radius:.4f}): it "
+            "may fit this record and fail on any other")
     if div is not None or not sse < sse0:
         if div0 is None:
             return Refinement(theta0, sse0, sse0, div0, nfev, True,
                               "the least-squares coefficients simulate best; kept")
-        return Refinement(theta0, float("inf"), sse0, div0, nfev, False,
-                          f"the simulation diverges at sample {div0} and refinement did not "
-                          "find stable coefficients")
+        return _stabilised(model, u, y, segments, max_evaluations, sse0, div0) or Refinement(
+            theta0, float("inf"), sse0, div0, nfev, False,
+            f"the simulation diverges at sample {div0} and refinement did not find stable "
+            "coefficients")
     return Refinement(theta, sse, sse0, div0, nfev, True, msg)
+
+
+def stabilised_start(term_space, term_indices, theta: np.ndarray,
+                     radius: float = STABLE_START_RADIUS) -> np.ndarray | None:
+    """``theta`` with its linear output part's poles scaled inside ``radius`` (None: stable).
+
+    Each ``y(t-l)`` coefficient times ``r**l`` multiplies every pole by r: the
+    structure (which lags it has) stays, only the poles move, all by the same
+    factor, so that the largest lies at ``radius``. Least squares puts the
+    integrator of a drive sampled fast a little beyond 1 (1.0004-1.001 at 1 kHz);
+    from there a refinement may end beyond 1 too. Started here instead, under
+    the stability guard, it keeps the integrator's pole inside (or on) the circle.
+    """
+    largest = linear_radius(term_space, term_indices, theta)
+    if largest < 1.0:
+        return None
+    pos, lags = _output_lags(term_space, term_indices)
+    out = np.array(theta, dtype=float)
+    out[pos] *= (radius / largest) ** lags.astype(float)
+    return out
+
+
+def _stabilised(model: NarxModel, u, y, segments, max_evaluations: int, sse0: float,
+                div0: int | None) -> Refinement | None:
+    """The refinement from :func:`stabilised_start`, guarded; None when it finds nothing.
+
+    The second chance of a structure whose least-squares fit is unstable and whose
+    refinement from there ended unstable or diverging (an integrating output's).
+    """
+    ts = model.term_space
+    start = stabilised_start(ts, model.term_indices, model.coefficients)
+    if start is None:
+        return None
+    run = FreeRun(model, u, y, segments, guard=True)
+    try:
+        sol = refine_free_run(run, start, max_evaluations)
+    except (ValueError, FloatingPointError):  # pragma: no cover - numerical failure
+        return None
+    stable = linear_stability_check(ts, model.term_indices)
+    if sol.diverged is not None or not np.isfinite(sol.sse) or not stable(sol.x):
+        return None
+    return Refinement(sol.x, sol.sse, sse0, div0, sol.nfev, True,
+                      f"{sol.message} (from the least-squares fit with its poles scaled inside "
+                      f"the unit circle: its linear part was unstable)")
 
 
 def _kept(run: FreeRun, theta0: np.ndarray, why: str) -> Refinement:
