@@ -20,7 +20,9 @@ convention), beside the linear ARX and the published figures.
 
 The joint is also identified at a fifth of its rate (``--decimate 5``), with
 and without the friction preset, and the Coulomb force read from the friction
-term on five records, at both rates.
+term on five records, at both rates; then the command as typed with and
+without the friction preset on five record pairs, and how many are 3x better
+with it (:func:`friction_ratios`).
 
 Each record also gets the friction and the saturation presets
 (``--regressors friction``, ``--regressors saturation``) beside the default
@@ -321,6 +323,58 @@ def joint_rates(seeds: int = 5) -> None:
               f"{seeds - 1} (N m, true 0.3): "
               + ", ".join("none" if f is None else f"{f:.3f}" for f in forces))
     sys.stdout.flush()
+    friction_ratios(seeds)
+
+
+def friction_ratios(pairs: int = 5) -> None:
+    """Issue 42's 3x: the command as typed with ``--regressors friction``, on record pairs.
+
+    For each pair of 20 s joint records (seeds 1 -> 2, 3 -> 4, ...): the best
+    free run without friction terms (the command as typed at 1 kHz, and at
+    ``--decimate 5``) over the one with the friction preset (as typed, 1 kHz),
+    all scored on the second record's samples at the slower rate's block starts
+    from sample 50 (the same samples for every model).
+    """
+    from .scale import _joint
+
+    print(f"joint, the command as typed (--focus simulation --orders auto, AIC) with and "
+          f"without --regressors friction, {pairs} record pairs (free-run RMSE, rad)")
+    met = 0
+    for seed in range(1, 2 * pairs, 2):
+        first, second = _joint(20.0, seed), _joint(20.0, seed + 1)
+        plain, _ = _pair_score(first, second, {})
+        slower, _ = _pair_score(first, second, {"decimate": DECIMATE})
+        with_friction, terms = _pair_score(first, second, {"regressors": "friction"})
+        ratio = min(plain, slower) / with_friction
+        met += ratio >= 3.0
+        print(f"  records {seed} -> {seed + 1}: without {plain:.4g} (1 kHz), {slower:.4g} "
+              f"(--decimate {DECIMATE}); with friction {with_friction:.4g}{terms}; "
+              f"ratio {ratio:.2f}")
+        sys.stdout.flush()
+    print(f"  at least 3x better with the friction terms: {met} of {pairs} pairs")
+
+
+def _pair_score(first, second, settings: dict) -> tuple[float, str]:
+    """Free-run RMSE on ``second`` of the command as typed on ``first``, and its regressors.
+
+    Scored at the block starts of ``--decimate 5`` from sample 50, whatever the model's
+    rate; a run that fails scores inf.
+    """
+    from spm_sysid.core.record import Record
+
+    (u1, y1), (u2, y2) = first, second
+    at = np.arange(0, len(y2), DECIMATE)
+    try:
+        model, _ = _narx(u1, y1, {**TYPED, **settings})
+    except Exception as exc:  # a failed run counts as no model
+        return float("inf"), f" (failed: {str(exc)[:60]}...)"
+    if settings.get("decimate"):
+        slow = Record.from_samples(u2, y2, source="second record").decimated(DECIMATE)
+        sim = _narx_run(model, slow.u, slow.y)
+    else:
+        sim = _narx_run(model, u2, y2)[at]
+    e = (y2[at] - sim)[at >= 50]
+    return float(np.sqrt(np.nanmean(e * e))), _regressor_terms(model)
 
 
 #: The friction preset's sign term, and the sign of the velocity at t-1 (second order).

@@ -10,8 +10,12 @@ it, in its own process -- on
   (``test/helpers/joint.py``);
 
 and prints, per size, the wall seconds, the peak resident memory of that
-process (``os.wait4``), the phases its progress lines named, and the slope of
-log(time) against log(samples) over the sizes (1: linear cost). ``--repeats``
+process (``os.wait4``), the phases its progress lines named, the model's
+free-run RMSE on a record it was not fitted on (the Wiener-Hammerstein test
+part in mV from its sample 50, the benchmark's convention; a second joint
+recording of the same length, from its sample 50, beside the linear ARX's:
+:func:`spm_sysid.core.validate.arx.choose_arx` on the same record), and the
+slope of log(time) against log(samples) over the sizes (1: linear cost). ``--repeats``
 runs each size several times and prints the median. Figures, not assertions:
 the limits the project keeps are 60 s for Silverbox (65 062 samples), 120 s
 for Wiener-Hammerstein (100 000) and 1.5 GB on a 2-core machine.
@@ -48,7 +52,7 @@ def _joint(seconds: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _run(data: Path, extra: tuple[str, ...]) -> tuple[float, float, int, list[str]]:
-    """(seconds, peak MiB, exit status, phases seen) of one identify run."""
+    """(seconds, peak MiB, exit status, phases seen) of one identify run (extra: its options)."""
     exe = str(Path(sys.executable).with_name("spm-sysid"))
     t0 = time.perf_counter()
     p = subprocess.Popen([exe, *COMMAND, "--data", str(data), *extra],
@@ -61,6 +65,41 @@ def _run(data: Path, extra: tuple[str, ...]) -> tuple[float, float, int, list[st
     _, status, usage = os.wait4(p.pid, 0)
     seconds = time.perf_counter() - t0
     return seconds, usage.ru_maxrss / 1024.0, os.waitstatus_to_exitcode(status), phases
+
+
+#: Held-out samples that initialise a free run and are left out of its error (the
+#: Wiener-Hammerstein benchmark's convention, used for the joint too).
+SKIP = 50
+
+
+def _wh_test(shared: Path) -> tuple[np.ndarray, np.ndarray] | None:
+    """The Wiener-Hammerstein test part (None when it is not there)."""
+    from spm_sysid.core.io.data import load_io
+
+    path = shared / "wh_val.dat"
+    return load_io(path) if path.is_file() else None
+
+
+def _arx_rmse(fit: tuple[np.ndarray, np.ndarray], held: tuple[np.ndarray, np.ndarray]
+              ) -> float:
+    """The linear ARX yardstick's free-run RMSE on ``held``, fitted on ``fit``."""
+    from spm_sysid.core.validate.arx import choose_arx, rmse
+
+    arx = choose_arx(*fit)
+    return float(rmse(held[1], arx.simulate(*held), SKIP)[0])
+
+
+def _held_out(path: Path, held, scale: float) -> float:
+    """The written model's free-run RMSE on ``held`` (u, y) times ``scale`` (NaN: none)."""
+    from spm_sysid.core.model.mimo import read_model_document
+
+    if held is None or not path.is_file():
+        return float("nan")
+    model, _ = read_model_document(path)
+    u, y = held
+    yhat, _ = model.run(u, y)
+    e = y[model.term_space.max_lag:] - yhat
+    return scale * float(np.sqrt(np.nanmean(e[max(SKIP - model.term_space.max_lag, 0):] ** 2)))
 
 
 def run(args) -> None:
@@ -79,21 +118,33 @@ def run(args) -> None:
                 records.append((f"Wiener-Hammerstein, first {n}", n, path))
         else:
             print(f"{wh} not found: the Wiener-Hammerstein sizes are skipped")
+        held = {"wh": _wh_test(shared)}
         if args.joint_seconds > 0:
             tau, q = _joint(args.joint_seconds)
             path = Path(tmp) / "joint.dat"
             np.savetxt(path, np.column_stack([tau, q]), fmt="%.10g")
             records.append((f"joint at 1 kHz, {args.joint_seconds:g} s", len(q), path))
-        print(f"spm-sysid {' '.join(COMMAND)} --data FILE (median of {args.repeats})")
-        print(f"{'record':<36} {'samples':>8} {'seconds':>9} {'peak MiB':>9}  status  phases")
+            held["joint"] = _joint(args.joint_seconds, seed=1)
+            print(f"joint: the linear ARX's free-run RMSE on the second recording "
+                  f"{_arx_rmse((tau, q), held['joint']):.4g} rad")
+        print(f"spm-sysid {' '.join(COMMAND)} --data FILE (median of {args.repeats}); "
+              "held-out: the model's free-run RMSE on a record it was not fitted on")
+        print(f"{'record':<36} {'samples':>8} {'seconds':>9} {'peak MiB':>9}  status  "
+              f"{'held-out':>12}  phases")
         for label, n, path in records:
-            runs = [_run(path, ("--seed", str(seed))) for seed in range(args.repeats)]
+            model = Path(tmp) / "model.json"
+            runs = [_run(path, ("--seed", str(seed), "--json", str(model)))
+                    for seed in range(args.repeats)]
             seconds = float(np.median([r[0] for r in runs]))
             peak = float(np.median([r[1] for r in runs]))
             status = max(r[2] for r in runs)
+            kind = "joint" if label.startswith("joint") else "wh"
+            error = _held_out(model, held.get(kind), 1e3 if kind == "wh" else 1.0)
+            unit = "mV" if kind == "wh" else "rad"
             print(f"{label:<36} {n:>8} {seconds:>9.1f} {peak:>9.0f}  {status:>6}  "
-                  f"{' > '.join(runs[0][3])}", flush=True)
+                  f"{error:>8.4g} {unit:<3}  {' > '.join(runs[0][3])}", flush=True)
             rows.append((n, seconds, label))
+            model.unlink(missing_ok=True)
     wh_rows = [(n, s) for n, s, label in rows if label.startswith("Wiener")]
     if len(wh_rows) >= 2:
         x, t = np.log([r[0] for r in wh_rows]), np.log([r[1] for r in wh_rows])

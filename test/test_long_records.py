@@ -303,6 +303,8 @@ def test_a_pd_controlled_joint_with_friction_is_judged_and_beats_arx_on_its_free
 # -- an integrator that least squares puts beyond 1 -------------------------------------
 
 def test_a_stabilised_start_scales_every_pole_and_keeps_the_structure():
+    """An integrator's pole beyond 1 (real, positive) is scaled to 0.999 with every other
+    pole; a resonance beyond 1 is not (a stable system's structure that fails stays lost)."""
     space = TermSpace(ny=3, nu=1, degree=1, constant=True)
     names = ["y(t-1)", "y(t-3)", "u(t-1)"]  # y(t-2) is not in the structure
     indices = [space.term_names().index(n) for n in names]
@@ -314,6 +316,10 @@ def test_a_stabilised_start_scales_every_pole_and_keeps_the_structure():
     r = 0.999 / radius  # each y(t-l) times r**l (every pole times r), the input's as it was
     assert start == pytest.approx([1.2 * r, -0.19 * r ** 3, 0.7], rel=1e-12)
     assert stabilised_start(space, indices, np.array([0.5, -0.1, 0.7])) is None  # stable
+    resonance = [space.term_names().index(n) for n in ("y(t-1)", "y(t-2)", "u(t-1)")]
+    theta = np.array([1.0, -1.05, 0.7])  # z^2 - z + 1.05: a complex pair beyond 1
+    assert linear_radius(space, resonance, theta) > 1.0
+    assert stabilised_start(space, resonance, theta) is None  # not an integrator's pole
 
 
 def test_an_integrator_least_squares_puts_beyond_one_is_refined_from_inside_the_circle():

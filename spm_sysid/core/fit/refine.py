@@ -31,23 +31,21 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..defaults import STABLE_START_RADIUS
+from ..defaults import REAL_ANGLE, STABLE_START_RADIUS
 from ..model.narx import NarxModel
 from ..model.uncertainty import Uncertainty, from_jacobian
 from .free_run import FreeRun, _output_lags, _stable
 from .levenberg import evaluate_free_run, refine_free_run
 
-__all__ = ["Refinement", "free_run_uncertainty", "linear_radius", "linear_stability_check",
-           "refine_simulation", "stabilised_start"]
+__all__ = ["Refinement", "free_run_uncertainty", "linear_poles", "linear_radius",
+           "linear_stability_check", "refine_simulation", "stabilised_start"]
 
 
-def linear_radius(term_space, term_indices, theta) -> float:
-    """Spectral radius of the model's linear output part (its poles about zero).
+def linear_poles(term_space, term_indices, theta) -> np.ndarray:
+    """The poles of the model's linear output part (empty without output lags).
 
     The terms ``y(t-l)`` alone (products left out) give the characteristic
-    polynomial ``z^n - sum_l a_l z^(n-l)``; the largest root modulus below 1
-    means the linearised model forgets its initial conditions. 0 without
-    output lags.
+    polynomial ``z^n - sum_l a_l z^(n-l)``; its roots.
     """
     lin = term_space.linear
     all_terms = term_space.terms
@@ -58,8 +56,18 @@ def linear_radius(term_space, term_indices, theta) -> float:
         if len(t) == 1 and term_space.is_output_lag(t[0]):
             a[lin[t[0]][1]] -= c
     if not np.any(a[1:]):
-        return 0.0
-    return float(np.max(np.abs(np.roots(np.trim_zeros(a, "b")))))
+        return np.zeros(0, dtype=complex)
+    return np.roots(np.trim_zeros(a, "b")).astype(complex)
+
+
+def linear_radius(term_space, term_indices, theta) -> float:
+    """Spectral radius of the model's linear output part (its poles about zero).
+
+    Below 1, the linearised model forgets its initial conditions. 0 without
+    output lags (:func:`linear_poles`).
+    """
+    poles = linear_poles(term_space, term_indices, theta)
+    return float(np.max(np.abs(poles))) if poles.size else 0.0
 
 
 def linear_stability_check(term_space, term_indices):
@@ -182,21 +190,25 @@ def refine_simulation(model: NarxModel, u: np.ndarray, y: np.ndarray,
 
 def stabilised_start(term_space, term_indices, theta: np.ndarray,
                      radius: float = STABLE_START_RADIUS) -> np.ndarray | None:
-    """``theta`` with its linear output part's poles scaled inside ``radius`` (None: stable).
+    """``theta`` with an integrator's pole scaled inside ``radius`` (None: no such pole).
 
-    Each ``y(t-l)`` coefficient times ``r**l`` multiplies every pole by r: the
-    structure (which lags it has) stays, only the poles move, all by the same
-    factor, so that the largest lies at ``radius``. Least squares puts the
-    integrator of a drive sampled fast a little beyond 1 (1.0004-1.001 at 1 kHz);
-    from there a refinement may end beyond 1 too. Started here instead, under
-    the stability guard, it keeps the integrator's pole inside (or on) the circle.
+    Least squares puts the integrator of a drive sampled fast a little beyond 1
+    (1.0004-1.005 at 1 kHz), and a refinement from there may end beyond 1 too.
+    When every pole outside the unit circle is real and positive (angle below
+    :data:`~spm_sysid.core.defaults.REAL_ANGLE`: an integrator's, not a
+    resonance's), each ``y(t-l)`` coefficient times ``r**l`` multiplies every
+    pole by r, so that the largest lies at ``radius``: the structure keeps its
+    lags and only the poles move. Started there, under the stability guard, a
+    refinement keeps the integrator inside (or on) the circle. None when the
+    poles are inside, or when one outside is complex or negative.
     """
-    largest = linear_radius(term_space, term_indices, theta)
-    if largest < 1.0:
+    poles = linear_poles(term_space, term_indices, theta)
+    outside = poles[np.abs(poles) >= 1.0]
+    if not outside.size or np.any(np.abs(np.angle(outside)) >= REAL_ANGLE):
         return None
     pos, lags = _output_lags(term_space, term_indices)
     out = np.array(theta, dtype=float)
-    out[pos] *= (radius / largest) ** lags.astype(float)
+    out[pos] *= (radius / float(np.max(np.abs(outside)))) ** lags.astype(float)
     return out
 
 
