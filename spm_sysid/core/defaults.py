@@ -248,7 +248,8 @@ REAL_ANGLE = 0.05
 INTEGRATOR_MARGIN = 2e-3
 
 #: Where a refinement whose least-squares start is unstable starts again, when its first
-#: try ends unstable: the start's poles scaled so that the largest lies at this radius
+#: try ends unstable or diverging and the poles outside the circle are an integrator's
+#: (real, positive): the start's poles scaled so that the largest lies at this radius
 #: (:func:`~spm_sysid.core.fit.refine.stabilised_start`). At 1 kHz a drive's integrator
 #: then starts with a time constant of 1 000 samples, and the refinement, guarded, moves it.
 STABLE_START_RADIUS = 0.999

@@ -15,9 +15,13 @@ Stability: a step that would make the model's linear part unstable (a pole
 of its output-lag polynomial on or outside the unit circle, see
 :func:`linear_radius`) is rejected when the least-squares model's is stable --
 a model can fit the estimation record well while growing slowly, and then fail
-on any other record. A refinement that ends unstable (possible only from an
-unstable least-squares start) fails, so simulation-focused selection never
-returns a model whose linear part is unstable. On the estimation data, a
+on any other record. A refinement that ends unstable or diverging from an
+unstable least-squares start gets a second start when every pole outside the
+circle is real and positive (an integrator's, which least squares puts a
+little beyond 1 on a drive sampled fast): the poles scaled inside
+(:func:`stabilised_start`), every step guarded. One that still ends unstable
+fails, so simulation-focused selection never returns a model whose linear
+part is unstable. On the estimation data, a
 simulation that leaves the measured range
 (see :mod:`~spm_sysid.core.model.simulation`) costs as if every later output sat
 on the range's edge, with no gradient, so a step into divergence is always
