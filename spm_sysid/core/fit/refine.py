@@ -177,18 +177,18 @@ def refine_simulation(model: NarxModel, u: np.ndarray, y: np.ndarray,
     sse0, div0, sse, div = sol.sse_start, sol.diverged_start, sol.sse, sol.diverged
     if div is None and not stable(theta):
         radius = linear_radius(ts, model.term_indices, theta)
-        return _stabilised(model, u, y, segments, max_evaluations, sse0, div0) or Refinement(
-            theta, float("inf"), sse0, div0, nfev, False,
-            f"the refined model's linear part is unstable (pole radius {radius:.4f}): it "
-            "may fit this record and fail on any other")
+        return _stabilised(model, u, y, segments, max_evaluations, sse0, div0, stable) or (
+            Refinement(theta, float("inf"), sse0, div0, nfev, False,
+                       f"the refined model's linear part is unstable (pole radius "
+                       f"{radius:.4f}): it may fit this record and fail on any other"))
     if div is not None or not sse < sse0:
         if div0 is None:
             return Refinement(theta0, sse0, sse0, div0, nfev, True,
                               "the least-squares coefficients simulate best; kept")
-        return _stabilised(model, u, y, segments, max_evaluations, sse0, div0) or Refinement(
-            theta0, float("inf"), sse0, div0, nfev, False,
-            f"the simulation diverges at sample {div0} and refinement did not find stable "
-            "coefficients")
+        return _stabilised(model, u, y, segments, max_evaluations, sse0, div0, stable) or (
+            Refinement(theta0, float("inf"), sse0, div0, nfev, False,
+                       f"the simulation diverges at sample {div0} and refinement did not "
+                       "find stable coefficients"))
     return Refinement(theta, sse, sse0, div0, nfev, True, msg)
 
 
@@ -217,11 +217,12 @@ def stabilised_start(term_space, term_indices, theta: np.ndarray,
 
 
 def _stabilised(model: NarxModel, u, y, segments, max_evaluations: int, sse0: float,
-                div0: int | None) -> Refinement | None:
+                div0: int | None, stable) -> Refinement | None:
     """The refinement from :func:`stabilised_start`, guarded; None when it finds nothing.
 
     The second chance of a structure whose least-squares fit is unstable and whose
-    refinement from there ended unstable or diverging (an integrating output's).
+    refinement from there ended unstable or diverging (an integrating output's);
+    ``stable``: the structure's :func:`linear_stability_check`.
     """
     ts = model.term_space
     start = stabilised_start(ts, model.term_indices, model.coefficients)
@@ -232,7 +233,6 @@ def _stabilised(model: NarxModel, u, y, segments, max_evaluations: int, sse0: fl
         sol = refine_free_run(run, start, max_evaluations)
     except (ValueError, FloatingPointError):  # pragma: no cover - numerical failure
         return None
-    stable = linear_stability_check(ts, model.term_indices)
     if sol.diverged is not None or not np.isfinite(sol.sse) or not stable(sol.x):
         return None
     return Refinement(sol.x, sol.sse, sse0, div0, sol.nfev, True,

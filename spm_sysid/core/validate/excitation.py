@@ -309,7 +309,6 @@ def _warn(check: DataCheck, problem, criterion: str | None = None) -> None:
                  f"below 1/{2 * factor} of the sampling rate: the record is sampled about "
                  f"{factor}x faster than they move, so the step from one sample to the next "
                  "may be small against measurement noise, which biases the fit of lagged "
-                 "outputs (gains, "
-                 f"friction); a slower rate may fit better: --decimate {factor // 4} "
-                 "(docs/cli.md)")
+                 f"outputs (gains, friction); a slower rate may fit better: --decimate "
+                 f"{factor // 4} (docs/cli.md)")
 
