@@ -31,6 +31,7 @@ from spm_sysid.core.select.call import Call
 from spm_sysid.core.select.finalists import returned_account
 from spm_sysid.core.select.folds import is_long, refinement_windows, sub_blocks
 from spm_sysid.core.select.plan import plan_selection
+from spm_sysid.core.validate.orders import propose_orders
 from spm_sysid.tools.cli.progress import PhaseBars
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -341,6 +342,26 @@ def test_an_integrator_least_squares_puts_beyond_one_is_refined_from_inside_the_
     e = q[space.max_lag:] - yhat
     assert float(e @ e) == pytest.approx(ref.sse, rel=1e-9)
     assert ref.sse < 0.5 * float(np.sum((q - q.mean()) ** 2))  # it simulates the record
+
+
+def test_the_order_scan_refines_a_linear_space_whose_integrator_least_squares_put_beyond_one():
+    """The simulation focus's scan judged each space by its least-squares free run and
+    refined only those that stayed in range: on a joint at 1 kHz ARX(2), the plant's own
+    order, left the range (its integrator beyond 1) and was never refined, so the scan
+    proposed other spaces (order 1, degree 3 on a 200 s record). It is now refined, with
+    the stabilised start, and simulates the scan's held-out samples."""
+    tau, q = joint_record(5.0, seed=0)
+    proposal = propose_orders(tau, q, criterion="aic", focus="simulation")
+    rows = {(n, d): (ls, refined) for n, d, _, ls, refined in proposal.space_scan}
+    ls, refined = rows[(2, 1)]
+    assert not np.isfinite(ls)  # least squares' free run left the range
+    start = 10  # the scan's first row (orders up to 10, delay 1)
+    cut = start + int(2 / 3 * (len(q) - start))
+    assert np.isfinite(refined) and refined < 0.6 * float(np.std(q[cut:]))
+    space = TermSpace(ny=2, nu=2, degree=1, constant=True)
+    model = Problem.from_signals(tau[:cut], q[:cut], space).model(
+        np.ones(space.n_terms, dtype=bool))
+    assert stabilised_start(space, model.term_indices, model.coefficients) is not None
 
 
 @pytest.mark.slow
