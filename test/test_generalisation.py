@@ -14,6 +14,7 @@ from spm_sysid.core.errors import DataError
 from spm_sysid.core.fit.criteria import aicc
 from spm_sysid.core.fit.problem import Problem
 from spm_sysid.core.identify import identify
+from spm_sysid.core.jobs import describe_selection
 from spm_sysid.core.model.narx import NarxModel
 from spm_sysid.core.model.terms import TermSpace
 from spm_sysid.core.model.uncertainty import output_band
@@ -67,6 +68,23 @@ def test_the_free_run_covariance_comes_from_the_jacobian(robot_arm):
     np.testing.assert_array_equal(back.uncertainty.covariance, m.uncertainty.covariance)
     table = m.coefficient_table()
     assert "std. error" in table and "free-run Jacobian" in table
+
+
+def test_the_answer_reports_the_linear_arx_on_the_same_held_out_blocks(robot_arm):
+    """Issue 41: the free run is judged against the linear ARX's; the answer says what the
+    one-line ARX fit (least squares, the best of its orders) scored on the same blocks."""
+    u, y = robot_arm
+    m = identify(u=u, y=y, criterion="bic", seed=0, focus="simulation").model
+    call = m.metadata["selection"]["linear_or_nonlinear"]
+    assert 1 <= call["linear_arx_order"] <= m.term_space.max_lag
+    # the ARX of each order is a linear finalist: the best linear one is at least as good
+    assert call["best_linear_held_out_mse"] <= call["linear_arx_held_out_mse"]
+    assert call["linear_arx_held_out_stderr"] > 0
+    text = describe_selection(m.metadata["selection"])
+    assert (f"the linear ARX (least squares, order {call['linear_arx_order']}) had MSE "
+            f"{call['linear_arx_held_out_mse']:.4g} on the same blocks") in text
+    back = NarxModel.from_dict(json.loads(m.to_json()))  # the schema takes the fields
+    assert back.metadata["selection"]["linear_or_nonlinear"] == call
 
 
 def test_output_bands_contain_the_model_and_widen_with_noise(robot_arm):

@@ -217,6 +217,9 @@ def describe_selection(doc: dict | None) -> str:
                      f"(p = {call['p_value']:.3g}): " + _fate(call))
         elif call.get("choice") == "linear":
             text += "; no nonlinear finalist simulated the held-out blocks better than linear"
+        if call.get("linear_arx_held_out_mse") is not None:
+            text += (f"; the linear ARX (least squares, order {call['linear_arx_order']}) "
+                     f"had MSE {call['linear_arx_held_out_mse']:.4g} on the same blocks")
         left = doc.get("left_range_held_out")
         if left:
             text += (f"; {left} finalist(s) left the output's range on the held-out blocks")

@@ -251,7 +251,9 @@ METADATA = fields({
             "best_linear_held_out_stderr": MSE, "blocks": integer(),
             "tested": text(choices=("linear", "nonlinear")), "terms": integer(),
             "nonlinear_terms": integer(), "challenger_fate": text(),
-            "shrunk_nonlinear_terms": number(0.0, 1.0), "fallback": text()})},
+            "shrunk_nonlinear_terms": number(0.0, 1.0), "fallback": text(),
+            "linear_arx_order": integer(1), "linear_arx_held_out_mse": MSE,
+            "linear_arx_held_out_stderr": MSE})},
         required=("method", "what", "folds")),
     "certificate": lambda v, p: _certificate(v, p),
     "orders": fields({

@@ -327,7 +327,28 @@ class ValidatedSimulation:
                                ratio=call.ratio, p_value=call.p_value)
             account["choice"] = call.choice
         account["estimator"] = judged.estimator[call.order[0]] if call.order else None
+        account.update(self.linear_arx(judged))
         return call, account
+
+    def linear_arx(self, judged: Judged) -> dict:
+        """The yardstick in the account: the full linear ARX fitted by least squares.
+
+        Of the orders judged (every one is a finalist), the one with the lowest mean
+        held-out error: its order, mean and standard error (empty when none simulated
+        every block). A user compares the returned model's held-out error with this,
+        the one-line ARX fit, on the same blocks.
+        """
+        s = judged.scores
+        orders = {mask_key(m): k + 1 for k, m in enumerate(linear_structures(self.problem))}
+        rows = [(s.mean[i], orders[mask_key(m)], s.stderr[i])
+                for i, m in enumerate(s.masks)
+                if judged.estimator[i] == "least squares" and mask_key(m) in orders
+                and np.isfinite(s.mean[i])]
+        if not rows:
+            return {}
+        mean, order, stderr = min(rows)
+        return {"linear_arx_order": order, "linear_arx_held_out_mse": mean,
+                "linear_arx_held_out_stderr": stderr}
 
     def linear_sse(self, judged: Judged) -> float:
         """In-sample free-run SSE of the best screened linear finalist (inf: none)."""

@@ -70,7 +70,8 @@ class OpenLoop:
         return (f"the output integrates (a real pole at {self.pole.real:.4f} in the linear ARX "
                 f"model of order {self.order}, {self.rows} rows): judged on its free run, as "
                 "benchmarks of drives are; its free run drifts with any error of the model, so "
-                "compare its free-run error with the linear ARX's")
+                "compare its free-run error with the linear ARX's (the selection's account "
+                "gives both on the same held-out blocks)")
 
     def reason(self) -> str:
         """Why free-run comparison does not apply ('' when it does)."""
