@@ -21,6 +21,7 @@ from spm_sysid.core.model.uncertainty import output_band
 from spm_sysid.core.search.certify import certify
 from spm_sysid.core.select.folds import blocked_folds
 from spm_sysid.core.select.guard import stress_check, surrogate_input
+from spm_sysid.core.select.simulation import linear_orders
 from spm_sysid.core.validate.excitation import check_problem, excitation_order
 
 from .conftest import EQ1, ROOT, eq1_model, sine_record
@@ -85,6 +86,16 @@ def test_the_answer_reports_the_linear_arx_on_the_same_held_out_blocks(robot_arm
             f"{call['linear_arx_held_out_mse']:.4g} on the same blocks") in text
     back = NarxModel.from_dict(json.loads(m.to_json()))  # the schema takes the fields
     assert back.metadata["selection"]["linear_or_nonlinear"] == call
+
+
+def test_each_full_linear_structure_keeps_its_order_when_an_earlier_one_repeats():
+    """Unusable terms can make order 2's structure order 1's: it is listed once, and the
+    next one is still called order 3 (the answer names the ARX by its order)."""
+    space = TermSpace(ny=3, nu=3, degree=1)
+    names = space.term_names()
+    usable = np.array([n not in ("y(t-2)", "u(t-2)") for n in names])
+    got = [(k, [names[i] for i in np.flatnonzero(m)]) for k, m in linear_orders(space, usable)]
+    assert got == [(1, ["y(t-1)", "u(t-1)"]), (3, ["y(t-1)", "y(t-3)", "u(t-1)", "u(t-3)"])]
 
 
 def test_output_bands_contain_the_model_and_widen_with_noise(robot_arm):

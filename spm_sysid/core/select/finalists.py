@@ -54,7 +54,7 @@ from .call import Call, linear_or_nonlinear
 from .folds import final_steps, is_long, refinement_windows, sub_blocks
 from .guard import shrink_to_hold, stress_check
 from .scores import Scores, mean_and_stderr
-from .simulation import SimulationScorer, linear_structures, simulation_value
+from .simulation import SimulationScorer, linear_orders, linear_structures, simulation_value
 
 __all__ = ["ESTIMATORS", "FoldRun", "validated_simulation"]
 
@@ -339,7 +339,8 @@ class ValidatedSimulation:
         the one-line ARX fit, on the same blocks.
         """
         s = judged.scores
-        orders = {mask_key(m): k + 1 for k, m in enumerate(linear_structures(self.problem))}
+        orders = {mask_key(m): k for k, m in linear_orders(self.problem.term_space,
+                                                             self.problem.usable)}
         rows = [(s.mean[i], orders[mask_key(m)], s.stderr[i])
                 for i, m in enumerate(s.masks)
                 if judged.estimator[i] == "least squares" and mask_key(m) in orders

@@ -36,8 +36,8 @@ from ..progress import Progress, ProgressFn
 from ..search.local import SearchResult, local_search
 from .folds import final_steps, refinement_windows
 
-__all__ = ["SimulationScorer", "linear_masks", "linear_structures", "select_for_simulation",
-           "simulation_value"]
+__all__ = ["SimulationScorer", "linear_masks", "linear_orders", "linear_structures",
+           "select_for_simulation", "simulation_value"]
 
 
 def simulation_value(criterion: Criterion, sse: float, rows: int, mask: np.ndarray,
@@ -285,6 +285,12 @@ def linear_structures(problem) -> list[np.ndarray]:
 
 def linear_masks(term_space, usable: np.ndarray | None = None) -> list[np.ndarray]:
     """:func:`linear_structures` of a term space (only ``usable`` terms when given)."""
+    return [mask for _, mask in linear_orders(term_space, usable)]
+
+
+def linear_orders(term_space, usable: np.ndarray | None = None
+                  ) -> list[tuple[int, np.ndarray]]:
+    """Each distinct full linear ARX structure with its order k (see :func:`linear_masks`)."""
     ts = term_space
     lin = ts.linear
     index = {t: i for i, t in enumerate(ts.terms)}
@@ -305,5 +311,5 @@ def linear_masks(term_space, usable: np.ndarray | None = None) -> list[np.ndarra
         key = mask_key(mask)
         if mask.any() and key not in seen:
             seen.add(key)
-            out.append(mask)
+            out.append((k, mask))
     return out
