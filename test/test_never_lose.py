@@ -229,6 +229,12 @@ def test_several_outputs_are_judged_coupled_and_orders_auto_covers_them():
     assert sel["folds"] >= 2 and sel["choice"] in ("linear", "nonlinear")
     assert result.diverged == []
     assert "coupled judgement on" in result.summary("lines")
+    # the yardstick: the least-squares linear MIMO ARX with the lowest held-out error
+    arx = min((f for f in sel["finalists"] if f["name"].startswith("linear MIMO ARX")
+               and f["fitted"] == "least squares" and f["held_out_error"] is not None),
+              key=lambda f: f["held_out_error"])
+    assert (f"the {arx['name']} (least squares) had coupled error "
+            f"{arx['held_out_error']:.4g} on the same blocks") in result.summary("lines")
     # each output's account describes the model returned, not its own (replaced) choice
     for name, out in zip(("p", "q"), result.outputs):
         own = out.model.metadata["selection"]

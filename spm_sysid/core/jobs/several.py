@@ -164,6 +164,10 @@ def describe_coupled(doc: dict | None) -> str:
                    "not better than the best linear by more than the noise")
         text += (f"; the best nonlinear finalist's coupled error is {doc['ratio']:.2f}x the "
                  f"best linear's (p = {doc['p_value']:.3g}): {verdict}")
+    arx = _least_squares_arx(doc.get("finalists") or [])
+    if arx is not None:
+        text += (f"; the {arx['name']} (least squares) had coupled error "
+                 f"{arx['held_out_error']:.4g} on the same blocks")
     removed = doc.get("removed_by_guard") or []
     if removed:
         text += (f"; {len(removed)} finalist(s) removed because their coupled run diverged "
@@ -172,6 +176,18 @@ def describe_coupled(doc: dict | None) -> str:
                 doc["chosen"] != doc["nonlinear"]:
             text += f" ({doc['nonlinear']} among them: the model returned is the next finalist)"
     return text
+
+
+def _least_squares_arx(finalists: list[dict]) -> dict | None:
+    """The coupled finalists' yardstick: the least-squares linear MIMO ARX of lowest error.
+
+    None when no such finalist simulated every held-out block.
+    """
+    rows = [f for f in finalists if str(f.get("name", "")).startswith("linear MIMO ARX")
+            and f.get("fitted") == "least squares"
+            and isinstance(f.get("held_out_error"), (int, float))
+            and np.isfinite(f["held_out_error"])]
+    return min(rows, key=lambda f: f["held_out_error"]) if rows else None
 
 
 def cross_correlation_tests(residuals: np.ndarray, names: tuple[str, ...],
