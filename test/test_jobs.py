@@ -99,10 +99,10 @@ def test_the_candidate_matrix_is_built_once_per_identification(robot_arm, monkey
     calls = []
     original = TermSpace.regression_matrix
 
-    def counting(self, u, y, terms=None, scales=None):
+    def counting(self, u, y, terms=None, scales=None, out=None):
         if terms is None:
             calls.append(len(y))
-        return original(self, u, y, terms, scales)
+        return original(self, u, y, terms, scales, out=out)
 
     monkeypatch.setattr(TermSpace, "regression_matrix", counting)
     u, y = robot_arm

@@ -97,6 +97,18 @@ POLISH_HOME = 30
 #: counts structures, which did almost nothing there (docs/results.md).
 POLISH_STEP_WORK = 300_000
 
+#: Bytes of ``[P y]`` rows the evaluator's numbers are built from at a time: a record of
+#: more rows is reduced slice by slice, so that no copy of its candidate matrix is made
+#: (one slice gives exactly the numbers of one pass).
+FACTOR_SLICE_BYTES = 64 << 20
+
+#: Bytes of candidate matrices the outputs of a record may hold at once while they are
+#: identified side by side (one thread each); beyond it they take turns. Two outputs of
+#: 10^5 samples in a (9, 9, 2) space hold 561 MB each: side by side the two-link arm took
+#: 6.5 GB before the matrices were built and reduced in slices, 1.8 GB after (issue 41's
+#: bound is 1.5 GB); small records (4 000 samples: 22 MB each) still run side by side.
+PARALLEL_OUTPUT_BYTES = 512 << 20
+
 #: Spaces of at most this many usable terms are certified after the GA by default.
 AUTO_CERTIFY_TERMS = 120
 

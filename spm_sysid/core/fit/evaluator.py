@@ -45,9 +45,10 @@ import numpy as np
 
 from ..compiled.kernels import fit_structures, qr_structures
 from ..cores import usable_cores
+from ..defaults import FACTOR_SLICE_BYTES
 from ..model.uncertainty import solve_upper
 from .criteria import Criterion, get_criterion
-from .lstsq import DEFAULT_RANK_TOL, sse_floor
+from .lstsq import DEFAULT_RANK_TOL, column_norms, sse_floor
 
 #: Structures the Gram path accepts with a smallest squared pivot below
 #: NEAR_RANK * rank_tol have their rank (and fit) decided by QR, as the reference fit
@@ -121,6 +122,37 @@ def cache_capacity(n_terms: int) -> int:
 FIT_SLICE_BYTES = 8 << 20
 
 
+def _factors(P: np.ndarray, target: np.ndarray, columns: np.ndarray | None
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The columns' norms, and the Gram matrix and triangular factor of unit-norm ``[P y]``.
+
+    Slice by slice (:data:`~spm_sysid.core.defaults.FACTOR_SLICE_BYTES`: the Gram
+    matrix summed, the triangular factor updated by the QR of the factor so far
+    stacked on the next rows) for long records; a record of one
+    slice takes the one-pass route of earlier versions, so its numbers are unchanged.
+    """
+    m = P.shape[1] if columns is None else len(columns)
+    rows = max(m + 1, FACTOR_SLICE_BYTES // (8 * (m + 1)))
+
+    def block(a: int, b: int) -> np.ndarray:
+        return P[a:b] if columns is None else P[a:b][:, columns]
+
+    if P.shape[0] <= rows:
+        X = block(0, P.shape[0])
+        norms = np.linalg.norm(X, axis=0)
+        aug = np.column_stack([X / np.where(norms > 0, norms, 1.0), target])
+        return norms, aug.T @ aug, np.linalg.qr(aug, mode="r")
+    norms = column_norms(P) if columns is None else column_norms(P)[columns]
+    inverse = 1.0 / np.where(norms > 0, norms, 1.0)
+    gram = np.zeros((m + 1, m + 1))
+    r = np.zeros((0, m + 1))
+    for a in range(0, P.shape[0], rows):
+        aug = np.column_stack([block(a, a + rows) * inverse, target[a:a + rows]])
+        gram += aug.T @ aug
+        r = np.linalg.qr(np.vstack([r, aug]), mode="r")
+    return norms, gram, r
+
+
 class StructureEvaluator:
     """Scores structures on one data set with one criterion; cached and batched.
 
@@ -139,6 +171,9 @@ class StructureEvaluator:
         the caller scaled the data).
     max_terms : int
         Structures of more terms score +inf (0: no limit).
+    columns : ndarray of int, optional
+        The columns of ``P`` to score (None: all), read a slice of rows at a
+        time: no copy of the selected columns is made.
 
     Attributes
     ----------
@@ -173,6 +208,7 @@ class StructureEvaluator:
         rank_tol: float = DEFAULT_RANK_TOL,
         sse_scale: float = 1.0,
         max_terms: int = 0,
+        columns: np.ndarray | None = None,
     ) -> None:
         P = np.asarray(P, dtype=float)
         target = np.asarray(target, dtype=float)
@@ -180,20 +216,18 @@ class StructureEvaluator:
         # SSE of the data as the user gave it = SSE here * sse_scale (identify scales
         # u and y by powers of two, which is exact, so criteria see the user's units)
         self.sse_scale = float(sse_scale)
-        self.n, self.n_terms = P.shape
+        self.n = P.shape[0]
+        self.n_terms = P.shape[1] if columns is None else len(columns)
         self.rank_tol = rank_tol
         self.max_terms = int(max_terms)
-        norms = np.linalg.norm(P, axis=0)
+        m = self.n_terms
+        gram = np.zeros((m + 2, m + 2))
+        norms, gram[: m + 1, : m + 1], r_aug = _factors(P, target, columns)
         self.zero_columns = norms == 0
         self.column_norms = np.where(norms > 0, norms, 1.0)
         self.target_norm = float(np.linalg.norm(target)) or 1.0
         self.sse_floor = sse_floor(float(np.linalg.norm(target)))
-        aug = np.column_stack([P / self.column_norms, target])
-        m = self.n_terms
-        gram = np.zeros((m + 2, m + 2))
-        gram[: m + 1, : m + 1] = aug.T @ aug
         self.gram = gram
-        r_aug = np.linalg.qr(aug, mode="r")
         self.factor = np.zeros((r_aug.shape[0], m + 2))
         self.factor[:, : m + 1] = r_aug
         self._reset()

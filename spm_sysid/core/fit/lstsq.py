@@ -17,10 +17,29 @@ from ..defaults import SSE_FLOOR_RELATIVE
 from ..model.uncertainty import solve_upper
 from .criteria import Criterion, get_criterion
 
-__all__ = ["DEFAULT_RANK_TOL", "FitResult", "reference_fit", "reference_score", "score_one",
-           "sse_floor"]
+__all__ = ["DEFAULT_RANK_TOL", "FitResult", "column_norms", "reference_fit", "reference_score",
+           "score_one", "sse_floor"]
 
 DEFAULT_RANK_TOL = 1e-9
+
+#: Bytes of a matrix's rows whose squares :func:`column_norms` forms at a time.
+NORM_SLICE_BYTES = 64 << 20
+
+
+def column_norms(P: np.ndarray) -> np.ndarray:
+    """``np.linalg.norm(P, axis=0)`` without a squared copy of a long matrix.
+
+    A matrix of more than :data:`NORM_SLICE_BYTES` is summed a slice of rows at a
+    time; a smaller one takes numpy's one pass, so its norms are unchanged.
+    """
+    rows = max(1, NORM_SLICE_BYTES // (8 * max(P.shape[1], 1)))
+    if P.shape[0] <= rows:
+        return np.linalg.norm(P, axis=0)
+    squares = np.zeros(P.shape[1])
+    for a in range(0, P.shape[0], rows):
+        block = P[a:a + rows]
+        squares += np.add.reduce(block * block, axis=0)
+    return np.sqrt(squares)
 
 
 def sse_floor(target_norm: float) -> float:

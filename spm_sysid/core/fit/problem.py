@@ -26,18 +26,20 @@ least-squares fit of one structure (:meth:`fit`, :meth:`model`).
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..defaults import FACTOR_SLICE_BYTES
 from ..errors import DataError, TooFewSamplesError
 from ..memory import check_memory
 from ..model.segments import normalise_segments, rows_segments, usable_segments
 from ..model.terms import TermSpace, power_of_two_scale
 from .criteria import Criterion, get_criterion
-from .lstsq import DEFAULT_RANK_TOL, reference_fit
+from .lstsq import DEFAULT_RANK_TOL, column_norms, reference_fit
 
 if TYPE_CHECKING:
     from ..model.narx import NarxModel
@@ -177,18 +179,25 @@ def excluded_columns(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     evaluator's rank test still scores structures holding both as rank-deficient.
     """
     P = np.asarray(P, dtype=float)
-    norms = np.linalg.norm(P, axis=0)
+    norms = column_norms(P)
     zero = norms == 0
     duplicate_of = np.full(P.shape[1], -1)
-    first: dict[bytes, int] = {}
-    for j in np.flatnonzero(~zero):
+
+    def key(j: int) -> bytes:
         col = P[:, j] / norms[j]
         pivot = col[int(np.argmax(np.abs(col)))]
-        key = np.round(np.ldexp(col * np.sign(pivot), _BITS)).astype(np.int64).tobytes()
-        if key in first:
-            duplicate_of[j] = first[key]
+        return np.round(np.ldexp(col * np.sign(pivot), _BITS)).astype(np.int64).tobytes()
+
+    # keyed by a digest of the rounded column (a whole key per column would be another
+    # copy of the matrix); a digest match is confirmed on the keys themselves
+    first: dict[bytes, int] = {}
+    for j in np.flatnonzero(~zero):
+        k = key(j)
+        digest = hashlib.blake2b(k, digest_size=16).digest()
+        if digest in first and key(first[digest]) == k:
+            duplicate_of[j] = first[digest]
         else:
-            first[key] = j
+            first.setdefault(digest, j)
     return zero, duplicate_of
 
 
@@ -312,9 +321,11 @@ class Problem:
                             "disconnected sensor?): there is nothing to identify")
         rows = sum(b - a - term_space.max_lag for a, b in segs)
         m = term_space.n_terms
-        # the matrix, its scaled copy in the evaluator and the QR work space, with margin,
-        # plus the evaluator's Gram matrix and triangular factor of all candidate terms
-        check_memory(5 * 8 * rows * (m + 1) + 2 * 8 * (m + 2) ** 2,
+        # the matrix (built and reduced in slices: no copy of it), the slices the
+        # evaluator works on (a scaled one, its stack on the factor and QR's copy), and
+        # the evaluator's Gram matrix and triangular factor of all candidate terms
+        matrix = 8 * rows * (m + 1)
+        check_memory(matrix + 3 * min(matrix, FACTOR_SLICE_BYTES) + 2 * 8 * (m + 2) ** 2,
                      f"the regression matrix of {rows} rows x {m} candidate terms")
         return cls(term_space, u, y, segs)
 
@@ -344,7 +355,7 @@ class Problem:
         """Every candidate column's norm in the user's units, shape (n_terms,)."""
         if self._norms is None:
             with np.errstate(divide="ignore", invalid="ignore"):
-                self._norms = np.linalg.norm(self.columns, axis=0) * self.y_scale / self._factors
+                self._norms = column_norms(self.columns) * self.y_scale / self._factors
         return self._norms
 
     def excluded_terms(self) -> dict[str, dict]:
@@ -373,8 +384,9 @@ class Problem:
         crit = get_criterion(criterion)
         base = self._evaluators.get(rank_tol)
         if base is None:
-            base = StructureEvaluator(self.columns[:, self.usable], self.target, crit,
-                                      rank_tol=rank_tol, sse_scale=self.sse_scale)
+            base = StructureEvaluator(self.columns, self.target, crit, rank_tol=rank_tol,
+                                      sse_scale=self.sse_scale,
+                                      columns=np.flatnonzero(self.usable))
             self._evaluators[rank_tol] = base
         return base.with_criterion(crit, max_terms)
 
@@ -418,15 +430,16 @@ class Problem:
             raise ValueError(f"mask must have {ts.n_terms} entries, got {mask.shape}")
         if not mask.any():
             raise ValueError("cannot fit a structure with no terms")
-        columns, target = ((self.columns, self.target) if rows is None
-                           else (self.columns[rows], self.target[rows]))
-        res = reference_fit(columns, target, mask, rank_tol)
+        X, target = self.columns[:, mask], self.target  # the structure's columns only
+        if rows is not None:
+            X, target = X[rows], target[rows]
+        res = reference_fit(X, target, np.ones(X.shape[1], dtype=bool), rank_tol)
         if res.rank_deficient:
             names = [ts.term_names()[i] for i in np.flatnonzero(mask)]
             raise ValueError(f"the regressors {names} are linearly dependent on this data")
         factors = self._factors[mask]
         coefficients = res.coefficients * factors
-        residuals = (target - columns[:, mask] @ res.coefficients) * self.y_scale
+        residuals = (target - X @ res.coefficients) * self.y_scale
         return StructureFit(mask=mask.copy(), coefficients=coefficients,
                             sse=res.sse * self.sse_scale, residuals=residuals,
                             r_factor=res.r_factor,

@@ -34,6 +34,7 @@ from typing import Any
 
 import numpy as np
 
+from ..defaults import PARALLEL_OUTPUT_BYTES
 from ..model.mimo import MimoModel, augmented_inputs, in_threads, output_space
 from ..online.monitor import store_monitor_reference
 from ..progress import Progress, ProgressFn
@@ -353,6 +354,24 @@ def _with_regressors(record: Record, base):
     return replace(base, regressors="; ".join(dict.fromkeys(texts)))
 
 
+def _outputs_at_once(record: Record, base) -> int:
+    """How many outputs identify side by side: their candidate matrices within a budget.
+
+    Each output's job holds its candidate matrix (estimation rows x its terms);
+    :data:`~spm_sysid.core.defaults.PARALLEL_OUTPUT_BYTES` bounds their sum, so the
+    outputs of a long record with a large space take turns instead of doubling
+    the peak memory. At least one.
+    """
+    names = tuple(record.output_names)
+    est, _, _ = validation_segments(record, base)
+    largest = 0
+    for i in range(len(names)):
+        space = output_space(base.term_space, names, i)
+        rows = sum(max(b - a - space.max_lag, 0) for a, b in est)
+        largest = max(largest, 8 * rows * space.n_terms)
+    return int(min(len(names), max(1, PARALLEL_OUTPUT_BYTES // max(largest, 1))))
+
+
 def run_mimo_job(record: Record, settings, *, progress: ProgressFn | None = None,
                  progress_every: int = 25, metadata: Mapping[str, Any] | None = None
                  ) -> MimoJobResult:
@@ -386,7 +405,7 @@ def run_mimo_job(record: Record, settings, *, progress: ProgressFn | None = None
                               replace(base, term_space=space), progress=relay,
                               progress_every=progress_every, metadata=metadata)
 
-    outputs = in_threads(one, len(names))
+    outputs = in_threads(one, len(names), _outputs_at_once(record, base))
     seconds = {name: r.seconds.get("total", 0.0) for name, r in zip(names, outputs)}
     model = MimoModel.joined(names, tuple(record.input_names), [r.model for r in outputs])
     est, val, _ = validation_segments(record, base)

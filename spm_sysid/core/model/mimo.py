@@ -227,14 +227,15 @@ def fit_percent(y: np.ndarray, yhat: np.ndarray) -> float | None:
     return float(100.0 * (1.0 - np.linalg.norm(y - yhat) / np.linalg.norm(y - np.mean(y))))
 
 
-def in_threads(fn, n: int) -> list:
+def in_threads(fn, n: int, at_once: int | None = None) -> list:
     """``[fn(0), ..., fn(n-1)]``, on up to as many threads as there are cores.
 
     The outputs' identifications are independent (each has its own seed), so the
     results are those of a loop; the compiled kernels release the GIL, so two
-    outputs on two cores take little more than one.
+    outputs on two cores take little more than one. ``at_once``: at most this
+    many at a time (memory).
     """
-    workers = min(n, usable_cores())
+    workers = min(n, usable_cores(), at_once or n)
     if workers <= 1:
         return [fn(i) for i in range(n)]
     from concurrent.futures import ThreadPoolExecutor

@@ -35,6 +35,8 @@ __all__ = ["MAX_TERMS", "TermSpace", "power_of_two_scale"]
 
 #: Largest term space (the memory bound usually refuses earlier, with the size needed).
 MAX_TERMS = 100_000
+#: Bytes of candidate-matrix rows built at a time (the products' working columns).
+ROW_BLOCK_BYTES = 16 << 20
 
 
 def power_of_two_scale(x: np.ndarray) -> float:
@@ -397,31 +399,42 @@ class TermSpace:
                          for c in self.regressor_columns(u, y)])
 
     def regression_matrix(self, u: np.ndarray, y: np.ndarray,
-                          terms: Sequence[int] | None = None, scales=None) -> np.ndarray:
+                          terms: Sequence[int] | None = None, scales=None,
+                          out: np.ndarray | None = None) -> np.ndarray:
         """Candidate regressors, shape ``(N, n_terms)`` with ``N = len(y) - max_lag``.
 
         Column ``j`` is term ``j`` of :attr:`terms` evaluated at t = max_lag..len-1.
         Products are built degree by degree from the previous degree's columns, so
         each column costs one vectorised multiplication. With ``terms`` (indices),
-        only those columns, in that order (a model's own regressors).
+        only those columns, in that order (a model's own regressors). Built into
+        ``out`` when given (rows by columns), :data:`ROW_BLOCK_BYTES` of rows at a
+        time: a long record's matrix is the only large array made.
         """
         lin = self.lagged(u, y, scales)
-        n_rows, n_lin = lin.shape
+        width = self.n_terms if terms is None else len(terms)
+        if out is None:
+            out = np.empty((lin.shape[0], width))
+        step = max(1, ROW_BLOCK_BYTES // (8 * max(width + lin.shape[1], 1)))
+        for a in range(0, lin.shape[0], step):
+            self._fill(lin[a:a + step], terms, out[a:a + step])
+        return out
+
+    def _fill(self, lin: np.ndarray, terms: Sequence[int] | None, out: np.ndarray) -> None:
+        """Rows of the candidate matrix from the same rows of the lagged signals."""
         if terms is not None:
-            out = np.ones((n_rows, len(terms)))
+            out[:] = 1.0
             for c, j in enumerate(terms):
                 for i in self.terms[j]:
                     out[:, c] *= lin[:, i]
-            return out
-        columns: dict[tuple[int, ...], np.ndarray] = {(): np.ones(n_rows)}
-        for i in range(n_lin):
+            return
+        columns: dict[tuple[int, ...], np.ndarray] = {(): np.ones(len(lin))}
+        for i in range(lin.shape[1]):
             columns[(i,)] = lin[:, i]
         for term in self.terms:
             if len(term) > 1 and term not in columns:
                 columns[term] = columns[term[:-1]] * lin[:, term[-1]]
-        return np.column_stack([columns[t] for t in self.terms]) if self.terms else np.empty(
-            (n_rows, 0)
-        )
+        for c, term in enumerate(self.terms):
+            out[:, c] = columns[term]
 
     def target(self, y: np.ndarray) -> np.ndarray:
         """The regression target y(t) for t = max_lag..len-1."""
@@ -442,8 +455,12 @@ class TermSpace:
         if segments is None:
             return self.regression_matrix(u, y, terms, scales), self.target(y)
         width = self.n_terms if terms is None else len(terms)
-        parts = [(self.regression_matrix(u[a:b], y[a:b], terms, scales), self.target(y[a:b]))
-                 for a, b in segments if b - a > self.max_lag]
-        if not parts:
-            return np.empty((0, width)), np.empty(0)
-        return np.vstack([p for p, _ in parts]), np.concatenate([t for _, t in parts])
+        kept = [(a, b) for a, b in segments if b - a > self.max_lag]
+        out = np.empty((sum(b - a - self.max_lag for a, b in kept), width))
+        row = 0
+        for a, b in kept:  # each segment's rows built in place: no stacked copies
+            rows = b - a - self.max_lag
+            self.regression_matrix(u[a:b], y[a:b], terms, scales, out=out[row:row + rows])
+            row += rows
+        target = np.concatenate([self.target(y[a:b]) for a, b in kept]) if kept else np.empty(0)
+        return out, target

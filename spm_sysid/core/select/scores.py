@@ -90,7 +90,8 @@ def _fold_mse(problem, fold: Fold, mask: np.ndarray, simulate: bool,
     train = fold.train
     if not mask.any() or (mask & ~problem.usable).any() or train.sum() <= mask.sum():
         return np.nan
-    fit = reference_fit(problem.columns[train], problem.target[train], mask)
+    X = problem.columns[:, mask]  # the structure's columns only: no copy of the matrix
+    fit = reference_fit(X[train], problem.target[train], np.ones(X.shape[1], dtype=bool))
     if fit.rank_deficient:
         return np.nan
     theta = fit.coefficients  # on the scaled problem
@@ -101,7 +102,7 @@ def _fold_mse(problem, fold: Fold, mask: np.ndarray, simulate: bool,
         t = problem.row_times
         for a, b in fold.held_out:
             held |= (t >= a + lag) & (t < b)
-        e = problem.target[held] - problem.columns[held][:, mask] @ theta
+        e = problem.target[held] - X[held] @ theta
         return float(np.mean(e * e)) * problem.sse_scale
     model = _scaled_model(problem, mask, theta)
     u = problem.u / problem.u_scale

@@ -1,0 +1,130 @@
+"""A long record's candidate matrix is the only large array its problem makes (issue 41).
+
+The matrix is built a block of rows at a time into one array, and the numbers
+the search needs from it (column norms, the Gram matrix and triangular factor of
+the evaluator, a fold's fit) are reduced from slices of its rows: no stacked,
+squared, scaled or selected copy of it. Slices give the numbers of one pass
+(checked here against the one-pass route on the robot-arm data), and the
+allocations are counted by ``tracemalloc`` (numpy reports its arrays to it),
+so the bound does not depend on this machine's free memory.
+"""
+
+import tracemalloc
+
+import numpy as np
+import pytest
+
+import spm_sysid.core.fit.evaluator as evaluator_module
+import spm_sysid.core.fit.lstsq as lstsq_module
+import spm_sysid.core.model.terms as terms_module
+from spm_sysid.core.fit.evaluator import StructureEvaluator
+from spm_sysid.core.fit.lstsq import column_norms, reference_fit
+from spm_sysid.core.fit.problem import Problem, excluded_columns
+from spm_sysid.core.model.terms import TermSpace
+
+
+def _small_slices(monkeypatch, size: int) -> None:
+    monkeypatch.setattr(evaluator_module, "FACTOR_SLICE_BYTES", size)
+    monkeypatch.setattr(lstsq_module, "NORM_SLICE_BYTES", size)
+    monkeypatch.setattr(terms_module, "ROW_BLOCK_BYTES", size)
+
+
+def test_slices_give_the_numbers_of_one_pass(robot_arm, monkeypatch):
+    u, y = robot_arm
+    space = TermSpace(ny=2, nu=2, degree=3)
+    P, target = space.regression(u, y, [(0, 500), (500, len(y))])
+    ev = StructureEvaluator(P, target, "aic")
+    zero, duplicate = excluded_columns(P)
+    _small_slices(monkeypatch, 8 * 45 * 37)  # 37 rows of 45 columns: 28 slices
+    P2, target2 = space.regression(u, y, [(0, 500), (500, len(y))])
+    assert np.array_equal(P2, P) and np.array_equal(target2, target)  # bit for bit
+    np.testing.assert_allclose(column_norms(P), np.linalg.norm(P, axis=0), rtol=1e-13)
+    z2, d2 = excluded_columns(P)
+    assert np.array_equal(z2, zero) and np.array_equal(d2, duplicate)
+    columns = np.arange(1, P.shape[1], 2)
+    sliced = StructureEvaluator(P, target, "aic", columns=columns)
+    whole = StructureEvaluator(P[:, columns], target, "aic")
+    assert sliced.n_terms == len(columns) and sliced.n == len(target)
+    np.testing.assert_allclose(sliced.gram, whole.gram, rtol=1e-12, atol=1e-12)
+    # the factor is the same up to the sign of each row: R'R is the Gram matrix
+    np.testing.assert_allclose(np.abs(sliced.factor), np.abs(whole.factor), atol=1e-10)
+    masks = np.random.default_rng(0).random((200, len(columns))) < 0.2
+    np.testing.assert_allclose(sliced.score(masks), whole.score(masks), rtol=1e-9)
+    full = StructureEvaluator(P, target, "aic")
+    np.testing.assert_allclose(full.gram, ev.gram, rtol=1e-12, atol=1e-12)
+
+
+def _record(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    u = rng.standard_normal(n)
+    y = np.zeros(n)
+    for t in range(2, n):
+        y[t] = 0.5 * y[t - 1] - 0.2 * y[t - 2] + u[t - 1] + 0.1 * u[t - 2] ** 2
+    return u, y + 0.01 * rng.standard_normal(n)
+
+
+def test_a_long_problem_allocates_its_matrix_once(monkeypatch):
+    u, y = _record(30_000)
+    space = TermSpace(ny=6, nu=6, degree=2)  # 91 candidate terms
+    segments = [(0, 10_000), (10_000, 20_000), (20_000, 30_000)]
+    matrix = 8 * (30_000 - 3 * 6) * space.n_terms
+    _small_slices(monkeypatch, 1 << 20)
+    tracemalloc.start()
+    try:
+        problem = Problem.from_signals(u, y, space, segments)
+        problem.evaluator("aic")
+        mask = np.zeros(space.n_terms, dtype=bool)
+        mask[1:5] = True
+        rows = np.arange(problem.rows) < 2 * problem.rows // 3
+        fold = problem.fit(mask, rows=rows)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert problem.columns.nbytes == matrix
+    # the matrix, a few slices of a megabyte and the structure's own columns
+    assert peak < 1.3 * matrix, f"peak {peak / 2**20:.1f} MiB for a {matrix / 2**20:.1f} MiB matrix"
+    # the fold's fit is the fit of those rows alone
+    X = problem.columns[rows][:, mask]
+    reference = reference_fit(X, problem.target[rows], np.ones(4, dtype=bool))
+    np.testing.assert_allclose(fold.coefficients, reference.coefficients
+                               * problem._factors[mask], rtol=1e-10)
+
+
+@pytest.mark.parametrize("columns", [None, [0, 2, 5]])
+def test_an_evaluator_of_fewer_rows_than_terms_still_factors(columns, monkeypatch):
+    P = np.random.default_rng(1).standard_normal((5, 8))
+    t = P[:, 0] - P[:, 2]
+    _small_slices(monkeypatch, 8 * 9 * 2)
+    ev = StructureEvaluator(P, t, "aic", columns=None if columns is None else np.array(columns))
+    m = 8 if columns is None else 3
+    assert ev.factor.shape == (min(5, m + 1), m + 2)
+    X = P if columns is None else P[:, columns]
+    aug = np.column_stack([X / np.linalg.norm(X, axis=0), t])
+    np.testing.assert_allclose(ev.factor[:, :m + 1].T @ ev.factor[:, :m + 1], aug.T @ aug,
+                               atol=1e-10)
+
+
+def test_outputs_of_a_long_record_in_a_large_space_take_turns():
+    from spm_sysid.core.defaults import PARALLEL_OUTPUT_BYTES
+    from spm_sysid.core.jobs import JobSettings
+    from spm_sysid.core.jobs.several import _outputs_at_once
+    from spm_sysid.core.record import Record
+
+    def at_once(n: int, order: int) -> tuple[int, int]:
+        rng = np.random.default_rng(0)
+        record = Record.from_samples(rng.standard_normal((n, 2)), rng.standard_normal((n, 2)),
+                                     source="t", input_names=("tau1", "tau2"),
+                                     output_names=("q1", "q2"))
+        settings = JobSettings.from_values({"ny": order, "nu": order, "degree": 2})
+        base = settings.for_signals(record.input_names, "q1")
+        # each output's space: its own lags, both inputs' and the other output's
+        terms = TermSpace(ny=order, nu=(order,) * 3, degree=2,
+                          inputs=("tau1", "tau2", "q2")).n_terms
+        return _outputs_at_once(record, base), terms
+
+    # the two-link arm's 4 000 samples in a (9, 9, 2) space: side by side
+    small, terms = at_once(4000, 9)
+    assert terms == 702 and small == 2
+    # 10^5 samples: 2 x 8 bytes x ~67 000 estimation rows x 703 terms is past the budget
+    large, _ = at_once(100_000, 9)
+    assert large == 1 and 2 * 8 * 60_000 * terms > PARALLEL_OUTPUT_BYTES
