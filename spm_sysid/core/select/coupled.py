@@ -14,9 +14,11 @@ free run:
   and jointly refined;
 * **held-out blocks** (:data:`COUPLED_FOLDS`) -- each finalist's structures are
   fitted on the rest of the estimation data (least squares; the jointly refined
-  one also refined there) and simulated coupled over the block from its first
-  samples; the error is the sum over outputs of the MSE divided by the output's
-  variance; a run that leaves an output's range rejects the finalist;
+  one also refined there, on :func:`~spm_sysid.core.select.folds.refinement_windows`
+  of it when the record is long, as a single output's folds are) and simulated
+  coupled over the block from its first samples; the error is the sum over
+  outputs of the MSE divided by the output's variance; a run that leaves an
+  output's range rejects the finalist;
 * **choice** -- the one linear/nonlinear call of single-output selection
   (:func:`~spm_sysid.core.select.call.linear_or_nonlinear`): the best linear
   finalist, unless a nonlinear one simulates the blocks better by more than the
@@ -45,7 +47,7 @@ from ..model.mimo import MimoModel, augmented_inputs
 from ..model.narx import NarxModel
 from ..model.segments import rows_segments
 from .call import linear_or_nonlinear
-from .folds import block_splits
+from .folds import block_splits, refinement_windows
 from .guard import stress_inputs
 from .scores import mean_and_stderr
 from .simulation import linear_masks
@@ -160,8 +162,9 @@ def _fold_errors(model: MimoModel, how: str, folds, u, Y, scale) -> list[float]:
         if fitted is None:
             row.append(np.nan)
             continue
-        if how == "jointly refined":
-            fitted, _ = refine_coupled(fitted, u, Y, train, max_evaluations=JOINT_FOLD_STEPS)
+        if how == "jointly refined":  # on windows of a long record (the cost of a short one)
+            fitted, _ = refine_coupled(fitted, u, Y, refinement_windows(train, model.max_lag),
+                                       max_evaluations=JOINT_FOLD_STEPS)
         row.append(_held_out_error(fitted, u, Y, held, scale))
     return row
 
