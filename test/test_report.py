@@ -211,3 +211,59 @@ def test_a_report_of_two_outputs_has_a_section_each_and_the_cross_correlation(
 def test_report_refuses_a_path_that_is_not_html(tmp_path):
     r = _cli("identify", "--quiet", "--report", str(tmp_path / "r.txt"))
     assert r.returncode == 2 and "give a file name ending in .html" in r.stderr
+
+
+def test_thinned_rows_keep_every_columns_envelope_and_every_gap():
+    from spm_sysid.tools.html_report import thinned_rows
+
+    rng = np.random.default_rng(0)
+    n = 100_003
+    a, b = rng.standard_normal(n), np.cumsum(rng.standard_normal(n))
+    a[77_777] = 50.0  # a spike
+    b[90_000:] = np.nan  # a divergence: a gap from there on
+    rows = thinned_rows({"a": a, "b": b}, stretches=1000)
+    assert rows[0] == 0 and np.all(np.diff(rows) > 0) and rows[-1] < n
+    assert len(rows) <= 1000 * 5
+    size = -(-n // 1000)
+    for start in range(0, n, size):  # each stretch: the same extremes as the whole
+        inside = rows[(rows >= start) & (rows < start + size)]
+        for col in (a, b):
+            stretch = col[start:start + size]
+            if np.isfinite(stretch).any():
+                assert np.nanmax(col[inside]) == np.nanmax(stretch)
+                assert np.nanmin(col[inside]) == np.nanmin(stretch)
+    assert 77_777 in rows and 90_000 in rows
+
+
+@pytest.mark.slow
+def test_a_report_of_a_long_record_stays_small_and_draws_its_extremes(browser, tmp_path,
+                                                                      robot_arm):
+    from .conftest import eq1_model
+
+    model = eq1_model(robot_arm)
+    model.save(tmp_path / "m.json")
+    rng = np.random.default_rng(1)
+    u = np.tile(robot_arm[0], 98)  # 100 352 samples of the arm's own excitation
+    y = np.zeros_like(u)
+    y[:10] = robot_arm[1][:10]
+    sim, _ = model.run(u, y)
+    y[model.term_space.max_lag:] = sim + 1e-3 * rng.standard_normal(len(sim))
+    y[61_234] += 5.0  # one spike in the measured output
+    np.savetxt(tmp_path / "long.csv", np.column_stack([u, y]), delimiter=",",
+               header="u,y", comments="")
+    report = tmp_path / "long.html"
+    r = _cli("validate", "m.json", "--data", "long.csv", "--inputs", "u", "--output", "y",
+             "--report", "long.html", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert report.stat().st_size < 5_000_000  # 26 MB when every sample was drawn
+    context, page, _ = _open_offline(browser, report)
+    try:
+        free = _source(page, "y/free_run")
+        assert len(free["x"]) < 20_000
+        assert max(v for v in free["measured"] if v is not None) == pytest.approx(y.max())
+        peak = int(np.nanargmax(np.array(free["measured"], dtype=float)))
+        # the spike is drawn where it is (the report's rows start after the largest lag)
+        assert free["x"][peak] == 61_234 - model.term_space.max_lag
+        assert "samples drawn: every stretch's extremes" in page.content()
+    finally:
+        context.close()

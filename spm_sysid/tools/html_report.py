@@ -15,7 +15,9 @@ makes no network request and works offline; Plotly's bundle is 4.8 MB alone,
 too much for a page that should stay under 5 MB with its data. The data go in
 as JSON and the page's few lines draw the figures with BokehJS's own API, so
 writing a report does not import bokeh's Python side (0.5 s) nor serialise its
-models (another 0.5 s). Every plot's data source has a name
+models (another 0.5 s). A long record's plots draw each stretch's extremes
+(:func:`thinned_rows`, at most about 20 000 rows a plot, the title says how
+many): a page of 10^5 samples was 26 MB drawn whole. Every plot's data source has a name
 (``<output>/<plot>``) in ``window.spmReport.sources`` so that a reader -- or a
 test in a browser -- can find the numbers behind it; every coefficient cell
 carries the full-precision value (``data-value``).
@@ -32,7 +34,8 @@ import numpy as np
 
 from .pages import read_page_file, render_page
 
-__all__ = ["OutputSection", "ReportContent", "build_report", "verdict", "write_model_report"]
+__all__ = ["OutputSection", "ReportContent", "build_report", "thinned_rows", "verdict",
+           "write_model_report"]
 
 #: Plot width and heights (CSS pixels); the page is responsive in width.
 HEIGHT, SMALL = 300, 180
@@ -99,8 +102,57 @@ class _Plots:
         return spec
 
 
+#: A data source of more rows than this is drawn from its extremes (:func:`thinned_rows`):
+#: the page stays a few MB whatever the record's length (10^5 samples drawn whole made
+#: a 26 MB page).
+PLOT_ROWS = 20_000
+#: Stretches a long source is cut into; each keeps its first row and the rows of every
+#: column's smallest and largest value.
+PLOT_STRETCHES = 2_000
+
+
+def thinned_rows(columns: dict, stretches: int = PLOT_STRETCHES) -> np.ndarray:
+    """The rows of a long source that draw the same picture: each stretch's extremes.
+
+    The rows are cut into ``stretches`` stretches of equal length; each keeps its
+    first row and, for every column, the rows of its smallest and largest finite
+    value (a gap, NaN, is kept where it starts). Lines through these rows have
+    every column's envelope of the whole: a peak, a spike or a divergence stays
+    visible at any zoom out.
+    """
+    data = [np.asarray(col, dtype=float) for col in columns.values()]
+    n = len(data[0])
+    size = -(-n // stretches)
+    starts = np.arange(0, n, size)
+    keep = [starts]
+    padded = np.full(len(starts) * size, np.nan)
+    for col in data:
+        padded[:n] = col
+        block = padded.reshape(len(starts), size)
+        finite = np.isfinite(block)
+        low = np.where(finite, block, np.inf).argmin(axis=1)
+        high = np.where(finite, block, -np.inf).argmax(axis=1)
+        keep += [starts + low, starts + high]
+        gaps = np.flatnonzero(~np.isfinite(col))
+        if gaps.size:  # the first sample of each gap
+            keep.append(gaps[np.r_[True, np.diff(gaps) > 1]])
+    rows = np.unique(np.concatenate(keep))
+    return rows[rows < n]
+
+
 def _source(spec: dict, name: str, columns: dict) -> str:
-    """Attach a named data source to a figure spec (NaN and inf as null: a gap)."""
+    """Attach a named data source to a figure spec (NaN and inf as null: a gap).
+
+    A source of more than :data:`PLOT_ROWS` rows keeps its :func:`thinned_rows`,
+    and the figure's title says how many of how many samples are drawn.
+    """
+    n = len(next(iter(columns.values()))) if columns else 0
+    if n > PLOT_ROWS:
+        rows = thinned_rows(columns)
+        columns = {k: np.asarray(col, dtype=float)[rows] for k, col in columns.items()}
+        spec["title"] += (f" -- {len(rows)} of {n} samples drawn: every stretch's "
+                          "extremes")
+        spec["thinned"] = {"drawn": int(len(rows)), "samples": int(n)}
     spec["sources"][name] = {k: [float(v) if np.isfinite(v) else None
                                  for v in np.asarray(col, dtype=float)]
                              for k, col in columns.items()}
