@@ -8,6 +8,11 @@ it, in its own process -- on
 * a synthetic 1 kHz joint recording of 10 minutes (600 000 samples): the
   PD-controlled joint with viscous and Coulomb friction of the test helpers
   (``test/helpers/joint.py``);
+* the simulated two-link arm (``benchmarks/two_link.py``) with its two outputs,
+  100 000 samples (``--inputs tau1,tau2 --output q1,q2``: one coupled model;
+  each output's space takes the largest of the outputs' proposed orders and
+  degrees), scored on 20 000 samples of a second record (RMSE from sample 10,
+  per output, radians);
 
 and prints, per size, the wall seconds, the peak resident memory of that
 process (``os.wait4``), the phases its progress lines named, the model's
@@ -114,6 +119,30 @@ def _held_out(path: Path, held, scale: float) -> float:
     return scale * float(np.mean(errors))
 
 
+def _arm_row(tmp: str, n: int) -> tuple[str, Path, list[tuple[np.ndarray, np.ndarray]]]:
+    """The two-link arm's record of ``n`` samples as a CSV, and its second record."""
+    from .two_link import record
+
+    u, y = record(n, seed=0)
+    path = Path(tmp) / "arm.csv"
+    np.savetxt(path, np.column_stack([u, y]), fmt="%.10g", delimiter=",",
+               header="tau1,tau2,q1,q2", comments="")
+    return f"two-link arm, two outputs, {n}", path, [record(20_000, seed=1)]
+
+
+def _held_out_outputs(path: Path, held) -> str:
+    """The written coupled model's free-run RMSE per output on ``held`` (from sample 10)."""
+    from spm_sysid.core.model.mimo import read_model_document
+
+    if not held or not path.is_file():
+        return "nan"
+    model, _ = read_model_document(path)
+    u, y = held[0]
+    sim, _ = model.simulate(u, y)
+    e = (y[model.max_lag:] - sim)[max(10 - model.max_lag, 0):]
+    return " / ".join(f"{v:.4g}" for v in np.sqrt(np.nanmean(e ** 2, axis=0)))
+
+
 def run(args) -> None:
     from spm_sysid.core.io.data import load_io
 
@@ -141,23 +170,33 @@ def run(args) -> None:
                              for k in range(1, JOINT_TESTS + 1)]
             print(f"joint: the linear ARX's free-run RMSE on {JOINT_TESTS} other recordings "
                   f"(mean) {_arx_rmse((tau, q), held['joint']):.4g} rad")
+        if args.arm_samples > 0:
+            label, path, held["arm"] = _arm_row(tmp, args.arm_samples)
+            records.append((label, args.arm_samples, path))
         print(f"spm-sysid {' '.join(COMMAND)} --data FILE (median of {args.repeats}); "
               "held-out: the model's free-run RMSE on a record it was not fitted on")
         print(f"{'record':<36} {'samples':>8} {'seconds':>9} {'peak MiB':>9}  status  "
               f"{'held-out':>12}  phases")
         for label, n, path in records:
             model = Path(tmp) / "model.json"
-            runs = [_run(path, ("--seed", str(seed), "--json", str(model)))
+            arm = label.startswith("two-link")
+            extra = ("--inputs", "tau1,tau2", "--output", "q1,q2") if arm else ()
+            runs = [_run(path, ("--seed", str(seed), "--json", str(model), *extra))
                     for seed in range(args.repeats)]
             seconds = float(np.median([r[0] for r in runs]))
             peak = float(np.median([r[1] for r in runs]))
             status = max(r[2] for r in runs)
             kind = "joint" if label.startswith("joint") else "wh"
-            error = _held_out(model, held.get(kind), 1e3 if kind == "wh" else 1.0)
-            unit = "mV" if kind == "wh" else "rad"
+            if arm:
+                error = f"{_held_out_outputs(model, held['arm'])} rad"
+            else:
+                unit = "mV" if kind == "wh" else "rad"
+                error = (f"{_held_out(model, held.get(kind), 1e3 if kind == 'wh' else 1.0):>8.4g}"
+                         f" {unit:<3}")
             print(f"{label:<36} {n:>8} {seconds:>9.1f} {peak:>9.0f}  {status:>6}  "
-                  f"{error:>8.4g} {unit:<3}  {' > '.join(runs[0][3])}", flush=True)
-            rows.append((n, seconds, label))
+                  f"{error:>12}  {' > '.join(runs[0][3])}", flush=True)
+            if not arm:  # the slopes are over one output's records
+                rows.append((n, seconds, label))
             model.unlink(missing_ok=True)
     wh_rows = [(n, s) for n, s, label in rows if label.startswith("Wiener")]
     if len(wh_rows) >= 2:
@@ -176,6 +215,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="samples of the Wiener-Hammerstein record to run on")
     p.add_argument("--joint-seconds", type=float, default=600.0,
                    help="seconds of the synthetic 1 kHz joint recording (0: skip)")
+    p.add_argument("--arm-samples", type=int, default=100_000,
+                   help="samples of the two-output two-link arm record (0: skip)")
     p.add_argument("--repeats", type=int, default=1, help="runs per size (median)")
     run(p.parse_args(argv))
     return 0
