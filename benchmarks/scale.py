@@ -9,10 +9,9 @@ it, in its own process -- on
   PD-controlled joint with viscous and Coulomb friction of the test helpers
   (``test/helpers/joint.py``);
 * the simulated two-link arm (``benchmarks/two_link.py``) with its two outputs,
-  100 000 samples (``--inputs tau1,tau2 --output q1,q2``: one coupled model;
-  each output's space takes the largest of the outputs' proposed orders and
-  degrees), scored on 20 000 samples of a second record (RMSE from sample 10,
-  per output, radians);
+  100 000 samples (``--inputs tau1,tau2 --output q1,q2``: one coupled model,
+  each output searched in the space it proposes), scored on 20 000 samples of
+  a second record (RMSE from sample 10, per output, radians);
 
 and prints, per size, the wall seconds, the peak resident memory of that
 process (``os.wait4``), the phases its progress lines named, the model's

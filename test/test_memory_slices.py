@@ -120,7 +120,7 @@ def test_outputs_of_a_long_record_in_a_large_space_take_turns():
         # each output's space: its own lags, both inputs' and the other output's
         terms = TermSpace(ny=order, nu=(order,) * 3, degree=2,
                           inputs=("tau1", "tau2", "q2")).n_terms
-        return _outputs_at_once(record, base), terms
+        return _outputs_at_once(record, base, [base.term_space] * 2), terms
 
     # the two-link arm's 4 000 samples in a (9, 9, 2) space: side by side
     small, terms = at_once(4000, 9)

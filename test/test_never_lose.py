@@ -226,6 +226,10 @@ def test_several_outputs_are_judged_coupled_and_orders_auto_covers_them():
     assert set(doc["orders"]["per_output"]) == {"p", "q"}
     assert doc["orders"]["ny"] == max(w["ny"] for w in doc["orders"]["per_output"].values())
     sel = doc["coupled_selection"]
+    if sel["chosen"] == "the outputs' own choices":  # each searched in its own proposal
+        for name, m in zip(("p", "q"), result.model.models):
+            own = doc["orders"]["per_output"][name]
+            assert (m.term_space.ny, m.term_space.degree) == (own["ny"], own["degree"])
     assert sel["folds"] >= 2 and sel["choice"] in ("linear", "nonlinear")
     assert result.diverged == []
     assert "coupled judgement on" in result.summary("lines")
@@ -303,3 +307,58 @@ def test_the_coupled_sentence_says_when_the_guard_removed_the_better_nonlinear_o
     assert "the outputs' own choices among them: the model returned is the next" in text
     doc.update(chosen="the outputs' own choices", fitted="jointly refined", removed_by_guard=[])
     assert "removed" not in describe_coupled(doc)
+
+
+def test_outputs_in_spaces_of_their_own_still_get_linear_mimo_arx_of_every_order():
+    """``orders: auto`` gives each output its proposal: (3, 1) for p, (1, 2) for q."""
+    from spm_sysid.core.select.coupled import _same, linear_mimo
+
+    outputs, inputs = ("p", "q"), ("a",)
+    spaces = [output_space(TermSpace(ny=3, nu=3, degree=1, inputs=inputs), outputs, 0),
+              output_space(TermSpace(ny=1, nu=1, degree=2, inputs=inputs), outputs, 1)]
+    models = [NarxModel(s, [0], np.zeros(1)) for s in spaces]
+    joined = MimoModel(outputs, inputs, models, {})
+    for order in (1, 2, 3):
+        lin = linear_mimo(joined, order)
+        for m, name, other in zip(lin.models, outputs, outputs[::-1]):
+            assert m.term_space.degree == 1
+            expected = {f"{s}(t-{k})" for s in (name, "a", other) for k in range(1, order + 1)}
+            assert set(m.terms) == expected
+    # structures are compared by their terms' names, whatever the space
+    same = MimoModel(outputs, inputs, [NarxModel(lin.models[0].term_space,
+                                                 list(lin.models[0].term_indices),
+                                                 np.zeros(9)),
+                                       lin.models[1]], {})
+    assert _same(lin, same) and not _same(lin, linear_mimo(joined, 2))
+    # one space for every output (orders given): the linear structures of that space
+    given = [output_space(TermSpace(ny=2, nu=3, degree=2, inputs=inputs), outputs, i)
+             for i in (0, 1)]
+    lin = linear_mimo(MimoModel(outputs, inputs, [NarxModel(s, [0], np.zeros(1))
+                                                  for s in given], {}), 3)
+    assert [m.term_space for m in lin.models] == given
+
+
+@pytest.mark.slow
+def test_outputs_of_different_lags_report_the_coupled_free_run_on_the_same_rows():
+    """``orders: auto`` on the two-link arm: q1 proposes order 7, q2 order 6 (prediction)."""
+    from benchmarks import two_link
+
+    tau, q = two_link.record(4000, seed=0)
+    record = Record.from_samples(tau, q, source="arm", input_names=("tau1", "tau2"),
+                                 output_names=("q1", "q2"))
+    result = run_job(record, JobSettings.from_values(
+        {"orders": "auto", "focus": "prediction", "criterion": "bic", "constant": True,
+         "seed": 1}))
+    per = result.model.metadata["orders"]["per_output"]
+    lags = [m.term_space.max_lag for m in result.model.models]
+    assert [per[n]["ny"] for n in ("q1", "q2")] == lags and lags[0] != lags[1]
+    assert [len(m.terms) for m in result.model.models] != [0, 0]
+    # every output's report holds the coupled free run, row for row
+    free, _ = result.model.simulate(tau, q)
+    for i, out in enumerate(result.outputs):
+        rep = out.report
+        assert len(rep.measured) == len(rep.free_run) == len(rep.residuals)
+        np.testing.assert_allclose(rep.free_run, free[-len(rep.free_run):, i])
+        np.testing.assert_allclose(rep.measured, q[-len(rep.measured):, i])
+    assert len(result.outputs[0].report.residuals) == len(result.outputs[1].report.residuals)
+    assert result.model.metadata["cross_correlation_tests"]

@@ -158,8 +158,8 @@ _LIST = [
     _s("orders", str, "given", "the lags and the degree: given (ny, nu, degree as set) or "
        "auto (proposed from the estimation data as propose-lags does -- the order by the "
        "criterion of the full linear models, the degree by forward selection -- then "
-       "identified in that space; for several outputs the largest of the outputs' "
-       "proposals)", "criterion", choices=("given", "auto")),
+       "identified in that space; for several outputs each output in its own proposal)",
+       "criterion", choices=("given", "auto")),
     _s("selection", str, "auto", "how the structure is chosen: criterion (on the estimation "
        "data, the paper's), validated (by its error on held-out blocks; docs/method.md), or "
        f"auto (validated for focus simulation, and for prediction with fewer than "

@@ -281,12 +281,18 @@ def _view(record: Record, space, names, i: int) -> Record:
                    output_name=names[i], output_names=(names[i],), input_names=space.inputs)
 
 
-def _choose_mimo_orders(record: Record, base) -> tuple[Any, dict]:
-    """``orders: auto`` for several outputs: each output's proposal, the largest kept.
+def _choose_mimo_orders(record: Record, base) -> tuple[Any, dict, list]:
+    """``orders: auto`` for several outputs: each output in the space it proposes.
 
     Each output is seen with the inputs and the other outputs as inputs
-    (:func:`~spm_sysid.core.jobs.single.choose_orders` on that view); the one
-    space of every output takes the largest order and the largest degree.
+    (:func:`~spm_sysid.core.jobs.single.choose_orders` on that view) and searched
+    in its own proposal (order for its own lags, the inputs' and the other
+    outputs', and degree), within the scan's budget of terms. The settings
+    returned hold the largest order and degree (the document's ``ny``, ``nu``,
+    ``degree``; the regressor presets' lags); the coupled judgement's linear MIMO
+    ARX finalists go up to the largest order
+    (:func:`~spm_sysid.core.select.coupled.linear_mimo`). Returns the settings,
+    the document's ``orders`` and each output's space.
     """
     names = tuple(record.output_names)
     est, _, _ = validation_segments(record, base)
@@ -299,11 +305,14 @@ def _choose_mimo_orders(record: Record, base) -> tuple[Any, dict]:
     n = max(w["ny"] for w in per.values())
     d = max(w["degree"] for w in per.values())
     chosen = replace(base.term_space, ny=n, nu=n, degree=d)
+    spaces = [replace(base.term_space, ny=w["ny"], nu=w["ny"], degree=w["degree"])
+              for w in per.values()]
     doc = {"mode": "auto", "ny": n, "nu": n, "degree": d,
-           "reason": "the largest of the outputs' proposals: " + "; ".join(
-               f"{k}: order {w['ny']}, degree {w['degree']}" for k, w in per.items()),
+           "reason": "each output in its own proposal: " + "; ".join(
+               f"{k}: order {w['ny']}, degree {w['degree']}" for k, w in per.items())
+           + f" (the linear MIMO ARX finalists up to order {n})",
            "per_output": per}
-    return replace(base, term_space=chosen, orders="given"), doc
+    return replace(base, term_space=chosen, orders="given"), doc, spaces
 
 
 def _with_regressors(record: Record, base):
@@ -354,7 +363,7 @@ def _with_regressors(record: Record, base):
     return replace(base, regressors="; ".join(dict.fromkeys(texts)))
 
 
-def _outputs_at_once(record: Record, base) -> int:
+def _outputs_at_once(record: Record, base, spaces: list) -> int:
     """How many outputs identify side by side: their candidate matrices within a budget.
 
     Each output's job holds its candidate matrix (estimation rows x its terms);
@@ -366,7 +375,7 @@ def _outputs_at_once(record: Record, base) -> int:
     est, _, _ = validation_segments(record, base)
     largest = 0
     for i in range(len(names)):
-        space = output_space(base.term_space, names, i)
+        space = output_space(spaces[i], names, i)
         rows = sum(max(b - a - space.max_lag, 0) for a, b in est)
         largest = max(largest, 8 * rows * space.n_terms)
     return int(min(len(names), max(1, PARALLEL_OUTPUT_BYTES // max(largest, 1))))
@@ -388,10 +397,6 @@ def run_mimo_job(record: Record, settings, *, progress: ProgressFn | None = None
                         "(set output_names or input_names)")
     Y, u = record.y, record.u
     base = settings.for_signals(record.input_names, names[0])
-    orders = None
-    if base.orders == "auto":  # every output's proposal; the space holds the largest
-        base, orders = _choose_mimo_orders(record, base)
-    base = _with_regressors(record, base)  # presets on the chosen lags
     lock = threading.Lock()
 
     def relay(p: Progress) -> None:
@@ -399,13 +404,20 @@ def run_mimo_job(record: Record, settings, *, progress: ProgressFn | None = None
             with lock:  # the outputs' threads report one at a time
                 progress(replace(p, elapsed=time.perf_counter() - t0))
 
+    orders, spaces = None, [base.term_space] * len(names)
+    if base.orders == "auto":  # every output in its own proposal
+        relay(Progress("checking data"))  # the segments, then each output's scan
+        relay(Progress("orders"))
+        base, orders, spaces = _choose_mimo_orders(record, base)
+    base = _with_regressors(record, base)  # presets on the chosen lags
+
     def one(i: int):
-        space = output_space(base.term_space, names, i)
+        space = output_space(spaces[i], names, i)
         return run_single_job(_view(record, space, names, i),
                               replace(base, term_space=space), progress=relay,
                               progress_every=progress_every, metadata=metadata)
 
-    outputs = in_threads(one, len(names), _outputs_at_once(record, base))
+    outputs = in_threads(one, len(names), _outputs_at_once(record, base, spaces))
     seconds = {name: r.seconds.get("total", 0.0) for name, r in zip(names, outputs)}
     model = MimoModel.joined(names, tuple(record.input_names), [r.model for r in outputs])
     est, val, _ = validation_segments(record, base)
@@ -420,7 +432,7 @@ def run_mimo_job(record: Record, settings, *, progress: ProgressFn | None = None
         model.metadata["orders"] = orders
     cross = []
     if settings.validation != "none":
-        cross = _validate_coupled(model, outputs, u, Y, val, settings.correlation_lags)
+        cross = _validate_coupled(model, outputs, u, Y, val, settings)
     data = outputs[0].data
     model.metadata["data"] = data
     model.metadata.update(record.metadata())
@@ -462,9 +474,24 @@ def _take_coupled_choice(model: MimoModel, chosen: MimoModel, account: dict, out
 
 
 def _validate_coupled(model: MimoModel, outputs: list, u: np.ndarray, Y: np.ndarray,
-                      val: list, correlation_lags: int) -> list:
-    """Cross-correlation tests of the outputs' residuals; each report on the coupled run."""
-    cross = couple_reports(model, u, Y, val, [r.report for r in outputs], correlation_lags)
+                      val: list, settings) -> list:
+    """Cross-correlation tests of the outputs' residuals; each report on the coupled run.
+
+    An output whose own largest lag is below the coupled model's (``orders: auto``
+    gives each output its own space) is validated again from the coupled run's
+    first row of each segment, so that every report has the coupled run's rows.
+    """
+    lag = model.max_lag
+    for i, r in enumerate(outputs):
+        own = r.model.term_space.max_lag
+        if r.report is not None and own < lag:
+            r.report = validate_model(
+                r.model, augmented_inputs(u, Y, i), Y[:, i],
+                correlation_lags=settings.correlation_lags, segment=settings.validation,
+                segments=[(a + lag - own, b) for a, b in val if b - a > lag],
+                horizon=settings.horizon or None)
+    cross = couple_reports(model, u, Y, val, [r.report for r in outputs],
+                           settings.correlation_lags)
     for i, r in enumerate(outputs):
         if r.report is not None:
             r.model.metadata["validation"] = {**r.report.to_dict(), "free_run_coupled": True}

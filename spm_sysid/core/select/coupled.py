@@ -93,13 +93,23 @@ def fit_least_squares(model: MimoModel, u: np.ndarray, Y: np.ndarray,
 
 
 def linear_mimo(model: MimoModel, order: int) -> MimoModel:
-    """The linear MIMO ARX structure of ``order`` in each output's space (zero coefficients)."""
+    """The linear MIMO ARX structure of ``order`` in each output's space (zero coefficients).
+
+    When the outputs' spaces differ (``orders: auto`` gives each output its own
+    proposal), each output's linear terms come from a linear space of the largest
+    order of them all, so that every output reaches ``order``.
+    """
+    spaces = [m.term_space for m in model.models]
+    top = max(max([s.ny] + list(s.nus)) for s in spaces)
+    own = {(s.ny, tuple(s.nus), s.degree) for s in spaces}
     models = []
-    for m in model.models:
-        masks = linear_masks(m.term_space)
+    for space in spaces:
+        if len(own) > 1:
+            space = replace(space, ny=top, nu=(top,) * len(space.nus), degree=1)
+        masks = linear_masks(space)
         mask = masks[min(order, len(masks)) - 1]
         idx = [int(i) for i in np.flatnonzero(mask)]
-        models.append(NarxModel(m.term_space, idx, np.zeros(len(idx))))
+        models.append(NarxModel(space, idx, np.zeros(len(idx))))
     return MimoModel(model.outputs, model.inputs, models, {})
 
 
@@ -304,6 +314,7 @@ def _accounted(m: NarxModel, template: NarxModel, u_aug, y, segments, uncertaint
 
 
 def _same(a: MimoModel, b: MimoModel) -> bool:
-    return all(list(x.term_indices) == list(y.term_indices) for x, y in zip(a.models, b.models))
+    """The same structures (by the terms' names: the spaces may differ)."""
+    return all(sorted(x.terms) == sorted(y.terms) for x, y in zip(a.models, b.models))
 
 
