@@ -200,6 +200,11 @@ class TermSpace:
         return self.output if source < 0 else self.inputs[source]
 
     @property
+    def order(self) -> int:
+        """The most lags any signal has (the output's ny, each input's nu): the ARX order."""
+        return max([self.ny] + list(self.nus))
+
+    @property
     def max_lag(self) -> int:
         """Largest lag; the first regression row is at t = max_lag."""
         return max([self.ny] + [d + nu - 1 for nu, d in zip(self.nus, self.delays) if nu]

@@ -100,7 +100,7 @@ def linear_mimo(model: MimoModel, order: int) -> MimoModel:
     order of them all, so that every output reaches ``order``.
     """
     spaces = [m.term_space for m in model.models]
-    top = max(max([s.ny] + list(s.nus)) for s in spaces)
+    top = max(s.order for s in spaces)
     own = {(s.ny, tuple(s.nus), s.degree) for s in spaces}
     models = []
     for space in spaces:
@@ -256,7 +256,7 @@ def _coupled_finalists(joined: MimoModel) -> list[tuple[str, str, MimoModel]]:
     One linear model per order up to the largest lag of the choices, each fitted
     by every coupled estimator; a linear model equal to one before is left out.
     """
-    top = max(max([m.term_space.ny] + list(m.term_space.nus)) for m in joined.models)
+    top = max(m.term_space.order for m in joined.models)
     finalists: list[tuple[str, str, MimoModel]] = [("the outputs' own choices", "as chosen",
                                                     joined)]
     finalists.append(("the outputs' own choices", "jointly refined", joined))

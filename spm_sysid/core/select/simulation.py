@@ -297,7 +297,7 @@ def linear_orders(term_space, usable: np.ndarray | None = None
     first = {}
     for source, lag in lin:
         first.setdefault(source, lag)
-    top = max([ts.ny] + list(ts.nus))
+    top = ts.order
     out, seen = [], set()
     for k in range(1, top + 1):
         mask = np.zeros(ts.n_terms, dtype=bool)
