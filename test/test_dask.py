@@ -120,8 +120,10 @@ def test_an_interrupted_study_resumes_without_redoing_runs(cluster, tmp_path):
     out = tmp_path / "resume"
     # runs of about 0.5 s each (the study's 12 runs of 40 generations took 0.2 s in all, and
     # with runs of 0.2 s a busy machine let the worker finish all twelve while the parent,
-    # short of CPU, had written two lines: they all finished before the interrupt arrived)
-    study_args = (*STUDY[:-1], "--generations", "2500", "--quiet")
+    # short of CPU, had written two lines: they all finished before the interrupt arrived);
+    # 24 of them: a fresh-clone CI run (2026-12-05) still finished all 12 of 0.5 s after
+    # the third line, so the interrupt has 21 runs (about 10 s) to arrive in
+    study_args = (*STUDY[:-1], "--runs", "6", "--generations", "2500", "--quiet")
     args = [sys.executable, "-m", "spm_sysid.apps.main", *study_args, "--out", str(out),
             "--workers", "1"]
     study = subprocess.Popen(args, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
@@ -133,7 +135,7 @@ def test_an_interrupted_study_resumes_without_redoing_runs(cluster, tmp_path):
     study.send_signal(signal.SIGINT)
     study.wait(60)
     done = len([line for line in partial.read_text().splitlines() if line.strip()])
-    assert 3 <= done < 12
+    assert 3 <= done < 24
     again = spm(*study_args, "--out", str(out))
     assert again.returncode == 2 and "--resume" in again.stderr  # nothing overwritten
     resumed = spm(*study_args, "--out", str(out), "--resume", "--scheduler",
