@@ -128,3 +128,99 @@ def test_outputs_of_a_long_record_in_a_large_space_take_turns():
     # 10^5 samples: 2 x 8 bytes x ~67 000 estimation rows x 703 terms is past the budget
     large, _ = at_once(100_000, 9)
     assert large == 1 and 2 * 8 * 60_000 * terms > PARALLEL_OUTPUT_BYTES
+
+
+def test_a_structure_fit_in_slices_is_the_fit_of_one_pass(robot_arm, monkeypatch):
+    from spm_sysid.core.fit.lstsq import columns_product, structure_fit
+
+    u, y = robot_arm
+    P, target = TermSpace(ny=2, nu=2, degree=2).regression(u, y)
+    cols = np.array([0, 1, 3, 6, 9])
+    rows = np.random.default_rng(3).random(len(target)) < 0.7
+    whole, whole_residuals = structure_fit(P, target, cols, rows)
+    X = P[rows][:, cols]
+    reference = reference_fit(X, target[rows], np.ones(len(cols), dtype=bool))
+    assert np.array_equal(whole.coefficients, reference.coefficients)  # one pass: unchanged
+    monkeypatch.setattr(lstsq_module, "FIT_SLICE_BYTES", 8 * 6 * 50)  # slices of 50 rows
+    sliced, residuals = structure_fit(P, target, cols, rows)
+    np.testing.assert_allclose(sliced.coefficients, reference.coefficients, rtol=1e-9)
+    np.testing.assert_allclose(residuals, whole_residuals, rtol=1e-9, atol=1e-12)
+    assert sliced.sse == pytest.approx(reference.sse, rel=1e-10)
+    np.testing.assert_allclose(np.abs(sliced.r_factor), np.abs(reference.r_factor), atol=1e-10)
+    np.testing.assert_allclose(columns_product(P, cols, sliced.coefficients, rows),
+                               X @ sliced.coefficients, rtol=1e-12)
+    # dependent or zero columns are rank-deficient in slices as in one pass
+    twice = np.column_stack([P, 2.0 * P[:, 1], np.zeros(len(P))])
+    for bad in ([0, 1, twice.shape[1] - 2], [0, twice.shape[1] - 1]):
+        fit, none = structure_fit(twice, target, np.array(bad))
+        assert fit.rank_deficient and none is None
+
+
+def test_the_open_loop_check_in_slices_and_its_memory(monkeypatch):
+    import spm_sysid.core.validate.open_loop as open_loop
+
+    u, y = _record(300_000)
+    y = np.cumsum(y) * 1e-3  # an integrating output: its pole at 1
+    one_pass = open_loop.open_loop_check(u[:3000], y[:3000], [(0, 3000)], 4)
+    monkeypatch.setattr(open_loop, "FIT_SLICE_BYTES", 8 * 10 * 400)
+    sliced = open_loop.open_loop_check(u[:3000], y[:3000], [(0, 3000)], 4)
+    assert sliced.kind == one_pass.kind == "integrating" and sliced.rows == one_pass.rows
+    assert abs(sliced.pole - one_pass.pole) < 1e-9
+    monkeypatch.setattr(open_loop, "FIT_SLICE_BYTES", 1 << 20)
+    tracemalloc.start()
+    try:
+        long = open_loop.open_loop_check(u, y, [(0, 150_000), (150_000, 300_000)], 4)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert long.kind == "integrating" and long.rows == 300_000 - 8
+    regressors = 8 * long.rows * 10  # one copy of the ARX regression matrix: 22.9 MiB
+    assert peak < 0.3 * regressors, f"peak {peak / 2**20:.1f} MiB"  # one pass held five
+
+
+def test_the_free_run_band_in_stretches_is_the_band_of_one_pass(robot_arm, monkeypatch):
+    import spm_sysid.core.defaults as defaults
+    from spm_sysid.core.model.uncertainty import output_band
+
+    u, y = robot_arm
+    problem = Problem.from_signals(u, y, TermSpace(ny=4, nu=4, degree=1))
+    model = problem.model(np.arange(problem.term_space.n_terms) < 8)
+    segments = [(0, 400), (400, 1024)]
+    one_pass = output_band(model, u, y, horizon=None, segments=segments, draws=40)
+    monkeypatch.setattr(defaults, "BAND_VALUES", 40 * 150)  # stretches of 150 rows
+    stretches = output_band(model, u, y, horizon=None, segments=segments, draws=40)
+    assert stretches.draws == one_pass.draws == 40
+    assert np.array_equal(stretches.lower, one_pass.lower)  # the same runs, bit for bit
+    assert np.array_equal(stretches.upper, one_pass.upper)
+    assert stretches.diverged == one_pass.diverged
+    # a long record: the draws' runs are never all held at once
+    n = 200_000
+    uu, yy = np.tile(u, n // len(u) + 1)[:n], np.tile(y, n // len(y) + 1)[:n]
+    monkeypatch.setattr(defaults, "BAND_VALUES", 40 * 10_000)
+    tracemalloc.start()
+    try:
+        band = output_band(model, uu, yy, horizon=None, segments=[(0, n)], draws=40)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert band.draws == 40 and len(band.lower) == n - 4
+    assert peak < 0.35 * 40 * n * 8, f"peak {peak / 2**20:.1f} MiB"  # one pass: all 61 MiB
+
+
+def test_fold_excitation_from_slices_is_the_whitened_measure(robot_arm, monkeypatch):
+    import spm_sysid.core.select.folds as folds_module
+
+    u, y = robot_arm
+    problem = Problem.from_signals(u, y, TermSpace(ny=3, nu=3, degree=2))
+    folds = folds_module.blocked_folds(problem, 4)
+    linear = (problem.term_space.term_degrees <= 1) & problem.usable
+    X = problem.columns[:, linear]
+    X = X / np.sqrt(np.mean(X * X, axis=0))
+    w, V = np.linalg.eigh(X.T @ X / len(X))
+    keep = w >= folds_module.EXCITED_DIRECTIONS * w[-1]
+    Z = X @ V[:, keep] / np.sqrt(w[keep])
+    direct = min(np.linalg.eigvalsh(Z[f.train].T @ Z[f.train] / f.train.sum())[0]
+                 for f in folds) ** 0.5
+    assert folds_module.fold_excitation(problem, folds) == pytest.approx(direct, rel=1e-10)
+    monkeypatch.setattr(folds_module, "FACTOR_SLICE_BYTES", 8 * 7 * 60)
+    assert folds_module.fold_excitation(problem, folds) == pytest.approx(direct, rel=1e-10)

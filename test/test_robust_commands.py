@@ -297,6 +297,30 @@ def test_a_memory_bound_that_means_nothing_is_a_clear_error(monkeypatch, text, w
         memory_limit()
 
 
+def test_a_set_memory_bound_counts_what_the_process_holds(monkeypatch, robot_arm):
+    """SPM_SYSID_MAX_MEMORY is the most the process may hold: the matrix comes on top."""
+    from spm_sysid.core.fit.problem import Problem
+    from spm_sysid.core.memory import check_memory, resident_bytes
+    from spm_sysid.core.model.terms import TermSpace
+
+    held = resident_bytes()
+    assert held > 10 * 2**20  # an interpreter with numpy: tens of MB at least
+    monkeypatch.setenv("SPM_SYSID_MAX_MEMORY", str(held + 2**22))
+    check_memory(2**23, "eight megabytes", held=False)  # the new need alone fits
+    with pytest.raises(MemoryLimitError, match=r"eight megabytes would need about 8.0 MB "
+                                               r"besides the .* this process holds"):
+        check_memory(2**23, "eight megabytes", held=True)
+    monkeypatch.setenv("SPM_SYSID_MAX_MEMORY", str(held + 2**20))
+    u, y = robot_arm  # its (3, 3, 2) problem: 0.2 MB of matrix and five slices of it
+    with pytest.raises(MemoryLimitError, match="1021 rows x 27 candidate terms would need "
+                                               "about .* besides the"):
+        Problem.from_signals(u, y, TermSpace(ny=3, nu=3, degree=2))
+    monkeypatch.setenv("SPM_SYSID_MAX_MEMORY", str(held + 2**30))
+    assert Problem.from_signals(u, y, TermSpace(ny=3, nu=3, degree=2)).rows == 1021
+    monkeypatch.delenv("SPM_SYSID_MAX_MEMORY")  # the default: half of the room left
+    assert Problem.from_signals(u, y, TermSpace(ny=3, nu=3, degree=2)).rows == 1021
+
+
 def test_identify_and_validate_with_an_unlimited_memory_bound(tmp_path):
     env = {**os.environ, "SPM_SYSID_MAX_MEMORY": "inf"}
     r = run("spm-sysid", "identify", "--quiet", "--json", str(tmp_path / "m.json"), env=env)

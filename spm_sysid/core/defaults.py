@@ -102,6 +102,13 @@ POLISH_STEP_WORK = 300_000
 #: (one slice gives exactly the numbers of one pass).
 FACTOR_SLICE_BYTES = 64 << 20
 
+#: Bytes of one structure's columns (and target) a least-squares fit reads at a time
+#: (:func:`~spm_sysid.core.fit.lstsq.structure_fit`). A one-pass fit holds about five
+#: copies of them (selected, unit-norm, QR's own and Q); a longer record is fitted slice
+#: by slice: 10^6 rows of seven terms held 270 MB in fits, 80 MB now. Records of fewer
+#: rows (the robot arm, Silverbox's structures up to 30 terms) fit in one pass as before.
+FIT_SLICE_BYTES = 16 << 20
+
 #: Bytes of candidate matrices the outputs of a record may hold at once while they are
 #: identified side by side (one thread each); beyond it they take turns. Two outputs of
 #: 10^5 samples in a (9, 9, 2) space hold 561 MB each: side by side the two-link arm took

@@ -13,7 +13,8 @@ memory this process can still use: the least of
 * the address space left under ``ulimit -v`` (``RLIMIT_AS`` minus the
   process's current size),
 
-or 8 GiB where none of these can be read.
+or 8 GiB where none of these can be read. A bound the user sets is the most the
+process may hold: the regression matrix's check counts what it holds already.
 """
 
 from __future__ import annotations
@@ -24,7 +25,8 @@ from pathlib import Path
 
 from .errors import MemoryLimitError
 
-__all__ = ["MemoryLimitError", "check_memory", "format_bytes", "memory_limit"]
+__all__ = ["MemoryLimitError", "check_memory", "format_bytes", "memory_limit",
+           "resident_bytes"]
 
 _SUFFIX = {"K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}
 _UNLIMITED = 2**60  # cgroup files say "max" or a huge number for "no limit"
@@ -152,11 +154,31 @@ def memory_limit() -> tuple[int, str]:
     return room // 2, f"half of {label}"
 
 
-def check_memory(needed: float, what: str) -> None:
-    """Raise MemoryLimitError when ``needed`` bytes exceed the bound."""
+def resident_bytes() -> int:
+    """The memory this process holds now (``VmRSS``; 0 where it cannot be read)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return 0
+
+
+def check_memory(needed: float, what: str, held: bool = False) -> None:
+    """Raise MemoryLimitError when ``needed`` bytes exceed the bound.
+
+    With ``held`` and a bound the user set (``SPM_SYSID_MAX_MEMORY``: the most the
+    process may hold), the memory the process holds already counts too: the job's
+    large arrays come on top of the interpreter, the record and what else is loaded.
+    The default bound is half of the room *left*, which already excludes it.
+    """
     limit, source = memory_limit()
-    if needed > limit:
+    already = resident_bytes() if held and source == "SPM_SYSID_MAX_MEMORY" else 0
+    if needed + already > limit:
+        besides = f" besides the {format_bytes(already)} this process holds" if already else ""
         raise MemoryLimitError(
-            f"{what} would need about {format_bytes(needed)}, more than the limit of "
-            f"{format_bytes(limit)} ({source}); use less data or fewer candidate terms, or "
+            f"{what} would need about {format_bytes(needed)}{besides}, more than the limit "
+            f"of {format_bytes(limit)} ({source}); use less data or fewer candidate terms, or "
             "set SPM_SYSID_MAX_MEMORY")

@@ -13,12 +13,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..defaults import SSE_FLOOR_RELATIVE
+from ..defaults import FIT_SLICE_BYTES, SSE_FLOOR_RELATIVE
 from ..model.uncertainty import solve_upper
 from .criteria import Criterion, get_criterion
 
-__all__ = ["DEFAULT_RANK_TOL", "FitResult", "column_norms", "reference_fit", "reference_score",
-           "score_one", "sse_floor"]
+__all__ = ["DEFAULT_RANK_TOL", "FitResult", "column_norms", "columns_product", "reference_fit",
+           "reference_score", "score_one", "sse_floor", "structure_fit"]
 
 DEFAULT_RANK_TOL = 1e-9
 
@@ -110,6 +110,92 @@ def reference_fit(
     theta_n = solve_upper(R, z)
     resid = target - An @ theta_n
     return FitResult(theta_n / norms, float(resid @ resid), False, R, norms)
+
+
+def _slice_rows(columns: int) -> int:
+    """Rows of ``columns`` columns (and the target) in one slice of a fit."""
+    return max(columns + 1, FIT_SLICE_BYTES // (8 * (columns + 1)))
+
+
+def _slices(P: np.ndarray, cols: np.ndarray, rows: np.ndarray | None, extra: np.ndarray):
+    """(the columns ``cols`` of a slice of P's rows, ``extra`` there), ``rows`` kept only."""
+    step = _slice_rows(len(cols))
+    for a in range(0, P.shape[0], step):
+        X, e = P[a:a + step][:, cols], extra[a:a + step]
+        if rows is not None:
+            keep = rows[a:a + step]
+            X, e = X[keep], e[keep]
+        yield X, e
+
+
+def columns_product(P: np.ndarray, cols: np.ndarray, theta: np.ndarray,
+                    rows: np.ndarray | None = None) -> np.ndarray:
+    """``P[rows][:, cols] @ theta``, a slice of rows at a time (no copy of the columns).
+
+    ``rows``: a boolean mask over P's rows (None: all).
+    """
+    cols = np.asarray(cols)
+    dummy = np.empty(P.shape[0], dtype=bool)
+    return np.concatenate([X @ theta for X, _ in _slices(P, cols, rows, dummy)]
+                          or [np.empty(0)])
+
+
+def structure_fit(P: np.ndarray, target: np.ndarray, cols: np.ndarray,
+                  rows: np.ndarray | None = None, rank_tol: float = DEFAULT_RANK_TOL
+                  ) -> tuple[FitResult, np.ndarray | None]:
+    """:func:`reference_fit` of P's columns ``cols`` on ``rows``, and its residuals.
+
+    A long matrix is read a slice of rows at a time
+    (:data:`~spm_sysid.core.defaults.FIT_SLICE_BYTES`): the column norms summed,
+    then the triangular factor of the unit-norm ``[X y]`` updated by the QR of the
+    factor so far stacked on the next rows; its last column gives ``Q^T y``. So a fit
+    of 10^6 rows holds no copy of its columns (one-pass QR held five). A matrix of
+    one slice takes the one-pass route, so its numbers are unchanged.
+
+    Parameters
+    ----------
+    P : ndarray, shape (N, n_terms)
+        Regression matrix of all candidate terms.
+    target : ndarray, shape (N,)
+        y(t) for the regression rows.
+    cols : ndarray of int
+        The structure's columns.
+    rows : ndarray of bool, shape (N,), optional
+        The rows to fit on (None: all).
+    rank_tol : float
+        Squared relative pivot below which the structure is rank-deficient.
+
+    Returns
+    -------
+    fit : FitResult
+    residuals : ndarray or None
+        ``target - X @ coefficients`` on the rows (None when rank-deficient).
+    """
+    cols = np.asarray(cols)
+    k = len(cols)
+    if k == 0 or P.shape[0] <= _slice_rows(k):
+        X, t = P[:, cols], target
+        if rows is not None:
+            X, t = X[rows], t[rows]
+        res = reference_fit(X, t, np.ones(k, dtype=bool), rank_tol)
+        return res, None if res.rank_deficient else t - X @ res.coefficients
+    squares, count = np.zeros(k), 0
+    for X, _ in _slices(P, cols, rows, target):
+        squares += np.add.reduce(X * X, axis=0)
+        count += len(X)
+    norms = np.sqrt(squares)
+    if np.any(norms == 0) or k > count:  # a zero column, or more terms than rows
+        return FitResult(np.full(k, np.nan), np.nan, True), None
+    r = np.zeros((0, k + 1))
+    for X, t in _slices(P, cols, rows, target):
+        r = np.linalg.qr(np.vstack([r, np.column_stack([X / norms, t])]), mode="r")
+    R = r[:k, :k]
+    if np.min(np.abs(np.diag(R))) ** 2 < rank_tol:
+        return FitResult(np.full(k, np.nan), np.nan, True), None
+    coefficients = solve_upper(R, r[:k, k]) / norms
+    residuals = np.concatenate([t - X @ coefficients
+                                for X, t in _slices(P, cols, rows, target)])
+    return FitResult(coefficients, float(residuals @ residuals), False, R, norms), residuals
 
 
 def score_one(crit: Criterion, sse: float, n: int, n_terms: int, cols: np.ndarray,

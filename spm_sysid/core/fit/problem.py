@@ -33,13 +33,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..defaults import FACTOR_SLICE_BYTES
+from ..defaults import FACTOR_SLICE_BYTES, FIT_SLICE_BYTES
 from ..errors import DataError, TooFewSamplesError
 from ..memory import check_memory
 from ..model.segments import normalise_segments, rows_segments, usable_segments
 from ..model.terms import TermSpace, power_of_two_scale
 from .criteria import Criterion, get_criterion
-from .lstsq import DEFAULT_RANK_TOL, column_norms, reference_fit
+from .lstsq import DEFAULT_RANK_TOL, column_norms, structure_fit
 
 if TYPE_CHECKING:
     from ..model.narx import NarxModel
@@ -322,11 +322,14 @@ class Problem:
         rows = sum(b - a - term_space.max_lag for a, b in segs)
         m = term_space.n_terms
         # the matrix (built and reduced in slices: no copy of it), the slices the
-        # evaluator works on (a scaled one, its stack on the factor and QR's copy), and
-        # the evaluator's Gram matrix and triangular factor of all candidate terms
+        # evaluator works on (a scaled one, its stack on the factor and QR's copy), the
+        # five a structure's fit holds (its columns, unit-norm, QR's copy and Q), and the
+        # evaluator's Gram matrix and triangular factor of all candidate terms; on top of
+        # what the process holds when the user set the bound
         matrix = 8 * rows * (m + 1)
-        check_memory(matrix + 3 * min(matrix, FACTOR_SLICE_BYTES) + 2 * 8 * (m + 2) ** 2,
-                     f"the regression matrix of {rows} rows x {m} candidate terms")
+        slices = 3 * min(matrix, FACTOR_SLICE_BYTES) + 5 * min(matrix, FIT_SLICE_BYTES)
+        check_memory(matrix + slices + 2 * 8 * (m + 2) ** 2,
+                     f"the regression matrix of {rows} rows x {m} candidate terms", held=True)
         return cls(term_space, u, y, segs)
 
     # -- sizes and names ------------------------------------------------------------------
@@ -430,16 +433,15 @@ class Problem:
             raise ValueError(f"mask must have {ts.n_terms} entries, got {mask.shape}")
         if not mask.any():
             raise ValueError("cannot fit a structure with no terms")
-        X, target = self.columns[:, mask], self.target  # the structure's columns only
-        if rows is not None:
-            X, target = X[rows], target[rows]
-        res = reference_fit(X, target, np.ones(X.shape[1], dtype=bool), rank_tol)
+        # the structure's columns, read a slice of rows at a time on a long record
+        res, residuals = structure_fit(self.columns, self.target, np.flatnonzero(mask), rows,
+                                       rank_tol)
         if res.rank_deficient:
             names = [ts.term_names()[i] for i in np.flatnonzero(mask)]
             raise ValueError(f"the regressors {names} are linearly dependent on this data")
         factors = self._factors[mask]
         coefficients = res.coefficients * factors
-        residuals = (target - X @ res.coefficients) * self.y_scale
+        residuals = residuals * self.y_scale
         return StructureFit(mask=mask.copy(), coefficients=coefficients,
                             sse=res.sse * self.sse_scale, residuals=residuals,
                             r_factor=res.r_factor,

@@ -222,6 +222,8 @@ def output_band(model, u: np.ndarray, y: np.ndarray, *, horizon: int | None = 1,
         for a in range(0, len(P), _BLOCK):
             q[:, a:a + _BLOCK] = np.quantile(P[a:a + _BLOCK] @ theta.T, [lo, hi], axis=1)
         return Band(q[0], q[1], level, draws, 0.0)
+    if horizon is None and rows * draws > BAND_VALUES:
+        return _long_free_run_band(model, theta, u, y, segments, (lo, hi), level)
     outputs, ok = None, np.ones(draws, dtype=bool)
     for i, th in enumerate(theta):
         yhat, at = model.with_coefficients(th).run(u, y, horizon, segments)
@@ -237,6 +239,52 @@ def output_band(model, u: np.ndarray, y: np.ndarray, *, horizon: int | None = 1,
     keep = np.flatnonzero(ok)
     for a in range(0, len(outputs), _BLOCK):
         q[:, a:a + _BLOCK] = np.quantile(outputs[a:a + _BLOCK][:, keep], [lo, hi], axis=1)
+    return Band(q[0], q[1], level, draws, float(1.0 - ok.mean()))
+
+
+def _long_free_run_band(model, theta: np.ndarray, u, y, segments, levels, level) -> Band:
+    """The free-run band of a record whose draws' runs would not fit BAND_VALUES at once.
+
+    Two passes, so memory stays bounded however long the record: each draw's whole
+    run decides whether it stays in range (as the one-pass band does) and keeps its
+    last simulated outputs before each stretch of rows; then, stretch by stretch, every
+    draw that stayed in range is run again from those outputs (a free run depends on
+    nothing else: the same values) and the quantiles taken there.
+    """
+    from ..defaults import BAND_VALUES
+    from .segments import normalise_segments
+    from .simulation import divergence_bounds, run_model
+
+    draws, lag = len(theta), model.term_space.max_lag
+    u2, y = model.term_space.inputs_2d(u), np.asarray(y, dtype=float)
+    step = max(BAND_VALUES // draws, lag + 1)
+    stretches, offset = [], 0  # (segment start, first sample, stop, row offset)
+    for a, b in normalise_segments(segments, len(y)):
+        for s in range(a + lag, b, step):
+            stretches.append((a, s, min(s + step, b), offset + s - a - lag))
+        offset += max(b - a - lag, 0)
+    ok = np.ones(draws, dtype=bool)
+    starts = [dict() for _ in range(draws)]  # per draw: first sample -> outputs before it
+    for i, th in enumerate(theta):
+        yhat, at = model.with_coefficients(th).run(u, y, None, segments)
+        ok[i] = at is None
+        if ok[i]:
+            starts[i] = {s: yhat[o - lag:o].copy() for a, s, _, o in stretches if s > a + lag}
+    if not ok.any():
+        return Band(np.full(offset, np.nan), np.full(offset, np.nan), level, draws, 1.0)
+    bounds = divergence_bounds(y)
+    q = np.empty((2, offset))
+    for a, s, e, o in stretches:
+        values = np.empty((e - s, int(ok.sum())))
+        for j, i in enumerate(np.flatnonzero(ok)):
+            y_from = y[s - lag:e].copy()
+            if s > a + lag:
+                y_from[:lag] = starts[i][s]
+            values[:, j], _ = run_model(model.compiled, theta[i], u2[s - lag:e], y_from, None,
+                                        bounds)
+        for c in range(0, e - s, _BLOCK):
+            q[:, o + c:o + min(c + _BLOCK, e - s)] = np.quantile(values[c:c + _BLOCK], levels,
+                                                                 axis=1)
     return Band(q[0], q[1], level, draws, float(1.0 - ok.mean()))
 
 

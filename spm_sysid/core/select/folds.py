@@ -19,6 +19,7 @@ import numpy as np
 
 from ..defaults import (
     EXCITED_DIRECTIONS,
+    FACTOR_SLICE_BYTES,
     FOLDS,
     INTERLEAVED_PIECES,
     LONG_FINAL_STEPS,
@@ -155,22 +156,34 @@ def fold_excitation(problem, folds: list[Fold]) -> float:
     the rest cannot find it). See :data:`MIN_FOLD_EXCITATION`.
     """
     degree = problem.term_space.term_degrees
-    X = problem.columns[:, (degree <= 1) & problem.usable]
-    if not folds or X.shape[1] == 0:
+    cols = np.flatnonzero((degree <= 1) & problem.usable)
+    if not folds or len(cols) == 0:
         return 1.0
-    rms = np.sqrt(np.mean(X * X, axis=0))
-    X = X[:, rms > 0] / rms[rms > 0]
-    w, V = np.linalg.eigh(X.T @ X / len(X))
+    P = problem.columns  # its linear columns' Gram matrices, a slice of rows at a time
+    step = max(1, FACTOR_SLICE_BYTES // (8 * len(cols)))
+    gram = np.zeros((len(cols), len(cols)))
+    grams = np.zeros((len(folds), len(cols), len(cols)))
+    for a in range(0, P.shape[0], step):
+        X = P[a:a + step][:, cols]
+        gram += X.T @ X
+        for g, f in zip(grams, folds):
+            part = X[f.train[a:a + step]]
+            g += part.T @ part
+    n = P.shape[0]
+    rms = np.sqrt(np.diag(gram) / n)
+    live = rms > 0
+    scale = 1.0 / rms[live]
+    w, V = np.linalg.eigh(scale[:, None] * gram[np.ix_(live, live)] * scale / n)
     keep = w >= EXCITED_DIRECTIONS * w[-1]
     if not keep.any():
         return 1.0
-    Z = (X @ V[:, keep]) / np.sqrt(w[keep])  # the excited directions, whitened on all rows
+    T = scale[:, None] * V[:, keep] / np.sqrt(w[keep])  # the excited directions, whitened
     worst = 1.0
-    for f in folds:
-        rows = Z[f.train]
-        if not len(rows):
+    for g, f in zip(grams, folds):
+        count = int(f.train.sum())
+        if not count:
             return 0.0
-        worst = min(worst, float(np.linalg.eigvalsh(rows.T @ rows / len(rows))[0]))
+        worst = min(worst, float(np.linalg.eigvalsh(T.T @ g[np.ix_(live, live)] @ T / count)[0]))
     return max(worst, 0.0) ** 0.5
 
 

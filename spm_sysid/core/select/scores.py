@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..defaults import MAX_CANDIDATES, ONE_SE
-from ..fit.lstsq import reference_fit
+from ..fit.lstsq import columns_product, structure_fit
 from ..model.simulation import divergence_bounds, run_model
 from .folds import Fold
 
@@ -90,8 +90,8 @@ def _fold_mse(problem, fold: Fold, mask: np.ndarray, simulate: bool,
     train = fold.train
     if not mask.any() or (mask & ~problem.usable).any() or train.sum() <= mask.sum():
         return np.nan
-    X = problem.columns[:, mask]  # the structure's columns only: no copy of the matrix
-    fit = reference_fit(X[train], problem.target[train], np.ones(X.shape[1], dtype=bool))
+    cols = np.flatnonzero(mask)  # the structure's columns only, in slices of rows
+    fit, _ = structure_fit(problem.columns, problem.target, cols, train)
     if fit.rank_deficient:
         return np.nan
     theta = fit.coefficients  # on the scaled problem
@@ -102,7 +102,7 @@ def _fold_mse(problem, fold: Fold, mask: np.ndarray, simulate: bool,
         t = problem.row_times
         for a, b in fold.held_out:
             held |= (t >= a + lag) & (t < b)
-        e = problem.target[held] - X[held] @ theta
+        e = problem.target[held] - columns_product(problem.columns, cols, theta, held)
         return float(np.mean(e * e)) * problem.sse_scale
     model = _scaled_model(problem, mask, theta)
     u = problem.u / problem.u_scale

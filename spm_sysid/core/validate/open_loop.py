@@ -32,7 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..defaults import DEPENDENT, HORIZON, INTEGRATOR_MARGIN, REAL_ANGLE
+from ..defaults import DEPENDENT, FIT_SLICE_BYTES, HORIZON, INTEGRATOR_MARGIN, REAL_ANGLE
 
 __all__ = ["HORIZON", "OpenLoop", "REAL_ANGLE", "independent_columns", "open_loop_check"]
 
@@ -109,6 +109,63 @@ def independent_columns(X: np.ndarray) -> np.ndarray:
     return np.flatnonzero(diag > DEPENDENT * max(float(diag.max(initial=0.0)), 1.0))
 
 
+def _arx_slices(u: np.ndarray, y: np.ndarray, segments, n: int, step: int):
+    """(regressors, targets) of the order-n ARX model, ``step`` rows at most at a time.
+
+    Rows y(t-1..t-n), u_j(t-1..t-n) of each input, 1; no row crosses a segment's border.
+    """
+    for a, b in segments:
+        for s in range(a + n, b, step):
+            idx = np.arange(s, min(s + step, b))
+            lagged = [y[idx - k] for k in range(1, n + 1)]
+            lagged += [u[idx - k, j] for j in range(u.shape[1]) for k in range(1, n + 1)]
+            yield np.column_stack(lagged + [np.ones(len(idx))]), y[idx]
+
+
+def _arx_fit(u: np.ndarray, y: np.ndarray, segments, n: int
+             ) -> tuple[np.ndarray, np.ndarray, int] | None:
+    """Least squares of the ARX model on the independent columns: (theta, scale, rows).
+
+    ``theta`` is of the columns scaled by ``scale`` (unit norm). A long record is
+    read in slices (:data:`~spm_sysid.core.defaults.FIT_SLICE_BYTES`): the
+    triangular factor of the scaled ``[X t]`` is updated slice by slice and the fit
+    on the independent columns solved from it, so no copy of X is held (10^6
+    rows held five); a record of one slice takes the one-pass route, unchanged.
+    None: too few rows, or a value that is not finite.
+    """
+    width = n * (1 + u.shape[1]) + 1
+    step = max(width + 1, FIT_SLICE_BYTES // (8 * (width + 1)))
+    count = sum(max(b - a - n, 0) for a, b in segments)
+    if count <= width:
+        return None
+    if count <= step:  # one pass
+        X, t = (np.concatenate(p) for p in zip(*_arx_slices(u, y, segments, n, step)))
+        if not (np.all(np.isfinite(X)) and np.all(np.isfinite(t))):
+            return None
+        scale = np.linalg.norm(X, axis=0)
+        scale[scale == 0] = 1.0
+        keep = independent_columns(X / scale)
+        theta = np.zeros(X.shape[1])
+        theta[keep], *_ = np.linalg.lstsq(X[:, keep] / scale[keep], t, rcond=None)
+        return theta, scale, count
+    squares = np.zeros(width)
+    for X, t in _arx_slices(u, y, segments, n, step):
+        if not (np.all(np.isfinite(X)) and np.all(np.isfinite(t))):
+            return None
+        squares += np.add.reduce(X * X, axis=0)
+    scale = np.sqrt(squares)
+    scale[scale == 0] = 1.0
+    r = np.zeros((0, width + 1))
+    for X, t in _arx_slices(u, y, segments, n, step):
+        r = np.linalg.qr(np.vstack([r, np.column_stack([X / scale, t])]), mode="r")
+    diag = np.abs(np.diag(r[:width, :width]))
+    keep = np.flatnonzero(diag > DEPENDENT * max(float(diag.max(initial=0.0)), 1.0))
+    q, rk = np.linalg.qr(r[:width, keep])  # X[:, keep] = Q r[:, keep]: its own QR from there
+    theta = np.zeros(width)
+    theta[keep] = np.linalg.solve(rk, q.T @ r[:width, width])
+    return theta, scale, count
+
+
 def open_loop_check(u: np.ndarray, y: np.ndarray, segments: list[tuple[int, int]],
                     order: int) -> OpenLoop | None:
     """The open-loop verdict of the record (None when too short to fit the ARX model).
@@ -127,28 +184,12 @@ def open_loop_check(u: np.ndarray, y: np.ndarray, segments: list[tuple[int, int]
     u = np.asarray(u, dtype=float).reshape(len(u), -1)
     y = np.asarray(y, dtype=float)
     n = max(int(order), 1)
-    rows, targets = [], []
-    for a, b in segments:
-        if b - a <= n:
-            continue
-        idx = np.arange(a + n, b)
-        lagged = [y[idx - k] for k in range(1, n + 1)]
-        lagged += [u[idx - k, j] for j in range(u.shape[1]) for k in range(1, n + 1)]
-        rows.append(np.column_stack(lagged + [np.ones(len(idx))]))
-        targets.append(y[idx])
-    if not rows:
+    fit = _arx_fit(u, y, segments, n)
+    if fit is None:
         return None
-    X, t = np.concatenate(rows), np.concatenate(targets)
-    if len(t) <= X.shape[1] or not (np.all(np.isfinite(X)) and np.all(np.isfinite(t))):
-        return None
-    scale = np.linalg.norm(X, axis=0)
-    scale[scale == 0] = 1.0
-    keep = independent_columns(X / scale)
-    theta = np.zeros(X.shape[1])
-    theta[keep], *_ = np.linalg.lstsq(X[:, keep] / scale[keep], t, rcond=None)
+    theta, scale, count = fit
     a_coef = theta[:n] / scale[:n]
     poles = np.roots(np.r_[1.0, -a_coef])
-    count = len(t)
     if not len(poles):
         return OpenLoop("stable", 0j, n, count)
     real = poles[(np.abs(np.angle(poles)) < REAL_ANGLE)]
