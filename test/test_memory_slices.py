@@ -180,6 +180,7 @@ def test_the_open_loop_check_in_slices_and_its_memory(monkeypatch):
 
 def test_the_free_run_band_in_stretches_is_the_band_of_one_pass(robot_arm, monkeypatch):
     import spm_sysid.core.defaults as defaults
+    import spm_sysid.core.model.uncertainty as uncertainty
     from spm_sysid.core.model.uncertainty import output_band
 
     u, y = robot_arm
@@ -187,7 +188,8 @@ def test_the_free_run_band_in_stretches_is_the_band_of_one_pass(robot_arm, monke
     model = problem.model(np.arange(problem.term_space.n_terms) < 8)
     segments = [(0, 400), (400, 1024)]
     one_pass = output_band(model, u, y, horizon=None, segments=segments, draws=40)
-    monkeypatch.setattr(defaults, "BAND_VALUES", 40 * 150)  # stretches of 150 rows
+    monkeypatch.setattr(defaults, "BAND_VALUES", 40 * 150)  # the band in stretches,
+    monkeypatch.setattr(uncertainty, "_STRETCH_VALUES", 40 * 150)  # each of 150 rows
     stretches = output_band(model, u, y, horizon=None, segments=segments, draws=40)
     assert stretches.draws == one_pass.draws == 40
     assert np.array_equal(stretches.lower, one_pass.lower)  # the same runs, bit for bit
@@ -197,6 +199,7 @@ def test_the_free_run_band_in_stretches_is_the_band_of_one_pass(robot_arm, monke
     n = 200_000
     uu, yy = np.tile(u, n // len(u) + 1)[:n], np.tile(y, n // len(y) + 1)[:n]
     monkeypatch.setattr(defaults, "BAND_VALUES", 40 * 10_000)
+    monkeypatch.setattr(uncertainty, "_STRETCH_VALUES", 40 * 10_000)
     tracemalloc.start()
     try:
         band = output_band(model, uu, yy, horizon=None, segments=[(0, n)], draws=40)

@@ -251,13 +251,12 @@ def _long_free_run_band(model, theta: np.ndarray, u, y, segments, levels, level)
     draw that stayed in range is run again from those outputs (a free run depends on
     nothing else: the same values) and the quantiles taken there.
     """
-    from ..defaults import BAND_VALUES
     from .segments import normalise_segments
     from .simulation import divergence_bounds, run_model
 
     draws, lag = len(theta), model.term_space.max_lag
     u2, y = model.term_space.inputs_2d(u), np.asarray(y, dtype=float)
-    step = max(BAND_VALUES // draws, lag + 1)
+    step = max(_STRETCH_VALUES // draws, lag + 1)
     stretches, offset = [], 0  # (segment start, first sample, stop, row offset)
     for a, b in normalise_segments(segments, len(y)):
         for s in range(a + lag, b, step):
@@ -290,3 +289,7 @@ def _long_free_run_band(model, theta: np.ndarray, u, y, segments, levels, level)
 
 #: Rows whose quantiles are taken at once (bounds the copies a quantile makes).
 _BLOCK = 20_000
+
+#: Simulated values a long record's free-run band holds at once (20 MB): each stretch's
+#: runs of every draw (:func:`_long_free_run_band`).
+_STRETCH_VALUES = 2_500_000
