@@ -329,6 +329,41 @@ def test_identify_and_validate_with_an_unlimited_memory_bound(tmp_path):
     assert r.returncode == 0, r.stderr
 
 
+# -- a study or batch in this process stops on Ctrl-C ------------------------------------
+
+
+def test_an_interrupt_a_task_swallows_still_stops_the_job_before_the_next():
+    """The runner's mark: a KeyboardInterrupt lost inside a task (caught by a library,
+    or raised in a finaliser, where Python prints and drops it) still stops the job."""
+    import signal
+
+    from spm_sysid.tools.runner import run_tasks
+
+    # Python's own handler, whatever the test runner's worker process installed
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    ran = []
+
+    def task(t, shared):
+        ran.append(t)
+        if t == 1:
+            try:
+                signal.raise_signal(signal.SIGINT)
+            except KeyboardInterrupt:
+                pass  # lost here
+        return t
+
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            run_tasks(task, {str(i): i for i in range(4)}, workers=1)
+        assert ran == [0, 1]  # task 1 finished, task 2 never started
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
+        ran.clear()  # without an interrupt every task runs
+        assert [o.result for o in run_tasks(lambda t, s: t, {"a": 5, "b": 6},
+                                            workers=1).values()] == [5, 6]
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 # -- the node's worker: a job after a cancel goes to a live process ------------------------
 
 

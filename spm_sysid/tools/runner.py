@@ -105,12 +105,44 @@ def run_tasks(
 
     workers = workers or os.cpu_count() or 1
     if workers == 1:
+        return _run_here(fn, tasks, shared, retries, done)
+    return _run_pool(fn, tasks, shared, workers, retries, done, job)
+
+
+def _run_here(fn, tasks, shared, retries, done) -> dict[str, TaskOutcome]:
+    """The tasks one after another in this process; an interrupt stops before the next.
+
+    Ctrl-C's KeyboardInterrupt is raised wherever the main thread is; raised inside a
+    finaliser (a ``__del__``, a weakref callback) or in code that catches it, it is
+    lost, and the job would run on. So the handlers of SIGINT and SIGTERM also leave a
+    mark, checked before each task: such an interrupt still stops the job there.
+    """
+    import signal
+    import threading
+
+    marks: list[int] = []
+    before = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            handler = signal.getsignal(sig)
+            if callable(handler):  # not ignored (a background job's SIGINT), not the default
+
+                def marking(signum, frame, handler=handler):
+                    marks.append(signum)
+                    handler(signum, frame)
+
+                before[sig] = signal.signal(sig, marking)
+    try:
         out = {}
         for key, task in tasks.items():
+            if marks:
+                raise KeyboardInterrupt
             out[key] = _attempt_here(fn, key, task, shared, retries)
             done(out[key])
         return out
-    return _run_pool(fn, tasks, shared, workers, retries, done, job)
+    finally:
+        for sig, handler in before.items():
+            signal.signal(sig, handler)
 
 
 def _attempt_here(fn, key, task, shared, retries) -> TaskOutcome:
