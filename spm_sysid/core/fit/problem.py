@@ -160,6 +160,19 @@ def validate_signals(u, y, term_space: TermSpace,
     return u, y
 
 
+def working_bytes(rows: int, terms: int) -> int:
+    """The memory a problem of ``rows`` x ``terms`` candidate terms works in, at most.
+
+    The candidate matrix (built and reduced in slices: no copy of it), the slices
+    the evaluator works on (a scaled one, its stack on the factor and QR's copy),
+    the five a structure's fit holds (its columns, unit-norm, QR's copy and Q), and
+    the evaluator's Gram matrix and triangular factor of all candidate terms.
+    """
+    matrix = 8 * rows * (terms + 1)
+    slices = 3 * min(matrix, FACTOR_SLICE_BYTES) + 5 * min(matrix, FIT_SLICE_BYTES)
+    return matrix + slices + 2 * 8 * (terms + 2) ** 2
+
+
 def excluded_columns(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Columns to leave out of the search.
 
@@ -321,14 +334,8 @@ class Problem:
                             "disconnected sensor?): there is nothing to identify")
         rows = sum(b - a - term_space.max_lag for a, b in segs)
         m = term_space.n_terms
-        # the matrix (built and reduced in slices: no copy of it), the slices the
-        # evaluator works on (a scaled one, its stack on the factor and QR's copy), the
-        # five a structure's fit holds (its columns, unit-norm, QR's copy and Q), and the
-        # evaluator's Gram matrix and triangular factor of all candidate terms; on top of
-        # what the process holds when the user set the bound
-        matrix = 8 * rows * (m + 1)
-        slices = 3 * min(matrix, FACTOR_SLICE_BYTES) + 5 * min(matrix, FIT_SLICE_BYTES)
-        check_memory(matrix + slices + 2 * 8 * (m + 2) ** 2,
+        # on top of what the process holds when the user set the bound
+        check_memory(working_bytes(rows, m),
                      f"the regression matrix of {rows} rows x {m} candidate terms", held=True)
         return cls(term_space, u, y, segs)
 

@@ -364,20 +364,23 @@ def _with_regressors(record: Record, base):
 
 
 def _outputs_at_once(record: Record, base, spaces: list) -> int:
-    """How many outputs identify side by side: their candidate matrices within a budget.
+    """How many outputs identify side by side: their working memory within a budget.
 
-    Each output's job holds its candidate matrix (estimation rows x its terms);
+    Each output's job holds its candidate matrix (estimation rows x its terms) and
+    the slices its fits work on (:func:`~spm_sysid.core.fit.problem.working_bytes`);
     :data:`~spm_sysid.core.defaults.PARALLEL_OUTPUT_BYTES` bounds their sum, so the
-    outputs of a long record with a large space take turns instead of doubling
-    the peak memory. At least one.
+    outputs of a long record take turns instead of doubling the peak memory. At
+    least one.
     """
+    from ..fit.problem import working_bytes
+
     names = tuple(record.output_names)
     est, _, _ = validation_segments(record, base)
     largest = 0
     for i in range(len(names)):
         space = output_space(spaces[i], names, i)
         rows = sum(max(b - a - space.max_lag, 0) for a, b in est)
-        largest = max(largest, 8 * rows * space.n_terms)
+        largest = max(largest, working_bytes(rows, space.n_terms))
     return int(min(len(names), max(1, PARALLEL_OUTPUT_BYTES // max(largest, 1))))
 
 

@@ -222,7 +222,7 @@ def output_band(model, u: np.ndarray, y: np.ndarray, *, horizon: int | None = 1,
         for a in range(0, len(P), _BLOCK):
             q[:, a:a + _BLOCK] = np.quantile(P[a:a + _BLOCK] @ theta.T, [lo, hi], axis=1)
         return Band(q[0], q[1], level, draws, 0.0)
-    if horizon is None and rows * draws > BAND_VALUES:
+    if horizon is None and rows * draws > _STRETCH_VALUES:  # the same band, less held
         return _long_free_run_band(model, theta, u, y, segments, (lo, hi), level)
     outputs, ok = None, np.ones(draws, dtype=bool)
     for i, th in enumerate(theta):
@@ -243,7 +243,7 @@ def output_band(model, u: np.ndarray, y: np.ndarray, *, horizon: int | None = 1,
 
 
 def _long_free_run_band(model, theta: np.ndarray, u, y, segments, levels, level) -> Band:
-    """The free-run band of a record whose draws' runs would not fit BAND_VALUES at once.
+    """The free-run band of a record whose draws' runs would pass _STRETCH_VALUES at once.
 
     Two passes, so memory stays bounded however long the record: each draw's whole
     run decides whether it stays in range (as the one-pass band does) and keeps its
