@@ -302,3 +302,26 @@ def test_the_coupled_k_step_prediction_against_a_plain_python_reference():
                                atol=1e-12)
     np.testing.assert_allclose(model.k_step(u, Y, len(Y))[0], model.simulate(u, Y)[0],
                                rtol=1e-12, atol=1e-12)
+
+
+def test_the_final_joint_refinement_of_a_long_record_fits_its_jacobian_budget(monkeypatch):
+    """Beyond JOINT_JACOBIAN_BYTES the final joint refinement fits on windows of as many
+    rows as fit; within it, on every sample (the two-link arm's 10^5 samples)."""
+    import spm_sysid.core.select.coupled as coupled
+
+    space = TermSpace(ny=4, nu=4, degree=1, inputs=("tau1", "tau2"), output="q")
+    models = []
+    for i in range(2):
+        sp = output_space(space, ("q1", "q2"), i)
+        linear = [j for j, d in enumerate(sp.term_degrees) if d == 1]
+        models.append(NarxModel(sp, linear, np.zeros(len(linear))))
+    model = MimoModel(("q1", "q2"), ("tau1", "tau2"), models)
+    per_row = 8 * 2 * sum(len(m.term_indices) for m in models)  # 2 outputs x 32 terms
+    segments = [(0, 60_000), (60_000, 100_000)]
+    assert coupled._final_rows(model, segments) == segments  # 6.1 MB: every sample
+    monkeypatch.setattr(coupled, "JOINT_JACOBIAN_BYTES", 20_000 * per_row)
+    windows = coupled._final_rows(model, segments)
+    rows = sum(b - a for a, b in windows)
+    assert 15_000 <= rows <= 20_000 and len(windows) > 2  # spread over the record
+    assert windows[0][0] < 10_000 and windows[-1][1] > 90_000
+    assert all(any(a <= c < d <= b for a, b in segments) for c, d in windows)

@@ -109,8 +109,15 @@ FACTOR_SLICE_BYTES = 64 << 20
 #: rows (the robot arm, Silverbox's structures up to 30 terms) fit in one pass as before.
 FIT_SLICE_BYTES = 16 << 20
 
-#: Bytes of candidate matrices the outputs of a record may hold at once while they are
-#: identified side by side (one thread each); beyond it they take turns. Two outputs of
+#: Bytes of the Jacobian (rows x outputs x every output's terms) the final joint
+#: refinement of several outputs may hold; a longer record is refined on windows spread
+#: over it of as many rows as fit. The two-link arm's 10^5 samples (74 MB) still use
+#: every sample.
+JOINT_JACOBIAN_BYTES = 128 << 20
+
+#: Bytes the outputs of a record may work in at once (candidate matrices and the slices
+#: of their fits, ``fit.problem.working_bytes``) while they are identified side by side
+#: (one thread each); beyond it they take turns. Two outputs of
 #: 10^5 samples in a (9, 9, 2) space hold 561 MB each: side by side the two-link arm took
 #: 6.5 GB before the matrices were built and reduced in slices, 1.8 GB after (issue 41's
 #: bound is 1.5 GB); small records (4 000 samples: 22 MB each) still run side by side.

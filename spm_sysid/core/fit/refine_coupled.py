@@ -144,8 +144,10 @@ class _CoupledResiduals:
             sim, sens, _ = coupled_sensitivities(self.cc, self.split(theta), self.u[a:b],
                                                  self.Y[a:b], self.bounds)
             sims.append(sim)
-            jacs.append((sens / -self.scale[:, None]).reshape(-1, len(theta)))
-        return self.scaled(np.concatenate(sims)), np.concatenate(jacs)
+            sens /= -self.scale[:, None]  # in place: a Jacobian is rows x outputs x terms
+            jacs.append(sens.reshape(-1, len(theta)))
+        jac = jacs[0] if len(jacs) == 1 else np.concatenate(jacs)
+        return self.scaled(np.concatenate(sims)), jac
 
     def solve(self, theta0: np.ndarray, max_evaluations: int
               ) -> tuple[np.ndarray, int, str, np.ndarray | None]:

@@ -38,7 +38,13 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..defaults import COUPLED_FOLDS, JOINT_FOLD_STEPS, SIGNIFICANCE, STRESS_FACTOR
+from ..defaults import (
+    COUPLED_FOLDS,
+    JOINT_FOLD_STEPS,
+    JOINT_JACOBIAN_BYTES,
+    SIGNIFICANCE,
+    STRESS_FACTOR,
+)
 from ..files import json_float
 from ..fit.criteria import get_criterion, standardised_value
 from ..fit.refine_coupled import refine_coupled
@@ -204,7 +210,8 @@ def select_coupled(joined: MimoModel, u: np.ndarray, Y: np.ndarray,
     Returns
     -------
     model : MimoModel
-        The choice, fitted on all estimation data.
+        The choice, fitted on all estimation data (its joint refinement on windows
+        of them when its Jacobian would pass ``JOINT_JACOBIAN_BYTES``).
     account : dict
         Finalists, their held-out errors, the linear/nonlinear call, the guard's
         removals, and ``all_diverge`` with the reason when every finalist diverged.
@@ -281,12 +288,29 @@ def _fit_full(model: MimoModel, how: str, joined: MimoModel, u, Y, segments
         start = joined if model is joined else fit_least_squares(model, u, Y, segments)
         if start is None:
             return None
-        fitted, info = refine_coupled(start, u, Y, segments)
+        fitted, info = refine_coupled(start, u, Y, _final_rows(start, segments))
         fitted.metadata["coupled_refinement"] = info
     models = [_accounted(m, t, augmented_inputs(u, Y, i), Y[:, i], segments,
                          uncertainty=how == "least squares")
               for i, (m, t) in enumerate(zip(fitted.models, joined.models))]
     return replace(fitted, models=models)
+
+
+def _final_rows(model: MimoModel, segments: list[tuple[int, int]]) -> list[tuple[int, int]]:
+    """The samples the final joint refinement fits on: every one while its Jacobian fits.
+
+    The Jacobian holds rows x outputs x all outputs' terms numbers, and the
+    refinement four such arrays; beyond
+    :data:`~spm_sysid.core.defaults.JOINT_JACOBIAN_BYTES` it fits on windows spread
+    over the record (:func:`~spm_sysid.core.select.folds.refinement_windows`) of as
+    many rows as fit (two outputs of 3·10^5 samples, 56 terms: 269 MB a Jacobian,
+    2.5 GB at the peak before).
+    """
+    per_row = 8 * len(model.models) * _terms(model)
+    rows = sum(b - a for a, b in segments)
+    if rows * per_row <= JOINT_JACOBIAN_BYTES:
+        return segments
+    return refinement_windows(segments, model.max_lag, rows=JOINT_JACOBIAN_BYTES // per_row)
 
 
 def _accounted(m: NarxModel, template: NarxModel, u_aug, y, segments, uncertainty: bool
