@@ -210,8 +210,7 @@ def select_coupled(joined: MimoModel, u: np.ndarray, Y: np.ndarray,
     Returns
     -------
     model : MimoModel
-        The choice, fitted on all estimation data (its joint refinement on windows
-        of them when its Jacobian would pass ``JOINT_JACOBIAN_BYTES``).
+        The choice, fitted on all estimation data (refined jointly: :func:`_final_rows`).
     account : dict
         Finalists, their held-out errors, the linear/nonlinear call, the guard's
         removals, and ``all_diverge`` with the reason when every finalist diverged.
