@@ -117,14 +117,15 @@ def _slice_rows(columns: int) -> int:
     return max(columns + 1, FIT_SLICE_BYTES // (8 * (columns + 1)))
 
 
-def _slices(P: np.ndarray, cols: np.ndarray, rows: np.ndarray | None, extra: np.ndarray):
+def _slices(P: np.ndarray, cols: np.ndarray, rows: np.ndarray | None,
+            extra: np.ndarray | None = None):
     """(the columns ``cols`` of a slice of P's rows, ``extra`` there), ``rows`` kept only."""
     step = _slice_rows(len(cols))
     for a in range(0, P.shape[0], step):
-        X, e = P[a:a + step][:, cols], extra[a:a + step]
+        X, e = P[a:a + step][:, cols], None if extra is None else extra[a:a + step]
         if rows is not None:
             keep = rows[a:a + step]
-            X, e = X[keep], e[keep]
+            X, e = X[keep], None if e is None else e[keep]
         yield X, e
 
 
@@ -134,9 +135,7 @@ def columns_product(P: np.ndarray, cols: np.ndarray, theta: np.ndarray,
 
     ``rows``: a boolean mask over P's rows (None: all).
     """
-    cols = np.asarray(cols)
-    dummy = np.empty(P.shape[0], dtype=bool)
-    return np.concatenate([X @ theta for X, _ in _slices(P, cols, rows, dummy)]
+    return np.concatenate([X @ theta for X, _ in _slices(P, np.asarray(cols), rows)]
                           or [np.empty(0)])
 
 
