@@ -53,15 +53,20 @@ def _read_int(path: Path) -> int | None:
         return None
 
 
-def _meminfo() -> int | None:
+def _proc_field(path: str, name: str) -> int | None:
+    """Bytes of a ``name: N kB`` line of a /proc file (None where it cannot be read)."""
     try:
-        with open("/proc/meminfo") as f:
+        with open(path) as f:
             for line in f:
-                if line.startswith("MemAvailable:"):
+                if line.startswith(name + ":"):
                     return int(line.split()[1]) * 1024
     except (OSError, ValueError, IndexError):
         return None
     return None
+
+
+def _meminfo() -> int | None:
+    return _proc_field("/proc/meminfo", "MemAvailable")
 
 
 def _cgroup_room() -> int | None:
@@ -102,16 +107,7 @@ def _address_space_room() -> int | None:
     soft, _ = resource.getrlimit(resource.RLIMIT_AS)
     if soft == resource.RLIM_INFINITY or soft <= 0:
         return None
-    size = 0
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith("VmSize:"):
-                    size = int(line.split()[1]) * 1024
-                    break
-    except (OSError, ValueError, IndexError):
-        pass
-    return max(soft - size, 0)
+    return max(soft - (_proc_field("/proc/self/status", "VmSize") or 0), 0)
 
 
 def _parse_limit(text: str) -> int:
@@ -156,14 +152,7 @@ def memory_limit() -> tuple[int, str]:
 
 def resident_bytes() -> int:
     """The memory this process holds now (``VmRSS``; 0 where it cannot be read)."""
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith("VmRSS:"):
-                    return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    return 0
+    return _proc_field("/proc/self/status", "VmRSS") or 0
 
 
 def check_memory(needed: float, what: str, held: bool = False) -> None:
