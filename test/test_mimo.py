@@ -27,6 +27,17 @@ def identify_coupled(u, Y, outputs, space, **settings):
     return run_job(record, JobSettings.from_values(values))
 
 
+def _linear_arm(order: int) -> MimoModel:
+    """The two-link arm's linear MIMO ARX structure of ``order``, zero coefficients."""
+    space = TermSpace(ny=order, nu=order, degree=1, inputs=("tau1", "tau2"), output="q")
+    models = []
+    for i in range(2):
+        sp = output_space(space, ("q1", "q2"), i)
+        linear = [j for j, d in enumerate(sp.term_degrees) if d == 1]
+        models.append(NarxModel(sp, linear, np.zeros(len(linear))))
+    return MimoModel(("q1", "q2"), ("tau1", "tau2"), models)
+
+
 def known_model(coefs: dict = TRUE) -> MimoModel:
     """The coupled model with the given terms and coefficients per output."""
     models = []
@@ -197,14 +208,7 @@ def test_the_joint_refinement_steps_only_along_the_directions_the_record_identif
 
     tau, q = record(1000, seed=0)
     tau2, q2 = record(1000, seed=1)
-    space = TermSpace(ny=6, nu=6, degree=1, inputs=("tau1", "tau2"), output="q")
-    models = []
-    for i in range(2):
-        sp = output_space(space, ("q1", "q2"), i)
-        linear = [j for j, d in enumerate(sp.term_degrees) if d == 1]
-        models.append(NarxModel(sp, linear, np.zeros(len(linear))))
-    start = fit_least_squares(MimoModel(("q1", "q2"), ("tau1", "tau2"), models), tau, q,
-                              [(0, len(q))])
+    start = fit_least_squares(_linear_arm(6), tau, q, [(0, len(q))])
     theta0 = np.concatenate([m.coefficients for m in start.models])
     sizes = np.cumsum([0] + [len(m.coefficients) for m in start.models])
     std = q.std(axis=0)
@@ -309,14 +313,8 @@ def test_the_final_joint_refinement_of_a_long_record_fits_its_jacobian_budget(mo
     rows as fit; within it, on every sample (the two-link arm's 10^5 samples)."""
     import spm_sysid.core.select.coupled as coupled
 
-    space = TermSpace(ny=4, nu=4, degree=1, inputs=("tau1", "tau2"), output="q")
-    models = []
-    for i in range(2):
-        sp = output_space(space, ("q1", "q2"), i)
-        linear = [j for j, d in enumerate(sp.term_degrees) if d == 1]
-        models.append(NarxModel(sp, linear, np.zeros(len(linear))))
-    model = MimoModel(("q1", "q2"), ("tau1", "tau2"), models)
-    per_row = 8 * 2 * sum(len(m.term_indices) for m in models)  # 2 outputs x 32 terms
+    model = _linear_arm(4)
+    per_row = 8 * 2 * sum(len(m.term_indices) for m in model.models)  # 2 outputs x 32 terms
     segments = [(0, 60_000), (60_000, 100_000)]
     assert coupled._final_rows(model, segments) == segments  # 6.1 MB: every sample
     monkeypatch.setattr(coupled, "JOINT_JACOBIAN_BYTES", 20_000 * per_row)
