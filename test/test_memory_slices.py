@@ -141,7 +141,7 @@ def test_a_structure_fit_in_slices_is_the_fit_of_one_pass(robot_arm, monkeypatch
     X = P[rows][:, cols]
     reference = reference_fit(X, target[rows], np.ones(len(cols), dtype=bool))
     assert np.array_equal(whole.coefficients, reference.coefficients)  # one pass: unchanged
-    monkeypatch.setattr(lstsq_module, "FIT_SLICE_BYTES", 8 * 6 * 50)  # slices of 50 rows
+    monkeypatch.setattr(lstsq_module, "STRUCTURE_SLICE_BYTES", 8 * 6 * 50)  # slices of 50 rows
     sliced, residuals = structure_fit(P, target, cols, rows)
     np.testing.assert_allclose(sliced.coefficients, reference.coefficients, rtol=1e-9)
     np.testing.assert_allclose(residuals, whole_residuals, rtol=1e-9, atol=1e-12)
@@ -162,11 +162,11 @@ def test_the_open_loop_check_in_slices_and_its_memory(monkeypatch):
     u, y = _record(300_000)
     y = np.cumsum(y) * 1e-3  # an integrating output: its pole at 1
     one_pass = open_loop.open_loop_check(u[:3000], y[:3000], [(0, 3000)], 4)
-    monkeypatch.setattr(open_loop, "FIT_SLICE_BYTES", 8 * 10 * 400)
+    monkeypatch.setattr(open_loop, "STRUCTURE_SLICE_BYTES", 8 * 10 * 400)
     sliced = open_loop.open_loop_check(u[:3000], y[:3000], [(0, 3000)], 4)
     assert sliced.kind == one_pass.kind == "integrating" and sliced.rows == one_pass.rows
     assert abs(sliced.pole - one_pass.pole) < 1e-9
-    monkeypatch.setattr(open_loop, "FIT_SLICE_BYTES", 1 << 20)
+    monkeypatch.setattr(open_loop, "STRUCTURE_SLICE_BYTES", 1 << 20)
     tracemalloc.start()
     try:
         long = open_loop.open_loop_check(u, y, [(0, 150_000), (150_000, 300_000)], 4)

@@ -107,7 +107,7 @@ FACTOR_SLICE_BYTES = 64 << 20
 #: copies of them (selected, unit-norm, QR's own and Q); a longer record is fitted slice
 #: by slice: 10^6 rows of seven terms held 270 MB in fits, 80 MB now. Records of fewer
 #: rows (the robot arm, Silverbox's structures up to 30 terms) fit in one pass as before.
-FIT_SLICE_BYTES = 16 << 20
+STRUCTURE_SLICE_BYTES = 16 << 20
 
 #: Bytes of the Jacobian (rows x outputs x every output's terms) the final joint
 #: refinement of several outputs may hold; a longer record is refined on windows spread

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..defaults import FIT_SLICE_BYTES, SSE_FLOOR_RELATIVE
+from ..defaults import SSE_FLOOR_RELATIVE, STRUCTURE_SLICE_BYTES
 from ..model.uncertainty import solve_upper
 from .criteria import Criterion, get_criterion
 
@@ -114,7 +114,7 @@ def reference_fit(
 
 def _slice_rows(columns: int) -> int:
     """Rows of ``columns`` columns (and the target) in one slice of a fit."""
-    return max(columns + 1, FIT_SLICE_BYTES // (8 * (columns + 1)))
+    return max(columns + 1, STRUCTURE_SLICE_BYTES // (8 * (columns + 1)))
 
 
 def _slices(P: np.ndarray, cols: np.ndarray, rows: np.ndarray | None,
@@ -145,7 +145,7 @@ def structure_fit(P: np.ndarray, target: np.ndarray, cols: np.ndarray,
     """:func:`reference_fit` of P's columns ``cols`` on ``rows``, and its residuals.
 
     A long matrix is read a slice of rows at a time
-    (:data:`~spm_sysid.core.defaults.FIT_SLICE_BYTES`): the column norms summed,
+    (:data:`~spm_sysid.core.defaults.STRUCTURE_SLICE_BYTES`): the column norms summed,
     then the triangular factor of the unit-norm ``[X y]`` updated by the QR of the
     factor so far stacked on the next rows; its last column gives ``Q^T y``. So a fit
     of 10^6 rows holds no copy of its columns (one-pass QR held five). A matrix of

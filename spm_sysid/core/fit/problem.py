@@ -33,7 +33,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..defaults import FACTOR_SLICE_BYTES, FIT_SLICE_BYTES
+from ..defaults import FACTOR_SLICE_BYTES, STRUCTURE_SLICE_BYTES
 from ..errors import DataError, TooFewSamplesError
 from ..memory import check_memory
 from ..model.segments import normalise_segments, rows_segments, usable_segments
@@ -169,7 +169,7 @@ def working_bytes(rows: int, terms: int) -> int:
     the evaluator's Gram matrix and triangular factor of all candidate terms.
     """
     matrix = 8 * rows * (terms + 1)
-    slices = 3 * min(matrix, FACTOR_SLICE_BYTES) + 5 * min(matrix, FIT_SLICE_BYTES)
+    slices = 3 * min(matrix, FACTOR_SLICE_BYTES) + 5 * min(matrix, STRUCTURE_SLICE_BYTES)
     return matrix + slices + 2 * 8 * (terms + 2) ** 2
 
 

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..defaults import DEPENDENT, FIT_SLICE_BYTES, HORIZON, INTEGRATOR_MARGIN, REAL_ANGLE
+from ..defaults import DEPENDENT, HORIZON, INTEGRATOR_MARGIN, REAL_ANGLE, STRUCTURE_SLICE_BYTES
 
 __all__ = ["HORIZON", "OpenLoop", "REAL_ANGLE", "independent_columns", "open_loop_check"]
 
@@ -127,14 +127,14 @@ def _arx_fit(u: np.ndarray, y: np.ndarray, segments, n: int
     """Least squares of the ARX model on the independent columns: (theta, scale, rows).
 
     ``theta`` is of the columns scaled by ``scale`` (unit norm). A long record is
-    read in slices (:data:`~spm_sysid.core.defaults.FIT_SLICE_BYTES`): the
+    read in slices (:data:`~spm_sysid.core.defaults.STRUCTURE_SLICE_BYTES`): the
     triangular factor of the scaled ``[X t]`` is updated slice by slice and the fit
     on the independent columns solved from it, so no copy of X is held (10^6
     rows held five); a record of one slice takes the one-pass route, unchanged.
     None: too few rows, or a value that is not finite.
     """
     width = n * (1 + u.shape[1]) + 1
-    step = max(width + 1, FIT_SLICE_BYTES // (8 * (width + 1)))
+    step = max(width + 1, STRUCTURE_SLICE_BYTES // (8 * (width + 1)))
     count = sum(max(b - a - n, 0) for a, b in segments)
     if count <= width:
         return None
