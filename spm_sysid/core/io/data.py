@@ -14,6 +14,8 @@ Supported layouts
   across them.
 * Any number of columns when the inputs and the output are chosen by header
   name or 0-based index (:func:`load_data`'s ``inputs`` and ``output``).
+* MATLAB files (``.mat``, versions 4 to 7): their variables are the columns
+  (:mod:`spm_sysid.core.io.matfile`); the same rules then apply.
 
 Reading (:func:`read_text`) opens the path once and reads it from that one
 handle, so a pipe (``--data <(cat f)``, ``--data /dev/stdin``) loses nothing.
@@ -49,7 +51,7 @@ from ..errors import DataError
 from ..files import read_bytes
 
 __all__ = ["IOData", "TIME_COLUMNS", "Table", "load_data", "load_io", "parse_data_text",
-           "parse_io_text", "parse_table", "read_text"]
+           "parse_io_text", "parse_table", "read_text", "table_data"]
 
 #: Header names of a time column (seconds).
 TIME_COLUMNS = ("t", "time", "stamp", "timestamp")
@@ -76,7 +78,11 @@ def read_text(path: str | os.PathLike) -> str:
         The text would need more memory than the bound.
     """
     path = Path(path)
-    raw = read_bytes(path, "data file", factor=PARSE_FACTOR)
+    return _decode(read_bytes(path, "data file", factor=PARSE_FACTOR), path)
+
+
+def _decode(raw: bytes, path: Path) -> str:
+    """The text of a file's bytes (gunzipped when they are gzip's)."""
     if path.suffix == ".gz" or raw[:2] == _GZIP_MAGIC:
         raw = _gunzip(raw, path)
     try:
@@ -127,6 +133,9 @@ class Table:
         ``","``, ``";"`` or None (whitespace).
     tokens : callable
         ``tokens(row)`` -> the row's fields as written (for messages).
+    row_word : str
+        What ``lines`` count, for messages: ``"line"`` of a text file, ``"row"`` of
+        a table read from a MATLAB file (:mod:`spm_sysid.core.io.matfile`).
     """
 
     names: list[str] | None
@@ -136,14 +145,21 @@ class Table:
     header_line: int
     separator: str | None
     source: str
-    _text_lines: list[str]
+    _text_lines: list[str] | None
+    row_word: str = "line"
 
     @property
     def width(self) -> int:
         return self.values.shape[1]
 
     def tokens(self, row: int) -> list[str]:
+        if self._text_lines is None:  # no text: the numbers as Python writes them
+            return [repr(float(v)) for v in self.values[row]]
         return _split(self._text_lines[int(self.lines[row]) - 1], self.separator)
+
+    def where(self, row: int) -> str:
+        """``"<source>, line N"`` of a row, for messages."""
+        return f"{self.source}, {self.row_word} {self.lines[row]}"
 
 
 def _show(token: str) -> str:
@@ -279,7 +295,12 @@ def parse_data_text(text: str, source: str = "<text>", inputs: list[str] | None 
     ``output`` a list of several columns: ``y`` has one column per output (rows
     with any value missing are dropped together, with a time column).
     """
-    table = parse_table(text, source)
+    return table_data(parse_table(text, source), source, inputs, output)
+
+
+def table_data(table: Table, source: str, inputs: list[str] | None = None,
+               output: str | list[str] | None = None) -> IOData:
+    """The samples of a parsed table as :class:`IOData`; see :func:`load_data`."""
     names = table.names
     it = next((k for k, n in enumerate(names or []) if n in TIME_COLUMNS), None)
     outputs = [output] if isinstance(output, str) else list(output or [])
@@ -334,7 +355,8 @@ def _signal_columns(table: Table, source: str, it: int | None, inputs: list[str]
         return [names.index("u")], [names.index("y")]
     others = [k for k in range(width) if k != it]
     if len(others) != 2:
-        where = f"{source}, line {table.header_line or table.lines[0]}"
+        where = (f"{source}, line {table.header_line}" if table.header_line
+                 else table.where(0))
         if names is None:
             raise DataError(f"{where}: expected 2 columns (input u, output y), "
                             f"found {width}")
@@ -352,7 +374,7 @@ def _timed_rows(table: Table, source: str, it: int,
     values = table.values
     bad_t = np.flatnonzero(~np.isfinite(values[:, it]))
     if bad_t.size:
-        raise DataError(f"{source}, line {table.lines[bad_t[0]]}: the time column has a "
+        raise DataError(f"{table.where(bad_t[0])}: the time column has a "
                         "missing or non-finite value")
     ok = np.all(np.isfinite(signals), axis=1)
     rejected = int((~ok).sum())
@@ -361,8 +383,8 @@ def _timed_rows(table: Table, source: str, it: int,
     back = np.flatnonzero(np.diff(t) <= 0)
     if back.size:
         k = int(back[0])
-        line = table.lines[np.flatnonzero(ok)[k + 1]]
-        raise DataError(f"{source}, line {line}: the time column must increase; time "
+        raise DataError(f"{table.where(np.flatnonzero(ok)[k + 1])}: the time column must "
+                        f"increase; time "
                         f"{t[k + 1]:g} follows {t[k]:g}")
     return t, signals, rejected
 
@@ -376,7 +398,7 @@ def _check_all_finite(table: Table, source: str, signals: np.ndarray, cols: list
     cells = table.tokens(row)
     token = next((cells[j] for j in cols if j < len(cells)
                   and not (cells[j] and math.isfinite(float(cells[j])))), "")
-    where = f"{source}, line {table.lines[row]}"
+    where = table.where(row)
     if token:
         raise DataError(f"{where}: value {_show(token)} is not finite (NaN or inf are not "
                         "allowed; add a time column to have such rows dropped as gaps)")
@@ -415,14 +437,25 @@ def load_data(path: str | os.PathLike, inputs: list[str] | None = None,
     them the two-column layouts of the module docstring apply. Default output
     with ``inputs`` given: the column named ``y``, else the last one.
 
+    A MATLAB file (``.mat``, versions 4 to 7) is a table of its signals, named
+    after its variables (:mod:`spm_sysid.core.io.matfile`).
+
     Raises
     ------
     DataError
         Missing file, wrong column count, non-numeric or non-finite values (except
-        as described for time columns), a corrupt gzip file, a device, or a file
-        too large for the memory bound.
+        as described for time columns), a corrupt gzip or MATLAB file, a device, or
+        a file too large for the memory bound.
     """
-    return parse_data_text(read_text(path), str(path), inputs, output)
+    from .matfile import is_mat, mat_table
+
+    path = Path(path)
+    raw = read_bytes(path, "data file", factor=PARSE_FACTOR)
+    if is_mat(path, raw):
+        outputs = [output] if isinstance(output, str) else list(output or [])
+        table = mat_table(raw, str(path), [*(inputs or []), *outputs])
+        return table_data(table, str(path), inputs, output)
+    return parse_data_text(_decode(raw, path), str(path), inputs, output)
 
 
 def parse_io_text(text: str, source: str = "<text>") -> tuple[np.ndarray, np.ndarray]:

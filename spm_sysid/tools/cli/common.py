@@ -145,8 +145,8 @@ def add_data_options(p: argparse.ArgumentParser, bag: bool = True,
     """``--data`` (repeatable), and with ``bag`` also ``--bag``, columns, topics and fields."""
     g = p.add_argument_group(title)
     g.add_argument("--data", metavar="PATH", action="append",
-                   help="two-column or CSV file of u, y; give it several times for several "
-                        "records (no regression row crosses from one to the next)")
+                   help="two-column, CSV or MATLAB (.mat) file of u, y; give it several times for "
+                        "several records (no regression row crosses from one to the next)")
     if bag:
         g.add_argument("--bag", metavar="PATH", help="rosbag2 bag (MCAP) to read u, y from")
         add_column_options(g)

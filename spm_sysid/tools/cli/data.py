@@ -64,7 +64,8 @@ def cmd_fetch_data(args) -> int:
 def add_parsers(sub) -> None:
     """Register ``make-bag`` and ``fetch-data``."""
     p = sub.add_parser("make-bag", help="write u, y data as a rosbag2 MCAP bag")
-    p.add_argument("--data", metavar="PATH", help="two-column or CSV file (default: robot arm)")
+    p.add_argument("--data", metavar="PATH",
+                   help="two-column, CSV or MATLAB (.mat) file (default: robot arm)")
     p.add_argument("--output", metavar="PATH", default="bags/robot_arm",
                    help="bag directory to create (default bags/robot_arm)")
     p.add_argument("--rate", type=float, default=100.0,
