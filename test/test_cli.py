@@ -117,3 +117,28 @@ def test_readme_python_example_runs_as_written(tmp_path):
     assert r.returncode == 0, r.stderr
     assert "y(t) = 3.128y(t-1)" in r.stdout and "-10707.48" in r.stdout  # eq. (2), BIC
     assert (tmp_path / "model.json").exists()
+
+
+def test_validate_errors_from_prints_the_benchmarks_rmse(tmp_path, robot_arm):
+    """``validate MODEL --data FILE --errors-from 50``: RMSE of the free run from sample 50."""
+    import numpy as np
+
+    from .conftest import eq1_model
+
+    u, y = robot_arm
+    model = eq1_model(robot_arm)
+    path = model.save(tmp_path / "eq1.json")
+    test = tmp_path / "test.csv"  # the second half as a test record of its own
+    np.savetxt(test, np.column_stack([u[512:], y[512:]]), delimiter=",", header="u,y",
+               comments="")
+    r = spm("validate", str(path), "--data", str(test), "--errors-from", "50")
+    assert r.returncode == 0, r.stderr
+    sim, _ = model.run(u[512:], y[512:])  # from the test record's own first samples
+    e = y[512 + 50:] - sim[50 - model.term_space.max_lag:]
+    line = next(ln for ln in r.stdout.splitlines() if ln.strip().startswith("free-run:"))
+    assert f"RMSE {np.sqrt(np.mean(e * e)):.4g}," in line
+    assert "(512 samples; errors from sample 50 of each segment)" in r.stdout
+    for bad, message in (("-1", "--errors-from must be 0 or more, got -1"),
+                         ("600", "errors from sample 600 leave no sample to score")):
+        r = spm("validate", str(path), "--data", str(test), "--errors-from", bad)
+        assert r.returncode == 2 and message in r.stderr, r.stderr

@@ -208,3 +208,27 @@ def test_batch_of_two_output_records_writes_coupled_models(tmp_path):
         assert isinstance(model, MimoModel)
         assert int(row["terms"]) == sum(len(m.terms) for m in model.models)
         assert float(row["value"]) == pytest.approx(doc["metadata"]["joint_criterion"]["value"])
+
+
+def test_errors_from_scores_the_coupled_free_run_from_that_sample():
+    """A coupled model validated with ``errors_from``: each output's RMSE from sample 50 on."""
+    from spm_sysid.core.jobs.several import couple_reports
+    from spm_sysid.core.model.mimo import augmented_inputs
+    from spm_sysid.core.validate.validation import validate_model
+
+    u, Y = two_output_system(600, seed=2, noise=0.002)
+    rec = Record.from_samples(u, Y, source="test", input_names=("u1", "u2"),
+                              output_names=("y1", "y2"))
+    model = run_job(rec, JobSettings.from_values(SETTINGS)).model
+    u2, Y2 = two_output_system(400, seed=3, noise=0.002)
+    segments = [(0, 400)]
+    reports = [validate_model(m, augmented_inputs(u2, Y2, i), Y2[:, i], segments=segments,
+                              errors_from=50, bands=False) for i, m in enumerate(model.models)]
+    couple_reports(model, u2, Y2, segments, reports)
+    coupled, _ = model.simulate(u2, Y2)  # rows max_lag.. of the record
+    lag = model.max_lag
+    for i, rep in enumerate(reports):
+        e = Y2[50:, i] - coupled[50 - lag:, i]
+        assert rep.free_run_metrics["rmse"] == pytest.approx(np.sqrt(np.mean(e * e)),
+                                                             rel=1e-12)
+        np.testing.assert_allclose(rep.free_run, coupled[:, i], rtol=1e-12)

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from spm_sysid.core.errors import DataError
 from spm_sysid.core.fit.problem import fit_structure
 from spm_sysid.core.model.terms import TermSpace
 from spm_sysid.core.validate.correlation import ccf, correlation_tests
@@ -120,3 +121,32 @@ def test_white_noise_passes_about_95_percent_of_the_time():
     passed = [t.passed for _ in range(100)
               for t in correlation_tests(rng.normal(size=1000), rng.normal(size=1000), 20)]
     assert 0.9 < np.mean(passed) <= 1.0
+
+
+def test_errors_from_leaves_each_segments_first_samples_out(robot_arm):
+    """The benchmarks' convention: the free run starts at once, errors count from sample k."""
+    u, y = robot_arm
+    model = eq1_model(robot_arm)
+    segments = [(0, 500), (520, 1024)]
+    rep = validate_model(model, u, y, segments=segments, errors_from=50, bands=False)
+    lag = model.term_space.max_lag
+    rows, sims = [], []
+    for a, b in segments:  # independent: each segment's own free run, sliced by hand
+        sim, _ = model.run(u[a:b], y[a:b])
+        rows.append(y[a + 50:b])
+        sims.append(sim[50 - lag:])
+    e = np.concatenate(rows) - np.concatenate(sims)
+    assert rep.free_run_metrics["rmse"] == pytest.approx(np.sqrt(np.mean(e * e)), rel=1e-12)
+    assert rep.free_run_metrics["max_abs"] == pytest.approx(np.abs(e).max(), rel=1e-12)
+    whole = validate_model(model, u, y, segments=segments, bands=False)
+    assert len(rep.free_run) == len(whole.free_run)  # the arrays keep every row
+    assert rep.free_run_metrics["rmse"] != whole.free_run_metrics["rmse"]
+    assert rep.to_dict()["errors_from"] == 50
+    assert "errors from sample 50 of each segment" in rep.summary()
+    assert "RMSE " in rep.summary()
+    # within the initial conditions: every row counts
+    same = validate_model(model, u, y, segments=segments, errors_from=lag, bands=False)
+    assert same.free_run_metrics == whole.free_run_metrics
+    with pytest.raises(DataError, match="errors from sample 600 leave no sample to score: "
+                                        "the longest segment has 504 samples"):
+        validate_model(model, u, y, segments=segments, errors_from=600, bands=False)

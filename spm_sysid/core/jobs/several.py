@@ -41,7 +41,7 @@ from ..progress import Progress, ProgressFn
 from ..record import Record
 from ..select.coupled import select_coupled
 from ..validate.correlation import CorrelationTest, ccf
-from ..validate.validation import metrics, validate_model
+from ..validate.validation import validate_model
 from .single import choose_orders, run_single_job, validation_segments
 
 __all__ = ["MimoJobResult", "couple_reports", "cross_correlation_tests", "cross_summary",
@@ -247,11 +247,11 @@ def couple_reports(model: MimoModel, u: np.ndarray, Y: np.ndarray,
     for i, rep in enumerate(reports):
         if rep is None or len(rep.measured) != len(free):
             continue
-        m = metrics(rep.measured, free[:, i], diverged[i])
+        m = rep.score(free[:, i], diverged[i])
         rep.free_run, rep.free_run_metrics, rep.free_run_band = free[:, i], m, None
         if kstep is not None and rep.k_step is not None:
             rep.k_step = kstep[0][:, i]
-            rep.k_step_metrics = metrics(rep.measured, rep.k_step, kstep[1][i])
+            rep.k_step_metrics = rep.score(rep.k_step, kstep[1][i])
         if m["diverged_at"] is not None:
             rep.tests_skipped = (f"the coupled free-run simulation diverged at sample "
                                  f"{m['diverged_at']}: the model does not describe the system")

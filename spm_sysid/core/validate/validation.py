@@ -67,7 +67,7 @@ def describe_metrics(label: str, m: dict) -> str:
     fit = m.get("fit_percent")
     fit = (f"fit {fit:.2f} %" if fit is not None and np.isfinite(fit) else
            "no fit % (the output does not vary here)")
-    return (f"  {label}: MSE {m['mse']:.4e}, max |e| {m['max_abs']:.4g}, "
+    return (f"  {label}: MSE {m['mse']:.4e}, RMSE {m['rmse']:.4g}, max |e| {m['max_abs']:.4g}, "
             f"mean |e| {m['mean_abs']:.4g}, {fit}")
 
 
@@ -93,6 +93,17 @@ class ValidationReport:
     tests_skipped: str | None = None
     one_step_band: Band | None = None
     free_run_band: Band | None = None
+    errors_from: int = 0
+    scored: np.ndarray | None = None
+
+    def score(self, predicted: np.ndarray, diverged_at: int | None = None) -> dict:
+        """:func:`metrics` of a prediction of ``measured`` over the rows scored.
+
+        ``scored`` (None: every row) leaves out each segment's first
+        ``errors_from`` samples (:func:`validate_model`).
+        """
+        keep = slice(None) if self.scored is None else self.scored
+        return metrics(self.measured[keep], np.asarray(predicted)[keep], diverged_at)
 
     @property
     def residuals(self) -> np.ndarray:
@@ -119,6 +130,7 @@ class ValidationReport:
         out = {
             "segment": self.segment,
             "n_samples": self.n_samples,
+            "errors_from": self.errors_from,
             "one_step": _finite(self.one_step_metrics),
             "free_run": _finite(self.free_run_metrics),
             "diverged_at": self.diverged_at,
@@ -137,7 +149,9 @@ class ValidationReport:
 
     def summary(self) -> str:
         """A few lines for people."""
-        lines = [f"validation on {self.segment} data ({self.n_samples} samples):",
+        start = (f"; errors from sample {self.errors_from} of each segment"
+                 if self.errors_from else "")
+        lines = [f"validation on {self.segment} data ({self.n_samples} samples{start}):",
                  describe_metrics("one-step", self.one_step_metrics)]
         if self.k_step_metrics is not None:
             lines.append(describe_metrics(f"{self.horizon}-step", self.k_step_metrics))
@@ -208,7 +222,7 @@ def check_correlation_lags(lags: int, rows: int) -> None:
 def validate_model(
     model: NarxModel, u: np.ndarray, y: np.ndarray, *, correlation_lags: int = 20,
     segment: str = "estimation", segments: list[tuple[int, int]] | None = None,
-    horizon: int | None = None, bands: bool = True,
+    horizon: int | None = None, bands: bool = True, errors_from: int = 0,
 ) -> ValidationReport:
     """Validate ``model`` on u, y (one-step, free-run, correlation tests).
 
@@ -230,18 +244,28 @@ def validate_model(
     bands : bool
         With a model that carries coefficient uncertainty, 95 % bands of its
         one-step and free-run outputs (:func:`~spm_sysid.core.model.uncertainty.output_band`).
+    errors_from : int
+        The error metrics leave out each segment's first ``errors_from`` samples
+        (the benchmarks' convention: the first 50 samples of a test record may
+        initialise the simulation, which still starts from the first ``max_lag``);
+        the arrays and the correlation tests keep every row.
     """
     u, y, segments = _checked_record(model, u, y, segments, correlation_lags)
     lag0 = model.term_space.max_lag
-    measured = model.measured(y, segments)
+    scored = _scored_rows(segments, lag0, errors_from)
+    report = ValidationReport(measured=model.measured(y, segments), one_step=np.empty(0),
+                              free_run=np.empty(0), one_step_metrics={}, free_run_metrics={},
+                              tests=[], segment=segment, errors_from=int(errors_from),
+                              scored=scored, n_samples=sum(b - a for a, b in segments))
+    measured = report.measured
     one_step = model.predict(u, y, segments)
     free_run, diverged = model.run(u, y, None, segments)
     k_step = k_metrics = None
     if horizon is not None and horizon > 1:
         k_step, k_div = model.run(u, y, horizon, segments)
-        k_metrics = metrics(measured, k_step, k_div)
+        k_metrics = report.score(k_step, k_div)
     residuals = measured - one_step
-    free_metrics = metrics(measured, free_run, diverged)
+    free_metrics = report.score(free_run, diverged)
     skipped, tests = None, []
     if free_metrics["diverged_at"] is not None:
         skipped = (f"the free-run simulation diverged at sample {free_metrics['diverged_at']}:"
@@ -256,14 +280,32 @@ def validate_model(
     if bands and model.uncertainty is not None:
         one_band = output_band(model, u, y, horizon=1, segments=segments)
         free_band = output_band(model, u, y, horizon=None, segments=segments)
-    return ValidationReport(
-        one_step_band=one_band, free_run_band=free_band, measured=measured,
-        one_step=one_step, free_run=free_run, one_step_metrics=metrics(measured, one_step),
-        free_run_metrics=free_metrics, tests=tests, segment=segment,
-        n_samples=sum(b - a for a, b in segments),
-        horizon=horizon if k_step is not None else None, k_step=k_step,
-        k_step_metrics=k_metrics, tests_skipped=skipped,
-    )
+    report.one_step_band, report.free_run_band = one_band, free_band
+    report.one_step, report.free_run = one_step, free_run
+    report.one_step_metrics, report.free_run_metrics = report.score(one_step), free_metrics
+    report.tests, report.tests_skipped = tests, skipped
+    report.horizon = horizon if k_step is not None else None
+    report.k_step, report.k_step_metrics = k_step, k_metrics
+    return report
+
+
+def _scored_rows(segments: list[tuple[int, int]], lag0: int, errors_from: int
+                 ) -> np.ndarray | None:
+    """The rows whose errors count: each segment's samples from ``errors_from`` on.
+
+    None: every row (``errors_from`` within the initial conditions).
+    """
+    errors_from = int(errors_from)
+    if errors_from < 0:
+        raise SettingsError(f"errors_from must be 0 or more, got {errors_from}")
+    if errors_from <= lag0:
+        return None
+    keep = np.concatenate([np.arange(lag0, b - a) >= errors_from for a, b in segments])
+    if not keep.any():
+        longest = max(b - a for a, b in segments)
+        raise DataError(f"errors from sample {errors_from} leave no sample to score: the "
+                        f"longest segment has {longest} samples")
+    return keep
 
 
 def _checked_record(model: NarxModel, u: np.ndarray, y: np.ndarray,

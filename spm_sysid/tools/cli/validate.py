@@ -24,6 +24,8 @@ def cmd_validate(args) -> int:
 
     if args.tail is not None and not 0 < args.tail < 1:
         raise UserError(f"--tail must be between 0 and 1, got {args.tail}")
+    if args.errors_from < 0:
+        raise UserError(f"--errors-from must be 0 or more, got {args.errors_from}")
     check_outputs(args)
     try:
         model, _ = read_model_document(args.model)
@@ -50,7 +52,8 @@ def _validate_one(args, model) -> int:
                                       else ""))
     report = validate_model(model, record.u, record.y, correlation_lags=args.correlation_lags,
                             segment="holdout" if args.tail is not None else "supplied",
-                            segments=segments, horizon=args.horizon or None)
+                            segments=segments, horizon=args.horizon or None,
+                            errors_from=args.errors_from)
     model.metadata["validation"] = report.to_dict()
     print(report.summary())
     times = record.row_seconds(segments, model.term_space.max_lag)
@@ -88,7 +91,8 @@ def _validate_several(args, model) -> int:
     reports = [validate_model(m, augmented_inputs(u, Y, i), Y[:, i],
                               correlation_lags=args.correlation_lags,
                               segment="holdout" if args.tail is not None else "supplied",
-                              segments=segments, horizon=args.horizon or None)
+                              segments=segments, horizon=args.horizon or None,
+                              errors_from=args.errors_from)
                for i, m in enumerate(model.models)]
     cross = couple_reports(model, u, Y, segments, reports, args.correlation_lags)
     for name, m, rep in zip(model.outputs, model.models, reports):
@@ -180,4 +184,8 @@ def add_parser(sub) -> None:
                    help=SETTINGS["correlation_lags"].help)
     p.add_argument("--horizon", type=schema_type("horizon"), default=0, metavar="K",
                    help="also report K-step-ahead prediction (0: only one-step and free-run)")
+    p.add_argument("--errors-from", type=int, default=0, metavar="N",
+                   help="leave each segment's first N samples (at the model's rate) out of "
+                        "the error figures; the simulation still starts from its first "
+                        "samples (the nonlinear benchmarks' convention: 50)")
     p.set_defaults(func=cmd_validate)
