@@ -42,8 +42,14 @@ MAX_DEPTH = 3
 
 
 def is_mat(path: Path, raw: bytes) -> bool:
-    """A MATLAB file: by its ``.mat`` name (version 4 has no header) or its header."""
-    return path.suffix.lower() == ".mat" or (raw[:7] == MAT_MAGIC and b"MAT-file" in raw[:40])
+    """A binary MATLAB file: by its header, or a ``.mat`` name and binary bytes.
+
+    Version 4 has no header; text that MATLAB's ``save -ascii`` wrote under a
+    ``.mat`` name has no zero byte and is read as text.
+    """
+    if raw[:7] == MAT_MAGIC and b"MAT-file" in raw[:40]:
+        return True
+    return path.suffix.lower() == ".mat" and b"\0" in raw[:128]
 
 
 def mat_table(raw: bytes, source: str, wanted: list[str]) -> Table:
