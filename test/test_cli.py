@@ -9,9 +9,9 @@ import pytest
 from .conftest import EQ1, ROOT
 
 
-def spm(*args, **kw):
+def spm(*args, cwd=ROOT, **kw):
     return subprocess.run([sys.executable, "-m", "spm_sysid.apps.main", *args],
-                          capture_output=True, text=True, cwd=ROOT, timeout=300, **kw)
+                          capture_output=True, text=True, cwd=cwd, timeout=300, **kw)
 
 
 def test_identify_on_robot_arm_writes_model(tmp_path):
@@ -142,3 +142,31 @@ def test_validate_errors_from_prints_the_benchmarks_rmse(tmp_path, robot_arm):
                          ("600", "errors from sample 600 leave no sample to score")):
         r = spm("validate", str(path), "--data", str(test), "--errors-from", bad)
         assert r.returncode == 2 and message in r.stderr, r.stderr
+
+
+def test_readme_offline_commands_fit_then_score_from_sample_50(tmp_path, robot_arm):
+    """The README's offline pair as written: identify on take.csv, validate it from sample 50."""
+    import numpy as np
+
+    from spm_sysid.core.model.narx import NarxModel
+
+    u, y = robot_arm
+    np.savetxt(tmp_path / "take.csv", np.column_stack([u, y]), delimiter=",",
+               header="torque,acc", comments="", fmt="%.10g")
+    text = (ROOT / "README.md").read_text().replace("\n", " ")
+    for command in ("spm-sysid identify --data take.csv --inputs torque --output acc --json "
+                    "model.json --plots figs/",
+                    "spm-sysid validate model.json --data take.csv --errors-from 50"):
+        assert command in text
+    r = spm("identify", "--data", "take.csv", "--inputs", "torque", "--output", "acc",
+            "--json", "model.json", "--plots", "figs/", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    r = spm("validate", "model.json", "--data", "take.csv", "--errors-from", "50",
+            cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    model = NarxModel.load(tmp_path / "model.json")
+    data = np.loadtxt(tmp_path / "take.csv", delimiter=",", skiprows=1)
+    sim, _ = model.run(data[:, 0], data[:, 1])
+    e = data[50:, 1] - sim[50 - model.term_space.max_lag:]
+    line = next(ln for ln in r.stdout.splitlines() if ln.strip().startswith("free-run:"))
+    assert f"RMSE {np.sqrt(np.mean(e * e)):.4g}," in line
