@@ -227,3 +227,51 @@ def test_fold_excitation_from_slices_is_the_whitened_measure(robot_arm, monkeypa
     assert folds_module.fold_excitation(problem, folds) == pytest.approx(direct, rel=1e-10)
     monkeypatch.setattr(folds_module, "FACTOR_SLICE_BYTES", 8 * 7 * 60)
     assert folds_module.fold_excitation(problem, folds) == pytest.approx(direct, rel=1e-10)
+
+
+def _two_link_linear(order: int):
+    from spm_sysid.core.model.mimo import MimoModel, output_space
+    from spm_sysid.core.model.narx import NarxModel
+
+    space = TermSpace(ny=order, nu=order, degree=2, inputs=("tau1", "tau2"), output="q")
+    models = []
+    for i in range(2):
+        sp = output_space(space, ("q1", "q2"), i)
+        chosen = [j for j, d in enumerate(sp.term_degrees) if d == 1][: 3 * order + i]
+        chosen += [j for j, d in enumerate(sp.term_degrees) if d == 2][:2]  # and products
+        models.append(NarxModel(sp, chosen, np.zeros(len(chosen))))
+    return MimoModel(("q1", "q2"), ("tau1", "tau2"), models)
+
+
+def test_coupled_fits_from_shared_factors_are_the_direct_fits(monkeypatch):
+    """The coupled judgement's fold fits: pieces factored once give each set's direct fit."""
+    from benchmarks.two_link import record
+    from spm_sysid.core.select import coupled_fits
+    from spm_sysid.core.select.coupled import coupled_folds
+
+    tau, q = record(3000, seed=0)
+    model = _two_link_linear(3)
+    segments = [(0, 1700), (1750, 3000)]  # a gap: rows never cross it
+    folds = coupled_folds(segments, len(q), model.max_lag)
+    sets = [train for _, train in folds] + [segments, [(0, 12)], []]
+    direct = coupled_fits.least_squares_fits(model, tau, q, sets)
+    assert coupled_fits._direct(model, len(q))  # 3000 rows fit one slice: the old route
+    calls = []
+    monkeypatch.setattr(coupled_fits, "slice_rows", lambda k: 97)  # slices of 97 rows
+    real = coupled_fits._factor
+    monkeypatch.setattr(coupled_fits, "_factor", lambda *a: calls.append(a[-1]) or real(*a))
+    shared = coupled_fits.least_squares_fits(model, tau, q, sets)
+    assert len(folds) == 6 and len(calls) <= 2 * (2 * len(folds) + 6)  # pieces, not sets
+    for d, s in zip(direct[:-2], shared[:-2]):
+        for a, b in zip(d.models, s.models):
+            np.testing.assert_allclose(b.coefficients, a.coefficients, rtol=1e-9, atol=1e-12)
+    assert shared[-2] is None and direct[-2] is None  # 9 rows, 11 terms or more
+    assert shared[-1] is None and direct[-1] is None  # no rows
+    # dependent columns: the same term twice is rank-deficient on either route
+    twice = model.models[0]
+    bad = type(model)(model.outputs, model.inputs,
+                      [type(twice)(twice.term_space, [*twice.term_indices, twice.term_indices[0]],
+                                   np.zeros(len(twice.term_indices) + 1)), model.models[1]])
+    assert coupled_fits.least_squares_fits(bad, tau, q, [segments]) == [None]
+    monkeypatch.setattr(coupled_fits, "slice_rows", lambda k: 10**9)
+    assert coupled_fits.least_squares_fits(bad, tau, q, [segments]) == [None]

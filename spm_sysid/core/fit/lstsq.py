@@ -18,7 +18,7 @@ from ..model.uncertainty import solve_upper
 from .criteria import Criterion, get_criterion
 
 __all__ = ["DEFAULT_RANK_TOL", "FitResult", "column_norms", "columns_product", "reference_fit",
-           "reference_score", "score_one", "sse_floor", "structure_fit"]
+           "reference_score", "score_one", "slice_rows", "sse_floor", "structure_fit"]
 
 DEFAULT_RANK_TOL = 1e-9
 
@@ -112,7 +112,7 @@ def reference_fit(
     return FitResult(theta_n / norms, float(resid @ resid), False, R, norms)
 
 
-def _slice_rows(columns: int) -> int:
+def slice_rows(columns: int) -> int:
     """Rows of ``columns`` columns (and the target) in one slice of a fit."""
     return max(columns + 1, STRUCTURE_SLICE_BYTES // (8 * (columns + 1)))
 
@@ -120,7 +120,7 @@ def _slice_rows(columns: int) -> int:
 def _slices(P: np.ndarray, cols: np.ndarray, rows: np.ndarray | None,
             extra: np.ndarray | None = None):
     """(the columns ``cols`` of a slice of P's rows, ``extra`` there), ``rows`` kept only."""
-    step = _slice_rows(len(cols))
+    step = slice_rows(len(cols))
     for a in range(0, P.shape[0], step):
         X, e = P[a:a + step][:, cols], None if extra is None else extra[a:a + step]
         if rows is not None:
@@ -172,7 +172,7 @@ def structure_fit(P: np.ndarray, target: np.ndarray, cols: np.ndarray,
     """
     cols = np.asarray(cols)
     k = len(cols)
-    if k == 0 or P.shape[0] <= _slice_rows(k):
+    if k == 0 or P.shape[0] <= slice_rows(k):
         X, t = P[:, cols], target
         if rows is not None:
             X, t = X[rows], t[rows]

@@ -53,6 +53,7 @@ from ..model.mimo import MimoModel, augmented_inputs
 from ..model.narx import NarxModel
 from ..model.segments import rows_segments
 from .call import linear_or_nonlinear
+from .coupled_fits import fit_least_squares, least_squares_fits
 from .folds import block_splits, refinement_windows
 from .guard import stress_inputs
 from .scores import mean_and_stderr
@@ -79,23 +80,6 @@ def coupled_folds(segments: list[tuple[int, int]], n: int, lag: int, k: int = CO
                     for held, rest in splits]
         k -= 1
     return []
-
-
-def fit_least_squares(model: MimoModel, u: np.ndarray, Y: np.ndarray,
-                      segments: list[tuple[int, int]]) -> MimoModel | None:
-    """The same structures, each output's coefficients by least squares on the segments.
-
-    None when a structure cannot be fitted there (too few rows, dependent columns).
-    """
-    models = []
-    for i, m in enumerate(model.models):
-        P, t = m.term_space.regression(augmented_inputs(u, Y, i), Y[:, i], segments,
-                                       terms=m.term_indices)
-        if len(t) <= P.shape[1] or np.linalg.matrix_rank(P) < P.shape[1]:
-            return None
-        theta, *_ = np.linalg.lstsq(P, t, rcond=None)
-        models.append(replace(m, coefficients=theta, metadata=dict(m.metadata)))
-    return replace(model, models=models, metadata=dict(model.metadata))
 
 
 def linear_mimo(model: MimoModel, order: int) -> MimoModel:
@@ -173,8 +157,8 @@ def coupled_stress_check(model: MimoModel, u: np.ndarray, Y: np.ndarray,
 def _fold_errors(model: MimoModel, how: str, folds, u, Y, scale) -> list[float]:
     """The finalist's coupled held-out error on each fold (NaN: not fitted there)."""
     row = []
-    for held, train in folds:
-        fitted = fit_least_squares(model, u, Y, train)
+    fits = least_squares_fits(model, u, Y, [train for _, train in folds])
+    for (held, train), fitted in zip(folds, fits):
         if fitted is None:
             row.append(np.nan)
             continue
