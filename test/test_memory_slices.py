@@ -275,3 +275,32 @@ def test_coupled_fits_from_shared_factors_are_the_direct_fits(monkeypatch):
     assert coupled_fits.least_squares_fits(bad, tau, q, [segments]) == [None]
     monkeypatch.setattr(coupled_fits, "slice_rows", lambda k: 10**9)
     assert coupled_fits.least_squares_fits(bad, tau, q, [segments]) == [None]
+
+
+def test_a_coupled_finalists_account_from_its_factor_is_the_direct_one(monkeypatch):
+    """The chosen finalist's SSE, column norms and standard errors, from slices of rows."""
+    from benchmarks.two_link import record
+    from spm_sysid.core.model.mimo import augmented_inputs
+    from spm_sysid.core.model.uncertainty import from_jacobian
+    from spm_sysid.core.select import coupled, coupled_fits
+
+    tau, q = record(3000, seed=0)
+    segments = [(0, 1700), (1750, 3000)]
+    model = coupled_fits.fit_least_squares(_two_link_linear(3), tau, q, segments)
+    model = type(model)(model.outputs, model.inputs,  # other coefficients: a nonzero error
+                        [type(m)(m.term_space, m.term_indices, 0.9 * m.coefficients)
+                         for m in model.models])
+    for i, m in enumerate(model.models):
+        u_aug = augmented_inputs(tau, q, i)
+        P, t_norm, sse, rows = coupled._one_step_sums(m, u_aug, q[:, i], segments)
+        assert P.shape[0] == rows == 3000 - 50 - 2 * m.term_space.max_lag  # P built whole
+        with monkeypatch.context() as patch:
+            patch.setattr(coupled_fits, "slice_rows", lambda k: 97)
+            R, t_norm2, sse2, rows2 = coupled._one_step_sums(m, u_aug, q[:, i], segments)
+        assert R.shape == (P.shape[1], P.shape[1]) and rows2 == rows
+        np.testing.assert_allclose(np.linalg.norm(R, axis=0), np.linalg.norm(P, axis=0),
+                                   rtol=1e-12)
+        assert t_norm2 == pytest.approx(t_norm, rel=1e-12)
+        assert sse2 == pytest.approx(sse, rel=1e-9)
+        np.testing.assert_allclose(from_jacobian(R, sse2, rows2).covariance,
+                                   from_jacobian(P, sse).covariance, rtol=1e-8)

@@ -157,12 +157,14 @@ def from_least_squares(r_factor: np.ndarray, column_norms: np.ndarray, sse: floa
     return Uncertainty(sigma2 * scaled @ scaled.T, dof, sigma2, "least squares")
 
 
-def from_jacobian(jacobian: np.ndarray, sse: float) -> Uncertainty:
+def from_jacobian(jacobian: np.ndarray, sse: float, rows: int | None = None) -> Uncertainty:
     """Gauss-Newton covariance ``sigma^2 (J^T J)^-1`` of a nonlinear least-squares fit.
 
-    ``jacobian`` (rows, k) is d(prediction)/d(coefficient) at the solution.
+    ``jacobian`` (rows, k) is d(prediction)/d(coefficient) at the solution, or its
+    triangular factor (the same ``J^T J``) with ``rows`` the rows it stands for.
     """
-    rows, k = jacobian.shape
+    k = jacobian.shape[1]
+    rows = jacobian.shape[0] if rows is None else int(rows)
     dof = rows - k
     sigma2 = sse / dof if dof > 0 else float("nan")
     r = np.linalg.qr(jacobian, mode="r")

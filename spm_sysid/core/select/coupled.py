@@ -53,7 +53,7 @@ from ..model.mimo import MimoModel, augmented_inputs
 from ..model.narx import NarxModel
 from ..model.segments import rows_segments
 from .call import linear_or_nonlinear
-from .coupled_fits import fit_least_squares, least_squares_fits
+from .coupled_fits import fit_least_squares, least_squares_fits, one_pass, row_factor
 from .folds import block_splits, refinement_windows
 from .guard import stress_inputs
 from .scores import mean_and_stderr
@@ -307,17 +307,33 @@ def _accounted(m: NarxModel, template: NarxModel, u_aug, y, segments, uncertaint
 
     if template.criterion is None:
         raise ValueError(f"the model of {template.term_space.output} has no criterion")
-    P, t = m.term_space.regression(u_aug, y, segments, terms=m.term_indices)
-    e = t - P @ m.coefficients
-    sse = float(e @ e)
+    P, t_norm, sse, rows = _one_step_sums(m, u_aug, y, segments)
+    norms = np.linalg.norm(P, axis=0)
     crit = get_criterion(template.criterion)
-    beta = m.coefficients * np.linalg.norm(P, axis=0) / (float(np.linalg.norm(t)) or 1.0)
-    value = standardised_value(crit, max(sse, 1e-300), len(t), len(m.term_indices),
+    beta = m.coefficients * norms / (t_norm or 1.0)
+    value = standardised_value(crit, max(sse, 1e-300), rows, len(m.term_indices),
                                beta[None, :])
     meta = {k: v for k, v in template.metadata.items() if k not in ("simulation",)}
-    return replace(m, criterion=crit.name, criterion_value=value, mse=sse / max(len(t), 1),
+    return replace(m, criterion=crit.name, criterion_value=value, mse=sse / max(rows, 1),
                    n_samples=template.n_samples, metadata=meta,
-                   uncertainty=from_jacobian(P, sse) if uncertainty else m.uncertainty)
+                   uncertainty=from_jacobian(P, sse, rows) if uncertainty else m.uncertainty)
+
+
+def _one_step_sums(m: NarxModel, u_aug, y, segments) -> tuple[np.ndarray, float, float, int]:
+    """(P or its triangular factor, ||t||, the one-step SSE, the rows) of ``m`` on the segments.
+
+    P and its factor have the same column norms and ``P^T P``; a long record gives
+    the factor, a slice of rows at a time (:func:`.coupled_fits.row_factor`).
+    """
+    if one_pass(m, len(y)):
+        P, t = m.term_space.regression(u_aug, y, segments, terms=m.term_indices)
+        e = t - P @ m.coefficients
+        return P, float(np.linalg.norm(t)), float(e @ e), len(t)
+    r, rows = row_factor(m, u_aug, y, segments)
+    k = len(m.term_indices)
+    d = r[:k, k] - r[:k, :k] @ m.coefficients
+    outside = float(r[k, k]) ** 2 if r.shape[0] > k else 0.0
+    return r[:k, :k], float(np.linalg.norm(r[:, k])), float(d @ d) + outside, rows
 
 
 def _same(a: MimoModel, b: MimoModel) -> bool:

@@ -28,7 +28,7 @@ from ..model.mimo import MimoModel, augmented_inputs
 from ..model.narx import NarxModel
 from ..model.uncertainty import solve_upper
 
-__all__ = ["fit_least_squares", "least_squares_fits"]
+__all__ = ["fit_least_squares", "least_squares_fits", "one_pass", "row_factor"]
 
 
 def fit_least_squares(model: MimoModel, u: np.ndarray, Y: np.ndarray,
@@ -63,7 +63,26 @@ def least_squares_fits(model: MimoModel, u: np.ndarray, Y: np.ndarray,
 
 def _direct(model: MimoModel, n: int) -> bool:
     """Every output's regression matrix of the whole record fits in one slice."""
-    return all(n <= slice_rows(len(m.term_indices)) for m in model.models)
+    return all(one_pass(m, n) for m in model.models)
+
+
+def one_pass(m: NarxModel, n: int) -> bool:
+    """The output's regression matrix of ``n`` samples fits in one slice (built whole)."""
+    return n <= slice_rows(len(m.term_indices))
+
+
+def row_factor(m: NarxModel, u: np.ndarray, y: np.ndarray,
+               segments: list[tuple[int, int]]) -> tuple[np.ndarray, int]:
+    """The triangular factor of ``[X y]`` over the segments' rows, and their count.
+
+    Its first ``k`` columns have ``X``'s column norms and ``X^T X``; the last holds
+    ``Q^T y`` above the norm of ``y``'s part outside ``X``'s span.
+    """
+    k = len(m.term_indices)
+    ranges = _rows(segments, m.term_space.max_lag)
+    parts = [_factor(m, u, y, r) for r in ranges]
+    stacked = np.vstack(parts) if parts else np.zeros((0, k + 1))
+    return np.linalg.qr(stacked, mode="r"), sum(b - a for a, b in ranges)
 
 
 def _direct_fit(model: MimoModel, u, Y, segments) -> MimoModel | None:
