@@ -447,13 +447,15 @@ def load_data(path: str | os.PathLike, inputs: list[str] | None = None,
         as described for time columns), a corrupt gzip or MATLAB file, a device, or
         a file too large for the memory bound.
     """
-    from .matfile import is_mat, mat_table
+    from .matfile import is_mat, mat_signals
 
     path = Path(path)
     raw = read_bytes(path, "data file", factor=PARSE_FACTOR)
     if is_mat(path, raw):
         outputs = [output] if isinstance(output, str) else list(output or [])
-        table = mat_table(raw, str(path), [*(inputs or []), *outputs])
+        names, values = mat_signals(raw, str(path), [*(inputs or []), *outputs], TIME_COLUMNS)
+        table = Table([k.lower() for k in names], names, values,
+                      np.arange(1, len(values) + 1), 0, None, str(path), None, row_word="row")
         return table_data(table, str(path), inputs, output)
     return parse_data_text(_decode(raw, path), str(path), inputs, output)
 

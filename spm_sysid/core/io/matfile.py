@@ -9,11 +9,11 @@ with dots, ``data.u``, down to :data:`MAX_DEPTH` levels. Numbers (a sample
 time), text, cells and complex values are not signals: they are left out and
 counted in messages.
 
-The table holds the columns of one length: that of the signals asked for,
-else of ``u`` and ``y``, else of the only two signals of a length. A variable
-named ``t``, ``time``, ``stamp`` or ``timestamp`` of that length gives the
-samples' times, as a CSV column of that name does
-(:mod:`spm_sysid.core.io.data`).
+The signals returned are those of one length: that of the signals asked for,
+else of ``u`` and ``y``, else of the only two signals of a length (time
+variables aside). :mod:`spm_sysid.core.io.data` reads them as a table's
+columns, so a variable named ``t``, ``time``, ``stamp`` or ``timestamp`` of that
+length gives the samples' times, as a CSV column of that name does.
 
 Version 7.3 files are HDF5 and are refused with how to save them otherwise:
 reading them would need h5py, a dependency for a format MATLAB writes only when
@@ -30,9 +30,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DataError
-from .data import TIME_COLUMNS, Table
 
-__all__ = ["MAT_MAGIC", "is_mat", "mat_table"]
+__all__ = ["MAT_MAGIC", "is_mat", "mat_signals"]
 
 #: The first bytes of a MATLAB 5-7.3 file (version 4 files have no such header).
 MAT_MAGIC = b"MATLAB "
@@ -52,10 +51,12 @@ def is_mat(path: Path, raw: bytes) -> bool:
     return path.suffix.lower() == ".mat" and b"\0" in raw[:128]
 
 
-def mat_table(raw: bytes, source: str, wanted: list[str]) -> Table:
-    """The signals of a MATLAB file's bytes as a :class:`~spm_sysid.core.io.data.Table`.
+def mat_signals(raw: bytes, source: str, wanted: list[str], time_names: tuple[str, ...]
+                ) -> tuple[list[str], np.ndarray]:
+    """The names and the samples (rows x signals) of a MATLAB file's signals of one length.
 
-    ``wanted``: the columns asked for (names); they decide the table's length.
+    ``wanted``: the signals asked for (names); they decide the length. ``time_names``:
+    names (lower case) of time variables, which the default choice leaves aside.
 
     Raises
     ------
@@ -68,11 +69,9 @@ def mat_table(raw: bytes, source: str, wanted: list[str]) -> Table:
     if not columns:
         raise DataError(f"{source}: no signal (a numeric vector of two or more samples) in "
                         f"the file; {listing}")
-    n = _length(columns, wanted, source, listing)
+    n = _length(columns, wanted, source, listing, time_names)
     names = [k for k, v in columns.items() if len(v) == n]
-    values = np.column_stack([columns[k] for k in names])
-    return Table([k.lower() for k in names], names, values, np.arange(1, n + 1), 0, None,
-                 source, None, row_word="row")
+    return names, np.column_stack([columns[k] for k in names])
 
 
 def _variables(raw: bytes, source: str) -> dict:
@@ -138,7 +137,7 @@ def _find(columns: dict[str, np.ndarray], name: str) -> str | None:
 
 
 def _length(columns: dict[str, np.ndarray], wanted: list[str], source: str,
-            listing: str) -> int:
+            listing: str, time_names: tuple[str, ...]) -> int:
     """The table's length: the signals asked for, else u and y, else the only two signals."""
     wanted = [str(w).strip() for w in wanted]
     if not wanted and _find(columns, "u") and _find(columns, "y"):
@@ -155,7 +154,7 @@ def _length(columns: dict[str, np.ndarray], wanted: list[str], source: str,
             raise DataError(f"{source}: the signals differ in length ({sizes} "
                             "samples): they must be samples of the same times")
         return next(iter(found.values()))
-    counts = Counter(len(v) for k, v in columns.items() if k.lower() not in TIME_COLUMNS)
+    counts = Counter(len(v) for k, v in columns.items() if k.lower() not in time_names)
     pairs = [n for n, c in counts.items() if c >= 2]
     if len(pairs) == 1 and counts[pairs[0]] == 2:
         return pairs[0]

@@ -264,29 +264,31 @@ def validate_model(
     if horizon is not None and horizon > 1:
         k_step, k_div = model.run(u, y, horizon, segments)
         k_metrics = report.score(k_step, k_div)
-    residuals = measured - one_step
     free_metrics = report.score(free_run, diverged)
-    skipped, tests = None, []
-    if free_metrics["diverged_at"] is not None:
-        skipped = (f"the free-run simulation diverged at sample {free_metrics['diverged_at']}:"
-                   " the model does not describe the system")
-    elif not np.all(np.isfinite(residuals)):
-        skipped = "the one-step residuals are not finite"
-    else:
-        # the correlation tests use the first input (several inputs: docs/method.md)
-        u_rows = np.concatenate([u[a + lag0:b, 0] for a, b in segments])
-        tests = correlation_tests(residuals, u_rows, correlation_lags)
-    one_band = free_band = None
+    tests, skipped = _tests(measured - one_step, free_metrics, u, segments, lag0,
+                            correlation_lags)
     if bands and model.uncertainty is not None:
-        one_band = output_band(model, u, y, horizon=1, segments=segments)
-        free_band = output_band(model, u, y, horizon=None, segments=segments)
-    report.one_step_band, report.free_run_band = one_band, free_band
+        report.one_step_band = output_band(model, u, y, horizon=1, segments=segments)
+        report.free_run_band = output_band(model, u, y, horizon=None, segments=segments)
     report.one_step, report.free_run = one_step, free_run
     report.one_step_metrics, report.free_run_metrics = report.score(one_step), free_metrics
     report.tests, report.tests_skipped = tests, skipped
     report.horizon = horizon if k_step is not None else None
     report.k_step, report.k_step_metrics = k_step, k_metrics
     return report
+
+
+def _tests(residuals: np.ndarray, free_metrics: dict, u: np.ndarray, segments, lag0: int,
+           correlation_lags: int) -> tuple[list[CorrelationTest], str | None]:
+    """The correlation tests of the residuals, or why they were not computed."""
+    if free_metrics["diverged_at"] is not None:
+        return [], (f"the free-run simulation diverged at sample "
+                    f"{free_metrics['diverged_at']}: the model does not describe the system")
+    if not np.all(np.isfinite(residuals)):
+        return [], "the one-step residuals are not finite"
+    # the correlation tests use the first input (several inputs: docs/method.md)
+    u_rows = np.concatenate([u[a + lag0:b, 0] for a, b in segments])
+    return correlation_tests(residuals, u_rows, correlation_lags), None
 
 
 def _scored_rows(segments: list[tuple[int, int]], lag0: int, errors_from: int
