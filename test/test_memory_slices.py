@@ -16,6 +16,7 @@ import pytest
 
 import spm_sysid.core.fit.evaluator as evaluator_module
 import spm_sysid.core.fit.lstsq as lstsq_module
+import spm_sysid.core.memory as memory_module
 import spm_sysid.core.model.terms as terms_module
 from spm_sysid.core.fit.evaluator import StructureEvaluator
 from spm_sysid.core.fit.lstsq import column_norms, reference_fit
@@ -141,7 +142,7 @@ def test_a_structure_fit_in_slices_is_the_fit_of_one_pass(robot_arm, monkeypatch
     X = P[rows][:, cols]
     reference = reference_fit(X, target[rows], np.ones(len(cols), dtype=bool))
     assert np.array_equal(whole.coefficients, reference.coefficients)  # one pass: unchanged
-    monkeypatch.setattr(lstsq_module, "STRUCTURE_SLICE_BYTES", 8 * 6 * 50)  # slices of 50 rows
+    monkeypatch.setattr(memory_module, "STRUCTURE_SLICE_BYTES", 8 * 6 * 50)  # slices of 50 rows
     sliced, residuals = structure_fit(P, target, cols, rows)
     np.testing.assert_allclose(sliced.coefficients, reference.coefficients, rtol=1e-9)
     np.testing.assert_allclose(residuals, whole_residuals, rtol=1e-9, atol=1e-12)
@@ -304,3 +305,35 @@ def test_a_coupled_finalists_account_from_its_factor_is_the_direct_one(monkeypat
         assert sse2 == pytest.approx(sse, rel=1e-9)
         np.testing.assert_allclose(from_jacobian(R, sse2, rows2).covariance,
                                    from_jacobian(P, sse).covariance, rtol=1e-8)
+
+
+def test_long_one_step_predictions_and_covariances_in_slices(robot_arm, monkeypatch):
+    """One-step predictions and the Gauss-Newton covariance, a slice of rows at a time."""
+    import spm_sysid.core.model.narx as narx_module
+    import spm_sysid.core.model.uncertainty as uncertainty_module
+    from spm_sysid.core.fit.problem import fit_structure
+    from spm_sysid.core.model.uncertainty import from_jacobian
+
+    u, y = robot_arm
+    space = TermSpace(ny=2, nu=2, degree=2)
+    model = fit_structure(u, y, np.ones(space.n_terms, dtype=bool), space)
+    segments = [(0, 500), (530, len(y))]
+    whole = model.predict(u, y, segments)
+    P, _ = space.regression(u, y, segments)
+    whole_cov = from_jacobian(P, 1.0).covariance
+    monkeypatch.setattr(narx_module, "slice_rows", lambda k: 61)  # 17 slices
+    monkeypatch.setattr(uncertainty_module, "slice_rows", lambda k: 61)
+    np.testing.assert_allclose(model.predict(u, y, segments), whole, rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(from_jacobian(P, 1.0).covariance, whole_cov, rtol=1e-9)
+
+
+def test_a_long_final_refinement_fits_on_windows_within_its_jacobian_budget(monkeypatch):
+    """A single output's final refinement: every sample while its Jacobian fits, else windows."""
+    import spm_sysid.core.select.folds as folds
+
+    segments = [(0, 60_000), (60_000, 100_000)]
+    assert folds.final_samples(segments, 4, 8 * 60) == segments  # 48 MB: every sample
+    monkeypatch.setattr(folds, "JOINT_JACOBIAN_BYTES", 20_000 * 8 * 60)
+    windows = folds.final_samples(segments, 4, 8 * 60)
+    rows = sum(b - a for a, b in windows)
+    assert 15_000 <= rows <= 20_000 and windows[0][0] < 10_000 and windows[-1][1] > 90_000

@@ -312,12 +312,13 @@ def test_the_final_joint_refinement_of_a_long_record_fits_its_jacobian_budget(mo
     """Beyond JOINT_JACOBIAN_BYTES the final joint refinement fits on windows of as many
     rows as fit; within it, on every sample (the two-link arm's 10^5 samples)."""
     import spm_sysid.core.select.coupled as coupled
+    import spm_sysid.core.select.folds as folds
 
     model = _linear_arm(4)
     per_row = 8 * 2 * sum(len(m.term_indices) for m in model.models)  # 2 outputs x 32 terms
     segments = [(0, 60_000), (60_000, 100_000)]
     assert coupled._final_rows(model, segments) == segments  # 6.1 MB: every sample
-    monkeypatch.setattr(coupled, "JOINT_JACOBIAN_BYTES", 20_000 * per_row)
+    monkeypatch.setattr(folds, "JOINT_JACOBIAN_BYTES", 20_000 * per_row)
     windows = coupled._final_rows(model, segments)
     rows = sum(b - a for a, b in windows)
     assert 15_000 <= rows <= 20_000 and len(windows) > 2  # spread over the record

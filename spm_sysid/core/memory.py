@@ -23,13 +23,23 @@ import math
 import os
 from pathlib import Path
 
+from .defaults import STRUCTURE_SLICE_BYTES
 from .errors import MemoryLimitError
 
 __all__ = ["MemoryLimitError", "check_memory", "format_bytes", "memory_limit",
-           "resident_bytes"]
+           "resident_bytes", "slice_rows"]
 
 _SUFFIX = {"K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}
 _UNLIMITED = 2**60  # cgroup files say "max" or a huge number for "no limit"
+
+
+def slice_rows(columns: int) -> int:
+    """Rows of ``columns`` columns (and a target) in one slice of a long fit or product.
+
+    :data:`~spm_sysid.core.defaults.STRUCTURE_SLICE_BYTES` of them, and never fewer
+    rows than columns and one (a factor of the slice stays square).
+    """
+    return max(columns + 1, STRUCTURE_SLICE_BYTES // (8 * (columns + 1)))
 
 
 def format_bytes(n: float) -> str:

@@ -13,12 +13,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..defaults import SSE_FLOOR_RELATIVE, STRUCTURE_SLICE_BYTES
+from ..defaults import SSE_FLOOR_RELATIVE
+from ..memory import slice_rows
 from ..model.uncertainty import solve_upper
 from .criteria import Criterion, get_criterion
 
 __all__ = ["DEFAULT_RANK_TOL", "FitResult", "column_norms", "columns_product", "reference_fit",
-           "reference_score", "score_one", "slice_rows", "sse_floor", "structure_fit"]
+           "reference_score", "score_one", "sse_floor", "structure_fit"]
 
 DEFAULT_RANK_TOL = 1e-9
 
@@ -112,11 +113,6 @@ def reference_fit(
     return FitResult(theta_n / norms, float(resid @ resid), False, R, norms)
 
 
-def slice_rows(columns: int) -> int:
-    """Rows of ``columns`` columns (and the target) in one slice of a fit."""
-    return max(columns + 1, STRUCTURE_SLICE_BYTES // (8 * (columns + 1)))
-
-
 def _slices(P: np.ndarray, cols: np.ndarray, rows: np.ndarray | None,
             extra: np.ndarray | None = None):
     """(the columns ``cols`` of a slice of P's rows, ``extra`` there), ``rows`` kept only."""
@@ -145,7 +141,7 @@ def structure_fit(P: np.ndarray, target: np.ndarray, cols: np.ndarray,
     """:func:`reference_fit` of P's columns ``cols`` on ``rows``, and its residuals.
 
     A long matrix is read a slice of rows at a time
-    (:data:`~spm_sysid.core.defaults.STRUCTURE_SLICE_BYTES`): the column norms summed,
+    (:func:`~spm_sysid.core.memory.slice_rows`): the column norms summed,
     then the triangular factor of the unit-norm ``[X y]`` updated by the QR of the
     factor so far stacked on the next rows; its last column gives ``Q^T y``. So a fit
     of 10^6 rows holds no copy of its columns (one-pass QR held five). A matrix of

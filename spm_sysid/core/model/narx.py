@@ -19,6 +19,7 @@ import numpy as np
 
 from ..errors import ModelFormatError
 from ..files import atomic_write_text, json_float, json_ready, read_bytes
+from ..memory import slice_rows
 from .metadata import check_metadata
 from .segments import normalise_segments
 from .simulation import CompiledModel, divergence_bounds, run_model
@@ -152,9 +153,26 @@ class NarxModel:
         divergence on (see :meth:`run`).
         """
         if horizon == 1:
+            return self._one_step(u, y, segments)
+        return self.run(u, y, horizon, segments)[0]
+
+    def _one_step(self, u: np.ndarray, y: np.ndarray,
+                  segments: list[tuple[int, int]] | None) -> np.ndarray:
+        """One-step predictions; a long record's columns a slice of rows at a time."""
+        lag, step = self.term_space.max_lag, slice_rows(len(self.term_indices))
+        segs = [(a, b) for a, b in normalise_segments(segments, len(y)) if b - a > lag]
+        rows = sum(b - a - lag for a, b in segs)
+        if rows <= step:  # the columns built whole (a short record: the same numbers)
             P, _ = self.term_space.regression(u, y, segments, terms=self.term_indices)
             return P @ self.coefficients
-        return self.run(u, y, horizon, segments)[0]
+        out, at = np.empty(rows), 0
+        for a, b in segs:
+            for s in range(a + lag, b, step):
+                e = min(s + step, b)
+                P, _ = self.term_space.regression(u, y, [(s - lag, e)], terms=self.term_indices)
+                out[at:at + e - s] = P @ self.coefficients
+                at += e - s
+        return out
 
     def run(self, u: np.ndarray, y: np.ndarray, horizon: int | None = None,
             segments: list[tuple[int, int]] | None = None) -> tuple[np.ndarray, int | None]:

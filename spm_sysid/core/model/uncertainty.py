@@ -30,6 +30,7 @@ from statistics import NormalDist
 import numpy as np
 
 from ..defaults import LEVEL
+from ..memory import slice_rows
 
 __all__ = ["Band", "Uncertainty", "from_jacobian", "from_least_squares", "output_band",
            "solve_upper", "t_quantile"]
@@ -167,7 +168,10 @@ def from_jacobian(jacobian: np.ndarray, sse: float, rows: int | None = None) -> 
     rows = jacobian.shape[0] if rows is None else int(rows)
     dof = rows - k
     sigma2 = sse / dof if dof > 0 else float("nan")
-    r = np.linalg.qr(jacobian, mode="r")
+    step = slice_rows(k)
+    r = np.linalg.qr(jacobian[:step], mode="r")  # a long Jacobian's QR without its copy
+    for a in range(step, jacobian.shape[0], step):
+        r = np.linalg.qr(np.vstack([r, jacobian[a:a + step]]), mode="r")
     rinv = solve_upper(r, np.eye(k))
     return Uncertainty(sigma2 * rinv @ rinv.T, dof, sigma2, "free-run Jacobian")
 

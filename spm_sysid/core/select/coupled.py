@@ -41,7 +41,6 @@ import numpy as np
 from ..defaults import (
     COUPLED_FOLDS,
     JOINT_FOLD_STEPS,
-    JOINT_JACOBIAN_BYTES,
     SIGNIFICANCE,
     STRESS_FACTOR,
 )
@@ -54,7 +53,7 @@ from ..model.narx import NarxModel
 from ..model.segments import rows_segments
 from .call import linear_or_nonlinear
 from .coupled_fits import fit_least_squares, least_squares_fits, one_pass, row_factor
-from .folds import block_splits, refinement_windows
+from .folds import block_splits, final_samples, refinement_windows
 from .guard import stress_inputs
 from .scores import mean_and_stderr
 from .simulation import linear_masks
@@ -289,11 +288,7 @@ def _final_rows(model: MimoModel, segments: list[tuple[int, int]]) -> list[tuple
     many rows as fit (two outputs of 3·10^5 samples, 56 terms: 269 MB a Jacobian,
     2.5 GB at the peak before).
     """
-    per_row = 8 * len(model.models) * _terms(model)
-    rows = sum(b - a for a, b in segments)
-    if rows * per_row <= JOINT_JACOBIAN_BYTES:
-        return segments
-    return refinement_windows(segments, model.max_lag, rows=JOINT_JACOBIAN_BYTES // per_row)
+    return final_samples(segments, model.max_lag, 8 * len(model.models) * _terms(model))
 
 
 def _accounted(m: NarxModel, template: NarxModel, u_aug, y, segments, uncertainty: bool

@@ -9,7 +9,7 @@ its columns several times.
 
 Here a long record's regression rows are cut into pieces at every row set's
 edges. The triangular factor of each piece's ``[X y]`` is computed once, a
-slice of rows at a time (:func:`~spm_sysid.core.fit.lstsq.slice_rows`), and a
+slice of rows at a time (:func:`~spm_sysid.core.memory.slice_rows`), and a
 row set's fit is the QR of its pieces' factors stacked: the same least-squares
 problem in ``k + 1`` rows per piece. The rank is read from that factor's
 singular values, which are ``X``'s, with numpy's ``matrix_rank`` tolerance for
@@ -23,7 +23,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..fit.lstsq import slice_rows
+from ..memory import slice_rows
 from ..model.mimo import MimoModel, augmented_inputs
 from ..model.narx import NarxModel
 from ..model.uncertainty import solve_upper

@@ -51,7 +51,7 @@ from ..fit.refine import free_run_uncertainty, refine_simulation
 from ..model.narx import NarxModel
 from ..progress import Progress
 from .call import Call, linear_or_nonlinear
-from .folds import final_steps, is_long, refinement_windows, sub_blocks
+from .folds import final_samples, final_steps, is_long, refinement_windows, sub_blocks
 from .guard import shrink_to_hold, stress_check
 from .scores import Scores, mean_and_stderr
 from .simulation import SimulationScorer, linear_orders, linear_structures, simulation_value
@@ -376,7 +376,12 @@ class ValidatedSimulation:
             model = screened.with_coefficients(problem.model(mask).coefficients)
             return model, None, stress_check(model, u, y, segments, self.integrating)
         self.report(Progress("refinement", elapsed=time.perf_counter() - self.started))
-        final = refine_simulation(screened, u, y, segments, **final_steps(problem))
+        samples = final_samples(segments, problem.term_space.max_lag,
+                                8 * len(screened.term_indices))
+        final = refine_simulation(screened, u, y, samples, **final_steps(problem))
+        if samples != [tuple(s) for s in segments]:  # on windows: the start's SSE on all
+            start = screened.measured(y, segments) - screened.run(u, y, None, segments)[0]
+            final = replace(final, sse_start=float(start @ start))
         model = screened.with_coefficients(screened.coefficients)
         if final.success and np.isfinite(final.sse):
             model = screened.with_coefficients(final.coefficients)

@@ -22,6 +22,7 @@ from ..defaults import (
     FACTOR_SLICE_BYTES,
     FOLDS,
     INTERLEAVED_PIECES,
+    JOINT_JACOBIAN_BYTES,
     LONG_FINAL_STEPS,
     LONG_ROWS,
     LONG_SUB_BLOCKS,
@@ -32,8 +33,9 @@ from ..defaults import (
 )
 from ..model.segments import rows_segments
 
-__all__ = ["Fold", "block_splits", "blocked_folds", "fold_excitation", "informative_folds",
-           "final_steps", "interleaved_folds", "is_long", "refinement_windows", "sub_blocks"]
+__all__ = ["Fold", "block_splits", "blocked_folds", "final_samples", "final_steps",
+           "fold_excitation", "informative_folds", "interleaved_folds", "is_long",
+           "refinement_windows", "sub_blocks"]
 
 
 @dataclass(frozen=True)
@@ -275,6 +277,20 @@ def _runs(block: np.ndarray, segments) -> list[tuple[int, int]]:
             for part in np.split(inside, cuts):
                 out.append((int(part[0]), int(part[-1]) + 1))
     return out
+
+
+def final_samples(segments, lag: int, row_bytes: int) -> list[tuple[int, int]]:
+    """The samples a final refinement fits on: every one while its Jacobian fits.
+
+    ``row_bytes``: the Jacobian's bytes per row. Beyond
+    :data:`~spm_sysid.core.defaults.JOINT_JACOBIAN_BYTES` (the refinement holds
+    about four such arrays) it fits on windows spread over the record
+    (:func:`refinement_windows`) of as many rows as fit.
+    """
+    segments = [(int(a), int(b)) for a, b in segments]
+    if sum(b - a for a, b in segments) * row_bytes <= JOINT_JACOBIAN_BYTES:
+        return segments
+    return refinement_windows(segments, lag, rows=JOINT_JACOBIAN_BYTES // row_bytes)
 
 
 def refinement_windows(segments, lag: int, rows: int = REFINE_ROWS,
