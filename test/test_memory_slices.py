@@ -337,3 +337,29 @@ def test_a_long_final_refinement_fits_on_windows_within_its_jacobian_budget(monk
     windows = folds.final_samples(segments, 4, 8 * 60)
     rows = sum(b - a for a, b in windows)
     assert 15_000 <= rows <= 20_000 and windows[0][0] < 10_000 and windows[-1][1] > 90_000
+
+
+def test_the_one_step_band_in_slices_is_the_band_of_one_pass(robot_arm, monkeypatch):
+    import spm_sysid.core.model.narx as narx_module
+    from spm_sysid.core.model.uncertainty import output_band
+
+    u, y = robot_arm
+    model = _eq1_with_uncertainty(robot_arm)
+    segments = [(0, 500), (530, len(y))]
+    whole = output_band(model, u, y, horizon=1, segments=segments)
+    monkeypatch.setattr(narx_module, "slice_rows", lambda k: 61)
+    sliced = output_band(model, u, y, horizon=1, segments=segments)
+    np.testing.assert_allclose(sliced.lower, whole.lower, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(sliced.upper, whole.upper, rtol=1e-12, atol=1e-15)
+    assert len(whole.lower) == 1024 - 30 - 2 * 4
+
+
+def _eq1_with_uncertainty(robot_arm):
+    from spm_sysid.core.fit.problem import fit_structure
+
+    u, y = robot_arm
+    mask = np.zeros(44, dtype=bool)
+    mask[:8] = True
+    model = fit_structure(u, y, mask, TermSpace())
+    assert model.uncertainty is not None
+    return model

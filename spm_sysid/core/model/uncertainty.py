@@ -221,12 +221,11 @@ def output_band(model, u: np.ndarray, y: np.ndarray, *, horizon: int | None = 1,
     theta = rng.multivariate_normal(model.coefficients, cov, size=draws,
                                      check_valid="ignore", method="eigh")
     lo, hi = 0.5 - level / 2.0, 0.5 + level / 2.0
-    if horizon == 1:
-        P, _ = model.term_space.regression(u, y, segments, terms=model.term_indices)
-        ok = np.ones(draws, dtype=bool)
-        q = np.empty((2, len(P)))
-        for a in range(0, len(P), _BLOCK):
-            q[:, a:a + _BLOCK] = np.quantile(P[a:a + _BLOCK] @ theta.T, [lo, hi], axis=1)
+    if horizon == 1:  # the structure's columns a slice of rows at a time on a long record
+        q = np.concatenate([np.empty((2, 0))]
+                           + [np.quantile(P[a:a + _BLOCK] @ theta.T, [lo, hi], axis=1)
+                              for P in model.regression_slices(u, y, segments)
+                              for a in range(0, len(P), _BLOCK)], axis=1)
         return Band(q[0], q[1], level, draws, 0.0)
     if horizon is None and rows * draws > _STRETCH_VALUES:  # the same band, less held
         return _long_free_run_band(model, theta, u, y, segments, (lo, hi), level)
