@@ -232,3 +232,17 @@ def test_errors_from_scores_the_coupled_free_run_from_that_sample():
         assert rep.free_run_metrics["rmse"] == pytest.approx(np.sqrt(np.mean(e * e)),
                                                              rel=1e-12)
         np.testing.assert_allclose(rep.free_run, coupled[:, i], rtol=1e-12)
+
+
+def test_the_coupled_judgement_reports_how_far_it_is():
+    """Its phase says finalist i of n (n: the finalists and the final fit), in order."""
+    u, Y = two_output_system(600, seed=2, noise=0.002)
+    rec = Record.from_samples(u, Y, source="test", input_names=("u1", "u2"),
+                              output_names=("y1", "y2"))
+    seen = []
+    result = run_job(rec, JobSettings.from_values(SETTINGS), progress=seen.append)
+    finalists = len(result.model.metadata["coupled_selection"]["finalists"])
+    coupled = [(p.step, p.total) for p in seen
+               if p.phase == "refinement" and p.total == finalists + 1]
+    assert [s for s, _ in coupled] == list(range(finalists + 1))
+    assert all(p.elapsed >= 0 for p in seen)

@@ -426,8 +426,8 @@ def run_mimo_job(record: Record, settings, *, progress: ProgressFn | None = None
     est, val, _ = validation_segments(record, base)
     # the coupled judgement, in both focuses: the joined model, its joint refinement
     # and the linear MIMO ARX structures compete on the coupled run
-    relay(Progress("refinement", elapsed=time.perf_counter() - t0))
-    chosen, account = select_coupled(model, u, Y, est)
+    chosen, account = select_coupled(model, u, Y, est, lambda i, n: relay(
+        Progress("refinement", i, n)))
     if chosen is not model:
         model = _take_coupled_choice(model, chosen, account, outputs, record, settings, val)
     model.metadata["coupled_selection"] = account

@@ -34,6 +34,7 @@ the answer says so first.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
@@ -178,7 +179,9 @@ def _degree(model: MimoModel) -> int:
 
 
 def select_coupled(joined: MimoModel, u: np.ndarray, Y: np.ndarray,
-                   segments: list[tuple[int, int]]) -> tuple[MimoModel, dict]:
+                   segments: list[tuple[int, int]],
+                   progress: Callable[[int, int], None] | None = None
+                   ) -> tuple[MimoModel, dict]:
     """The finalist to return, judged on the coupled free run (see the module doc).
 
     Parameters
@@ -189,6 +192,9 @@ def select_coupled(joined: MimoModel, u: np.ndarray, Y: np.ndarray,
         Inputs (n, m) and outputs (n, q) of the record.
     segments : list of (start, stop)
         The estimation segments.
+    progress : callable, optional
+        ``progress(done, total)`` before and after each finalist's folds (total: the
+        finalists and the final fit), so a long record's judgement says how far it is.
 
     Returns
     -------
@@ -202,9 +208,8 @@ def select_coupled(joined: MimoModel, u: np.ndarray, Y: np.ndarray,
     u = u[:, None] if u.ndim == 1 else u
     Y = np.asarray(Y, dtype=float)
     folds = coupled_folds(segments, len(Y), joined.max_lag)
-    scale = _scales(Y, segments)
     finalists = _coupled_finalists(joined)
-    values = [_fold_errors(model, how, folds, u, Y, scale) for _, how, model in finalists]
+    values = _judged(finalists, folds, u, Y, _scales(Y, segments), progress)
     means, stderr = zip(*(mean_and_stderr(r) for r in values)) if values else ((), ())
     account: dict = {"folds": len(folds), "significance": SIGNIFICANCE,
                      "finalists": [{"name": n, "fitted": h, "held_out_error": json_float(m),
@@ -217,8 +222,15 @@ def select_coupled(joined: MimoModel, u: np.ndarray, Y: np.ndarray,
             account.update(nonlinear=finalists[call.challenger][0], ratio=call.ratio,
                            p_value=call.p_value)
         account["choice"] = call.choice
+    return _first_that_holds(call.order, finalists, joined, u, Y, segments, means, stderr,
+                             account)
+
+
+def _first_that_holds(order, finalists, joined: MimoModel, u, Y, segments, means, stderr,
+                      account: dict) -> tuple[MimoModel, dict]:
+    """The first finalist in ``order`` fitted on all data that the guard keeps; the account."""
     removed = []
-    for i in call.order:
+    for i in order:
         name, how, model = finalists[i]
         full = _fit_full(model, how, joined, u, Y, segments)
         if full is None:
@@ -237,6 +249,17 @@ def select_coupled(joined: MimoModel, u: np.ndarray, Y: np.ndarray,
     account.update(chosen="the outputs' own choices", fitted="as chosen", all_diverge=why,
                    removed_by_guard=removed)
     return joined, account
+
+
+def _judged(finalists, folds, u, Y, scale, progress) -> list[list[float]]:
+    """Each finalist's held-out errors over the folds, ``progress(done, total)`` after each."""
+    report = progress or (lambda done, total: None)
+    values: list[list[float]] = []
+    report(0, len(finalists) + 1)  # the final fit is the last step
+    for _, how, model in finalists:
+        values.append(_fold_errors(model, how, folds, u, Y, scale))
+        report(len(values), len(finalists) + 1)
+    return values
 
 
 def _coupled_finalists(joined: MimoModel) -> list[tuple[str, str, MimoModel]]:
