@@ -17,6 +17,7 @@ import pytest
 import spm_sysid.core.fit.evaluator as evaluator_module
 import spm_sysid.core.fit.lstsq as lstsq_module
 import spm_sysid.core.memory as memory_module
+import spm_sysid.core.model.narx as narx_module
 import spm_sysid.core.model.terms as terms_module
 from spm_sysid.core.fit.evaluator import StructureEvaluator
 from spm_sysid.core.fit.lstsq import column_norms, reference_fit
@@ -259,6 +260,7 @@ def test_coupled_fits_from_shared_factors_are_the_direct_fits(monkeypatch):
     assert coupled_fits._direct(model, len(q))  # 3000 rows fit one slice: the old route
     calls = []
     monkeypatch.setattr(coupled_fits, "slice_rows", lambda k: 97)  # slices of 97 rows
+    monkeypatch.setattr(narx_module, "slice_rows", lambda k: 97)
     real = coupled_fits._factor
     monkeypatch.setattr(coupled_fits, "_factor", lambda *a: calls.append(a[-1]) or real(*a))
     shared = coupled_fits.least_squares_fits(model, tau, q, sets)
@@ -297,6 +299,7 @@ def test_a_coupled_finalists_account_from_its_factor_is_the_direct_one(monkeypat
         assert P.shape[0] == rows == 3000 - 50 - 2 * m.term_space.max_lag  # P built whole
         with monkeypatch.context() as patch:
             patch.setattr(coupled_fits, "slice_rows", lambda k: 97)
+            patch.setattr(narx_module, "slice_rows", lambda k: 97)
             R, t_norm2, sse2, rows2 = coupled._one_step_sums(m, u_aug, q[:, i], segments)
         assert R.shape == (P.shape[1], P.shape[1]) and rows2 == rows
         np.testing.assert_allclose(np.linalg.norm(R, axis=0), np.linalg.norm(P, axis=0),
@@ -309,7 +312,6 @@ def test_a_coupled_finalists_account_from_its_factor_is_the_direct_one(monkeypat
 
 def test_long_one_step_predictions_and_covariances_in_slices(robot_arm, monkeypatch):
     """One-step predictions and the Gauss-Newton covariance, a slice of rows at a time."""
-    import spm_sysid.core.model.narx as narx_module
     import spm_sysid.core.model.uncertainty as uncertainty_module
     from spm_sysid.core.fit.problem import fit_structure
     from spm_sysid.core.model.uncertainty import from_jacobian
@@ -340,7 +342,6 @@ def test_a_long_final_refinement_fits_on_windows_within_its_jacobian_budget(monk
 
 
 def test_the_one_step_band_in_slices_is_the_band_of_one_pass(robot_arm, monkeypatch):
-    import spm_sysid.core.model.narx as narx_module
     from spm_sysid.core.model.uncertainty import output_band
 
     u, y = robot_arm

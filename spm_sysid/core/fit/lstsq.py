@@ -15,7 +15,7 @@ import numpy as np
 
 from ..defaults import SSE_FLOOR_RELATIVE
 from ..memory import slice_rows
-from ..model.uncertainty import solve_upper
+from ..model.uncertainty import solve_upper, stacked_factor
 from .criteria import Criterion, get_criterion
 
 __all__ = ["DEFAULT_RANK_TOL", "FitResult", "column_norms", "columns_product", "reference_fit",
@@ -149,16 +149,12 @@ def structure_fit(P: np.ndarray, target: np.ndarray, cols: np.ndarray,
 
     Parameters
     ----------
-    P : ndarray, shape (N, n_terms)
-        Regression matrix of all candidate terms.
-    target : ndarray, shape (N,)
-        y(t) for the regression rows.
+    P, target, rank_tol
+        As for :func:`reference_fit`.
     cols : ndarray of int
         The structure's columns.
     rows : ndarray of bool, shape (N,), optional
         The rows to fit on (None: all).
-    rank_tol : float
-        Squared relative pivot below which the structure is rank-deficient.
 
     Returns
     -------
@@ -181,9 +177,8 @@ def structure_fit(P: np.ndarray, target: np.ndarray, cols: np.ndarray,
     norms = np.sqrt(squares)
     if np.any(norms == 0) or k > count:  # a zero column, or more terms than rows
         return FitResult(np.full(k, np.nan), np.nan, True), None
-    r = np.zeros((0, k + 1))
-    for X, t in _slices(P, cols, rows, target):
-        r = np.linalg.qr(np.vstack([r, np.column_stack([X / norms, t])]), mode="r")
+    r = stacked_factor((np.column_stack([X / norms, t])
+                        for X, t in _slices(P, cols, rows, target)), k + 1)
     R = r[:k, :k]
     if np.min(np.abs(np.diag(R))) ** 2 < rank_tol:
         return FitResult(np.full(k, np.nan), np.nan, True), None

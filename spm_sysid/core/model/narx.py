@@ -160,25 +160,26 @@ class NarxModel:
                   segments: list[tuple[int, int]] | None) -> np.ndarray:
         """One-step predictions; a long record's columns a slice of rows at a time."""
         return np.concatenate([P @ self.coefficients
-                               for P in self.regression_slices(u, y, segments)])
+                               for P, _ in self.regression_slices(u, y, segments)])
 
     def regression_slices(self, u: np.ndarray, y: np.ndarray,
                           segments: list[tuple[int, int]] | None = None):
-        """The structure's regression rows (as :meth:`predict`'s), in slices of rows.
+        """The structure's regression rows and targets (as :meth:`predict`'s), in slices.
 
-        A record whose columns fit one slice (:func:`~spm_sysid.core.memory.slice_rows`)
-        gives them whole, one array; a longer one a slice of rows at a time, so no
-        array of all its rows by all its terms is ever held.
+        Pairs ``(P, t)``. A record whose columns fit one slice
+        (:func:`~spm_sysid.core.memory.slice_rows`) gives them whole, one pair; a
+        longer one a slice of rows at a time, so no array of all its rows by all its
+        terms is ever held.
         """
         lag, step = self.term_space.max_lag, slice_rows(len(self.term_indices))
         segs = [(a, b) for a, b in normalise_segments(segments, len(y)) if b - a > lag]
         if sum(b - a - lag for a, b in segs) <= step:
-            yield self.term_space.regression(u, y, segments, terms=self.term_indices)[0]
+            yield self.term_space.regression(u, y, segments, terms=self.term_indices)
             return
         for a, b in segs:
             for s in range(a + lag, b, step):
                 yield self.term_space.regression(u, y, [(s - lag, min(s + step, b))],
-                                                 terms=self.term_indices)[0]
+                                                 terms=self.term_indices)
 
     def run(self, u: np.ndarray, y: np.ndarray, horizon: int | None = None,
             segments: list[tuple[int, int]] | None = None) -> tuple[np.ndarray, int | None]:

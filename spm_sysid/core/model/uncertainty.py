@@ -24,6 +24,7 @@ draws (draws whose simulation diverged are counted, not used).
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 from statistics import NormalDist
 
@@ -33,7 +34,7 @@ from ..defaults import LEVEL
 from ..memory import slice_rows
 
 __all__ = ["Band", "Uncertainty", "from_jacobian", "from_least_squares", "output_band",
-           "solve_upper", "t_quantile"]
+           "solve_upper", "stacked_factor", "t_quantile"]
 
 
 #: Degrees of freedom from which :func:`t_quantile` uses its expansion.
@@ -143,6 +144,18 @@ def solve_upper(R: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.linalg.solve(R, b)
 
 
+def stacked_factor(blocks: Iterable[np.ndarray], width: int) -> np.ndarray:
+    """The triangular factor R of the rows of ``blocks`` stacked (``R^T R = sum B^T B``).
+
+    One block at a time: the QR of the factor so far stacked on the next block,
+    so a long matrix given in slices of rows is never held, nor copied, whole.
+    """
+    r = np.zeros((0, width))
+    for block in blocks:
+        r = np.linalg.qr(np.vstack([r, block]), mode="r")
+    return r
+
+
 def from_least_squares(r_factor: np.ndarray, column_norms: np.ndarray, sse: float,
                        rows: int) -> Uncertainty:
     """The covariance of a least-squares fit from its QR factor (see the module doc).
@@ -168,10 +181,8 @@ def from_jacobian(jacobian: np.ndarray, sse: float, rows: int | None = None) -> 
     rows = jacobian.shape[0] if rows is None else int(rows)
     dof = rows - k
     sigma2 = sse / dof if dof > 0 else float("nan")
-    step = slice_rows(k)
-    r = np.linalg.qr(jacobian[:step], mode="r")  # a long Jacobian's QR without its copy
-    for a in range(step, jacobian.shape[0], step):
-        r = np.linalg.qr(np.vstack([r, jacobian[a:a + step]]), mode="r")
+    step = slice_rows(k)  # a long Jacobian's QR without its copy
+    r = stacked_factor((jacobian[a:a + step] for a in range(0, jacobian.shape[0], step)), k)
     rinv = solve_upper(r, np.eye(k))
     return Uncertainty(sigma2 * rinv @ rinv.T, dof, sigma2, "free-run Jacobian")
 
@@ -224,7 +235,7 @@ def output_band(model, u: np.ndarray, y: np.ndarray, *, horizon: int | None = 1,
     if horizon == 1:  # the structure's columns a slice of rows at a time on a long record
         q = np.concatenate([np.empty((2, 0))]
                            + [np.quantile(P[a:a + _BLOCK] @ theta.T, [lo, hi], axis=1)
-                              for P in model.regression_slices(u, y, segments)
+                              for P, _ in model.regression_slices(u, y, segments)
                               for a in range(0, len(P), _BLOCK)], axis=1)
         return Band(q[0], q[1], level, draws, 0.0)
     if horizon is None and rows * draws > _STRETCH_VALUES:  # the same band, less held

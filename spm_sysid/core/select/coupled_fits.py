@@ -26,7 +26,7 @@ import numpy as np
 from ..memory import slice_rows
 from ..model.mimo import MimoModel, augmented_inputs
 from ..model.narx import NarxModel
-from ..model.uncertainty import solve_upper
+from ..model.uncertainty import solve_upper, stacked_factor
 
 __all__ = ["fit_least_squares", "least_squares_fits", "one_pass", "row_factor"]
 
@@ -112,14 +112,9 @@ def _pieces(row_ranges: list[list[tuple[int, int]]]) -> list[tuple[int, int]]:
 
 def _factor(m: NarxModel, u: np.ndarray, y: np.ndarray, piece: tuple[int, int]) -> np.ndarray:
     """Triangular factor of ``[X y]`` over a piece's rows, a slice of rows at a time."""
-    lag, k = m.term_space.max_lag, len(m.term_indices)
-    step = slice_rows(k)
-    r = np.zeros((0, k + 1))
-    for s in range(piece[0], piece[1], step):
-        P, t = m.term_space.regression(u, y, [(s - lag, min(s + step, piece[1]))],
-                                       terms=m.term_indices)
-        r = np.linalg.qr(np.vstack([r, np.column_stack([P, t])]), mode="r")
-    return r
+    rows = [(piece[0] - m.term_space.max_lag, piece[1])]
+    return stacked_factor((np.column_stack(pair) for pair in m.regression_slices(u, y, rows)),
+                          len(m.term_indices) + 1)
 
 
 def _output_fits(m: NarxModel, u: np.ndarray, y: np.ndarray,

@@ -33,6 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..defaults import DEPENDENT, HORIZON, INTEGRATOR_MARGIN, REAL_ANGLE, STRUCTURE_SLICE_BYTES
+from ..model.uncertainty import stacked_factor
 
 __all__ = ["HORIZON", "OpenLoop", "REAL_ANGLE", "independent_columns", "open_loop_check"]
 
@@ -155,9 +156,8 @@ def _arx_fit(u: np.ndarray, y: np.ndarray, segments, n: int
         squares += np.add.reduce(X * X, axis=0)
     scale = np.sqrt(squares)
     scale[scale == 0] = 1.0
-    r = np.zeros((0, width + 1))
-    for X, t in _arx_slices(u, y, segments, n, step):
-        r = np.linalg.qr(np.vstack([r, np.column_stack([X / scale, t])]), mode="r")
+    r = stacked_factor((np.column_stack([X / scale, t])
+                        for X, t in _arx_slices(u, y, segments, n, step)), width + 1)
     diag = np.abs(np.diag(r[:width, :width]))
     keep = np.flatnonzero(diag > DEPENDENT * max(float(diag.max(initial=0.0)), 1.0))
     q, rk = np.linalg.qr(r[:width, keep])  # X[:, keep] = Q r[:, keep]: its own QR from there
