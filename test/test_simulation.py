@@ -168,6 +168,24 @@ def test_free_run_uncertainty_covers_the_truth_and_refuses_an_unstable_linearisa
     assert f"(no coefficient uncertainty: {why})" in chaos.coefficient_table()
 
 
+def test_the_growth_check_reads_the_largest_size_without_a_copy():
+    """``max |J|`` from the Jacobian's own extremes equals numpy's of ``|J|``; NaN stays NaN.
+
+    (The check used to copy a long record's Jacobian to take its absolute values.)
+    """
+    from spm_sysid.core.fit.refine import _largest_size
+
+    rng = np.random.default_rng(8)
+    for shape in [(7, 3), (1000, 5), (50, 1)]:
+        jac = rng.standard_normal(shape) * rng.uniform(0.1, 10, shape[1])
+        jac[rng.integers(shape[0]), 0] = -50.0  # the largest size negative
+        assert _largest_size(jac) == float(np.max(np.abs(jac))) == 50.0
+        jac[0, 0] = np.inf
+        assert _largest_size(jac) == np.inf
+        jac[1, -1] = np.nan
+        assert np.isnan(_largest_size(jac))
+
+
 def _free_run_sse(model: NarxModel, u, y, theta=None) -> float:
     """The free-run SSE of a model (or of its structure with ``theta``)."""
     if theta is not None:
