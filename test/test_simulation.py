@@ -325,3 +325,41 @@ def test_judging_skips_the_refinements_of_an_estimator_that_left_the_range(robot
             assert a == b
             assert np.all(np.isinf(a)) == diverges
         assert (calls_skipped < len(folds)) == diverges
+
+
+def test_a_long_records_free_run_covariance_from_windows_matches_every_rows():
+    """Windows' ``J'J`` scaled to all rows gives the covariance of the Jacobian of every row.
+
+    A long record's free-run Jacobian (rows x terms) would be hundreds of MB; past
+    ``JOINT_JACOBIAN_BYTES`` the covariance comes from the final refinement's windows.
+    Here the budget is lowered so that 20 000 rows take that route: the standard
+    errors agree with those of every row within 10 %, ``dof`` stays N - k, and the
+    account says how many rows the Jacobian had.
+    """
+    from spm_sysid.core.fit.problem import Problem
+    from spm_sysid.core.select import folds
+    from spm_sysid.core.select.simulation import free_run_covariance
+
+    rng = np.random.default_rng(11)
+    n = 20000
+    u = rng.uniform(-1, 1, n)
+    x = np.zeros(n)
+    for t in range(2, n):
+        x[t] = 1.2 * x[t - 1] - 0.5 * x[t - 2] + 0.4 * u[t - 1] + 0.1 * u[t - 1] ** 2
+    y = x + 0.05 * rng.standard_normal(n)
+    space = TermSpace(ny=2, nu=1, degree=2)
+    problem = Problem.from_signals(u, y, space)
+    model = problem.model(np.isin(np.arange(space.n_terms), [0, 1, 2, 5]))
+    whole, account = free_run_covariance(model, problem)
+    assert account == {} and whole.dof == problem.rows - 4
+
+    budget = folds.JOINT_JACOBIAN_BYTES
+    try:
+        folds.JOINT_JACOBIAN_BYTES = 8 * 4 * 4000  # 4 000 rows of 4 terms
+        windowed, account = free_run_covariance(model, problem)
+    finally:
+        folds.JOINT_JACOBIAN_BYTES = budget
+    assert 3000 < account["uncertainty_rows"] <= 4000
+    assert windowed.dof == whole.dof and windowed.method == whole.method
+    ratio = windowed.standard_errors / whole.standard_errors
+    assert np.all(np.abs(ratio - 1) < 0.1), ratio

@@ -31,7 +31,7 @@ and when that diverges too, the refinement fails and says so).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -108,8 +108,8 @@ SENSITIVITY_GROWTH = 1e6
 
 
 def free_run_uncertainty(model: NarxModel, u: np.ndarray, y: np.ndarray,
-                         segments: list[tuple[int, int]] | None = None
-                         ) -> tuple[Uncertainty | None, str]:
+                         segments: list[tuple[int, int]] | None = None,
+                         rows: int | None = None) -> tuple[Uncertainty | None, str]:
     """The coefficients' covariance for the free-run problem (Gauss-Newton), or None and why.
 
     None when the simulation diverges on u, y, or when its sensitivities grow
@@ -117,6 +117,12 @@ def free_run_uncertainty(model: NarxModel, u: np.ndarray, y: np.ndarray,
     linearisation does not: a Gauss-Newton covariance would then claim standard
     errors of about zero), or when the Jacobian is singular. See
     :mod:`spm_sysid.core.model.uncertainty`.
+
+    ``rows``: the estimation rows the covariance stands for when ``segments`` are
+    windows of a long record (a Jacobian of every row would be hundreds of MB):
+    ``J'J`` of the windows' rows, times ``rows`` over their count, estimates the
+    whole record's (each row adds its own term), so the covariance is the
+    windows' times their share; ``dof`` is ``rows`` less the coefficients.
     """
     run = FreeRun(model, u, y, segments, guard=False)
     r, J, at = evaluate_free_run(run, model.coefficients)
@@ -130,6 +136,9 @@ def free_run_uncertainty(model: NarxModel, u: np.ndarray, y: np.ndarray,
     if J.shape[0] <= J.shape[1]:
         return None, "too few rows for the coefficients"
     found = from_jacobian(J, float(r @ r))
+    if rows is not None and rows > J.shape[0]:
+        share = J.shape[0] / rows
+        found = replace(found, covariance=found.covariance * share, dof=rows - J.shape[1])
     se = found.standard_errors
     if not np.all(np.isfinite(se) & (se > 0)):
         return None, "the free-run Jacobian is singular (terms the free run cannot tell apart)"

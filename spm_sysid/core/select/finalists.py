@@ -47,14 +47,20 @@ from ..defaults import (
 )
 from ..errors import DataError
 from ..fit.evaluator import key_mask, mask_key
-from ..fit.refine import free_run_uncertainty, refine_simulation
+from ..fit.refine import refine_simulation
 from ..model.narx import NarxModel
 from ..progress import Progress
 from .call import Call, linear_or_nonlinear
 from .folds import final_samples, final_steps, is_long, refinement_windows, sub_blocks
 from .guard import shrink_to_hold, stress_check
 from .scores import Scores, mean_and_stderr
-from .simulation import SimulationScorer, linear_orders, linear_structures, simulation_value
+from .simulation import (
+    SimulationScorer,
+    free_run_covariance,
+    linear_orders,
+    linear_structures,
+    simulation_value,
+)
 
 __all__ = ["ESTIMATORS", "FoldRun", "validated_simulation"]
 
@@ -402,9 +408,9 @@ class ValidatedSimulation:
                         mse=float(one_step @ one_step) / len(one_step),
                         criterion_value=simulation_value(crit, sse, problem.rows, mask,
                                                          model.coefficients, problem))
-        model.uncertainty, why = free_run_uncertainty(model, u, y, segments)
+        model.uncertainty, covariance = free_run_covariance(model, problem)
         model.metadata = {"simulation": {
-            "estimator": estimator, **({"no_uncertainty": why} if why else {}),
+            "estimator": estimator, **covariance,
             "refinement": final.message if final is not None else "none: least squares "
                           "simulated the held-out blocks better",
             "free_run_sse": sse,

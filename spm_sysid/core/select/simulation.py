@@ -32,9 +32,10 @@ from ..fit.lstsq import sse_floor
 from ..fit.problem import Problem
 from ..fit.refine import free_run_uncertainty, refine_simulation
 from ..model.narx import NarxModel
+from ..model.uncertainty import Uncertainty
 from ..progress import Progress, ProgressFn
 from ..search.local import SearchResult, local_search
-from .folds import final_steps, refinement_windows
+from .folds import final_samples, final_steps, refinement_windows
 
 __all__ = ["SimulationScorer", "linear_masks", "linear_orders", "linear_structures",
            "select_for_simulation", "simulation_value"]
@@ -262,14 +263,39 @@ def select_for_simulation(
     model.mse = float(one_step @ one_step) / len(one_step)
     model.criterion, model.criterion_value = criterion.name, value
     model.n_samples = problem.n_samples
-    model.uncertainty, why = free_run_uncertainty(model, u, y, segments)
+    model.uncertainty, covariance = free_run_covariance(model, problem)
     model.metadata = {**(metadata or {}), "simulation": {
-        **account, **({"no_uncertainty": why} if why else {}),
+        **account, **covariance,
         "candidates": len(candidates), "refinements": scorer.refinements + 1,
         "local_search_steps": found.steps,
         "criterion_meaning": f"{criterion.name.upper()} of the free-run simulation error "
                              "(SSE of the simulated output) on the estimation data"}}
     return model
+
+
+def free_run_covariance(model: NarxModel, problem: Problem
+                        ) -> tuple[Uncertainty | None, dict]:
+    """The returned model's free-run covariance (``free_run_uncertainty``) and its account.
+
+    The account (for ``metadata.simulation``): ``no_uncertainty`` (why there is
+    none) and, from windows, ``uncertainty_rows`` (the rows its Jacobian had).
+
+    Its Jacobian on every estimation row while that fits
+    :data:`~spm_sysid.core.defaults.JOINT_JACOBIAN_BYTES`, else on the windows a
+    final refinement of a long record fits on
+    (:func:`~spm_sysid.core.select.folds.final_samples`), scaled to all rows: a
+    Jacobian of 10^6 rows and 60 terms (480 MB) beside the candidate matrix held a
+    two-output job's peak.
+    """
+    segments = [(int(a), int(b)) for a, b in problem.segments]
+    samples = final_samples(segments, problem.term_space.max_lag,
+                            8 * len(model.term_indices))
+    rows = problem.rows if samples != segments else None
+    found, why = free_run_uncertainty(model, problem.u, problem.y, samples, rows=rows)
+    lag = problem.term_space.max_lag
+    return found, {**({"no_uncertainty": why} if why else {}),
+                   **({"uncertainty_rows": sum(b - a - lag for a, b in samples)}
+                      if rows is not None and found is not None else {})}
 
 
 def linear_structures(problem) -> list[np.ndarray]:
