@@ -334,9 +334,13 @@ def test_a_long_final_refinement_fits_on_windows_within_its_jacobian_budget(monk
     import spm_sysid.core.select.folds as folds
 
     segments = [(0, 60_000), (60_000, 100_000)]
-    assert folds.final_samples(segments, 4, 8 * 60) == segments  # 48 MB: every sample
-    monkeypatch.setattr(folds, "JOINT_JACOBIAN_BYTES", 20_000 * 8 * 60)
-    windows = folds.final_samples(segments, 4, 8 * 60)
+    assert folds.final_samples(segments, 4, 8 * 60, single=True) == segments  # 48 MB
+    assert folds.final_samples(segments, 4, 8 * 120) == segments  # 96 MB: two outputs'
+    windows = folds.final_samples(segments, 4, 8 * 120, single=True)  # past 64 MB
+    rows = sum(b - a for a, b in windows)
+    assert 60_000 <= rows <= (64 << 20) // (8 * 120) and windows[-1][1] > 90_000
+    monkeypatch.setattr(folds, "FINAL_JACOBIAN_BYTES", 20_000 * 8 * 60)
+    windows = folds.final_samples(segments, 4, 8 * 60, single=True)
     rows = sum(b - a for a, b in windows)
     assert 15_000 <= rows <= 20_000 and windows[0][0] < 10_000 and windows[-1][1] > 90_000
 

@@ -331,7 +331,7 @@ def test_a_long_records_free_run_covariance_from_windows_matches_every_rows():
     """Windows' ``J'J`` scaled to all rows gives the covariance of the Jacobian of every row.
 
     A long record's free-run Jacobian (rows x terms) would be hundreds of MB; past
-    ``JOINT_JACOBIAN_BYTES`` the covariance comes from the final refinement's windows.
+    ``FINAL_JACOBIAN_BYTES`` the covariance comes from the final refinement's windows.
     Here the budget is lowered so that 20 000 rows take that route: the standard
     errors agree with those of every row within 10 %, ``dof`` stays N - k, and the
     account says how many rows the Jacobian had.
@@ -353,12 +353,12 @@ def test_a_long_records_free_run_covariance_from_windows_matches_every_rows():
     whole, account = free_run_covariance(model, problem)
     assert account == {} and whole.dof == problem.rows - 4
 
-    budget = folds.JOINT_JACOBIAN_BYTES
+    budget = folds.FINAL_JACOBIAN_BYTES
     try:
-        folds.JOINT_JACOBIAN_BYTES = 8 * 4 * 4000  # 4 000 rows of 4 terms
+        folds.FINAL_JACOBIAN_BYTES = 8 * 4 * 4000  # 4 000 rows of 4 terms
         windowed, account = free_run_covariance(model, problem)
     finally:
-        folds.JOINT_JACOBIAN_BYTES = budget
+        folds.FINAL_JACOBIAN_BYTES = budget
     assert 3000 < account["uncertainty_rows"] <= 4000
     assert windowed.dof == whole.dof and windowed.method == whole.method
     ratio = windowed.standard_errors / whole.standard_errors

@@ -115,6 +115,13 @@ STRUCTURE_SLICE_BYTES = 16 << 20
 #: every sample.
 JOINT_JACOBIAN_BYTES = 128 << 20
 
+#: Bytes of the Jacobian (rows x terms) a single output's final refinement, and the
+#: free-run covariance of the model it returns, may hold; a longer record uses the
+#: windows of :data:`JOINT_JACOBIAN_BYTES`'s rule, of as many rows as fit. The solver
+#: holds two such arrays beside the output's candidate matrix: at 128 MB two outputs of
+#: 10^6 samples (q2: 91 candidates, 728 MB) peaked at 1.38-1.50 GiB in that refinement.
+FINAL_JACOBIAN_BYTES = 64 << 20
+
 #: Bytes the outputs of a record may work in at once (candidate matrices and the slices
 #: of their fits, ``fit.problem.working_bytes``) while they are identified side by side
 #: (one thread each); beyond it they take turns. Two outputs of

@@ -383,7 +383,7 @@ class ValidatedSimulation:
             return model, None, stress_check(model, u, y, segments, self.integrating)
         self.report(Progress("refinement", elapsed=time.perf_counter() - self.started))
         samples = final_samples(segments, problem.term_space.max_lag,
-                                8 * len(screened.term_indices))
+                                8 * len(screened.term_indices), single=True)
         final = refine_simulation(screened, u, y, samples, **final_steps(problem))
         if samples != [tuple(s) for s in segments]:  # on windows: the start's SSE on all
             start = screened.measured(y, segments) - screened.run(u, y, None, segments)[0]

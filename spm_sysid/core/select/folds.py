@@ -20,6 +20,7 @@ import numpy as np
 from ..defaults import (
     EXCITED_DIRECTIONS,
     FACTOR_SLICE_BYTES,
+    FINAL_JACOBIAN_BYTES,
     FOLDS,
     INTERLEAVED_PIECES,
     JOINT_JACOBIAN_BYTES,
@@ -279,18 +280,22 @@ def _runs(block: np.ndarray, segments) -> list[tuple[int, int]]:
     return out
 
 
-def final_samples(segments, lag: int, row_bytes: int) -> list[tuple[int, int]]:
+def final_samples(segments, lag: int, row_bytes: int, single: bool = False
+                  ) -> list[tuple[int, int]]:
     """The samples a final refinement fits on: every one while its Jacobian fits.
 
     ``row_bytes``: the Jacobian's bytes per row. Beyond
-    :data:`~spm_sysid.core.defaults.JOINT_JACOBIAN_BYTES` (the refinement holds
-    about four such arrays) it fits on windows spread over the record
+    :data:`~spm_sysid.core.defaults.JOINT_JACOBIAN_BYTES` (the joint refinement of
+    several outputs holds about four such arrays), or
+    :data:`~spm_sysid.core.defaults.FINAL_JACOBIAN_BYTES` for a ``single``
+    output's, it fits on windows spread over the record
     (:func:`refinement_windows`) of as many rows as fit.
     """
+    budget = FINAL_JACOBIAN_BYTES if single else JOINT_JACOBIAN_BYTES
     segments = [(int(a), int(b)) for a, b in segments]
-    if sum(b - a for a, b in segments) * row_bytes <= JOINT_JACOBIAN_BYTES:
+    if sum(b - a for a, b in segments) * row_bytes <= budget:
         return segments
-    return refinement_windows(segments, lag, rows=JOINT_JACOBIAN_BYTES // row_bytes)
+    return refinement_windows(segments, lag, rows=budget // row_bytes)
 
 
 def refinement_windows(segments, lag: int, rows: int = REFINE_ROWS,

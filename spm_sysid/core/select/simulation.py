@@ -281,7 +281,7 @@ def free_run_covariance(model: NarxModel, problem: Problem
     none) and, from windows, ``uncertainty_rows`` (the rows its Jacobian had).
 
     Its Jacobian on every estimation row while that fits
-    :data:`~spm_sysid.core.defaults.JOINT_JACOBIAN_BYTES`, else on the windows a
+    :data:`~spm_sysid.core.defaults.FINAL_JACOBIAN_BYTES`, else on the windows a
     final refinement of a long record fits on
     (:func:`~spm_sysid.core.select.folds.final_samples`), scaled to all rows: a
     Jacobian of 10^6 rows and 60 terms (480 MB) beside the candidate matrix held a
@@ -289,7 +289,7 @@ def free_run_covariance(model: NarxModel, problem: Problem
     """
     segments = [(int(a), int(b)) for a, b in problem.segments]
     samples = final_samples(segments, problem.term_space.max_lag,
-                            8 * len(model.term_indices))
+                            8 * len(model.term_indices), single=True)
     rows = problem.rows if samples != segments else None
     found, why = free_run_uncertainty(model, problem.u, problem.y, samples, rows=rows)
     lag = problem.term_space.max_lag
