@@ -256,6 +256,25 @@ def test_the_joint_refinement_steps_only_along_the_directions_the_record_identif
     assert error(free, tau2, q2) > 1.5 * error(start, tau2, q2)  # and lost off the record
 
 
+def test_the_joint_jacobian_of_several_segments_is_each_segments_in_order():
+    """Windows' Jacobians are written into one array as computed: equal to each alone.
+
+    Independent: each segment's residuals and Jacobian computed on its own, stacked.
+    """
+    import spm_sysid.core.fit.refine_coupled as joint
+    from spm_sysid.core.select.coupled import fit_least_squares
+
+    tau, q = record(1200, seed=0)
+    model = fit_least_squares(_linear_arm(3), tau, q, [(0, len(q))])
+    theta = np.concatenate([m.coefficients for m in model.models])
+    segments = [(0, 300), (350, 800), (900, 1200)]
+    r, jac = joint._CoupledResiduals(model, tau, q, segments).evaluate(theta)
+    parts = [joint._CoupledResiduals(model, tau, q, [s]).evaluate(theta) for s in segments]
+    assert jac.shape == (r.size, theta.size) and np.all(np.isfinite(jac))
+    np.testing.assert_array_equal(r, np.concatenate([p[0] for p in parts]))
+    np.testing.assert_array_equal(jac, np.concatenate([p[1] for p in parts]))
+
+
 def test_the_coupled_sensitivities_equal_finite_differences_of_the_coupled_run():
     """The refinement's Jacobian: every output against every output's coefficients."""
     from spm_sysid.core.model.coupled import CoupledCompiled, coupled_run, coupled_sensitivities

@@ -138,15 +138,25 @@ class _CoupledResiduals:
         return self.scaled(self.simulate(theta)[0])
 
     def evaluate(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The residuals and their Jacobian, from the coupled sensitivities."""
-        sims, jacs = [], []
+        """The residuals and their Jacobian, from the coupled sensitivities.
+
+        Several segments (a long record's windows) are copied into one Jacobian
+        as each is computed, not gathered and then concatenated (twice the memory).
+        """
+        sims, jac, at = [], None, 0
         for a, b in self.segs:
             sim, sens, _ = coupled_sensitivities(self.cc, self.split(theta), self.u[a:b],
                                                  self.Y[a:b], self.bounds)
             sims.append(sim)
             sens /= -self.scale[:, None]  # in place: a Jacobian is rows x outputs x terms
-            jacs.append(sens.reshape(-1, len(theta)))
-        jac = jacs[0] if len(jacs) == 1 else np.concatenate(jacs)
+            part = sens.reshape(-1, len(theta))
+            if len(self.segs) == 1:
+                jac = part  # no copy
+            else:
+                if jac is None:
+                    jac = np.empty((self.measured.size, len(theta)))
+                jac[at:at + len(part)] = part
+                at += len(part)
         return self.scaled(np.concatenate(sims)), jac
 
     def solve(self, theta0: np.ndarray, max_evaluations: int
