@@ -275,6 +275,38 @@ def test_the_joint_jacobian_of_several_segments_is_each_segments_in_order():
     np.testing.assert_array_equal(jac, np.concatenate([p[1] for p in parts]))
 
 
+def test_a_joint_refinements_covariance_from_windows_stands_for_every_row():
+    """Windows' covariance scaled by their share of the rows: the whole record's, near.
+
+    The same coefficients, each output's standard errors from the windows' joint
+    Jacobian (scaled) and from every row's; ``dof`` counts every row. The arm's
+    free-run errors and sensitivities grow along a run, and windows restart them:
+    with half the rows in four windows the scaled errors are 0.83-0.92 of every
+    row's (docs/method.md); unscaled they were 1.2-1.3 times.
+    """
+    import spm_sysid.core.fit.refine_coupled as joint
+    from spm_sysid.core.select.coupled import fit_least_squares
+    from spm_sysid.core.select.folds import refinement_windows
+
+    tau, q = record(8000, seed=2)
+    model = fit_least_squares(_linear_arm(2), tau, q, [(0, len(q))])
+    theta = np.concatenate([m.coefficients for m in model.models])
+    windows = refinement_windows([(0, len(q))], model.max_lag, rows=4000)
+    rows = len(q) - model.max_lag
+
+    def models(segments, total):
+        run = joint._CoupledResiduals(model, tau, q, segments)
+        return run.refined_models(model, theta, None, run.simulate(theta)[0], total)
+
+    whole, part = models(None, None), models(windows, rows)
+    for a, b in zip(whole, part):
+        assert b.uncertainty.dof == a.uncertainty.dof == rows - len(a.coefficients)
+        ratio = b.uncertainty.standard_errors / a.uncertainty.standard_errors
+        assert np.all((ratio > 0.8) & (ratio < 1.0)), ratio
+    unscaled = models(windows, None)[0].uncertainty.standard_errors
+    assert np.all(unscaled > 1.15 * whole[0].uncertainty.standard_errors)  # what it was
+
+
 def test_the_coupled_sensitivities_equal_finite_differences_of_the_coupled_run():
     """The refinement's Jacobian: every output against every output's coefficients."""
     from spm_sysid.core.model.coupled import CoupledCompiled, coupled_run, coupled_sensitivities

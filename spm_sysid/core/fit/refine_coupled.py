@@ -41,7 +41,7 @@ __all__ = ["refine_coupled"]
 
 def refine_coupled(model, u: np.ndarray, Y: np.ndarray,
                    segments: list[tuple[int, int]] | None = None,
-                   max_evaluations: int = 100):
+                   max_evaluations: int = 100, rows: int | None = None):
     """All outputs' coefficients refined together on the coupled free-run error.
 
     Parameters
@@ -56,6 +56,11 @@ def refine_coupled(model, u: np.ndarray, Y: np.ndarray,
         Most evaluations of Levenberg-Marquardt (each a coupled run with its
         sensitivities; with regressors, a finite-difference Jacobian costs
         one more run per coefficient besides).
+    rows : int, optional
+        The rows of each output the covariance stands for when ``segments`` are
+        windows of a long record: the windows' covariance is scaled by their
+        share of them, and ``dof`` counts them
+        (:func:`~spm_sysid.core.fit.refine.free_run_uncertainty`'s rule).
 
     Returns
     -------
@@ -88,7 +93,9 @@ def refine_coupled(model, u: np.ndarray, Y: np.ndarray,
                            "the coefficients given simulate best together; kept")
         return model, info
     info.update(taken=True, message=message)
-    return replace(model, models=run.refined_models(model, x, jac, sim)), info
+    if rows is not None and rows > len(run.measured):
+        info["uncertainty_rows"] = len(run.measured)
+    return replace(model, models=run.refined_models(model, x, jac, sim, rows)), info
 
 
 class _CoupledResiduals:
@@ -218,11 +225,12 @@ class _CoupledResiduals:
         return vectors[:, keep] / norms[:, None]
 
     def refined_models(self, model, theta: np.ndarray, jac: np.ndarray | None,
-                       sim: np.ndarray) -> list:
+                       sim: np.ndarray, rows: int | None = None) -> list:
         """Each output's model with its refined coefficients and their uncertainty.
 
         Each output's uncertainty comes from its rows and columns of the joint
-        Jacobian (None: from the sensitivities at theta).
+        Jacobian (None: from the sensitivities at theta); scaled to ``rows`` when
+        the segments are a long record's windows (see :func:`refine_coupled`).
         """
         jac = self.evaluate(theta)[1] if jac is None else jac
         jac = jac.reshape(len(self.measured), self.q, -1)  # d(r)/d(theta)
@@ -231,6 +239,9 @@ class _CoupledResiduals:
             J = -jac[:, i, self.sizes[i]:self.sizes[i + 1]] * self.scale[i]  # d(sim_i)/d(th)
             e = self.measured[:, i] - sim[:, i]
             unc = from_jacobian(J, float(e @ e)) if np.all(np.isfinite(J)) else m.uncertainty
+            if unc is not m.uncertainty and rows is not None and rows > len(J):
+                unc = replace(unc, covariance=unc.covariance * (len(J) / rows),
+                              dof=rows - J.shape[1])
             meta = {**m.metadata, "coupled_refinement": True}
             models.append(replace(m, coefficients=np.array(th), uncertainty=unc, metadata=meta))
         return models

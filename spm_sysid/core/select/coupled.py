@@ -293,7 +293,10 @@ def _fit_full(model: MimoModel, how: str, joined: MimoModel, u, Y, segments
         start = joined if model is joined else fit_least_squares(model, u, Y, segments)
         if start is None:
             return None
-        fitted, info = refine_coupled(start, u, Y, _final_rows(start, segments))
+        windows = _final_rows(start, segments)
+        total = sum(max(b - a - start.max_lag, 0) for a, b in segments)
+        fitted, info = refine_coupled(start, u, Y, windows, rows=total if windows != [
+            (int(a), int(b)) for a, b in segments] else None)
         fitted.metadata["coupled_refinement"] = info
     models = [_accounted(m, t, augmented_inputs(u, Y, i), Y[:, i], segments,
                          uncertainty=how == "least squares")
