@@ -198,8 +198,10 @@ def test_the_joint_refinement_steps_only_along_the_directions_the_record_identif
 
     Free Levenberg-Marquardt steps lower the training error along directions the
     record sees poorly and the start's residuals do not call for, and simulate
-    another record of the same arm 2-4x worse than least squares; the refinement
-    stays out of them and simulates it better than least squares.
+    other records of the same arm worse than least squares (the mean over seven:
+    3.6x with numpy 2.4 / scipy 1.17; on one of them, seed 1, about equal, so
+    the mean is what is asserted); the refinement stays out of them and
+    simulates them better than least squares.
     """
     from dataclasses import replace
 
@@ -207,7 +209,7 @@ def test_the_joint_refinement_steps_only_along_the_directions_the_record_identif
     from spm_sysid.core.select.coupled import fit_least_squares
 
     tau, q = record(1000, seed=0)
-    tau2, q2 = record(1000, seed=1)
+    others = [record(1000, seed=k) for k in range(1, 8)]
     start = fit_least_squares(_linear_arm(6), tau, q, [(0, len(q))])
     theta0 = np.concatenate([m.coefficients for m in start.models])
     sizes = np.cumsum([0] + [len(m.coefficients) for m in start.models])
@@ -221,6 +223,9 @@ def test_the_joint_refinement_steps_only_along_the_directions_the_record_identif
         sim, _ = model.simulate(u, Y)
         r = (Y[model.max_lag:] - sim) / std
         return float(np.sum(r * r))
+
+    def off_record(model):  # the mean error over the other records
+        return float(np.mean([error(model, u2, y2) for u2, y2 in others]))
 
     # the directions the record sees poorly and the start's residuals do not call
     # for, from central differences of the coupled run (independent of the
@@ -248,12 +253,12 @@ def test_the_joint_refinement_steps_only_along_the_directions_the_record_identif
     refined, info = joint.refine_coupled(start, tau, q, max_evaluations=30)
     assert info["taken"] and info["after"] < info["before"]
     assert step_in_weak_directions(refined) < 1e-3
-    assert error(refined, tau2, q2) < error(start, tau2, q2)
+    assert off_record(refined) < off_record(start)
     monkeypatch.setattr(joint, "JOINT_RCOND", 0.0)  # every direction: what it avoids
     free, info_free = joint.refine_coupled(start, tau, q, max_evaluations=30)
     assert info_free["after"] < info["after"]  # more training gain ...
     assert step_in_weak_directions(free) > 0.5  # ... from the weak directions
-    assert error(free, tau2, q2) > 1.5 * error(start, tau2, q2)  # and lost off the record
+    assert off_record(free) > 1.5 * off_record(start)  # and lost off the record
 
 
 def test_the_joint_jacobian_of_several_segments_is_each_segments_in_order():
