@@ -277,15 +277,15 @@ def free_run_covariance(model: NarxModel, problem: Problem
                         ) -> tuple[Uncertainty | None, dict]:
     """The returned model's free-run covariance (``free_run_uncertainty``) and its account.
 
-    The account (for ``metadata.simulation``): ``no_uncertainty`` (why there is
-    none) and, from windows, ``uncertainty_rows`` (the rows its Jacobian had).
-
     Its Jacobian on every estimation row while that fits
     :data:`~spm_sysid.core.defaults.FINAL_JACOBIAN_BYTES`, else on the windows a
     final refinement of a long record fits on
     (:func:`~spm_sysid.core.select.folds.final_samples`), scaled to all rows: a
     Jacobian of 10^6 rows and 60 terms (480 MB) beside the candidate matrix held a
     two-output job's peak.
+
+    The account (for ``metadata.simulation``): ``no_uncertainty`` (why there is
+    none) and, from windows, ``uncertainty_rows`` (the rows its Jacobian had).
     """
     segments = [(int(a), int(b)) for a, b in problem.segments]
     samples = final_samples(segments, problem.term_space.max_lag,
