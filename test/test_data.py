@@ -10,7 +10,7 @@ import pytest
 from spm_sysid.core.errors import DataError
 from spm_sysid.core.identify import check_samples, identify
 from spm_sysid.core.io import datasets as data_mod
-from spm_sysid.core.io.data import load_io
+from spm_sysid.core.io.data import load_io, parse_table
 from spm_sysid.core.io.datasets import (
     ROBOT_ARM_SHA256,
     download_robot_arm,
@@ -43,6 +43,33 @@ def test_two_column_text_with_comments_and_gzip(tmp_path):
     g = tmp_path / "d.dat.gz"
     g.write_bytes(gzip.compress(p.read_bytes()))
     assert [a.tolist() for a in load_io(g)] == [[1.0, 3.0], [2.0, 4.0]]
+
+
+@pytest.mark.parametrize("content, names, values", [
+    ("time;u;y\n0;-0,138;1,5\n0,01;2,25;-,5e-1\n", ["time", "u", "y"],
+     [[0.0, -0.138, 1.5], [0.01, 2.25, -0.05]]),
+    ("0,5;1,25\n0,75;1,5\n", None, [[0.5, 1.25], [0.75, 1.5]]),
+    ("u\ty\n0,5\t1,25\n", ["u", "y"], [[0.5, 1.25]]),
+    ("0,5 1,25\n-1,0 2\n", None, [[0.5, 1.25], [-1.0, 2.0]]),
+    ("u,y\n1,2\n3,4\n", ["u", "y"], [[1.0, 2.0], [3.0, 4.0]]),  # commas separate
+    ("1.0, 2.0\n3, 4\n", None, [[1.0, 2.0], [3.0, 4.0]]),
+    ("u;y\n1.5;2\n", ["u", "y"], [[1.5, 2.0]]),
+])
+def test_separators_and_decimal_commas(content, names, values):
+    """Spreadsheets in many locales export ``0,25;1,5``: semicolons separate, commas mark."""
+    table = parse_table(content, "take.csv")
+    assert table.names == names and table.values.tolist() == values
+
+
+def test_a_units_line_after_the_header_is_named(tmp_path):
+    p = tmp_path / "take.tsv"
+    p.write_text("time\tu\ty\ns\tNm\trad\n0\t1\t2\n")
+    with pytest.raises(DataError, match=r"line 2: 's' is not a number; line 2 holds no number "
+                                        r"at all: a second header line \(units\?\)"):
+        load_io(p)
+    p.write_text("time\tu\ty\n# s\tNm\trad\n0\t1\t2\n0.01\t3\t4\n")
+    u, y = load_io(p)  # the units as a comment: read
+    assert u.tolist() == [1.0, 3.0] and y.tolist() == [2.0, 4.0]
 
 
 @pytest.mark.parametrize("content, message", [

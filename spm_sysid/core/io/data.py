@@ -14,6 +14,9 @@ Supported layouts
   across them.
 * Any number of columns when the inputs and the output are chosen by header
   name or 0-based index (:func:`load_data`'s ``inputs`` and ``output``).
+* Fields separated by commas, semicolons or whitespace (tabs); with semicolons
+  or whitespace, numbers may have decimal commas (``0,25;1,5``: a spreadsheet's
+  export in many locales), read as decimal points.
 * MATLAB files (``.mat``, versions 4 to 7): their variables are the columns
   (:mod:`spm_sysid.core.io.matfile`); the same rules then apply.
 
@@ -40,6 +43,7 @@ import gzip
 import io
 import math
 import os
+import re
 import warnings
 import zlib
 from dataclasses import dataclass
@@ -175,6 +179,28 @@ def _is_number(token: str) -> bool:
     return True
 
 
+#: A number written with a decimal comma (``-0,25``, ``1,5e-3``): what spreadsheets in
+#: many locales export, with semicolons or tabs between the fields.
+_DECIMAL_COMMA = re.compile(r"[+-]?\d*,\d+(?:[eE][+-]?\d+)?")
+
+
+def _separator(line: str) -> tuple[str | None, bool]:
+    """The separator of a first content line, and whether its numbers have decimal commas.
+
+    A comma, unless the line has semicolons and each of its commas stands between
+    digits (``0,5;1,25``: semicolons separate, commas are decimal marks); a
+    semicolon; else whitespace, where fields like ``0,5`` are decimal commas too.
+    """
+    cells = [c.strip().strip('"') for c in line.split("#", 1)[0].split(";")]
+    if ";" in line and any(_DECIMAL_COMMA.fullmatch(c) for c in cells) and not any(
+            "," in c and not _DECIMAL_COMMA.fullmatch(c) for c in cells):
+        return ";", True
+    if "," in line and ";" not in line and len(line.split()) > 1 and all(
+            _DECIMAL_COMMA.fullmatch(c) or _is_number(c) for c in line.split("#", 1)[0].split()):
+        return None, True
+    return ("," if "," in line else (";" if ";" in line else None)), False
+
+
 def _split(line: str, sep: str | None) -> list[str]:
     line = line.split("#", 1)[0]  # a comment after the values
     cells = line.split(sep) if sep else line.split()
@@ -208,9 +234,10 @@ def parse_table(text: str, source: str = "<text>") -> Table:
     if first is None:
         raise DataError(f"{source}: no data (the file is empty)")
     number, line = first
-    sep = "," if "," in line else (";" if ";" in line else None)
+    sep, comma = _separator(line)
     cells = _split(line, sep)
-    header = not all(_is_number(c) for c in cells if c)
+    header = not all(_is_number(c) or (comma and _DECIMAL_COMMA.fullmatch(c))
+                     for c in cells if c)
     names = header_names = None
     header_line = 0
     if header:
@@ -220,6 +247,10 @@ def parse_table(text: str, source: str = "<text>") -> Table:
     rows.extend(content)
     if not rows:
         raise DataError(f"{source}: the CSV file has a header but no data rows")
+    if header and sep != "," and not comma:  # the header leaves the first row to tell
+        comma = any(_DECIMAL_COMMA.fullmatch(c) for c in _split(rows[0][1], sep))
+    if comma:  # decimal commas read as decimal points
+        rows = [(n, ln.replace(",", ".")) for n, ln in rows]
     line_numbers = np.fromiter((n for n, _ in rows), dtype=np.int64, count=len(rows))
     try:
         with warnings.catch_warnings():
@@ -231,12 +262,17 @@ def parse_table(text: str, source: str = "<text>") -> Table:
         if values.shape != (len(rows), width):
             raise ValueError("shape")
     except ValueError:  # an empty field, a bad value or a short row: line by line
-        values = _parse_rows(rows, sep, width, source, names is None)
+        values = _parse_rows(rows, sep, width, source, names is None, header_line)
     return Table(names, header_names, values, line_numbers, header_line, sep, source, lines)
 
 
-def _parse_rows(rows, sep, width, source, two_column_hint) -> np.ndarray:
-    """The slow path: every field read in Python; names the first bad line."""
+def _parse_rows(rows, sep, width, source, two_column_hint, header_line: int = 0
+                ) -> np.ndarray:
+    """The slow path: every field read in Python; names the first bad line.
+
+    A first row after the header with no number at all (units, say) is named as
+    what it likely is: a second header line, which is not data.
+    """
     values = np.empty((len(rows), width))
     for i, (number, line) in enumerate(rows):
         cells = _split(line, sep)
@@ -251,7 +287,11 @@ def _parse_rows(rows, sep, width, source, two_column_hint) -> np.ndarray:
             try:
                 values[i, j] = float(c)
             except ValueError:
-                raise DataError(f"{where}: {_show(c)} is not a number") from None
+                hint = ""
+                if i == 0 and header_line and not any(_is_number(x) for x in cells):
+                    hint = (f"; line {number} holds no number at all: a second header line "
+                            "(units?) is not data: delete it or start it with #")
+                raise DataError(f"{where}: {_show(c)} is not a number{hint}") from None
     return values
 
 
