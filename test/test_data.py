@@ -10,7 +10,7 @@ import pytest
 from spm_sysid.core.errors import DataError
 from spm_sysid.core.identify import check_samples, identify
 from spm_sysid.core.io import datasets as data_mod
-from spm_sysid.core.io.data import load_io, parse_table
+from spm_sysid.core.io.data import load_data, load_io, parse_table
 from spm_sysid.core.io.datasets import (
     ROBOT_ARM_SHA256,
     download_robot_arm,
@@ -70,6 +70,41 @@ def test_a_units_line_after_the_header_is_named(tmp_path):
     p.write_text("time\tu\ty\n# s\tNm\trad\n0\t1\t2\n0.01\t3\t4\n")
     u, y = load_io(p)  # the units as a comment: read
     assert u.tolist() == [1.0, 3.0] and y.tolist() == [2.0, 4.0]
+
+
+@pytest.mark.parametrize("first, step, unit", [
+    (1.7e18, 1e6, "nanoseconds"),      # ROS stamps: ns since 1970, 1 kHz
+    (0.0, 1e7, "nanoseconds"),         # ns from the record's start, 100 Hz
+    (1.7e15, 1e3, "microseconds"),
+    (1.7e12, 10.0, "milliseconds"),
+    (1.7e9, 0.01, ""),                 # seconds since 1970
+    (0.0, 60.0, ""),                   # a sample a minute, in seconds
+])
+def test_the_time_columns_unit_is_told_from_its_values_and_said(tmp_path, first, step, unit):
+    """A ROS export stamps rows in nanoseconds: read as seconds, 1.7e18 overflowed."""
+    from spm_sysid.core.record import DataSpec, load_record
+
+    scale = {"nanoseconds": 1e-9, "microseconds": 1e-6, "milliseconds": 1e-3, "": 1.0}[unit]
+    times = first + step * np.r_[np.arange(40), np.arange(60, 100)]  # a gap of 20 samples
+    rng = np.random.default_rng(0)
+    p = tmp_path / "take.csv"
+    p.write_text("timestamp,u,y\n" + "".join(f"{t:.0f},{a:.6f},{b:.6f}\n" if step >= 1
+                                              else f"{t:.3f},{a:.6f},{b:.6f}\n"
+                                              for t, a, b in zip(times, *rng.random((2, 80)))))
+    record = load_record(DataSpec(data=(str(p),)))
+    # rtol: a float64 holds ns since 1970 to 256 ns
+    assert np.allclose(np.diff(record.stamps_ns) * 1e-9, np.diff(times) * scale, rtol=1e-3)
+    assert record.segment_info().gaps == 1
+    said = [n for n in record.notes if "time column" in n]
+    assert (unit in said[0] and "'timestamp'" in said[0]) if unit else not said
+
+
+def test_plotjugglers_time_column(tmp_path):
+    p = tmp_path / "pj.csv"
+    p.write_text("__time,/joint/effort,/joint/position\n1700000000.000,1,2\n"
+                 "1700000000.001,3,4\n1700000000.005,5,6\n")
+    d = load_data(p, ["/joint/effort"], "/joint/position")
+    assert np.allclose(np.diff(d.t), [0.001, 0.004], rtol=1e-3) and d.y.tolist() == [2.0, 4.0, 6.0]
 
 
 @pytest.mark.parametrize("content, message", [

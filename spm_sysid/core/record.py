@@ -344,7 +344,7 @@ def _load_file(path: str, spec: DataSpec) -> Record:
     stamps = None if d.t is None else np.round(d.t * 1e9).astype(np.int64)
     return Record(d.u, d.y, path, tuple(d.input_names), d.output_name or "y", stamps,
                   rejected=d.rejected, parts=[{"source": path, "samples": int(len(d.y))}],
-                  output_names=d.output_names)
+                  notes=list(d.notes), output_names=d.output_names)
 
 
 def _load_bag(spec: DataSpec) -> Record:

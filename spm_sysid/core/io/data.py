@@ -7,8 +7,10 @@ Supported layouts
   comments.
 * CSV (or whitespace-separated columns) with a header line. Columns named ``u``
   and ``y`` are used when present; otherwise the file must have exactly two
-  data columns (input first). A column named ``t``, ``time``, ``stamp`` or
-  ``timestamp`` (seconds) gives each row its time: then rows with a missing,
+  data columns (input first). A column named ``t``, ``time``, ``stamp``,
+  ``timestamp`` or ``__time`` gives each row its time (seconds; nanoseconds,
+  microseconds or milliseconds since 1970, or nanoseconds from the start, are told
+  from their size and said in :attr:`IOData.notes`): then rows with a missing,
   NaN or inf ``u`` or ``y`` are dropped and counted, and the gaps they (or
   missing rows) leave are found from the times, so identification never fits
   across them.
@@ -58,7 +60,17 @@ __all__ = ["IOData", "TIME_COLUMNS", "Table", "load_data", "load_io", "parse_dat
            "parse_io_text", "parse_table", "read_text", "table_data"]
 
 #: Header names of a time column (seconds).
-TIME_COLUMNS = ("t", "time", "stamp", "timestamp")
+TIME_COLUMNS = ("t", "time", "stamp", "timestamp", "__time")  # __time: PlotJuggler's
+
+#: Time columns in other units than seconds, told from their values: (the least
+#: magnitude of such a clock since 1970, seconds per unit, the unit's name). Seconds
+#: since 1970 stay below 1e11 until the year 5138; ROS stamps are nanoseconds.
+_CLOCKS = ((1e17, 1e-9, "nanoseconds"), (1e14, 1e-6, "microseconds"),
+           (1e11, 1e-3, "milliseconds"))
+
+#: A median step beyond this many "seconds" (more than a day between samples) is a
+#: clock that counts nanoseconds from the record's start.
+_NANOSECOND_STEP = 1e5
 
 #: Bytes of memory per byte of text while parsing: the bytes, the text, its lines (a
 #: Python string each) and the numbers; 5.5 measured on 10^6 rows of two short numbers.
@@ -316,6 +328,8 @@ class IOData:
         Signal names from the file's header (empty: unnamed).
     output_names : tuple of str
         Several outputs (``y`` of shape (n, q)): their names; empty for one.
+    notes : tuple of str
+        What a user should know of how the file was read (the time column's unit).
     """
 
     u: np.ndarray
@@ -326,6 +340,7 @@ class IOData:
     input_names: tuple[str, ...] = ()
     output_name: str = "y"
     output_names: tuple[str, ...] = ()
+    notes: tuple[str, ...] = ()
 
 
 def parse_data_text(text: str, source: str = "<text>", inputs: list[str] | None = None,
@@ -350,8 +365,14 @@ def table_data(table: Table, source: str, inputs: list[str] | None = None,
     signals = values[:, iu + iys]
     t = None
     rejected = 0
+    notes: tuple[str, ...] = ()
     if it is not None:  # rows with missing values are dropped and counted (gaps by time)
         t, signals, rejected = _timed_rows(table, source, it, signals)
+        t, unit = _seconds(t)
+        if unit:
+            notes = (f"{source}: the time column '{(table.header_names or names)[it]}' read "
+                     f"as {unit} ({_step_text(t)} between samples): as seconds its values "
+                     "would be dates past the year 5000 or days apart",)
     else:
         _check_all_finite(table, source, signals, iu + iys)
     if len(signals) == 0:
@@ -372,7 +393,34 @@ def table_data(table: Table, source: str, inputs: list[str] | None = None,
                       for k, j in enumerate(iys))
     return IOData(np.ascontiguousarray(u), np.ascontiguousarray(y), t, rejected,
                   source, in_names if chosen else (), ",".join(out_names),
-                  out_names if len(iys) > 1 else ())
+                  out_names if len(iys) > 1 else (), notes)
+
+
+def _seconds(t: np.ndarray) -> tuple[np.ndarray, str]:
+    """The times in seconds, and the unit they were in ('' when seconds already).
+
+    Nanoseconds (ROS stamps), microseconds or milliseconds since 1970 are told by
+    their size (:data:`_CLOCKS`); a clock from the record's start by its step
+    (:data:`_NANOSECOND_STEP`: nanoseconds).
+    """
+    if not t.size:
+        return t, ""
+    largest = float(np.max(np.abs(t)))
+    for least, scale, unit in _CLOCKS:
+        if largest >= least:
+            return t * scale, unit
+    if t.size > 1 and float(np.median(np.diff(t))) >= _NANOSECOND_STEP:
+        return t * 1e-9, "nanoseconds"
+    return t, ""
+
+
+def _step_text(t: np.ndarray) -> str:
+    """The median step of times in seconds, for a note (``1 ms``)."""
+    step = float(np.median(np.diff(t))) if t.size > 1 else 0.0
+    for scale, unit in ((1.0, "s"), (1e-3, "ms"), (1e-6, "us")):
+        if step >= scale:
+            return f"{step / scale:.4g} {unit}"
+    return f"{step * 1e9:.4g} ns"
 
 
 def _signal_columns(table: Table, source: str, it: int | None, inputs: list[str] | None,
