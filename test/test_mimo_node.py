@@ -25,7 +25,9 @@ from .conftest import JOINT_STATE_PARAMS, ROOT, TRUE, two_output_system, write_j
 from .helpers.two_joints import two_joint_record
 from .ros_harness import IdentifyClient, play_bag, start_node, stop
 
-PARAMS = JOINT_STATE_PARAMS
+# the outputs by joint name, the inputs by index: both forms of a field path on a live topic
+PARAMS = tuple(p.replace("velocity[0],velocity[1]", "velocity[j1],velocity[j2]")
+               for p in JOINT_STATE_PARAMS)
 
 
 @pytest.mark.slow

@@ -352,7 +352,7 @@ def _load_bag(spec: DataSpec) -> Record:
 
     opts = {k: v for k, v in spec.bag_options.items() if v}
     sig = read_bag_signals(spec.bag, **opts)
-    notes = []
+    notes = list(sig.notes)
     if sig.unset_stamps:
         notes.append(f"{sig.unset_stamps} message(s) in {spec.bag} repeat header.stamp 0 (the "
                      "recording driver did not fill it in?); their log times were used")

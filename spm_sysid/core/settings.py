@@ -207,8 +207,9 @@ _LIST = [
     _s("input_type", str, "geometry_msgs/msg/WrenchStamped", "input message type(s): one "
        "for all input topics, or a comma list, one per input", "node",
        cli=False, read_only=True),
-    _s("input_field", str, "", "field path(s) of the inputs (e.g. effort[0],effort[1]; "
-       "empty: the type's default)", "node", read_only=True),
+    _s("input_field", str, "", "field path(s) of the inputs (e.g. effort[0],effort[1], or "
+       "effort[shoulder],effort[elbow]: joints by name; empty: the type's default)", "node",
+       read_only=True),
     _s("input_names", str, "", "names of the inputs in the model, a comma list (empty: u, "
        "or u1, u2, ... for several)", "node", read_only=True),
     _s("output_topic", str, "/robot_arm/acceleration", "output signal topic(s): one, or a "
@@ -218,7 +219,8 @@ _LIST = [
        "for all output topics, or a comma list, one per output", "node",
        cli=False, read_only=True),
     _s("output_field", str, "", "field path(s) of the outputs (e.g. "
-       "velocity[0],velocity[1]; empty: the type's default)", "node", read_only=True),
+       "velocity[0],velocity[1], or velocity[elbow]: a joint by name; empty: the type's "
+       "default)", "node", read_only=True),
     _s("output_names", str, "", "names of the outputs in the model, a comma list (empty: y, "
        "or y1, y2, ... for several)", "node", read_only=True),
     _s("best_effort", bool, False, "subscribe best-effort, keep-last qos_depth (for "

@@ -40,7 +40,7 @@ from .bag_files import (
 )
 from .bag_write import write_io_bag
 from .channels import check_roles, parse_channels, stream_order, topic_streams
-from .fields import UnsetStamps, default_field, extract, parse_path
+from .fields import MissingNameError, UnsetStamps, default_field, extract, parse_path
 
 __all__ = [
     "DEFAULT_INPUT_TOPIC",
@@ -74,6 +74,8 @@ class BagSignals:
     unset_stamps: int = 0  # messages whose header.stamp was zero: their log time was used
     output_names: tuple[str, ...] = ("y",)  # several: y has one column per output
     streams: int = 0  # aligned streams (a topic read for inputs and outputs counts twice)
+    unnamed: dict[str, int] = field(default_factory=dict)  # per topic: skipped, see notes
+    notes: list[str] = field(default_factory=list)  # what a user should know of the reading
 
     @property
     def unpaired(self) -> int:
@@ -119,7 +121,7 @@ def read_bag_signals(
     try:
         conns = {c.topic: c for c in reader.connections}
         streams = _topic_streams(path, conns, (channels, groups), (out_channels, out_groups))
-        events, unset = _stream_events(path, reader, conns, streams)
+        events, unset, unnamed = _stream_events(path, reader, conns, streams)
     finally:
         reader.close()
     stamps, u, y, stats = pair_streams(events, tolerance_ns,
@@ -127,7 +129,9 @@ def read_bag_signals(
                                        output_widths=[len(g[2]) for g in out_groups])
     if len(u) == 0:
         raise BagError(f"{path}: no input and output messages with matching stamps "
-                       f"(tolerance {tolerance_ns} ns)")
+                       f"(tolerance {tolerance_ns} ns)" + "".join(
+                           f"; {n} message(s) on {t} skipped: {first}"
+                           for t, (n, first) in unnamed.items()))
     # the buffer numbers inputs topic by topic: back to the given order
     u, y = _in_given_order(u, channels), _in_given_order(y, out_channels)
     return BagSignals(
@@ -138,6 +142,9 @@ def read_bag_signals(
         rejected_nonfinite=stats.rejected_nonfinite, crc_checked=crc_checked,
         input_names=tuple(c.name for c in channels), unset_stamps=unset.count,
         output_names=tuple(c.name for c in out_channels),
+        unnamed={t: n for t, (n, _) in unnamed.items()},
+        notes=[f"{n} message(s) on {t} skipped: {first} (another publisher on that topic?)"
+               for t, (n, first) in unnamed.items()],
     )
 
 
@@ -184,19 +191,29 @@ def _topic_streams(path: Path, conns: dict, inputs: tuple, outputs: tuple) -> di
 
 
 def _stream_events(path: Path, reader, conns: dict,
-                   streams: dict) -> tuple[list, UnsetStamps]:
-    """``(stream, stamp, values)`` of every message in log-time order, and the unset stamps."""
+                   streams: dict) -> tuple[list, UnsetStamps, dict[str, tuple[int, str]]]:
+    """Every message's ``(stream, stamp, values)`` in log-time order; the unset stamps.
+
+    Third: per topic, the messages that do not name an entry a path asks for by
+    name (how many, the first one's error): skipped, as another publisher's.
+    """
     events = []
     unset = UnsetStamps()
+    unnamed: dict[str, tuple[int, str]] = {}
     try:
         for c, log_ns, raw in reader.messages(connections=[conns[t] for t in streams]):
             msg = reader.deserialize(raw, c.msgtype)
             st = unset.stamp(c.topic, msg)
             for stream, steps in streams[c.topic]:
-                events.append((stream, log_ns if st is None else st,
-                               [extract(msg, s) for s in steps]))
+                try:
+                    values = [extract(msg, s) for s in steps]
+                except MissingNameError as exc:
+                    count, first = unnamed.get(c.topic, (0, str(exc)))
+                    unnamed[c.topic] = (count + 1, first)
+                    continue
+                events.append((stream, log_ns if st is None else st, values))
     except FieldPathError as exc:
         raise BagError(f"topic {c.topic} has type {c.msgtype}: {exc}") from None
     except Exception as exc:
         raise BagError(f"cannot read messages from {path}: {exc}") from None
-    return events, unset
+    return events, unset, unnamed

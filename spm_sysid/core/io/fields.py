@@ -1,9 +1,14 @@
 """Reading one number out of a ROS message by a field path.
 
 A field path is dotted attribute access with optional indices, e.g.
-``wrench.torque.z``, ``linear_acceleration.x`` or ``effort[0]``. The same code
-reads rosbags' message objects (bags) and rclpy's message objects (live
-topics), so the node and the bag reader agree on what a path means.
+``wrench.torque.z``, ``linear_acceleration.x`` or ``effort[0]``. An index may be
+a name, ``effort[elbow_joint]``: the position of that name in the message's
+``name`` (or ``joint_names``) list, message by message, as a ``JointState``
+names its joints (their order is the publisher's; a message that does not name
+the joint, another publisher's on the same topic, raises :class:`MissingNameError`,
+which readers count and skip). The same code reads rosbags' message objects
+(bags) and rclpy's message objects (live topics), so the node and the bag
+reader agree on what a path means.
 """
 
 from __future__ import annotations
@@ -12,7 +17,8 @@ import re
 
 from ..errors import FieldPathError
 
-__all__ = ["DEFAULT_FIELDS", "UnsetStamps", "default_field", "extract", "message_stamp_ns"]
+__all__ = ["DEFAULT_FIELDS", "MissingNameError", "Name", "UnsetStamps", "default_field", "extract",
+           "message_stamp_ns"]
 
 #: Field used when none is given, per message type.
 DEFAULT_FIELDS = {
@@ -26,7 +32,19 @@ DEFAULT_FIELDS = {
     "std_msgs/msg/Float32": "data",
 }
 
-_STEP = re.compile(r"([A-Za-z_][A-Za-z0-9_]*)((?:\[\d+\])*)")
+_STEP = re.compile(r"([A-Za-z_][A-Za-z0-9_]*)((?:\[[A-Za-z0-9_/-]+\])*)")
+
+#: The lists a message names its array entries by (``JointState.name``,
+#: ``MultiDOFJointState.joint_names``, ``JointTrajectoryControllerState.joint_names``).
+_NAME_LISTS = ("name", "joint_names")
+
+
+class Name(str):
+    """An index given by name in a field path (``effort[elbow_joint]``)."""
+
+
+class MissingNameError(FieldPathError):
+    """A message does not name the entry a path asks for (counted and skipped)."""
 
 
 def default_field(msgtype: str) -> str:
@@ -48,8 +66,27 @@ def parse_path(path: str) -> list[str | int]:
         if not m:
             raise FieldPathError(f"malformed field path {path!r} (at {part!r})")
         steps.append(m.group(1))
-        steps.extend(int(i) for i in re.findall(r"\[(\d+)\]", m.group(2)))
+        steps.extend(int(i) if i.isdigit() else Name(i)
+                     for i in re.findall(r"\[([^\]]+)\]", m.group(2)))
     return steps
+
+
+def _position(owner: object, name: Name, steps: list) -> int:
+    """Where ``owner``'s name list holds ``name`` (:class:`MissingNameError` when it does not)."""
+    kind = getattr(owner, "__msgtype__", type(owner).__name__)  # rosbags' name, or rclpy's
+    for attr in _NAME_LISTS:
+        names = getattr(owner, attr, None)
+        if names is not None and not isinstance(names, str):
+            names = list(names)
+            if name in names:
+                return names.index(name)
+            raise MissingNameError(f"field path {_show(steps)!r}: this {kind} "
+                              f"message does not name {name!r} (its {attr}: "
+                              f"{', '.join(map(str, names[:8])) or 'empty'}"
+                              f"{', ...' if len(names) > 8 else ''})")
+    raise FieldPathError(f"field path {_show(steps)!r}: a {kind} message has "
+                         f"no name list ({' or '.join(_NAME_LISTS)}) to find {name!r} in; "
+                         "give the index as a number")
 
 
 def extract(msg: object, path: str | list[str | int]) -> float:
@@ -61,8 +98,12 @@ def extract(msg: object, path: str | list[str | int]) -> float:
         The path does not exist in the message, or does not lead to a number.
     """
     steps = parse_path(path) if isinstance(path, str) else path
-    value = msg
+    value = owner = msg
     for step in steps:
+        if isinstance(step, Name):
+            step = _position(owner, step, steps)
+        elif isinstance(step, str):
+            owner = value
         try:
             value = value[step] if isinstance(step, int) else getattr(value, step)
         except (AttributeError, IndexError, TypeError):
@@ -116,5 +157,5 @@ class UnsetStamps:
 def _show(steps: list[str | int]) -> str:
     out = ""
     for s in steps:
-        out += f"[{s}]" if isinstance(s, int) else (f".{s}" if out else s)
+        out += f"[{s}]" if isinstance(s, (int, Name)) else (f".{s}" if out else s)
     return out
