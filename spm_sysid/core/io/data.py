@@ -259,8 +259,8 @@ def parse_table(text: str, source: str = "<text>") -> Table:
     rows.extend(content)
     if not rows:
         raise DataError(f"{source}: the CSV file has a header but no data rows")
-    if header and sep != "," and not comma:  # the header leaves the first row to tell
-        comma = any(_DECIMAL_COMMA.fullmatch(c) for c in _split(rows[0][1], sep))
+    if header and sep != "," and not comma:  # the header leaves the first rows to tell
+        comma = any(_DECIMAL_COMMA.fullmatch(c) for _, ln in rows[:100] for c in _split(ln, sep))
     if comma:  # decimal commas read as decimal points
         rows = [(n, ln.replace(",", ".")) for n, ln in rows]
     line_numbers = np.fromiter((n for n, _ in rows), dtype=np.int64, count=len(rows))
