@@ -174,8 +174,14 @@ def two_output_system(n: int, seed: int, noise: float = 0.0):
     return u, Y + noise * rng.standard_normal(Y.shape)
 
 
-def write_joint_state_bag(path, u, Y, rate_hz=100.0, topic="/joint_states"):
-    """One JointState topic: effort = the inputs, velocity = the outputs (rosbags Writer)."""
+def write_joint_state_bag(path, u, Y, rate_hz=100.0, topic="/joint_states",
+                          shuffled: bool = False, gripper_every: int = 0):
+    """One JointState topic: effort = the inputs, velocity = the outputs (rosbags Writer).
+
+    ``shuffled``: every other message lists the joints j1, j2 the other way round (the
+    publisher's order); ``gripper_every``: every so many samples another publisher's
+    message on the same topic, naming only a joint ``finger``.
+    """
     from rosbags.rosbag2 import StoragePlugin, Writer
 
     from spm_sysid.core.io.bagio import typestore
@@ -188,12 +194,17 @@ def write_joint_state_bag(path, u, Y, rate_hz=100.0, topic="/joint_states"):
         c = w.add_connection(topic, "sensor_msgs/msg/JointState", typestore=store)
         for k in range(len(Y)):
             t = int(round(k * 1e9 / rate_hz)) + 1_000_000_000
-            msg = JointState(header=Header(stamp=Time(sec=t // 10**9, nanosec=t % 10**9),
-                                           frame_id="base"),
-                             name=["j1", "j2"], position=np.zeros(2),
-                             velocity=np.ascontiguousarray(Y[k]),
-                             effort=np.ascontiguousarray(u[k]))
+            stamp = Time(sec=t // 10**9, nanosec=t % 10**9)
+            order = [1, 0] if shuffled and k % 2 else [0, 1]
+            msg = JointState(header=Header(stamp=stamp, frame_id="base"),
+                             name=[["j1", "j2"][j] for j in order], position=np.zeros(2),
+                             velocity=np.ascontiguousarray(Y[k, order]),
+                             effort=np.ascontiguousarray(u[k, order]))
             w.write(c, t, store.serialize_cdr(msg, "sensor_msgs/msg/JointState"))
+            if gripper_every and k % gripper_every == 0:
+                grip = JointState(header=Header(stamp=stamp, frame_id="base"), name=["finger"],
+                                  position=np.ones(1), velocity=np.zeros(1), effort=np.ones(1))
+                w.write(c, t + 1, store.serialize_cdr(grip, "sensor_msgs/msg/JointState"))
     return path
 
 

@@ -25,20 +25,24 @@ from .conftest import JOINT_STATE_PARAMS, ROOT, TRUE, two_output_system, write_j
 from .helpers.two_joints import two_joint_record
 from .ros_harness import IdentifyClient, play_bag, start_node, stop
 
-# the outputs by joint name, the inputs by index: both forms of a field path on a live topic
-PARAMS = tuple(p.replace("velocity[0],velocity[1]", "velocity[j1],velocity[j2]")
-               for p in JOINT_STATE_PARAMS)
+# the joints by name (their order in the messages is the publisher's); by index: test_dashboard
+PARAMS = tuple(p.replace("[0]", "[j1]").replace("[1]", "[j2]") for p in JOINT_STATE_PARAMS)
 
 
 @pytest.mark.slow
 def test_the_node_identifies_two_joints_from_a_joint_state_topic(ros_env, harness, tmp_path):
     u, Y = two_output_system(1200, seed=3)
-    bag = write_joint_state_bag(tmp_path / "joints", u, Y)
+    # the joints in either order, and a gripper's messages on the same topic
+    bag = write_joint_state_bag(tmp_path / "joints", u, Y, shuffled=True, gripper_every=10)
     node = start_node(ros_env, *PARAMS)
     try:
         harness.wait_ready()
         play_bag(ros_env, bag)
-        harness.wait_buffer(lambda kv: int(kv["samples"]) >= len(Y))
+        kv = harness.wait_buffer(lambda kv: int(kv["samples"]) >= len(Y))
+        # 120 gripper messages, each skipped by the input and the output subscription
+        assert kv["unnamed"] == "240" and kv["field_errors"] == "0"
+        level, message, _ = harness.statuses()["buffer"]
+        assert "240 message(s) skipped that do not name the joint(s)" in message
         client = IdentifyClient(harness)
         status, result = client.result(client.send())
         assert result.error_code == result.NONE, result.message
@@ -143,8 +147,8 @@ def test_a_goal_with_the_friction_preset_gives_each_joint_its_sign_term(ros_env,
     (("output_field:=velocity[0]",), "two outputs read the same field of the same topic"),
 ])
 def test_outputs_that_clash_with_the_inputs_are_one_error_line(ros_env, extra, message):
-    params = [p for p in PARAMS if not p.startswith(tuple(e.split(":=")[0] + ":="
-                                                          for e in extra))] + list(extra)
+    params = [p for p in JOINT_STATE_PARAMS if not p.startswith(
+        tuple(e.split(":=")[0] + ":=" for e in extra))] + list(extra)
     args = [sys.executable, "-m", "spm_sysid.ros.sysid_node", "--ros-args"]
     for p in params:
         args += ["-p", p]

@@ -17,7 +17,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 
 from ...core.errors import FieldPathError, TooFewSamplesError
 from ...core.io.channels import stream_order, topic_streams
-from ...core.io.fields import UnsetStamps, default_field, extract, parse_path
+from ...core.io.fields import MissingNameError, UnsetStamps, default_field, extract, parse_path
 from ...core.record import Record
 from ...core.stream.buffer import SampleBuffer
 from ..common import RELIABLE_KEEP_ALL, message_class
@@ -69,6 +69,7 @@ class Recorder:
                             for topic, msgtype, _ in out_streams})
         self.field_errors = 0
         self.field_error = ""  # why the last message's field could not be read
+        self.unnamed = 0  # messages that do not name a joint asked for by name: skipped
         self.unset = UnsetStamps()
         self.namesakes = 0
         self.type_mismatch: dict[tuple[str, str], str] = {}
@@ -100,6 +101,12 @@ class Recorder:
     def _record(self, msg, stream, steps, add) -> None:
         try:
             value = [extract(msg, step) for step in steps]
+        except MissingNameError as exc:  # another publisher's message on the topic
+            self.unnamed += 1
+            if self.unnamed == 1:
+                self.node.get_logger().info(f"{exc}: such messages are skipped and counted "
+                                            "in /diagnostics (another publisher on the topic?)")
+            return
         except FieldPathError as exc:
             self.field_errors += 1
             self.field_error = str(exc)
