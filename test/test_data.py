@@ -100,6 +100,21 @@ def test_the_time_columns_unit_is_told_from_its_values_and_said(tmp_path, first,
     assert (unit in said[0] and "'timestamp'" in said[0]) if unit else not said
 
 
+@pytest.mark.parametrize("header, scale", [("time [ms]", 1e-3), ("t (s)", 1.0),
+                                           ("timestamp_ns", 1e-9), ("Time [us]", 1e-6),
+                                           ("time [min]", 60.0)])
+def test_a_time_unit_in_the_header_is_used(tmp_path, header, scale):
+    """``time [ms]`` counting from 0: as seconds it would put a second between samples."""
+    from spm_sysid.core.record import DataSpec, load_record
+
+    p = tmp_path / "take.csv"
+    times = np.r_[np.arange(30), np.arange(40, 70)]
+    p.write_text(f"{header},u,y\n" + "".join(f"{t},{t % 3},{t % 5}\n" for t in times))
+    record = load_record(DataSpec(data=(str(p),)))
+    assert np.allclose(np.diff(record.stamps_ns), np.diff(times) * scale * 1e9)
+    assert record.segment_info().gaps == 1 and not record.notes
+
+
 def test_plotjugglers_time_column(tmp_path):
     p = tmp_path / "pj.csv"
     p.write_text("__time,/joint/effort,/joint/position\n1700000000.000,1,2\n"

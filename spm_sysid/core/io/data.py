@@ -10,7 +10,8 @@ Supported layouts
   data columns (input first). A column named ``t``, ``time``, ``stamp``,
   ``timestamp`` or ``__time`` gives each row its time (seconds; nanoseconds,
   microseconds or milliseconds since 1970, or nanoseconds from the start, are told
-  from their size and said in :attr:`IOData.notes`): then rows with a missing,
+  from their size and said in :attr:`IOData.notes`; a unit in the header, ``time
+  [ms]`` or ``timestamp_ns``, is used as written): then rows with a missing,
   NaN or inf ``u`` or ``y`` are dropped and counted, and the gaps they (or
   missing rows) leave are found from the times, so identification never fits
   across them.
@@ -57,6 +58,7 @@ from ..errors import DataError
 from ..files import read_bytes
 
 __all__ = ["IOData", "TIME_COLUMNS", "Table", "load_data", "load_io", "parse_data_text",
+           "time_column_unit",
            "parse_io_text", "parse_table", "read_text", "table_data"]
 
 #: Header names of a time column (seconds).
@@ -71,6 +73,27 @@ _CLOCKS = ((1e17, 1e-9, "nanoseconds"), (1e14, 1e-6, "microseconds"),
 #: A median step beyond this many "seconds" (more than a day between samples) is a
 #: clock that counts nanoseconds from the record's start.
 _NANOSECOND_STEP = 1e5
+
+#: Units a time column's header may name, in seconds: ``time [ms]``, ``t (s)``,
+#: ``timestamp_ns``.
+_TIME_UNITS = {"s": 1.0, "sec": 1.0, "ms": 1e-3, "us": 1e-6, "\u00b5s": 1e-6, "ns": 1e-9,
+               "min": 60.0, "h": 3600.0}
+_TIME_HEADER = re.compile(r"(t|time|stamp|timestamp|__time)(?:\s*[\[(]\s*(\S+?)\s*[\])]|_(\w+))")
+
+
+def time_column_unit(name: str) -> tuple[bool, float | None]:
+    """Whether a column of this (lower-case) name holds times; its unit in seconds if named.
+
+    ``time`` (and :data:`TIME_COLUMNS`): times of a unit told from their values
+    (None); ``time [ms]``, ``t (s)``, ``timestamp_ns``: that unit.
+    """
+    if name in TIME_COLUMNS:
+        return True, None
+    m = _TIME_HEADER.fullmatch(name.strip())
+    unit = m and (m.group(2) or m.group(3))
+    if unit in _TIME_UNITS:
+        return True, _TIME_UNITS[unit]
+    return False, None
 
 #: Bytes of memory per byte of text while parsing: the bytes, the text, its lines (a
 #: Python string each) and the numbers; 5.5 measured on 10^6 rows of two short numbers.
@@ -357,7 +380,7 @@ def table_data(table: Table, source: str, inputs: list[str] | None = None,
                output: str | list[str] | None = None) -> IOData:
     """The samples of a parsed table as :class:`IOData`; see :func:`load_data`."""
     names = table.names
-    it = next((k for k, n in enumerate(names or []) if n in TIME_COLUMNS), None)
+    it = next((k for k, n in enumerate(names or []) if time_column_unit(n)[0]), None)
     outputs = [output] if isinstance(output, str) else list(output or [])
     chosen = inputs is not None or bool(outputs)
     iu, iys = _signal_columns(table, source, it, inputs, outputs)
@@ -368,7 +391,8 @@ def table_data(table: Table, source: str, inputs: list[str] | None = None,
     notes: tuple[str, ...] = ()
     if it is not None:  # rows with missing values are dropped and counted (gaps by time)
         t, signals, rejected = _timed_rows(table, source, it, signals)
-        t, unit = _seconds(t)
+        scale = time_column_unit(names[it])[1]
+        t, unit = (t * scale, "") if scale is not None else _seconds(t)
         if unit:
             notes = (f"{source}: the time column '{(table.header_names or names)[it]}' read "
                      f"as {unit} ({_step_text(t)} between samples): as seconds its values "
