@@ -333,6 +333,8 @@ def orders_from_data(u: np.ndarray, y: np.ndarray, segments, space: TermSpace,
     try:
         proposal = propose_orders(u[a:b], y[a:b], delay=min(space.delays), criterion=crit,
                                   inputs=space.inputs, focus=focus)
+    except DataError:  # the data cannot be identified at all (a constant signal): as it is
+        raise
     except ValueError as exc:
         raise DataError(f"orders: auto cannot propose lags on this data ({exc}); give ny, nu "
                         "and degree") from None
