@@ -115,6 +115,24 @@ def test_a_time_unit_in_the_header_is_used(tmp_path, header, scale):
     assert record.segment_info().gaps == 1 and not record.notes
 
 
+def test_iso_date_times_in_the_time_column(tmp_path):
+    """pandas' ``to_csv`` and loggers write ``2024-05-01 12:00:00.010``: read as seconds."""
+    from spm_sysid.core.record import DataSpec, load_record
+
+    p = tmp_path / "take.csv"
+    ms = np.r_[np.arange(40), np.arange(60, 100)] * 10  # 100 Hz, a gap of 20 samples
+    p.write_text("time,u,y\n" + "".join(
+        f"2024-05-01{'T' if k % 2 else ' '}12:00:{t // 1000:02d}.{t % 1000:03d}"
+        f"{'Z' if k % 3 == 0 else ''},{k % 3},{k % 5}\n" for k, t in enumerate(ms)))
+    record = load_record(DataSpec(data=(str(p),)))
+    assert np.allclose(np.diff(record.stamps_ns), np.diff(ms) * 1e6, atol=1e3)
+    assert record.segment_info().gaps == 1 and len(record.y) == 80
+    p.write_text("time,u,y\n2024-05-01 12:00:00,1,2\n01-May-2024 12:00:01,1,2\n")
+    with pytest.raises(DataError, match="line 3: the time column holds '01-May-2024 12:00:01', "
+                                        "neither a number nor an ISO 8601 date-time"):
+        load_io(p)
+
+
 def test_plotjugglers_time_column(tmp_path):
     p = tmp_path / "pj.csv"
     p.write_text("__time,/joint/effort,/joint/position\n1700000000.000,1,2\n"

@@ -50,6 +50,7 @@ import re
 import warnings
 import zlib
 from dataclasses import dataclass
+from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
@@ -287,22 +288,43 @@ def parse_table(text: str, source: str = "<text>") -> Table:
     if comma:  # decimal commas read as decimal points
         rows = [(n, ln.replace(",", ".")) for n, ln in rows]
     line_numbers = np.fromiter((n for n, _ in rows), dtype=np.int64, count=len(rows))
+    # a time column may hold ISO 8601 date-times (pandas' to_csv, loggers)
+    it = next((k for k, n in enumerate(names or []) if time_column_unit(n)[0]), None)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             # numpy reads the lines themselves (a joined copy of the text, and a
             # StringIO of it, held 4x the file's size more at 10^6 rows)
             values = np.loadtxt((ln for _, ln in rows), delimiter=sep, ndmin=2, dtype=float,
-                                comments="#", quotechar='"' if sep else None)
+                                comments="#", quotechar='"' if sep else None,
+                                converters=None if it is None else {it: _time_value})
         if values.shape != (len(rows), width):
             raise ValueError("shape")
     except ValueError:  # an empty field, a bad value or a short row: line by line
-        values = _parse_rows(rows, sep, width, source, names is None, header_line)
+        values = _parse_rows(rows, sep, width, source, names is None, header_line, it)
     return Table(names, header_names, values, line_numbers, header_line, sep, source, lines)
 
 
-def _parse_rows(rows, sep, width, source, two_column_hint, header_line: int = 0
-                ) -> np.ndarray:
+def _time_value(token: str) -> float:
+    """A time column's field in seconds: a number, or an ISO 8601 date-time; NaN if empty.
+
+    A date-time without an offset is taken as UTC; anything else raises ValueError.
+    """
+    try:
+        return float(token)
+    except ValueError:
+        pass
+    text = token.strip().strip('"').strip()
+    if not text:
+        return math.nan
+    stamp = datetime.fromisoformat(text)
+    if stamp.tzinfo is None:
+        stamp = stamp.replace(tzinfo=timezone.utc)
+    return stamp.timestamp()
+
+
+def _parse_rows(rows, sep, width, source, two_column_hint, header_line: int = 0,
+                time_column: int | None = None) -> np.ndarray:
     """The slow path: every field read in Python; names the first bad line.
 
     A first row after the header with no number at all (units, say) is named as
@@ -320,8 +342,12 @@ def _parse_rows(rows, sep, width, source, two_column_hint, header_line: int = 0
                 values[i, j] = math.nan
                 continue
             try:
-                values[i, j] = float(c)
+                values[i, j] = _time_value(c) if j == time_column else float(c)
             except ValueError:
+                if j == time_column:
+                    raise DataError(f"{where}: the time column holds {_show(c)}, neither a "
+                                    "number nor an ISO 8601 date-time (such as "
+                                    "2024-05-01T12:00:00.001)") from None
                 hint = ""
                 if i == 0 and header_line and not any(_is_number(x) for x in cells):
                     hint = (f"; line {number} holds no number at all: a second header line "
