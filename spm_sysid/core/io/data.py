@@ -337,6 +337,11 @@ def _parse_rows(rows, sep, width, source, two_column_hint, header_line: int = 0,
         if len(cells) != width:
             hint = " (input u, output y)" if two_column_hint and width == 2 else ""
             raise DataError(f"{where}: expected {width} columns{hint}, found {len(cells)}")
+        if i == 0 and header_line and not any(_is_number(c) for c in cells if c):
+            first = next((c for c in cells if c), "")
+            raise DataError(f"{where}: {_show(first)} is not a number; line {number} holds no "
+                            "number at all: a second header line (units?) is not data: "
+                            "delete it or start it with #")
         for j, c in enumerate(cells):
             if not c:
                 values[i, j] = math.nan
@@ -348,11 +353,7 @@ def _parse_rows(rows, sep, width, source, two_column_hint, header_line: int = 0,
                     raise DataError(f"{where}: the time column holds {_show(c)}, neither a "
                                     "number nor an ISO 8601 date-time (such as "
                                     "2024-05-01T12:00:00.001)") from None
-                hint = ""
-                if i == 0 and header_line and not any(_is_number(x) for x in cells):
-                    hint = (f"; line {number} holds no number at all: a second header line "
-                            "(units?) is not data: delete it or start it with #")
-                raise DataError(f"{where}: {_show(c)} is not a number{hint}") from None
+                raise DataError(f"{where}: {_show(c)} is not a number") from None
     return values
 
 

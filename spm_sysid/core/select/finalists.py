@@ -236,7 +236,8 @@ class ValidatedSimulation:
                    if mask_key(m) not in keys and np.isfinite(screened[mask_key(m)][0])]
         if not finals:
             raise DataError("every candidate structure's free-run simulation diverges on "
-                            "the estimation data (or cannot be fitted): no model simulates")
+                            "the estimation data (or cannot be fitted): no model simulates"
+                            + still_inputs(self.problem))
         return finals
 
     def polish(self) -> bytes | None:
@@ -450,6 +451,20 @@ def validated_simulation(problem, candidates, folds, crit, max_terms, report,
                     + (f" ({reasons[0]})" if reasons else "")
                     + "; the record may need other terms (a larger space, --orders auto) or "
                     "the prediction focus")
+
+
+def still_inputs(problem) -> str:
+    """Why nothing simulates when every input is constant ('' when one moves)."""
+    u = problem.u[problem.row_times]
+    if not u.size or np.any(u != u[:1]):
+        return ""
+    names = problem.term_space.inputs
+    levels = ", ".join(f"{v:g}" for v in u[0])
+    return (f"; the input{'s' if len(names) > 1 else ''} {', '.join(names)} "
+            f"{'are' if len(names) > 1 else 'is'} constant ({levels} throughout): nothing "
+            "excites the system, so a free run can only drift from its start; record while "
+            "the input moves (steps, a chirp, random steps), or use the prediction focus for "
+            "a model of the output alone")
 
 
 def returned_account(decision: dict, call: Call, returned: int, terms: int, nonlinear: bool,

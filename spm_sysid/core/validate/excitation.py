@@ -13,8 +13,7 @@ For a :class:`~spm_sysid.core.fit.problem.Problem` it reports:
   nearly a combination of others (a pivoted QR of the problem's triangular
   factor: a squared relative pivot below the evaluator's rank tolerance; spaces
   of at most :data:`COLLINEAR_LIMIT` usable terms);
-* a **refusal** when nothing can be identified (no candidate term varies, or
-  every input is constant), and
+* a **refusal** when nothing can be identified (no candidate term varies), and
   **warnings** otherwise: too few rows per candidate, an input too simple for
   its lags, terms that cannot be identified, an ill-conditioned matrix, a
   constant output, a record sampled far faster than its signals move
@@ -251,15 +250,6 @@ def check_problem(problem, rank_tol: float = 1e-9, criterion: str | None = None)
     if usable == 0:
         check.refusal = ("no candidate term varies on this data (every one is zero or "
                          "repeats another): there is nothing to identify")
-        raise DataError(check.refusal)
-    if excitation and max(excitation.values()) <= 1:  # every input constant (or zero)
-        several = len(excitation) > 1
-        levels = ", ".join(f"{v:g}" for v in problem.u[problem.segments[0][0]])
-        check.refusal = (f"the input{'s' if several else ''} {', '.join(excitation)} "
-                         f"{'are' if several else 'is'} constant ({levels} throughout): "
-                         "nothing excites the system, so no input's effect can be "
-                         "identified; record while the input moves (steps, a chirp, "
-                         "random steps)")
         raise DataError(check.refusal)
     if usable <= COLLINEAR_LIMIT:
         ev = problem.evaluator()
