@@ -105,6 +105,32 @@ def test_zero_header_stamps_are_stamped_on_receipt_and_counted(ros_env, harness)
     assert level == 1 and "header.stamp never set (receive time used)" in message
 
 
+def test_a_misspelled_parameter_is_named_in_the_log_and_diagnostics(ros_env, harness,
+                                                                    tmp_path):
+    """ROS keeps a value the node does not declare and says nothing: input_topc was lost."""
+    params = tmp_path / "params.yaml"
+    params.write_text("spm_sysid:\n  ros__parameters:\n    input_topc: /arm/torque\n"
+                      "    seed: 3\n")
+    log = open(tmp_path / "node.log", "w")
+    node = start_node(ros_env, "genrations:=50", "qos_overrides./x.subscription.depth:=5",
+                      params_file=params, log=log)
+    try:
+        harness.wait_ready()
+        assert harness.spin_until(lambda: "ignored_parameters" in harness.buffer(), 30)
+        level, message, values = harness.statuses()["buffer"]
+    finally:
+        stop(node)
+        log.close()
+    assert values["ignored_parameters"] == "genrations, input_topc"  # not qos_overrides
+    assert level == 1 and "parameter(s) not of this node, ignored: genrations, input_topc" \
+        in message
+    text = (tmp_path / "node.log").read_text()
+    assert "parameter 'genrations' is not one of this node's (did you mean 'generations'?): " \
+           "ignored" in text
+    assert "parameter 'input_topc' is not one of this node's (did you mean 'input_topic'?)" \
+        in text
+
+
 def test_a_second_node_with_the_same_name_is_reported(ros_env, harness):
     first = start_node(ros_env, "diagnostics_period:=0.2")
     second = start_node(ros_env, "diagnostics_period:=0.2")

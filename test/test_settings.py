@@ -208,6 +208,9 @@ def test_diagnostics_problems_and_their_levels():
     assert st[0].level == WARN and st[0].message == ("1024 paired samples, 3 callback error(s) "
                                                      "(see the log)")
     assert st[0].values["callback_errors"] == "3"
+    st = diagnostic_statuses("/n", STATS, ignored_parameters=["genrations"])
+    assert st[0].level == WARN and st[0].message == ("1024 paired samples, parameter(s) not of "
+                                                     "this node, ignored: genrations")
     st = diagnostic_statuses("/n", STATS, unnamed=7)  # another publisher's: counted, no fault
     assert st[0].level == OK and st[0].message == ("1024 paired samples, 7 message(s) skipped "
                                                    "that do not name the joint(s) asked for")

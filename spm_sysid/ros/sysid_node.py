@@ -200,7 +200,8 @@ class SysidNode(Node):
             last_error=ident.last_error, model=self.publisher.doc,
             restored_from=self.publisher.restored_from,
             callback_errors=self.callback_errors.count,
-            worker_failure=worker.start_failure, unnamed=rec.unnamed)
+            worker_failure=worker.start_failure, unnamed=rec.unnamed,
+            ignored_parameters=self.params.unknown)
         statuses.append(online_status(self.get_fully_qualified_name(), self.online.session,
                                       {**self.reidentify.counts,
                                        "online_errors": self.online.errors}))

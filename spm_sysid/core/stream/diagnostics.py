@@ -36,7 +36,8 @@ def diagnostic_statuses(name: str, stats: dict, *, field_errors: int = 0,
                         running: tuple | None = None, last_error: str | None = None,
                         model: dict | None = None, restored_from: str | None = None,
                         callback_errors: int = 0, worker_failure: str = "",
-                        unnamed: int = 0) -> list[Status]:
+                        unnamed: int = 0, ignored_parameters: list[str] | None = None
+                        ) -> list[Status]:
     """The node's statuses: buffer, identification, one per correlation test.
 
     Parameters
@@ -67,11 +68,14 @@ def diagnostic_statuses(name: str, stats: dict, *, field_errors: int = 0,
     unnamed : int
         Messages skipped because they do not name a joint a field path asks for by
         name (another publisher's on the topic): counted, not a problem.
+    ignored_parameters : list of str
+        Parameters given at start that the node does not have (misspelled?).
     """
     health = {"field_errors": field_errors, "unset_stamps": unset_stamps,
               "namesakes": namesakes, "worker_ready": worker_ready,
               "worker_restarts": worker_restarts, "callback_errors": callback_errors,
-              "type_mismatch": "; ".join(type_mismatches or []), "unnamed": unnamed}
+              "type_mismatch": "; ".join(type_mismatches or []), "unnamed": unnamed,
+              "ignored_parameters": ", ".join(ignored_parameters or [])}
     statuses = [_buffer_status(name, stats, health, worker_failure)]
     ident = f"{name}: identification"
     if running is not None:
@@ -112,13 +116,16 @@ def _buffer_status(name: str, stats: dict, health: dict, worker_failure: str) ->
                         else "worker not ready")
     if health["callback_errors"]:
         problems.append(f"{health['callback_errors']} callback error(s) (see the log)")
+    if health["ignored_parameters"]:
+        problems.append(f"parameter(s) not of this node, ignored: "
+                        f"{health['ignored_parameters']}")
     if health["unnamed"]:  # counted, but not a problem: not this node's joints
         problems.append(f"{health['unnamed']} message(s) skipped that do not name the joint(s) "
                         "asked for")
     level = OK
     if (lost or health["field_errors"] or health["unset_stamps"] or health["namesakes"]
             or stats.get("time_jumps") or not health["worker_ready"]
-            or health["callback_errors"]):
+            or health["callback_errors"] or health["ignored_parameters"]):
         level = WARN
     if health["type_mismatch"] or worker_failure:
         level = ERROR

@@ -22,7 +22,29 @@ from ...core.io.channels import check_roles, parse_channels
 from ...core.jobs import JobSettings
 from ...core.settings import SETTINGS, Setting, check, node_settings, parse_text
 
-__all__ = ["NodeParameters", "parameter_descriptor"]
+__all__ = ["NodeParameters", "parameter_descriptor", "unknown_overrides"]
+
+
+def unknown_overrides(node: Node) -> list[str]:
+    """Parameters given to ``node`` (``-p``, ``--params-file``) that it does not declare.
+
+    ROS keeps such values unused and says nothing: a misspelled ``input_topc``
+    would leave the default topic in place. QoS overrides (``qos_overrides.*``)
+    are ROS's own and left out.
+    """
+    given = getattr(node, "_parameter_overrides", {})  # rclpy's values for this node
+    return sorted(n for n in given
+                  if not node.has_parameter(n) and not n.startswith("qos_overrides."))
+
+
+def _unknown_text(name: str) -> str:
+    """A warning for one unknown parameter, with the nearest parameter's name."""
+    from difflib import get_close_matches
+
+    near = get_close_matches(name, [s.name for s in node_settings()], n=1)
+    return (f"parameter {name!r} is not one of this node's" + (
+        f" (did you mean {near[0]!r}?)" if near else "") + ": ignored (the node's "
+        "parameters: spm-sysid settings, config/sysid_node.yaml)")
 
 
 def parameter_descriptor(s: Setting) -> ParameterDescriptor:
@@ -51,6 +73,9 @@ class NodeParameters:
         self.node = node
         for s in node_settings():
             node.declare_parameter(s.name, s.default, parameter_descriptor(s))
+        self.unknown = unknown_overrides(node)  # counted in /diagnostics too
+        for name in self.unknown:
+            node.get_logger().warning(_unknown_text(name))
         node.add_on_set_parameters_callback(self._check_change)
         node.add_post_set_parameters_callback(self._hold_change)
         values = {s.name: node.get_parameter(s.name).value for s in node_settings()}
