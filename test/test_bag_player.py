@@ -49,10 +49,13 @@ def test_topic_selection_and_remapping(tmp_path, ros_env):
     rec = _record(ros_env, 20, 60, "/robot_arm/torque", "/renamed/acc")
     player = subprocess.run(
         player_cmd(f"bag:={bag}", "rate:=20.0", "wait_for_subscribers:=1",
-                   "remap:=['/robot_arm/acceleration:=/renamed/acc']"),
+                   "remap:=['/robot_arm/acceleration:=/renamed/acc']", "rat:=5.0"),
         capture_output=True, text=True, env=ros_env, timeout=60)
     got = json.loads(rec.communicate(timeout=60)[0].strip().splitlines()[-1])
     assert player.returncode == 0, player.stderr
+    # a parameter it does not have is said, not kept silently
+    assert "parameter 'rat' is not one of this node's (did you mean 'rate'?): ignored" \
+        in player.stderr, player.stderr
     assert got["y"] == (-np.arange(20.0)).tolist() and got["u"] == np.arange(20.0).tolist()
 
     rec = _record(ros_env, "20,0", 60)  # nothing may arrive on the other topic

@@ -136,6 +136,11 @@ class BagPlayer(Node):
             self.declare_parameter(name, default, ParameterDescriptor(
                 description=description, read_only=True))
         p = {name: self.get_parameter(name).value for name, _, _ in _PARAMETERS}
+        from .node.parameters import unknown_overrides, unknown_text
+
+        for name in unknown_overrides(self):  # ROS would keep them unused, unsaid
+            self.get_logger().warning(unknown_text(
+                name, [n for n, _, _ in _PARAMETERS], ", ".join(n for n, _, _ in _PARAMETERS)))
         if not p["bag"]:
             raise BagError("parameter 'bag' is required (--ros-args -p bag:=PATH)")
         if not (p["rate"] > 0 and math.isfinite(p["rate"])):

@@ -22,7 +22,7 @@ from ...core.io.channels import check_roles, parse_channels
 from ...core.jobs import JobSettings
 from ...core.settings import SETTINGS, Setting, check, node_settings, parse_text
 
-__all__ = ["NodeParameters", "parameter_descriptor", "unknown_overrides"]
+__all__ = ["NodeParameters", "parameter_descriptor", "unknown_overrides", "unknown_text"]
 
 
 def unknown_overrides(node: Node) -> list[str]:
@@ -37,14 +37,14 @@ def unknown_overrides(node: Node) -> list[str]:
                   if not node.has_parameter(n) and not n.startswith("qos_overrides."))
 
 
-def _unknown_text(name: str) -> str:
-    """A warning for one unknown parameter, with the nearest parameter's name."""
+def unknown_text(name: str, known: list[str], where: str) -> str:
+    """A warning for one unknown parameter, with the nearest of ``known`` (``where``: a list)."""
     from difflib import get_close_matches
 
-    near = get_close_matches(name, [s.name for s in node_settings()], n=1)
+    near = get_close_matches(name, known, n=1)
     return (f"parameter {name!r} is not one of this node's" + (
-        f" (did you mean {near[0]!r}?)" if near else "") + ": ignored (the node's "
-        "parameters: spm-sysid settings, config/sysid_node.yaml)")
+        f" (did you mean {near[0]!r}?)" if near else "") + f": ignored (the parameters: "
+        f"{where})")
 
 
 def parameter_descriptor(s: Setting) -> ParameterDescriptor:
@@ -75,7 +75,9 @@ class NodeParameters:
             node.declare_parameter(s.name, s.default, parameter_descriptor(s))
         self.unknown = unknown_overrides(node)  # counted in /diagnostics too
         for name in self.unknown:
-            node.get_logger().warning(_unknown_text(name))
+            node.get_logger().warning(unknown_text(
+                name, [s.name for s in node_settings()],
+                "spm-sysid settings, config/sysid_node.yaml"))
         node.add_on_set_parameters_callback(self._check_change)
         node.add_post_set_parameters_callback(self._hold_change)
         values = {s.name: node.get_parameter(s.name).value for s in node_settings()}
