@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import yaml
 
-from spm_sysid.core.errors import BagError
+from spm_sysid.core.errors import BagError, DataError
 from spm_sysid.core.io.bagio import read_bag_signals, write_io_bag
 from spm_sysid.core.stream.buffer import pair_streams
 
@@ -270,3 +270,53 @@ def test_inputs_on_two_topics_are_aligned_by_stamp(tmp_path):
                           "/cmd": "geometry_msgs/msg/Vector3Stamped",
                           "/acc": "geometry_msgs/msg/AccelStamped"}
     assert sig.input_count == 595 and sig.unpaired == 10
+
+
+def _skewed_bag(path, n: int = 300, skew_ns: int = 3_000_000):
+    """Torque and acceleration at 100 Hz whose drivers stamp 3 ms apart (rosbags Writer)."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from spm_sysid.core.io.bagio import typestore
+
+    store = typestore()
+    T = store.types
+    header = lambda t: T["std_msgs/msg/Header"](  # noqa: E731
+        stamp=T["builtin_interfaces/msg/Time"](sec=t // 10**9, nanosec=t % 10**9), frame_id="")
+    vec = T["geometry_msgs/msg/Vector3"]
+    rng = np.random.default_rng(0)
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        ci = w.add_connection("/robot_arm/torque", "geometry_msgs/msg/WrenchStamped",
+                              typestore=store)
+        co = w.add_connection("/robot_arm/acceleration", "geometry_msgs/msg/AccelStamped",
+                              typestore=store)
+        for k in range(n):
+            t = 10_000_000 * k + 10**9
+            wrench = T["geometry_msgs/msg/Wrench"](force=vec(x=0.0, y=0.0, z=0.0),
+                                                   torque=vec(x=0.0, y=0.0, z=rng.random()))
+            w.write(ci, t, store.serialize_cdr(T["geometry_msgs/msg/WrenchStamped"](
+                header=header(t), wrench=wrench), "geometry_msgs/msg/WrenchStamped"))
+            accel = T["geometry_msgs/msg/Accel"](linear=vec(x=rng.random(), y=0.0, z=0.0),
+                                                 angular=vec(x=0.0, y=0.0, z=0.0))
+            w.write(co, t + skew_ns, store.serialize_cdr(T["geometry_msgs/msg/AccelStamped"](
+                header=header(t + skew_ns), accel=accel), "geometry_msgs/msg/AccelStamped"))
+    return path
+
+
+def test_stamps_out_of_step_say_the_tolerance_that_pairs_them(tmp_path):
+    """Two drivers 3 ms apart: 'no ... matching stamps' said neither why nor what to do."""
+    from spm_sysid.core.record import DataSpec, load_record
+
+    bag = _skewed_bag(tmp_path / "skew")
+    with pytest.raises(BagError, match=r"a median 3 ms from the nearest input's \(two drivers "
+                                       r"or clocks out of step\?\): --stamp-tolerance 0\.0045"):
+        read_bag_signals(bag)
+    r = subprocess.run([sys.executable, "-m", "spm_sysid.apps.main", "identify", "--bag",
+                        str(bag), "--stamp-tolerance", "0.0045", "--generations", "5",
+                        "--quiet"], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert "data: bag " in r.stdout and "300 samples used" in r.stdout
+    # the node reads a goal's bag with its stamp_tolerance (a float), as its topics
+    record = load_record(DataSpec(bag=str(bag), bag_options={"stamp_tolerance": 0.0045}))
+    assert len(record.y) == 300
+    with pytest.raises(DataError, match="stamp_tolerance must be between 0 and 1, got 2.0"):
+        load_record(DataSpec(bag=str(bag), bag_options={"stamp_tolerance": "2"}))

@@ -32,7 +32,7 @@ import numpy as np
 
 from .errors import DataError
 from .model.segments import SegmentInfo, find_segments
-from .settings import BAG_OPTIONS
+from .settings import BAG_OPTIONS, SETTINGS, check, parse_text
 
 __all__ = ["DataSpec", "Record", "combine", "load_record"]
 
@@ -271,7 +271,7 @@ class DataSpec:
     bag_options : mapping
         ``input_topic``, ``input_field``, ``input_names``, ``output_topic``,
         ``output_field``, ``output_names`` for bags (None: the defaults; comma
-        lists for several inputs or outputs).
+        lists for several inputs or outputs), and ``stamp_tolerance`` (seconds).
     """
 
     data: tuple[str, ...] = ()
@@ -351,6 +351,14 @@ def _load_bag(spec: DataSpec) -> Record:
     from .io.bagio import read_bag_signals
 
     opts = {k: v for k, v in spec.bag_options.items() if v}
+    if "stamp_tolerance" in opts:  # seconds, as the node's parameter (text from a command)
+        text = opts.pop("stamp_tolerance")
+        try:
+            seconds = check("stamp_tolerance", parse_text(SETTINGS["stamp_tolerance"], text)
+                            if isinstance(text, str) else text)
+        except ValueError as exc:
+            raise DataError(str(exc)) from None
+        opts["tolerance_ns"] = int(round(seconds * 1e9))
     sig = read_bag_signals(spec.bag, **opts)
     notes = list(sig.notes)
     if sig.unset_stamps:

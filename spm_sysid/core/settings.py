@@ -100,7 +100,7 @@ class Setting:
 
 #: The data options of a bag (and of a DataSpec), by their settings names.
 BAG_OPTIONS = ("input_topic", "input_field", "input_names", "output_topic", "output_field",
-               "output_names")
+               "output_names", "stamp_tolerance")
 
 def _s(name, kind, default, help, group, **kw) -> Setting:  # noqa: A002 - a field name
     return Setting(name, kind, default, help, group, **kw)
@@ -231,7 +231,7 @@ _LIST = [
     _s("buffer_capacity", int, 100_000, "most sample pairs kept (the oldest are dropped, "
        "counted)", "node", low=10, high=10_000_000, cli=False, read_only=True),
     _s("stamp_tolerance", float, 0.0005, "largest input/output stamp difference of a pair, s",
-       "node", low=0.0, high=1.0, cli=False, read_only=True),
+       "node", low=0.0, high=1.0, read_only=True),
     _s("resync_samples", int, 10, "in-order samples behind a stream's last stamp that "
        "start a new segment (a jump back in time)", "node", low=1, high=100_000, cli=False,
        read_only=True),

@@ -129,9 +129,9 @@ def read_bag_signals(
                                        output_widths=[len(g[2]) for g in out_groups])
     if len(u) == 0:
         raise BagError(f"{path}: no input and output messages with matching stamps "
-                       f"(tolerance {tolerance_ns} ns)" + "".join(
-                           f"; {n} message(s) on {t} skipped: {first}"
-                           for t, (n, first) in unnamed.items()))
+                       f"(tolerance {tolerance_ns} ns)" + _offset_hint(events, tolerance_ns)
+                       + "".join(f"; {n} message(s) on {t} skipped: {first}"
+                                 for t, (n, first) in unnamed.items()))
     # the buffer numbers inputs topic by topic: back to the given order
     u, y = _in_given_order(u, channels), _in_given_order(y, out_channels)
     return BagSignals(
@@ -146,6 +146,32 @@ def read_bag_signals(
         notes=[f"{n} message(s) on {t} skipped: {first} (another publisher on that topic?)"
                for t, (n, first) in unnamed.items()],
     )
+
+
+def _offset_hint(events: list, tolerance_ns: int) -> str:
+    """How far the outputs' stamps lie from the nearest input's, when beyond the tolerance.
+
+    Two drivers or clocks out of step stamp the same instant differently; the
+    median distance says what ``stamp_tolerance`` would pair them ('' when no
+    stamps of both kinds, or within the tolerance).
+    """
+    out = np.array([st for stream, st, _ in events if stream == "y" or (
+        isinstance(stream, tuple) and stream[1] == 0)], dtype=np.int64)
+    inp = np.sort(np.array([st for stream, st, _ in events if stream in ("u", 0)],
+                           dtype=np.int64))
+    if not out.size or not inp.size:
+        return ""
+    at = np.clip(np.searchsorted(inp, out), 1, len(inp) - 1) if len(inp) > 1 else \
+        np.zeros(len(out), dtype=np.int64)
+    nearest = np.abs(out - inp[at])
+    if len(inp) > 1:
+        nearest = np.minimum(nearest, np.abs(out - inp[at - 1]))
+    gap = float(np.median(nearest))
+    if gap <= tolerance_ns:
+        return ""
+    return (f"; each output's stamp lies a median {gap / 1e6:.3g} ms from the nearest input's "
+            f"(two drivers or clocks out of step?): --stamp-tolerance {1.5 * gap / 1e9:.3g} "
+            "(the node's stamp_tolerance) would pair them")
 
 
 def _parse_channels(inputs: tuple, outputs: tuple) -> tuple[list, list]:
