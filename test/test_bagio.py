@@ -318,5 +318,7 @@ def test_stamps_out_of_step_say_the_tolerance_that_pairs_them(tmp_path):
     # the node reads a goal's bag with its stamp_tolerance (a float), as its topics
     record = load_record(DataSpec(bag=str(bag), bag_options={"stamp_tolerance": 0.0045}))
     assert len(record.y) == 300
+    with pytest.raises(BagError, match="tolerance 0 ns"):  # 0 s is a tolerance, not a default
+        load_record(DataSpec(bag=str(bag), bag_options={"stamp_tolerance": 0.0}))
     with pytest.raises(DataError, match="stamp_tolerance must be between 0 and 1, got 2.0"):
         load_record(DataSpec(bag=str(bag), bag_options={"stamp_tolerance": "2"}))

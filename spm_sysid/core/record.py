@@ -292,7 +292,7 @@ class DataSpec:
             inputs = [c for c in inputs.split(",") if c.strip()]
         files = () if not data else ((data,) if isinstance(data, str) else tuple(data))
         return cls(files, bag, tuple(inputs) if inputs else None, values.get("output"),
-                   {k: values.get(k) for k in BAG_OPTIONS if values.get(k)})
+                   {k: values.get(k) for k in BAG_OPTIONS if values.get(k) not in (None, "")})
 
     @classmethod
     def for_path(cls, path: str, values: Mapping) -> DataSpec:
@@ -350,7 +350,7 @@ def _load_file(path: str, spec: DataSpec) -> Record:
 def _load_bag(spec: DataSpec) -> Record:
     from .io.bagio import read_bag_signals
 
-    opts = {k: v for k, v in spec.bag_options.items() if v}
+    opts = {k: v for k, v in spec.bag_options.items() if v not in (None, "")}  # 0 s is a value
     if "stamp_tolerance" in opts:  # seconds, as the node's parameter (text from a command)
         text = opts.pop("stamp_tolerance")
         try:

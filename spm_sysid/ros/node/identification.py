@@ -231,7 +231,7 @@ class Identification:
     def _bag(self, values: dict, bag_path: str) -> Record:
         """A bag read like the topics (the node's topics and fields)."""
         spec = DataSpec(bag=bag_path, bag_options={k: values[k] for k in BAG_OPTIONS
-                                                    if values.get(k)})
+                                                    if values.get(k) not in (None, "")})
         return load_record(spec)
 
     def _failed(self, code: int, exc: BaseException) -> Outcome:
