@@ -133,6 +133,22 @@ def test_iso_date_times_in_the_time_column(tmp_path):
         load_io(p)
 
 
+def test_units_in_headers_are_not_part_of_the_signals_names(tmp_path):
+    """``Torque [Nm]`` was not an identifier: the model said u and y, and validate could not
+    find the columns again."""
+    p = tmp_path / "take.csv"
+    p.write_text("time [s],Torque [Nm],position (rad),q [deg]\n0,1,2,3\n0.01,4,5,6\n")
+    d = load_data(p, ["Torque [Nm]"], "position (rad)")
+    assert d.input_names == ("torque",) and d.output_name == "position"
+    d = load_data(p, ["torque"], "position")  # found again by the names the model has
+    assert d.u.tolist() == [1.0, 4.0] and d.y.tolist() == [2.0, 5.0]
+    p.write_text("t,q [rad],q [deg],u\n0,1,2,3\n0.01,4,5,6\n")
+    with pytest.raises(DataError, match=r"'q' names the columns \['q \[rad\]', 'q \[deg\]'\]"):
+        load_data(p, ["u"], "q")
+    d = load_data(p, ["q [deg]"], "q [rad]")  # one name for both: the defaults
+    assert d.input_names == ("u",) and d.output_name == "y"
+
+
 def test_plotjugglers_time_column(tmp_path):
     p = tmp_path / "pj.csv"
     p.write_text("__time,/joint/effort,/joint/position\n1700000000.000,1,2\n"

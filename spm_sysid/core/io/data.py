@@ -432,9 +432,13 @@ def table_data(table: Table, source: str, inputs: list[str] | None = None,
     u = signals[:, :m] if m > 1 else signals[:, 0]
     y = signals[:, m:] if len(iys) > 1 else signals[:, m]
 
-    # lower-case names (as before), or as written where two chosen differ only by case
-    written = bool(names) and len({names[j] for j in [*iu, *iys]}) < len(iu) + len(iys)
-    shown = table.header_names if written else names
+    # lower-case names (as before), or as written where two chosen differ only by case;
+    # a unit in the header is not part of the signal's name ("torque [Nm]": torque)
+    written = bool(names) and len({signal_name(names[j]) for j in [*iu, *iys]}) < len(
+        iu) + len(iys)
+    shown = [signal_name(h) for h in (table.header_names if written else names or [])]
+    if shown and len({shown[j] for j in [*iu, *iys]}) < len(iu) + len(iys):
+        shown = [""] * len(shown)  # two chosen columns of one name ("q [rad]", "q [deg]")
 
     def label(j: int, default: str) -> str:
         return shown[j] if chosen and names and shown[j].isidentifier() else default
@@ -545,6 +549,18 @@ def _check_all_finite(table: Table, source: str, signals: np.ndarray, cols: list
                     "rows dropped as gaps)")
 
 
+_UNIT_SUFFIX = re.compile(r"\s*[\[(][^\])]*[\])]\s*$")
+
+
+def signal_name(header: str) -> str:
+    """A column's header as a signal's name: a trailing unit left out, spaces as ``_``.
+
+    ``torque [Nm]`` and ``Position (rad)`` name ``torque`` and ``Position``, so a
+    model's terms read ``torque(t-1)`` and ``validate`` finds the column again.
+    """
+    return re.sub(r"\s+", "_", _UNIT_SUFFIX.sub("", header).strip())
+
+
 def _column(table: Table, sel) -> int:
     sel = str(sel).strip()
     names, width = table.names, table.width
@@ -556,6 +572,13 @@ def _column(table: Table, sel) -> int:
                         "but none exactly (names differ only by case): spell it as written")
     if names and sel.lower() in names:
         return names.index(sel.lower())
+    bare = [k for k, n in enumerate(names or []) if signal_name(n) == sel.lower()]
+    if len(bare) == 1:  # "torque" names the column "torque [Nm]"
+        return bare[0]
+    if len(bare) > 1:
+        raise DataError(f"{table.source}: {sel!r} names the columns "
+                        f"{[table.header_names[k] for k in bare]} (their units apart): "
+                        "give one as written")
     try:
         j = int(sel)
     except ValueError:
