@@ -55,6 +55,7 @@ def test_two_column_text_with_comments_and_gzip(tmp_path):
     ("1.0, 2.0\n3, 4\n", None, [[1.0, 2.0], [3.0, 4.0]]),
     ("u;y\n1.5;2\n", ["u", "y"], [[1.5, 2.0]]),
     ("u;y\n0;1\n0,5;1,25\n", ["u", "y"], [[0.0, 1.0], [0.5, 1.25]]),  # whole first row
+    ("0;1\n0,5;1,25\n", None, [[0.0, 1.0], [0.5, 1.25]]),  # and no header
 ])
 def test_separators_and_decimal_commas(content, names, values):
     """Spreadsheets in many locales export ``0,25;1,5``: semicolons separate, commas mark."""

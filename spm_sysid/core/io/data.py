@@ -59,10 +59,10 @@ from ..errors import DataError
 from ..files import read_bytes
 
 __all__ = ["IOData", "TIME_COLUMNS", "Table", "load_data", "load_io", "parse_data_text",
-           "time_column_unit",
-           "parse_io_text", "parse_table", "read_text", "table_data"]
+           "parse_io_text", "parse_table", "read_text", "signal_name", "table_data",
+           "time_column_unit"]
 
-#: Header names of a time column (seconds).
+#: Header names of a time column (seconds, unless their size says otherwise: _CLOCKS).
 TIME_COLUMNS = ("t", "time", "stamp", "timestamp", "__time")  # __time: PlotJuggler's
 
 #: Time columns in other units than seconds, told from their values: (the least
@@ -283,7 +283,7 @@ def parse_table(text: str, source: str = "<text>") -> Table:
     rows.extend(content)
     if not rows:
         raise DataError(f"{source}: the CSV file has a header but no data rows")
-    if header and sep != "," and not comma:  # the header leaves the first rows to tell
+    if sep != "," and not comma:  # a header, or whole numbers first: the first rows tell
         comma = any(_DECIMAL_COMMA.fullmatch(c) for _, ln in rows[:100] for c in _split(ln, sep))
     if comma:  # decimal commas read as decimal points
         rows = [(n, ln.replace(",", ".")) for n, ln in rows]
@@ -291,18 +291,47 @@ def parse_table(text: str, source: str = "<text>") -> Table:
     # a time column may hold ISO 8601 date-times (pandas' to_csv, loggers)
     it = next((k for k, n in enumerate(names or []) if time_column_unit(n)[0]), None)
     try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            # numpy reads the lines themselves (a joined copy of the text, and a
-            # StringIO of it, held 4x the file's size more at 10^6 rows)
-            values = np.loadtxt((ln for _, ln in rows), delimiter=sep, ndmin=2, dtype=float,
-                                comments="#", quotechar='"' if sep else None,
-                                converters=None if it is None else {it: _time_value})
-        if values.shape != (len(rows), width):
-            raise ValueError("shape")
-    except ValueError:  # an empty field, a bad value or a short row: line by line
-        values = _parse_rows(rows, sep, width, source, names is None, header_line, it)
+        values = _read_numbers(rows, sep, width)
+    except ValueError:  # date-times; else an empty field, a bad value, a short row
+        try:
+            if it is None:
+                raise
+            values = _read_with_date_times(rows, sep, width, it)
+        except ValueError:  # line by line, naming the first bad one
+            values = _parse_rows(rows, sep, width, source, names is None, header_line, it)
     return Table(names, header_names, values, line_numbers, header_line, sep, source, lines)
+
+
+def _read_numbers(rows, sep, width, usecols=None, dtype=float) -> np.ndarray:
+    """The rows read by numpy's C reader (ValueError for anything but a full table)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        # numpy reads the lines themselves (a joined copy of the text, and a
+        # StringIO of it, held 4x the file's size more at 10^6 rows)
+        values = np.loadtxt((ln for _, ln in rows), delimiter=sep, ndmin=2, dtype=dtype,
+                            comments="#", quotechar='"' if sep else None, usecols=usecols)
+    if values.shape != (len(rows), width if usecols is None else len(usecols)):
+        raise ValueError("shape")
+    return values
+
+
+def _read_with_date_times(rows, sep, width: int, it: int) -> np.ndarray:
+    """The table with its time column's ISO 8601 date-times as seconds since 1970 (UTC).
+
+    numpy parses the date-times in C (a converter per row took 13x as long);
+    anything it cannot parse raises ValueError, and the slow path names it.
+    """
+    others = [j for j in range(width) if j != it]
+    values = np.empty((len(rows), width))
+    if others:
+        values[:, others] = _read_numbers(rows, sep, width, others)
+    text = np.char.strip(_read_numbers(rows, sep, width, [it], dtype=str)[:, 0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # numpy warns of offsets (+02:00), and applies them
+        stamps = text.astype("datetime64[ns]")
+    ns = stamps.astype(np.int64).astype(float)
+    values[:, it] = np.where(np.isnat(stamps), np.nan, ns * 1e-9)
+    return values
 
 
 def _time_value(token: str) -> float:
