@@ -17,8 +17,8 @@ import re
 
 from ..errors import FieldPathError
 
-__all__ = ["DEFAULT_FIELDS", "MissingNameError", "Name", "UnsetStamps", "default_field", "extract",
-           "message_stamp_ns"]
+__all__ = ["DEFAULT_FIELDS", "MissingNameError", "Name", "UnsetStamps", "default_field",
+           "extract", "message_stamp_ns"]
 
 #: Field used when none is given, per message type.
 DEFAULT_FIELDS = {
@@ -80,10 +80,10 @@ def _position(owner: object, name: Name, steps: list) -> int:
             names = list(names)
             if name in names:
                 return names.index(name)
-            raise MissingNameError(f"field path {_show(steps)!r}: this {kind} "
-                              f"message does not name {name!r} (its {attr}: "
-                              f"{', '.join(map(str, names[:8])) or 'empty'}"
-                              f"{', ...' if len(names) > 8 else ''})")
+            raise MissingNameError(f"field path {_show(steps)!r}: this {kind} message does "
+                                   f"not name {name!r} (its {attr}: "
+                                   f"{', '.join(map(str, names[:8])) or 'empty'}"
+                                   f"{', ...' if len(names) > 8 else ''})")
     raise FieldPathError(f"field path {_show(steps)!r}: a {kind} message has "
                          f"no name list ({' or '.join(_NAME_LISTS)}) to find {name!r} in; "
                          "give the index as a number")
