@@ -150,6 +150,19 @@ def test_units_in_headers_are_not_part_of_the_signals_names(tmp_path):
     assert d.input_names == ("u",) and d.output_name == "y"
 
 
+@pytest.mark.parametrize("index", ["", "Unnamed: 0"])
+def test_pandas_row_numbers_are_left_out_of_the_default_layout(tmp_path, index):
+    """``df.to_csv()`` writes its index first, unnamed: 'exactly 2 columns, found 3'."""
+    from spm_sysid.core.record import DataSpec, load_record
+
+    p = tmp_path / "take.csv"
+    p.write_text(f"{index},time,torque,acc\n0,0.0,1,2\n1,0.01,3,4\n2,0.02,5,6\n")
+    record = load_record(DataSpec(data=(str(p),)))
+    assert record.u.tolist() == [1.0, 3.0, 5.0] and record.y.tolist() == [2.0, 4.0, 6.0]
+    assert record.notes == [f"{p}: column 0 ({index.lower()!r}: a row number, pandas' "
+                            "index?) left out"]
+
+
 def test_plotjugglers_time_column(tmp_path):
     p = tmp_path / "pj.csv"
     p.write_text("__time,/joint/effort,/joint/position\n1700000000.000,1,2\n"

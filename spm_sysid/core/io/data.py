@@ -455,6 +455,9 @@ def table_data(table: Table, source: str, inputs: list[str] | None = None,
                      "would be dates past the year 5000 or days apart",)
     else:
         _check_all_finite(table, source, signals, iu + iys)
+    if not chosen and names:
+        notes += tuple(f"{source}: column {k} ({names[k]!r}: a row number, pandas' index?) "
+                       "left out" for k in range(len(names)) if is_row_index(names, k))
     if len(signals) == 0:
         raise DataError(f"{source}: no rows with all values present")
     m = len(iu)
@@ -525,7 +528,7 @@ def _signal_columns(table: Table, source: str, it: int | None, inputs: list[str]
         return iu, iys
     if names and "u" in names and "y" in names:
         return [names.index("u")], [names.index("y")]
-    others = [k for k in range(width) if k != it]
+    others = [k for k in range(width) if k != it and not is_row_index(names, k)]
     if len(others) != 2:
         where = (f"{source}, line {table.header_line}" if table.header_line
                  else table.where(0))
@@ -538,6 +541,16 @@ def _signal_columns(table: Table, source: str, it: int | None, inputs: list[str]
         raise DataError(f"{where}: CSV header {table.header_names} needs columns named "
                         f"'u' and 'y' or exactly 2 columns, found {width}")
     return [others[0]], [others[1]]
+
+
+def is_row_index(names: list[str] | None, k: int) -> bool:
+    """Whether header column ``k`` is a row number, which the default layout leaves out.
+
+    pandas' ``to_csv`` writes its index without a name (``Unnamed: 0`` once read
+    back and written again).
+    """
+    return bool(names) and (names[k] == "" or re.fullmatch(r"unnamed: \d+", names[k])
+                            is not None)
 
 
 def _timed_rows(table: Table, source: str, it: int,
