@@ -2,6 +2,7 @@
 
 import gzip
 import http.server
+import re
 import threading
 
 import numpy as np
@@ -199,6 +200,34 @@ def test_missing_directory_and_binary_files(tmp_path):
     b.write_bytes(b"\xff\xfe\x00\x81")
     with pytest.raises(DataError, match="not a text file"):
         load_io(b)
+
+
+@pytest.mark.parametrize("head, what", [
+    (b"PK\x03\x04\x14\x00\x00\x00", "a ZIP archive, as an Excel workbook (.xlsx) is: save "
+                                       "the sheet as CSV"),
+    (b"\xd0\xcf\x11\xe0\xa1\xb1\x1a\xe1\x00", "an Excel 97-2003 workbook"),
+    (b"PAR1\x15\x04\x00", "a Parquet file: write it as CSV"),
+    (b"\x89HDF\r\n\x1a\n\x00", "an HDF5 file"),
+])
+def test_binary_tables_are_named_with_what_to_do(tmp_path, head, what):
+    b = tmp_path / "take.bin"
+    b.write_bytes(head + bytes(64))
+    with pytest.raises(DataError, match=f"take.bin is {re.escape(what)}"):
+        load_io(b)
+
+
+def test_windows_1252_text_is_read_and_said(tmp_path):
+    """Western spreadsheets save "°C" and "µ" in Windows-1252: 'not a text file' before."""
+    from spm_sysid.core.record import DataSpec, load_record
+
+    p = tmp_path / "take.csv"
+    p.write_bytes("time;Drehmoment [µNm];Temperatur [°C]\n0;1;20,5\n0,01;2;20,7\n"
+                  .encode("cp1252"))
+    record = load_record(DataSpec(data=(str(p),), inputs=("Drehmoment [µNm]",),
+                                  output="Temperatur [°C]"))
+    assert record.u.tolist() == [1.0, 2.0] and record.y.tolist() == [20.5, 20.7]
+    assert record.input_names == ("drehmoment",) and record.output_name == "temperatur"
+    assert record.notes == [f"{p}: not UTF-8; read as Windows-1252 (a spreadsheet's export)"]
 
 
 def test_too_few_samples_and_bad_signals():

@@ -118,17 +118,43 @@ def read_text(path: str | os.PathLike) -> str:
         The text would need more memory than the bound.
     """
     path = Path(path)
-    return _decode(read_bytes(path, "data file", factor=PARSE_FACTOR), path)
+    return _decode(read_bytes(path, "data file", factor=PARSE_FACTOR), path)[0]
 
 
-def _decode(raw: bytes, path: Path) -> str:
-    """The text of a file's bytes (gunzipped when they are gzip's)."""
+#: Binary formats users export tables in, by their first bytes: what to do instead.
+_BINARY_TABLES = ((b"PK\x03\x04", "a ZIP archive, as an Excel workbook (.xlsx) is: save the "
+                   "sheet as CSV (CSV UTF-8)"),
+                  (b"\xd0\xcf\x11\xe0", "an Excel 97-2003 workbook (.xls): save the sheet as "
+                   "CSV (CSV UTF-8)"),
+                  (b"PAR1", "a Parquet file: write it as CSV (pandas: df.to_csv)"),
+                  (b"ARROW1", "an Arrow/Feather file: write it as CSV (pandas: df.to_csv)"),
+                  (b"\x89HDF", "an HDF5 file (MATLAB -v7.3 saves these): save with '-v7' or "
+                   "export a CSV"))
+
+
+def _decode(raw: bytes, path: Path) -> tuple[str, str]:
+    """The text of a file's bytes (gunzipped when they are gzip's), and how it was decoded.
+
+    UTF-8 (with or without Excel's byte-order mark); else, for text without NUL
+    bytes, Windows-1252, which spreadsheets in Western locales write ("°C",
+    "µm") -- said in the second value ('' for UTF-8).
+    """
     if path.suffix == ".gz" or raw[:2] == _GZIP_MAGIC:
         raw = _gunzip(raw, path)
+    binary = b"\x00" in raw[:4096]  # text has no NUL bytes (nor does "PAR1,..." in a header)
+    for magic, what in _BINARY_TABLES:
+        if binary and raw.startswith(magic):
+            raise DataError(f"{path} is {what}")
     try:
-        return raw.decode("utf-8-sig")
+        return raw.decode("utf-8-sig"), ""
     except UnicodeDecodeError:
-        raise DataError(f"{path} is not a text file (not UTF-8)") from None
+        pass
+    if b"\x00" not in raw:
+        try:
+            return raw.decode("cp1252"), "Windows-1252"
+        except UnicodeDecodeError:
+            pass
+    raise DataError(f"{path} is not a text file (not UTF-8)")
 
 
 def _gunzip(raw: bytes, path: Path) -> bytes:
@@ -661,7 +687,11 @@ def load_data(path: str | os.PathLike, inputs: list[str] | None = None,
         table = Table([k.lower() for k in names], names, values,
                       np.arange(1, len(values) + 1), 0, None, str(path), None, row_word="row")
         return table_data(table, str(path), inputs, output)
-    return parse_data_text(_decode(raw, path), str(path), inputs, output)
+    text, encoding = _decode(raw, path)
+    data = parse_data_text(text, str(path), inputs, output)
+    if encoding:
+        data.notes += (f"{path}: not UTF-8; read as {encoding} (a spreadsheet's export)",)
+    return data
 
 
 def parse_io_text(text: str, source: str = "<text>") -> tuple[np.ndarray, np.ndarray]:
