@@ -227,6 +227,12 @@ def test_call_identify_uses_the_action_and_ctrl_c_cancels_the_goal(ros_env, harn
         assert "y(t-1)" in lines[1] and "= y[t-1]^1" in lines[1] and "(+- " in lines[1]
         assert "phase" not in r.stdout and "search: step" in r.stderr  # feedback logged
 
+        # a bag named from the caller's folder, not the node's (it resolved it from its own)
+        r = subprocess.run(call + ["--bag", arm_bag.name, "--set", "generations=5", "--quiet"],
+                           capture_output=True, text=True, env=ros_env, timeout=120,
+                           cwd=arm_bag.parent)
+        assert r.returncode == 0, r.stderr
+        assert r.stdout.startswith("success: ") and "terms" in r.stdout, r.stdout
         r = subprocess.run(call + ["--set", "criterion=xyz"], capture_output=True, text=True,
                            env=ros_env, timeout=60, cwd=ROOT)
         assert r.returncode == 1

@@ -9,6 +9,7 @@ sub-command works on machines without ROS. The benchmarks are not commands of
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 
 from ..tools.cli import UserError, build_parser, run
 
@@ -26,8 +27,11 @@ def _cmd_call(args) -> int:
         if not sep or not name.strip():
             raise UserError(f"--set {item!r}: write NAME=VALUE, e.g. --set criterion=bic")
         overrides[name.strip()] = value
+    bag = args.bag or ""
+    if bag and Path(bag).exists():  # the node resolves a relative path from its own folder
+        bag = str(Path(bag).resolve())
     return call_main(args.action, node_name=args.node, timeout=args.timeout,
-                     show_model=args.show_model, overrides=overrides, bag_path=args.bag or "",
+                     show_model=args.show_model, overrides=overrides, bag_path=bag,
                      trigger=args.trigger, quiet=args.quiet, as_json=args.json)
 
 
