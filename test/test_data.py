@@ -160,8 +160,15 @@ def test_pandas_row_numbers_are_left_out_of_the_default_layout(tmp_path, index):
     p.write_text(f"{index},time,torque,acc\n0,0.0,1,2\n1,0.01,3,4\n2,0.02,5,6\n")
     record = load_record(DataSpec(data=(str(p),)))
     assert record.u.tolist() == [1.0, 3.0, 5.0] and record.y.tolist() == [2.0, 4.0, 6.0]
-    assert record.notes == [f"{p}: column 0 ({index.lower()!r}: a row number, pandas' "
+    assert record.notes == [f"{p}: column 0 ({index!r}: a row number, pandas' "
                             "index?) left out"]
+    p.write_text("torque;acc;\n1;2;\n3;4;\n")  # a separator at every line's end
+    record = load_record(DataSpec(data=(str(p),)))
+    assert record.u.tolist() == [1.0, 3.0] and record.y.tolist() == [2.0, 4.0]
+    assert record.notes == [f"{p}: column 2 ('': empty: a separator at the end of each "
+                            "line?) left out"]
+    p.write_text("u,y,\n1,2,\n3,4,\n")  # named u and y: nothing to say
+    assert load_record(DataSpec(data=(str(p),))).notes == []
 
 
 def test_plotjugglers_time_column(tmp_path):

@@ -481,9 +481,9 @@ def table_data(table: Table, source: str, inputs: list[str] | None = None,
                      "would be dates past the year 5000 or days apart",)
     else:
         _check_all_finite(table, source, signals, iu + iys)
-    if not chosen and names:
-        notes += tuple(f"{source}: column {k} ({names[k]!r}: a row number, pandas' index?) "
-                       "left out" for k in range(len(names)) if is_row_index(names, k))
+    if not chosen and names and not ("u" in names and "y" in names):  # the two-column layout
+        notes += tuple(f"{source}: column {k} ({table.header_names[k]!r}: {why}) left out"
+                       for k, why in left_out(table).items())
     if len(signals) == 0:
         raise DataError(f"{source}: no rows with all values present")
     m = len(iu)
@@ -554,7 +554,8 @@ def _signal_columns(table: Table, source: str, it: int | None, inputs: list[str]
         return iu, iys
     if names and "u" in names and "y" in names:
         return [names.index("u")], [names.index("y")]
-    others = [k for k in range(width) if k != it and not is_row_index(names, k)]
+    skipped = left_out(table)
+    others = [k for k in range(width) if k != it and k not in skipped]
     if len(others) != 2:
         where = (f"{source}, line {table.header_line}" if table.header_line
                  else table.where(0))
@@ -569,14 +570,21 @@ def _signal_columns(table: Table, source: str, it: int | None, inputs: list[str]
     return [others[0]], [others[1]]
 
 
-def is_row_index(names: list[str] | None, k: int) -> bool:
-    """Whether header column ``k`` is a row number, which the default layout leaves out.
+def left_out(table: Table) -> dict[int, str]:
+    """Columns the two-column layout leaves out, and why.
 
-    pandas' ``to_csv`` writes its index without a name (``Unnamed: 0`` once read
-    back and written again).
+    A first column of row numbers (pandas' ``to_csv`` writes its index without a
+    name, ``Unnamed: 0`` once read back and written again), and unnamed columns
+    without a value (a separator at the end of every line).
     """
-    return bool(names) and (names[k] == "" or re.fullmatch(r"unnamed: \d+", names[k])
-                            is not None)
+    names = table.names or []
+    out = {}
+    for k, name in enumerate(names):
+        if k == 0 and (name == "" or re.fullmatch(r"unnamed: \d+", name)):
+            out[k] = "a row number, pandas' index?"
+        elif name == "" and not np.isfinite(table.values[:, k]).any():
+            out[k] = "empty: a separator at the end of each line?"
+    return out
 
 
 def _timed_rows(table: Table, source: str, it: int,
