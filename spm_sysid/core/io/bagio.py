@@ -128,10 +128,7 @@ def read_bag_signals(
                                        input_widths=[len(g[2]) for g in groups],
                                        output_widths=[len(g[2]) for g in out_groups])
     if len(u) == 0:
-        raise BagError(f"{path}: no input and output messages with matching stamps "
-                       f"(tolerance {tolerance_ns} ns)" + _offset_hint(events, tolerance_ns)
-                       + "".join(f"; {n} message(s) on {t} skipped: {first}"
-                                 for t, (n, first) in unnamed.items()))
+        raise _nothing_paired(path, events, tolerance_ns, unnamed)
     # the buffer numbers inputs topic by topic: back to the given order
     u, y = _in_given_order(u, channels), _in_given_order(y, out_channels)
     return BagSignals(
@@ -146,6 +143,14 @@ def read_bag_signals(
         notes=[f"{n} message(s) on {t} skipped: {first} (another publisher on that topic?)"
                for t, (n, first) in unnamed.items()],
     )
+
+
+def _nothing_paired(path: Path, events: list, tolerance_ns: int, unnamed: dict) -> BagError:
+    """The error of a bag whose inputs and outputs never pair: why, and what pairs them."""
+    return BagError(f"{path}: no input and output messages with matching stamps (tolerance "
+                    f"{tolerance_ns} ns)" + _offset_hint(events, tolerance_ns)
+                    + "".join(f"; {n} message(s) on {t} skipped: {first}"
+                              for t, (n, first) in unnamed.items()))
 
 
 def _offset_hint(events: list, tolerance_ns: int) -> str:

@@ -65,34 +65,40 @@ def diagnostic_statuses(name: str, stats: dict, *, field_errors: int = 0,
         Callbacks that raised and were logged (the node went on).
     worker_failure : str
         Why the worker process keeps dying while it starts ('' when it does not).
-    unnamed : int
-        Messages skipped because they do not name a joint a field path asks for by
-        name (another publisher's on the topic): counted, not a problem.
-    ignored_parameters : list of str
-        Parameters given at start that the node does not have (misspelled?).
+    unnamed, ignored_parameters
+        Messages skipped that do not name a joint a field path asks for by name
+        (another publisher's: counted, not a problem); parameters given at start
+        that the node does not have (misspelled?).
     """
     health = {"field_errors": field_errors, "unset_stamps": unset_stamps,
               "namesakes": namesakes, "worker_ready": worker_ready,
               "worker_restarts": worker_restarts, "callback_errors": callback_errors,
               "type_mismatch": "; ".join(type_mismatches or []), "unnamed": unnamed,
               "ignored_parameters": ", ".join(ignored_parameters or [])}
-    statuses = [_buffer_status(name, stats, health, worker_failure)]
+    return [_buffer_status(name, stats, health, worker_failure),
+            *_identification_statuses(name, running, last_error, model, restored_from)]
+
+
+def _identification_statuses(name: str, running: tuple | None, last_error: str | None,
+                             model: dict | None, restored_from: str | None) -> list[Status]:
+    """A running job's status, the last failure, or the model's (one set per output)."""
     ident = f"{name}: identification"
     if running is not None:
-        statuses.append(_running_status(ident, *running))
-    elif last_error:
-        statuses.append(Status(ERROR, ident, last_error))
-    elif model is not None and model.get("schema") == "spm_sysid/narx-mimo-model":
-        for out, doc in zip(model["outputs"], model["models"]):  # several outputs
-            statuses += _model_statuses(f"{name} ({out})", f"{ident} ({out})", doc,
-                                        restored_from)
-        for t in (model.get("metadata") or {}).get("cross_correlation_tests", []):
-            statuses.append(Status(
-                OK if t["passed"] else WARN, f"{name}: residual {t['name']}",
-                ("inside the 95 % band" if t["passed"] else "outside the 95 % band")
-                + f" ({t['fraction_inside']:.0%} of lags inside)", _values(t)))
-    elif model is not None:
-        statuses += _model_statuses(name, ident, model, restored_from)
+        return [_running_status(ident, *running)]
+    if last_error:
+        return [Status(ERROR, ident, last_error)]
+    if model is None:
+        return []
+    if model.get("schema") != "spm_sysid/narx-mimo-model":
+        return _model_statuses(name, ident, model, restored_from)
+    statuses = []
+    for out, doc in zip(model["outputs"], model["models"]):  # several outputs
+        statuses += _model_statuses(f"{name} ({out})", f"{ident} ({out})", doc, restored_from)
+    for t in (model.get("metadata") or {}).get("cross_correlation_tests", []):
+        statuses.append(Status(
+            OK if t["passed"] else WARN, f"{name}: residual {t['name']}",
+            ("inside the 95 % band" if t["passed"] else "outside the 95 % band")
+            + f" ({t['fraction_inside']:.0%} of lags inside)", _values(t)))
     return statuses
 
 
