@@ -322,3 +322,27 @@ def test_stamps_out_of_step_say_the_tolerance_that_pairs_them(tmp_path):
         load_record(DataSpec(bag=str(bag), bag_options={"stamp_tolerance": 0.0}))
     with pytest.raises(DataError, match="stamp_tolerance must be between 0 and 1, got 2.0"):
         load_record(DataSpec(bag=str(bag), bag_options={"stamp_tolerance": "2"}))
+
+
+def test_a_sqlite3_bag_reads_and_its_db3_file_names_the_folder(tmp_path):
+    """Humble's default storage: the folder reads; the .db3 file alone says to give it."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from spm_sysid.core.io.bagio import typestore
+
+    store = typestore()
+    Float64 = store.types["std_msgs/msg/Float64"]
+    bag = tmp_path / "take"
+    with Writer(bag, version=8, storage_plugin=StoragePlugin.SQLITE3) as w:
+        cu = w.add_connection("/u", "std_msgs/msg/Float64", typestore=store)
+        cy = w.add_connection("/y", "std_msgs/msg/Float64", typestore=store)
+        for k in range(50):
+            t = 10_000_000 * k + 10**9
+            w.write(cu, t, store.serialize_cdr(Float64(data=float(k)), "std_msgs/msg/Float64"))
+            w.write(cy, t, store.serialize_cdr(Float64(data=-float(k)),
+                                               "std_msgs/msg/Float64"))
+    sig = read_bag_signals(bag, input_topic="/u", output_topic="/y")
+    assert sig.u.tolist() == list(range(50)) and sig.y.tolist() == [-k for k in range(50)]
+    db3 = next(bag.glob("*.db3"))
+    with pytest.raises(BagError, match=f"give its folder, {bag}, which holds metadata.yaml"):
+        read_bag_signals(db3, input_topic="/u", output_topic="/y")

@@ -196,7 +196,10 @@ def open_bag(path: Path, verify: bool = True):
     if kind == "a directory" and not (path / "metadata.yaml").exists():
         raise BagError(f"{path} is not a rosbag2 bag (no metadata.yaml in the directory)")
     if kind == "a regular file" and path.suffix != ".mcap":
-        raise BagError(f"{path} is not a bag (expected a bag directory or an .mcap file)")
+        hint = (f"; give its folder, {path.parent}, which holds metadata.yaml"
+                if (path.parent / "metadata.yaml").is_file() else "")
+        raise BagError(f"{path} is not a bag (expected a bag directory or an .mcap file)"
+                       + hint)
     if kind == "a directory":
         _check_bag_files(path)
     files = sorted(path.glob("*.mcap")) if kind == "a directory" else [path]
