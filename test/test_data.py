@@ -57,6 +57,7 @@ def test_two_column_text_with_comments_and_gzip(tmp_path):
     ("u;y\n1.5;2\n", ["u", "y"], [[1.5, 2.0]]),
     ("u;y\n0;1\n0,5;1,25\n", ["u", "y"], [[0.0, 1.0], [0.5, 1.25]]),  # whole first row
     ("0;1\n0,5;1,25\n", None, [[0.0, 1.0], [0.5, 1.25]]),  # and no header
+    ('"torque, Nm","acc"\n1,2\n', ["torque, nm", "acc"], [[1.0, 2.0]]),  # quoted separator
 ])
 def test_separators_and_decimal_commas(content, names, values):
     """Spreadsheets in many locales export ``0,25;1,5``: semicolons separate, commas mark."""

@@ -42,6 +42,7 @@ Finding and downloading the robot-arm data set: :mod:`spm_sysid.core.io.datasets
 
 from __future__ import annotations
 
+import csv
 import gzip
 import io
 import math
@@ -265,7 +266,10 @@ def _separator(line: str) -> tuple[str | None, bool]:
 
 def _split(line: str, sep: str | None) -> list[str]:
     line = line.split("#", 1)[0]  # a comment after the values
-    cells = line.split(sep) if sep else line.split()
+    if sep and '"' in line:  # a quoted field may hold the separator ("torque, Nm")
+        cells = next(csv.reader([line], delimiter=sep), [])
+    else:
+        cells = line.split(sep) if sep else line.split()
     return [c.strip().strip('"').strip() for c in cells]
 
 
