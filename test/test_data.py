@@ -172,6 +172,21 @@ def test_pandas_row_numbers_are_left_out_of_the_default_layout(tmp_path, index):
     assert load_record(DataSpec(data=(str(p),))).notes == []
 
 
+def test_a_loggers_repeated_rows_are_dropped_and_said(tmp_path):
+    """The same time and values twice: 'the time column must increase' stopped the read."""
+    from spm_sysid.core.record import DataSpec, load_record
+
+    p = tmp_path / "take.csv"
+    p.write_text("time,u,y\n0,1,2\n0.01,3,4\n0.01,3,4\n0.02,5,6\n0.02,5,6\n0.03,7,8\n")
+    record = load_record(DataSpec(data=(str(p),)))
+    assert record.u.tolist() == [1.0, 3.0, 5.0, 7.0] and record.segment_info().gaps == 0
+    assert record.notes == [f"{p}: 2 row(s) repeating the row before (the same time and "
+                            "values: a logger's duplicates?) dropped"]
+    p.write_text("time,u,y\n0,1,2\n0.01,3,4\n0.01,3,5\n")  # one time, two values: which?
+    with pytest.raises(DataError, match="line 4: the time column must increase"):
+        load_record(DataSpec(data=(str(p),)))
+
+
 def test_plotjugglers_time_column(tmp_path):
     p = tmp_path / "pj.csv"
     p.write_text("__time,/joint/effort,/joint/position\n1700000000.000,1,2\n"

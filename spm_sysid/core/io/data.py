@@ -476,11 +476,14 @@ def table_data(table: Table, source: str, inputs: list[str] | None = None,
     rejected = 0
     notes: tuple[str, ...] = ()
     if it is not None:  # rows with missing values are dropped and counted (gaps by time)
-        t, signals, rejected = _timed_rows(table, source, it, signals)
+        t, signals, rejected, repeated = _timed_rows(table, source, it, signals)
+        if repeated:
+            notes += (f"{source}: {repeated} row(s) repeating the row before (the same time "
+                      "and values: a logger's duplicates?) dropped",)
         scale = time_column_unit(names[it])[1]
         t, unit = (t * scale, "") if scale is not None else _seconds(t)
         if unit:
-            notes = (f"{source}: the time column '{(table.header_names or names)[it]}' read "
+            notes += (f"{source}: the time column '{(table.header_names or names)[it]}' read "
                      f"as {unit} ({_step_text(t)} between samples): as seconds its values "
                      "would be dates past the year 5000 or days apart",)
     else:
@@ -592,8 +595,12 @@ def left_out(table: Table) -> dict[int, str]:
 
 
 def _timed_rows(table: Table, source: str, it: int,
-                signals: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
-    """Times, the rows with every value present, and how many were dropped (gaps by time)."""
+                signals: np.ndarray) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """Times, the rows with every value present, and how many rows were dropped.
+
+    Third: rows with a missing value (gaps by time); fourth: rows that repeat the
+    row before exactly, time and values (a logger's duplicates), said in a note.
+    """
     values = table.values
     bad_t = np.flatnonzero(~np.isfinite(values[:, it]))
     if bad_t.size:
@@ -601,6 +608,11 @@ def _timed_rows(table: Table, source: str, it: int,
                         "missing or non-finite value")
     ok = np.all(np.isfinite(signals), axis=1)
     rejected = int((~ok).sum())
+    kept = np.flatnonzero(ok)
+    repeat = np.zeros(len(kept), dtype=bool)
+    repeat[1:] = (np.all(signals[kept[1:]] == signals[kept[:-1]], axis=1)
+                  & (values[kept[1:], it] == values[kept[:-1], it]))
+    ok[kept[repeat]] = False
     values, signals = values[ok], signals[ok]
     t = values[:, it].copy()
     back = np.flatnonzero(np.diff(t) <= 0)
@@ -609,7 +621,7 @@ def _timed_rows(table: Table, source: str, it: int,
         raise DataError(f"{table.where(np.flatnonzero(ok)[k + 1])}: the time column must "
                         f"increase; time "
                         f"{t[k + 1]:g} follows {t[k]:g}")
-    return t, signals, rejected
+    return t, signals, rejected, int(repeat.sum())
 
 
 def _check_all_finite(table: Table, source: str, signals: np.ndarray, cols: list[int]) -> None:
