@@ -31,7 +31,7 @@ and when that diverges too, the refinement fails and says so).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -135,10 +135,7 @@ def free_run_uncertainty(model: NarxModel, u: np.ndarray, y: np.ndarray,
                       "local covariance would claim a certainty the model does not have")
     if J.shape[0] <= J.shape[1]:
         return None, "too few rows for the coefficients"
-    found = from_jacobian(J, float(r @ r))
-    if rows is not None and rows > J.shape[0]:
-        share = J.shape[0] / rows
-        found = replace(found, covariance=found.covariance * share, dof=rows - J.shape[1])
+    found = from_jacobian(J, float(r @ r)).standing_for(J.shape[0], rows)
     se = found.standard_errors
     if not np.all(np.isfinite(se) & (se > 0)):
         return None, "the free-run Jacobian is singular (terms the free run cannot tell apart)"

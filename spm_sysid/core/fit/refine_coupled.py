@@ -238,10 +238,8 @@ class _CoupledResiduals:
         for i, (m, th) in enumerate(zip(model.models, self.split(theta))):
             J = -jac[:, i, self.sizes[i]:self.sizes[i + 1]] * self.scale[i]  # d(sim_i)/d(th)
             e = self.measured[:, i] - sim[:, i]
-            unc = from_jacobian(J, float(e @ e)) if np.all(np.isfinite(J)) else m.uncertainty
-            if unc is not m.uncertainty and rows is not None and rows > len(J):
-                unc = replace(unc, covariance=unc.covariance * (len(J) / rows),
-                              dof=rows - J.shape[1])
+            unc = (from_jacobian(J, float(e @ e)).standing_for(len(J), rows)
+                   if np.all(np.isfinite(J)) else m.uncertainty)
             meta = {**m.metadata, "coupled_refinement": True}
             models.append(replace(m, coefficients=np.array(th), uncertainty=unc, metadata=meta))
         return models

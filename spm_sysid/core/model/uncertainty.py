@@ -92,6 +92,17 @@ class Uncertainty:
         """One per coefficient."""
         return np.sqrt(np.maximum(np.diag(self.covariance), 0.0))
 
+    def standing_for(self, used: int, rows: int | None) -> Uncertainty:
+        """The covariance of ``used`` rows (a long record's windows) for ``rows`` in all.
+
+        Times the windows' share, ``dof`` counting every row; itself when ``rows`` is
+        None or no more than ``used``.
+        """
+        if rows is None or rows <= used:
+            return self
+        k = self.covariance.shape[0]
+        return Uncertainty(self.covariance * (used / rows), rows - k, self.sigma2, self.method)
+
     def intervals(self, coefficients: np.ndarray, level: float = LEVEL) -> np.ndarray:
         """Confidence intervals, shape (k, 2): coefficient -/+ t * standard error."""
         t = t_quantile(max(self.dof, 1), 0.5 + level / 2.0)

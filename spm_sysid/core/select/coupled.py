@@ -54,7 +54,7 @@ from ..model.narx import NarxModel
 from ..model.segments import rows_segments
 from .call import linear_or_nonlinear
 from .coupled_fits import fit_least_squares, least_squares_fits, one_pass, row_factor
-from .folds import block_splits, final_samples, refinement_windows
+from .folds import block_splits, final_samples, refinement_windows, windowed_rows
 from .guard import stress_inputs
 from .scores import mean_and_stderr
 from .simulation import linear_masks
@@ -294,9 +294,8 @@ def _fit_full(model: MimoModel, how: str, joined: MimoModel, u, Y, segments
         if start is None:
             return None
         windows = _final_rows(start, segments)
-        total = sum(max(b - a - start.max_lag, 0) for a, b in segments)
-        fitted, info = refine_coupled(start, u, Y, windows, rows=total if windows != [
-            (int(a), int(b)) for a, b in segments] else None)
+        fitted, info = refine_coupled(start, u, Y, windows,
+                                      rows=windowed_rows(windows, segments, start.max_lag))
         fitted.metadata["coupled_refinement"] = info
     models = [_accounted(m, t, augmented_inputs(u, Y, i), Y[:, i], segments,
                          uncertainty=how == "least squares")

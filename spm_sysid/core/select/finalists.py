@@ -51,7 +51,14 @@ from ..fit.refine import refine_simulation
 from ..model.narx import NarxModel
 from ..progress import Progress
 from .call import Call, linear_or_nonlinear
-from .folds import final_samples, final_steps, is_long, refinement_windows, sub_blocks
+from .folds import (
+    final_samples,
+    final_steps,
+    is_long,
+    refinement_windows,
+    sub_blocks,
+    windowed_rows,
+)
 from .guard import shrink_to_hold, stress_check
 from .scores import Scores, mean_and_stderr
 from .simulation import (
@@ -386,7 +393,8 @@ class ValidatedSimulation:
         samples = final_samples(segments, problem.term_space.max_lag,
                                 8 * len(screened.term_indices), single=True)
         final = refine_simulation(screened, u, y, samples, **final_steps(problem))
-        if samples != [tuple(s) for s in segments]:  # on windows: the start's SSE on all
+        # fitted on windows: the start's SSE on every row, as the account compares them
+        if windowed_rows(samples, segments, problem.term_space.max_lag) is not None:
             start = screened.measured(y, segments) - screened.run(u, y, None, segments)[0]
             final = replace(final, sse_start=float(start @ start))
         model = screened.with_coefficients(screened.coefficients)

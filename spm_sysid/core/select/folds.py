@@ -35,6 +35,7 @@ from ..defaults import (
 from ..model.segments import rows_segments
 
 __all__ = ["Fold", "block_splits", "blocked_folds", "final_samples", "final_steps",
+           "windowed_rows",
            "fold_excitation", "informative_folds", "interleaved_folds", "is_long",
            "refinement_windows", "sub_blocks"]
 
@@ -296,6 +297,17 @@ def final_samples(segments, lag: int, row_bytes: int, single: bool = False
     if sum(b - a for a, b in segments) * row_bytes <= budget:
         return segments
     return refinement_windows(segments, lag, rows=budget // row_bytes)
+
+
+def windowed_rows(samples, segments, lag: int) -> int | None:
+    """The rows of ``segments`` that ``samples`` from :func:`final_samples` stand for.
+
+    None when the samples are the segments themselves (every row); else every
+    row's count, which a covariance from the windows is scaled to.
+    """
+    if [(int(a), int(b)) for a, b in samples] == [(int(a), int(b)) for a, b in segments]:
+        return None
+    return sum(max(int(b) - int(a) - lag, 0) for a, b in segments)
 
 
 def refinement_windows(segments, lag: int, rows: int = REFINE_ROWS,

@@ -35,7 +35,7 @@ from ..model.narx import NarxModel
 from ..model.uncertainty import Uncertainty
 from ..progress import Progress, ProgressFn
 from ..search.local import SearchResult, local_search
-from .folds import final_samples, final_steps, refinement_windows
+from .folds import final_samples, final_steps, refinement_windows, windowed_rows
 
 __all__ = ["SimulationScorer", "linear_masks", "linear_orders", "linear_structures",
            "select_for_simulation", "simulation_value"]
@@ -290,7 +290,7 @@ def free_run_covariance(model: NarxModel, problem: Problem
     segments = [(int(a), int(b)) for a, b in problem.segments]
     samples = final_samples(segments, problem.term_space.max_lag,
                             8 * len(model.term_indices), single=True)
-    rows = problem.rows if samples != segments else None
+    rows = windowed_rows(samples, segments, problem.term_space.max_lag)
     found, why = free_run_uncertainty(model, problem.u, problem.y, samples, rows=rows)
     lag = problem.term_space.max_lag
     return found, {**({"no_uncertainty": why} if why else {}),
