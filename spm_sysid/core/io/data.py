@@ -254,12 +254,13 @@ def _separator(line: str) -> tuple[str | None, bool]:
     digits (``0,5;1,25``: semicolons separate, commas are decimal marks); a
     semicolon; else whitespace, where fields like ``0,5`` are decimal commas too.
     """
-    cells = [c.strip().strip('"') for c in line.split("#", 1)[0].split(";")]
+    cells = _split(line, ";")
     if ";" in line and any(_DECIMAL_COMMA.fullmatch(c) for c in cells) and not any(
             "," in c and not _DECIMAL_COMMA.fullmatch(c) for c in cells):
         return ";", True
-    if "," in line and ";" not in line and len(line.split()) > 1 and all(
-            _DECIMAL_COMMA.fullmatch(c) or _is_number(c) for c in line.split("#", 1)[0].split()):
+    words = _split(line, None)
+    if "," in line and ";" not in line and len(words) > 1 and all(
+            _DECIMAL_COMMA.fullmatch(c) or _is_number(c) for c in words):
         return None, True
     return ("," if "," in line else (";" if ";" in line else None)), False
 
