@@ -28,6 +28,7 @@ from .errors import DataError, SettingsError
 from .fit.criteria import CERTIFIABLE, Criterion, get_criterion
 from .fit.problem import Problem, check_samples, validate_signals
 from .model.narx import NarxModel
+from .model.operating_point import OperatingPoint, choose_operating_point, in_record_units
 from .model.terms import TermSpace
 from .options import SEARCH_SETTINGS, SearchOptions
 from .progress import Progress, ProgressFn
@@ -92,7 +93,9 @@ def identify(
         :class:`~spm_sysid.core.fit.criteria.Criterion` or a user's ``f(sse, n, k,
         coefficients)``), ``seed``, ``focus``, ``selection``, ``shortlist``,
         ``max_terms``, ``polish``, ``certify``, ``certify_time_limit``,
-        ``auto_certify_time_limit``, ``horizon``, ``orders`` (``auto``: the lags
+        ``auto_certify_time_limit``, ``horizon``, ``operating_point`` (``auto``:
+        around the estimation data's means when a signal sits far from zero,
+        :mod:`~spm_sysid.core.model.operating_point`), ``orders`` (``auto``: the lags
         and degree proposed from the data), ``decimate`` (at 1/N of the rate:
         :mod:`~spm_sysid.core.model.decimation`), the term space's and the GA's. A
         ``certify_time_limit`` given alone asks for the certification. The
@@ -114,16 +117,41 @@ def identify(
     (``model.metadata["excluded_zero_terms"]``, ``["excluded_duplicate_terms"]``).
     """
     u, y, segments, decimation = _decimated(u, y, segments, settings.pop("decimate", None))
+    around = check_setting("operating_point", settings.pop("operating_point", "auto"))
     options, term_space, ga, orders, regressors = _edge(settings, term_space, ga)
+    point, kept_as_is = _operating_point(around, u, y, segments, term_space, regressors)
+    if point is not None:
+        u, y = point.centred(u, y)
     term_space, why = (_orders_from_data(u, y, segments, term_space, options)
                        if orders == "auto" else (term_space, None))
     if regressors:
         term_space = _with_regressors(term_space, regressors, y, u)
     problem = Problem.from_signals(u, y, term_space, segments)
     result = identify_problem(problem, options, ga=ga, callback=callback, progress=progress)
+    if point is not None:
+        result.model = in_record_units(result.model, point)
     result.model.metadata.update({k: v for k, v in (("orders", why),
                                                     ("decimation", decimation)) if v})
+    if kept_as_is:
+        result.model.metadata["operating_point"] = {"reason": kept_as_is}
     return result
+
+
+def _operating_point(setting: str, u, y, segments, term_space: TermSpace,
+                     regressors: list[str]) -> tuple[OperatingPoint | None, str | None]:
+    """The point ``identify`` works around (None: the record as it is), and why not if not."""
+    from .model.segments import normalise_segments
+
+    y = np.asarray(y, dtype=float)
+    u = np.asarray(u, dtype=float).reshape(len(y), -1)
+    if not np.all(np.isfinite(y)) or not np.all(np.isfinite(u)):
+        return None, None  # the problem's checks say what is wrong
+    rows = [slice(a, b) for a, b in normalise_segments(segments, len(y))]
+    u_rows, y_rows = np.concatenate([u[r] for r in rows]), np.concatenate([y[r] for r in rows])
+    if len(y_rows) < 2 or term_space.n_inputs != u.shape[1]:
+        return None, None
+    space = _with_regressors(term_space, regressors, y, u) if regressors else term_space
+    return choose_operating_point(setting, u_rows, y_rows, space)
 
 
 def _decimated(u, y, segments, factor: int | None):

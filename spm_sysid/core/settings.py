@@ -121,6 +121,10 @@ _LIST = [
        "(each input's lags clipped at the level the data prefer) or expressions such as "
        "'sign(y(t-1)-y(t-2))', separated by ';' (docs/model_format.md)",
        "term_space", many=True),
+    _s("operating_point", str, "auto", "identify the deviations from the estimation data's "
+       "means, the model written in the record's units (docs/method.md): auto (when some "
+       "signal's mean is farther from zero than its standard deviation), mean (always) or "
+       "none (the record as it is)", "term_space", choices=("auto", "mean", "none")),
     # -- the genetic algorithm -------------------------------------------------------------
     _s("population_size", int, 200, "GA population (paper: 200 and 100)", "ga", low=2,
        high=100_000, aliases=("--population",)),

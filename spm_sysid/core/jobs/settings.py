@@ -48,6 +48,9 @@ class JobSettings:
     regressors : str
         As given (``;``-separated); the job expands them with the record's
         signals (:meth:`with_regressors`).
+    operating_point : str
+        ``auto``, ``mean`` or ``none``
+        (:mod:`~spm_sysid.core.model.operating_point`).
     """
 
     term_space: TermSpace = field(default_factory=TermSpace)
@@ -61,6 +64,7 @@ class JobSettings:
     gap_factor: float = SETTINGS["gap_factor"].default
     decimate: int = SETTINGS["decimate"].default
     regressors: str = SETTINGS["regressors"].default
+    operating_point: str = SETTINGS["operating_point"].default
 
     # the search's settings the rest of a job reads too (read-only views)
     @property

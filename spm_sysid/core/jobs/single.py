@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -26,6 +26,12 @@ from ..fit.problem import Problem
 from ..identify import identify_problem
 from ..model.decimation import decimation_phrase
 from ..model.narx import NarxModel
+from ..model.operating_point import (
+    OperatingPoint,
+    choose_operating_point,
+    in_record_units,
+    operating_point_words,
+)
 from ..model.segments import describe_data, segment_report
 from ..online.monitor import store_monitor_reference
 from ..progress import Progress, ProgressFn
@@ -173,6 +179,9 @@ def _certificate_words(meta: dict) -> str:
 def _selection_words(meta: dict) -> str:
     """How the structure was chosen, after the orders taken from the data (if they were)."""
     selected = describe_selection(meta.get("selection"))
+    point = operating_point_words(meta.get("operating_point"))
+    if point:
+        selected = point + (f"; {selected}" if selected else "")
     orders = meta.get("orders")
     if orders:
         selected = (f"orders from the data: ny = nu = {orders['ny']}, degree "
@@ -246,19 +255,48 @@ def _fate(call: dict) -> str:
     return fate + ": linear kept"
 
 
-def choose_orders(record: Record, settings: JobSettings, est) -> tuple[JobSettings, dict]:
+def choose_orders(record: Record, settings: JobSettings, est, u: np.ndarray | None = None,
+                  y: np.ndarray | None = None) -> tuple[JobSettings, dict]:
     """``orders: auto``: the settings with the lags and degree proposed from the data, and why.
 
     The proposal runs on the longest estimation segment
-    (:func:`~spm_sysid.core.validate.orders.orders_from_data`).
+    (:func:`~spm_sysid.core.validate.orders.orders_from_data`) of the record's
+    samples, or of ``u`` and ``y`` (its deviations from an operating point).
     """
-    from dataclasses import replace
-
     from ..validate.orders import orders_from_data
 
-    space, why = orders_from_data(record.u, record.y, est, settings.term_space,
-                                  settings.criterion, settings.focus)
+    space, why = orders_from_data(record.u if u is None else u, record.y if y is None else y,
+                                  est, settings.term_space, settings.criterion, settings.focus)
     return replace(settings, term_space=space), why
+
+
+def _operating_point(settings: JobSettings, u: np.ndarray, y: np.ndarray, est
+                     ) -> tuple[OperatingPoint | None, str | None]:
+    """The point the job identifies around (None: the record as it is), and why not if not.
+
+    Decided on the estimation rows, with the regressors the job will add.
+    """
+    space = settings.term_space
+    if settings.regressors and settings.operating_point != "none":
+        space = settings.with_regressors(_rows(y, est), _rows(u, est)).term_space
+    return choose_operating_point(settings.operating_point, _rows(u, est), _rows(y, est), space)
+
+
+def _in_units(report: ProgressFn, point: OperatingPoint | None) -> ProgressFn:
+    """``report`` whose best model so far is written in the record's units."""
+    if point is None:
+        return report
+
+    def mapped(p: Progress) -> None:
+        built = p.best_model
+        if built is None:
+            return report(p)
+
+        def best():
+            model = built()
+            return None if model is None else in_record_units(model, point)
+        return report(replace(p, best_model=best))
+    return mapped
 
 
 def validation_segments(record: Record, settings: JobSettings
@@ -338,20 +376,25 @@ def run_single_job(
     settings = settings.for_signals(record.input_names, record.output_name)
     u, y = record.u, record.y
     est, val, data = validation_segments(record, settings)
+    point, kept_as_is = _operating_point(settings, u, y, est)
+    du, dy = point.centred(u, y) if point is not None else (u, y)
     orders = None
     if settings.orders == "auto":  # the lags and degree from the estimation data
         report(Progress("orders", elapsed=time.perf_counter() - t0))
-        settings, orders = choose_orders(record, settings, est)
+        settings, orders = choose_orders(record, settings, est, du, dy)
         est, val, data = validation_segments(record, settings)
     if settings.regressors:  # presets take their scales from the estimation data
-        settings = settings.with_regressors(_rows(y, est), _rows(u, est))
+        settings = settings.with_regressors(_rows(dy, est), _rows(du, est))
         est, val, data = validation_segments(record, settings)
     space = settings.term_space
-    problem = Problem.from_signals(u, y, space, est)
+    problem = Problem.from_signals(du, dy, space, est)
     ident = identify_problem(problem, settings.search, ga=settings.ga,
-                             progress=_throttled(report, progress_every), started=t0)
+                             progress=_in_units(_throttled(report, progress_every), point),
+                             started=t0)
     t1 = time.perf_counter()
-    model = ident.model
+    model = ident.model if point is None else in_record_units(ident.model, point)
+    if kept_as_is:
+        model.metadata["operating_point"] = {"reason": kept_as_is}
     validation = None
     if settings.validation != "none":
         report(Progress("validation", elapsed=t1 - t0, best_model=lambda: model))
