@@ -127,11 +127,10 @@ def _moving_regressors(space: TermSpace, u: np.ndarray, y: np.ndarray,
     if not space.regressors:
         return []
     rows = min(len(y), 2000)
-    scales = space.regressor_scales(u[:rows], y[:rows])
     du, dy = point.centred(u[:rows], y[:rows])
     return [text for text, a, b in zip(space.regressors,
-                                       space.regressor_columns(u[:rows], y[:rows], scales),
-                                       space.regressor_columns(du, dy, scales))
+                                       space.regressor_columns(u[:rows], y[:rows]),
+                                       space.regressor_columns(du, dy))
             if not np.allclose(a, b, rtol=1e-9, equal_nan=True,
                                atol=1e-12 * max(float(np.nanmax(np.abs(a), initial=0.0)), 1.0))]
 
