@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from ...core.defaults import AUTO_MAX_TERMS, ROWS_PER_TERM
+from ...core.settings import SETTINGS
 from .common import (
     UserError,
     add_data_options,
@@ -46,16 +47,36 @@ def cmd_propose_lags(args) -> int:
     if info.gaps or len(info.bounds) > 1:
         raise UserError(f"{record.source} has gaps or several records; propose lags on one "
                         "contiguous record")
-    proposal = propose_orders(record.u, record.y, max_order=args.max_order,
+    u, y, around = _around(record, args.operating_point)
+    proposal = propose_orders(u, y, max_order=args.max_order,
                               max_degree=args.max_degree, delay=args.delay,
                               criterion=args.criterion, inputs=record.input_names,
                               focus=args.focus, max_terms=args.max_terms)
     print(f"data: {record.source}, {len(record)} samples")
+    if around:
+        print(around)
     print(proposal.summary())
     n, d = proposal.order, proposal.degree
     print(f"proposal: --ny {n} --nu {n} --degree {d} --delay {args.delay} --constant"
           "  (as --orders auto identifies: the constant a candidate)")
     return 0
+
+
+def _around(record, setting: str):
+    """The record's samples, or their deviations from its means, as identify takes them."""
+    from ...core.model.operating_point import choose_operating_point
+    from ...core.model.terms import TermSpace
+
+    space = TermSpace(ny=1, nu=1, degree=1, inputs=record.input_names,
+                      output=record.output_name)
+    point, _ = choose_operating_point(setting, record.u, record.y, space)
+    if point is None:
+        return record.u, record.y, ""
+    u, y = point.centred(record.u, record.y)
+    values = ", ".join(f"{name} = {v:.6g}" for name, v in
+                       zip((space.output, *space.inputs), (point.output, *point.inputs)))
+    return u, y, (f"around the record's means ({values}; {point.reason}): the scans read "
+                  "the deviations, as identify does")
 
 
 def cmd_compile(args) -> int:
@@ -102,6 +123,11 @@ def add_parsers(sub) -> None:
                    help="what the model is for: spaces compared by the one-step criterion "
                    "(prediction) or by how they simulate held-out samples (simulation), "
                    "as identify --orders auto does with that focus (default prediction)")
+    p.add_argument("--operating-point", type=schema_type("operating_point"),
+                   choices=SETTINGS["operating_point"].choices, default="auto",
+                   help="scan the deviations from the record's means, as identify does "
+                   "(default auto: when a signal's mean is farther from zero than its "
+                   "standard deviation)")
     p.add_argument("--max-terms", type=positive_int, default=AUTO_MAX_TERMS,
                    help="candidate terms a proposed space may have at most (default "
                    f"{AUTO_MAX_TERMS}; fewer on records of fewer than {ROWS_PER_TERM} rows "
