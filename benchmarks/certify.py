@@ -123,7 +123,8 @@ def main(argv: list[str] | None = None) -> int:
         u, y = CASES[name]()
         for crit in criteria:
             res = identify(u=u, y=y, term_space=ts, criterion=crit, seed=1, polish=False,
-                           auto_certify_time_limit=0, selection="criterion")
+                           auto_certify_time_limit=0, selection="criterion",
+                           operating_point="none")
             t0 = time.perf_counter()
             cert = certify_data(u, y, term_space=ts, criterion=crit,
                                 warm_start=res.model.mask, time_limit=args.time_limit)

@@ -99,7 +99,8 @@ def _ours(case: dict) -> dict:
     limit = case["time_limit"]
     res = identify(u=u, y=y, term_space=space, criterion=case["criterion"], seed=1,
                    callback=lambda s: time.perf_counter() - started < 0.5 * limit,
-                   auto_certify_time_limit=0, polish=True, selection="criterion")
+                   auto_certify_time_limit=0, polish=True, selection="criterion",
+                   operating_point="none")
     cert = certify_data(u, y, term_space=space, criterion=case["criterion"],
                         warm_start=res.model.mask, time_limit=limit, started=started,
                         node_limit=case.get("node_limit"), explain=5)

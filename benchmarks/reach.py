@@ -40,7 +40,8 @@ def _runs(u, y, criterion: str, seeds: int
     for seed in range(seeds):
         t0 = time.perf_counter()
         res = identify(u=u, y=y, ny=3, nu=3, degree=3, constant=True, criterion=criterion,
-                       selection="criterion", seed=seed, auto_certify_time_limit=0)
+                       selection="criterion", seed=seed, auto_certify_time_limit=0,
+                       operating_point="none")
         seconds.append(time.perf_counter() - t0)
         values.append(float(res.model.criterion_value))
         ga_values.append(float(res.model.metadata["polish"]["ga_value"]))

@@ -71,7 +71,8 @@ def _cell(spec: dict) -> dict:
             return time.perf_counter() - start < budget
 
         res = identify(u=u, y=y, term_space=space, criterion=spec["criterion"], seed=1,
-                       ga=GAConfig(spm_fraction=spm), callback=callback)
+                       ga=GAConfig(spm_fraction=spm), callback=callback,
+                       operating_point="none")
         seconds = time.perf_counter() - start
         full = done["gens"] >= 300
         return {"seconds": seconds if full else seconds * 300 / max(done["gens"], 1),
