@@ -23,6 +23,7 @@ from spm_sysid.core.model.terms import TermSpace
 from spm_sysid.core.model.uncertainty import Uncertainty
 from spm_sysid.core.record import Record
 
+from .conftest import EQ1
 from .helpers.joint import joint_record
 
 #: The simulated joint's position, moved this far from zero (rad): ~140 of its
@@ -181,3 +182,33 @@ def test_the_python_api_identifies_around_the_means_too(robot_arm):
     # the same deviations up to rounding: the same structure and free run
     assert moved.model.metadata["operating_point"]["selected_terms"] == base.model.terms
     assert np.allclose(sim_moved - 100.0, sim_base, rtol=0, atol=1e-6)
+
+
+def test_the_paper_record_far_from_zero_gets_equation_1_certified(robot_arm, tmp_path):
+    """The arm's acceleration moved by 1000: identify and certify as typed give eq. (1)."""
+    u, y = robot_arm
+    data = tmp_path / "moved.csv"
+    np.savetxt(data, np.c_[u, y + 1000.0], delimiter=",", header="u,y", comments="",
+               fmt="%.10g")
+    cli = [sys.executable, "-m", "spm_sysid.apps.main"]
+    out = subprocess.run([*cli, "identify", "--data", str(data), "--seed", "1", "--json",
+                          str(tmp_path / "m.json")], capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert "certified optimal over all structures" in out.stdout
+    doc = json.loads((tmp_path / "m.json").read_text())
+    assert doc["metadata"]["operating_point"]["selected_terms"] == EQ1
+    assert doc["terms"] == ["1", *EQ1]
+    assert doc["criterion"]["value"] == pytest.approx(-10744.785, abs=0.001)
+    cert = subprocess.run([*cli, "certify", "--data", str(data), "--criterion", "aic",
+                           "--seed", "1", "--quiet"], capture_output=True, text=True,
+                          timeout=300)
+    assert cert.returncode == 0, cert.stderr
+    assert "around the estimation data's means (y = 1000" in cert.stdout
+    assert "status: optimal" in cert.stdout and "value: -10744.78" in cert.stdout
+    as_recorded = subprocess.run([*cli, "certify", "--data", str(data), "--criterion", "aic",
+                                  "--seed", "1", "--quiet", "--operating-point", "none",
+                                  "--node-limit", "2000"], capture_output=True, text=True,
+                                 timeout=300)
+    assert as_recorded.returncode == 0, as_recorded.stderr
+    assert "around" not in as_recorded.stdout and "value: -10744.78" not in as_recorded.stdout

@@ -38,13 +38,14 @@ def cmd_certify(args) -> int:
                          space.n_terms)  # before the GA: nothing wasted
     print(f"data: {record.source}, {len(record)} samples; "
           f"{space.n_terms} candidate terms, {args.criterion.upper()}")
+    u, y = _around(settings, record, segments)
     _compile_first()
     started = time.perf_counter()  # the time limit covers the warm start and the proof
     bars = PhaseBars(not args.quiet).for_generations(settings.ga.generations)
     try:
-        warm = None if args.no_ga else _warm_start(args, record, settings, segments, bars,
+        warm = None if args.no_ga else _warm_start(args, (u, y), settings, segments, bars,
                                                    started)
-        cert = certify_data(record.u, record.y, term_space=space, criterion=args.criterion,
+        cert = certify_data(u, y, term_space=space, criterion=args.criterion,
                             segments=segments, warm_start=warm, time_limit=time_limit,
                             node_limit=args.node_limit, progress=bars.nodes,
                             threads=args.threads, started=started, explain=args.explain)
@@ -100,8 +101,30 @@ def _compile_first() -> None:
         ensure_compiled()
 
 
-def _warm_start(args, record, settings, segments, bars, started: float):
-    """The GA's best structure by the criterion, within half the time limit."""
+def _around(settings, record, segments):
+    """The record's samples, or their deviations from its means, as identify selects on them."""
+    import numpy as np
+
+    from ...core.model.operating_point import choose_operating_point
+
+    rows = np.concatenate([np.arange(a, b) for a, b in segments])
+    point, kept = choose_operating_point(settings.operating_point, record.u[rows],
+                                         record.y[rows], settings.term_space)
+    if point is None:
+        if kept:
+            print(f"as recorded: {kept}")
+        return record.u, record.y
+    values = ", ".join(f"{name} = {v:.6g}" for name, v in zip(
+        (settings.term_space.output, *settings.term_space.inputs),
+        (point.output, *point.inputs)))
+    print(f"around the estimation data's means ({values}; {point.reason}): the structures "
+          "certified are of the deviations from them, as identify selects them "
+          "(--operating-point none: of the record as it is)")
+    return point.centred(record.u, record.y)
+
+
+def _warm_start(args, signals, settings, segments, bars, started: float):
+    """The GA's best structure by the criterion on ``signals`` (u, y), within half the limit."""
     import time
 
     from ...core.identify import identify
@@ -115,10 +138,10 @@ def _warm_start(args, record, settings, segments, bars, started: float):
 
     # the criterion's best is the warm start (not a validated selection's
     # choice), and the proof below is the only certification
-    res = identify(u=record.u, y=record.y, term_space=settings.term_space,
+    res = identify(u=signals[0], y=signals[1], term_space=settings.term_space,
                    criterion=args.criterion, ga=settings.ga, seed=settings.seed,
                    segments=segments, callback=on_generation, selection="criterion",
-                   auto_certify_time_limit=0)
+                   auto_certify_time_limit=0, operating_point="none")
     warm = res.model.mask
     stopped = (f", stopped at generation {len(res.ga.history) - 1} by half the time "
                "limit" if res.ga.stopped_early else "")
