@@ -49,6 +49,10 @@ HOSTILE = {
     "warnings a number": ({"warnings": 5}, "metadata.warnings must be a list"),
     "orders text": ({"orders": "abc"}, "metadata.orders must be an object"),
     "orders without degree": ({"orders": {"ny": 2}}, "metadata.orders has no 'degree'"),
+    "an operating point as text": ({"operating_point": {"reason": "r", "output": {"y": "1"}}},
+                                   "metadata.operating_point.output.y must be a finite number"),
+    "an operating point without its reason": ({"operating_point": {"output": {"y": 1.0}}},
+                                              "metadata.operating_point has no 'reason'"),
     "certificate without its numbers": ({"certificate": {"status": "optimal"}},
                                         "metadata.certificate of status 'optimal' has no"),
     "selection text": ({"selection": "validated"}, "metadata.selection must be an object"),
@@ -96,7 +100,9 @@ def test_a_report_escapes_every_value_of_its_document(robot_arm, tmp_path, brows
     u, y = robot_arm
     model = eq1_model(robot_arm)
     model.metadata.update(orders={"ny": XSS, "degree": XSS, "reason": XSS},
-                          warnings=[XSS], focus="prediction")
+                          warnings=[XSS], focus="prediction",
+                          operating_point={"reason": XSS, "output": {XSS: 1.0}, "inputs": {},
+                                           "selected_terms": [XSS]})
     path = write_model_report(tmp_path / "r.html", ReportContent(title="t", command=XSS),
                               [OutputSection("y", model, validate_model(model, u, y))])
     html = path.read_text()

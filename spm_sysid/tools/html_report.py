@@ -314,6 +314,7 @@ def _coefficient_table(section: OutputSection) -> str:
 def _facts(section: OutputSection) -> str:
     """Criterion, certification, selection, orders, data check and warnings."""
     from ..core.jobs.single import describe_selection
+    from ..core.model.operating_point import operating_point_words
     from ..core.search.certify import describe_certificate
     from ..core.validate.excitation import describe_check
 
@@ -329,6 +330,9 @@ def _facts(section: OutputSection) -> str:
     cert = describe_certificate(meta.get("certificate"))
     if cert:
         items.append(f"<li><b>certification</b> {_esc(cert)}</li>")
+    point = operating_point_words(meta.get("operating_point"))
+    if point:
+        items.append(f"<li><b>operating point</b> {_esc(point)}</li>")
     sel = describe_selection(meta.get("selection"))
     if sel:
         items.append(f"<li><b>selection</b> {_esc(sel)}</li>")

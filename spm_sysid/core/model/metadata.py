@@ -280,6 +280,11 @@ METADATA = fields({
     "monitor": lambda v, p: check_monitor(v, p),
     "interrupted": fields({"phase": text(), "model": text()}),
     "decimation": DECIMATION,
+    "operating_point": fields({
+        "output": mapping(number(null=False)), "inputs": mapping(number(null=False)),
+        "reason": text(null=False), "selected_terms": items(text(null=False)),
+        "terms_added": integer()},
+        required=("reason",)),
 })
 
 #: The several-output document's own metadata (each output's model has its own).
