@@ -64,3 +64,34 @@ def test_real_records_keep_their_contiguous_folds(robot_arm):
     folds, note = informative_folds(problem, 3, 3)
     assert note == "" and len(folds) == 9
     assert fold_excitation(problem, folds) > 0.8
+
+
+def test_a_search_whose_first_draw_cannot_be_fitted_starts_with_smaller_structures():
+    """The step record around its means: every structure of the first draw is rank-deficient."""
+    from spm_sysid.core.fit.evaluator import structure_keys
+    from spm_sysid.core.search.ga import GAConfig, run_ga
+
+    u, y = step_record()
+    problem = Problem.from_signals(u - u.mean(), y - y.mean(), TermSpace(constant=True))
+    evaluator = problem.evaluator("aic")
+    config = GAConfig()
+    init_prob, _ = config.rates(evaluator.n_terms)
+    first = np.random.default_rng(1).random((config.population_size, evaluator.n_terms))
+    first = first < init_prob
+    assert not np.isfinite(evaluator.score(first, structure_keys(first))).any()
+    result = run_ga(problem.evaluator("aic"), config, seed=1)
+    assert np.isfinite(result.best_score)  # before: inf, 'no structure could be fitted'
+    assert result.history[0].best < np.inf
+
+
+@pytest.mark.parametrize("levels", [(1.0, 2.0), (-0.3, 0.7)])
+def test_a_two_level_inputs_square_repeats_it_when_the_constant_is_a_candidate(levels):
+    """u^2 = (a + b) u - a b: with the constant, the square adds nothing and is left out."""
+    u, _ = step_record()
+    u = np.where(u > 0, levels[1], levels[0])
+    rng = np.random.default_rng(0)
+    y = np.convolve(u, [0.0, 0.5, 0.25])[:len(u)] + 0.01 * rng.standard_normal(len(u))
+    with_constant = Problem.from_signals(u, y, TermSpace(ny=1, nu=1, constant=True))
+    assert with_constant.excluded_terms()["duplicate"] == {"u(t-1)^2": "u(t-1)"}
+    without = Problem.from_signals(u, y, TermSpace(ny=1, nu=1))
+    assert without.excluded_terms()["duplicate"] == {}

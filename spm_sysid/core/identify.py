@@ -126,6 +126,8 @@ def identify(
                        if orders == "auto" else (term_space, None))
     if regressors:
         term_space = _with_regressors(term_space, regressors, y, u)
+    if point is not None:  # a model of the deviations may need the constant
+        term_space = replace(term_space, constant=True)
     problem = Problem.from_signals(u, y, term_space, segments)
     result = identify_problem(problem, options, ga=ga, callback=callback, progress=progress)
     if point is not None:
@@ -142,10 +144,11 @@ def _operating_point(setting: str, u, y, segments, term_space: TermSpace,
     """The point ``identify`` works around (None: the record as it is), and why not if not."""
     from .model.segments import normalise_segments
 
-    y = np.asarray(y, dtype=float)
-    u = np.asarray(u, dtype=float).reshape(len(y), -1)
-    if not np.all(np.isfinite(y)) or not np.all(np.isfinite(u)):
+    y, u = np.asarray(y, dtype=float), np.asarray(u, dtype=float)
+    if (y.ndim != 1 or u.ndim not in (1, 2) or len(u) != len(y) or not np.all(np.isfinite(y))
+            or not np.all(np.isfinite(u))):
         return None, None  # the problem's checks say what is wrong
+    u = u.reshape(len(y), -1)
     rows = [slice(a, b) for a, b in normalise_segments(segments, len(y))]
     u_rows, y_rows = np.concatenate([u[r] for r in rows]), np.concatenate([y[r] for r in rows])
     if len(y_rows) < 2 or term_space.n_inputs != u.shape[1]:

@@ -27,7 +27,7 @@ least-squares fit of one structure (:meth:`fit`, :meth:`model`).
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -173,8 +173,18 @@ def working_bytes(rows: int, terms: int) -> int:
     return matrix + slices + 2 * 8 * (terms + 2) ** 2
 
 
-def excluded_columns(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def excluded_columns(P: np.ndarray, constant: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Columns to leave out of the search.
+
+    Parameters
+    ----------
+    P : ndarray, shape (N, M)
+        The candidate columns, one per term.
+    constant : bool
+        Column 0 is the constant term: a column that is an earlier one times a
+        number plus a number then adds nothing either (a two-level input's
+        square, ``u^2 = (a + b) u - a b``, once the record is centred or its levels
+        are not 0 and 1).
 
     Returns
     -------
@@ -182,8 +192,9 @@ def excluded_columns(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         Columns that are zero on every row.
     duplicate_of : ndarray of int, shape (M,)
         For a non-zero column proportional to an earlier non-zero column (equal
-        after scaling to unit norm and fixing the sign, to about 1e-11), the index
-        of the first such column; -1 otherwise.
+        after scaling to unit norm and fixing the sign, to about 1e-11), or with
+        ``constant`` an affine function of one, the index of the first such column;
+        -1 otherwise.
 
     Notes
     -----
@@ -201,17 +212,35 @@ def excluded_columns(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         pivot = col[int(np.argmax(np.abs(col)))]
         return np.round(np.ldexp(col * np.sign(pivot), _BITS)).astype(np.int64).tobytes()
 
+    _mark_repeats(np.flatnonzero(~zero), key, duplicate_of)
+    if constant and P.shape[1] > 1:
+        centred_norms = np.array([np.linalg.norm(P[:, j] - P[:, j].mean()) for j in
+                                  range(P.shape[1])])
+        moving = np.flatnonzero(~zero & (duplicate_of < 0)
+                                & (centred_norms > 1e-9 * np.maximum(norms, 1e-300)))
+
+        def centred_key(j: int) -> bytes:
+            col = (P[:, j] - P[:, j].mean()) / centred_norms[j]
+            pivot = col[int(np.argmax(np.abs(col)))]
+            return np.round(np.ldexp(col * np.sign(pivot), _BITS)).astype(np.int64).tobytes()
+
+        _mark_repeats(moving[moving > 0], centred_key, duplicate_of)
+    return zero, duplicate_of
+
+
+def _mark_repeats(columns: np.ndarray, key: Callable[[int], bytes], duplicate_of: np.ndarray
+                  ) -> None:
+    """Each column whose key an earlier column of ``columns`` has: marked with that column."""
     # keyed by a digest of the rounded column (a whole key per column would be another
     # copy of the matrix); a digest match is confirmed on the keys themselves
     first: dict[bytes, int] = {}
-    for j in np.flatnonzero(~zero):
+    for j in columns:
         k = key(j)
         digest = hashlib.blake2b(k, digest_size=16).digest()
         if digest in first and key(first[digest]) == k:
             duplicate_of[j] = first[digest]
         else:
             first.setdefault(digest, j)
-    return zero, duplicate_of
 
 
 # -- the problem ----------------------------------------------------------------------------
@@ -292,7 +321,7 @@ class Problem:
                                                           scales=scales)
         lag = term_space.max_lag
         self.row_times = np.concatenate([np.arange(a + lag, b) for a, b in self.segments])
-        self.zero, self.duplicate_of = excluded_columns(self.columns)
+        self.zero, self.duplicate_of = excluded_columns(self.columns, term_space.constant)
         self.usable = ~self.zero & (self.duplicate_of < 0) & ~term_space.regressor_products
         self._factors = term_space.coefficient_factors(self.u_scale, self.y_scale, self.r_scale)
         self._evaluators: dict[float, object] = {}  # the shared numbers, by rank_tol

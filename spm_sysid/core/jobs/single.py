@@ -387,6 +387,8 @@ def run_single_job(
         settings = settings.with_regressors(_rows(dy, est), _rows(du, est))
         est, val, data = validation_segments(record, settings)
     space = settings.term_space
+    if point is not None:  # a model of the record's units may need no constant, one of
+        space = replace(space, constant=True)  # the deviations does: a candidate
     problem = Problem.from_signals(du, dy, space, est)
     ident = identify_problem(problem, settings.search, ga=settings.ga,
                              progress=_in_units(_throttled(report, progress_every), point),

@@ -39,6 +39,20 @@ __all__ = ["OFFSET_RATIO", "OperatingPoint", "choose_operating_point", "in_recor
 #: farther from zero than this many of its standard deviations.
 OFFSET_RATIO = 1.0
 
+#: A signal whose mean is within this many of its standard deviations of zero
+#: keeps its samples as they are (``auto``): it adds no term, and its offset does
+#: not matter.
+NEAR_RATIO = 0.1
+
+#: A signal that varies by less than this share of its mean is constant (a
+#: setpoint, a held input): it has nothing to centre, and ``auto`` does not count it.
+CONSTANT_SHARE = 1e-9
+
+#: A coefficient of the record's units smaller than this share of the sum of
+#: its parts' sizes is zero to rounding (the constant of a model that has
+#: none, worked out from one that has): it is not written.
+ROUNDING_SHARE = 1e-9
+
 
 @dataclass(frozen=True)
 class OperatingPoint:
@@ -104,11 +118,15 @@ def choose_operating_point(setting: str, u_rows: np.ndarray, y_rows: np.ndarray,
     y = np.asarray(y_rows, dtype=float)
     means = np.append(u.mean(axis=0), y.mean())
     spread = np.append(u.std(axis=0), y.std())
+    varies = spread > CONSTANT_SHARE * np.abs(means)
     names = (*space.inputs, space.output)
     far = [f"{n}'s mean {m:.6g} is {abs(m) / s:.3g} standard deviations from zero"
-           for n, m, s in zip(names, means, spread) if s > 0 and abs(m) > OFFSET_RATIO * s]
-    if setting == "auto" and not far or not np.any(means):
+           for n, m, s, v in zip(names, means, spread, varies)
+           if v and abs(m) > OFFSET_RATIO * s]
+    moved = varies & (np.abs(means) > (NEAR_RATIO * spread if setting == "auto" else 0.0))
+    if setting == "auto" and not far or not np.any(moved):
         return None, None
+    means = np.where(moved, means, 0.0)
     reason = "; ".join(far) if far else "asked for (operating_point: mean)"
     point = OperatingPoint(tuple(float(v) for v in means[:-1]), float(means[-1]), reason)
     moving = _moving_regressors(space, u, y, point)
@@ -156,19 +174,21 @@ def in_record_units(model: NarxModel, point: OperatingPoint) -> NarxModel:
             expansion[index[tuple(b for b, keep in zip(term, kept) if keep)], j] += factor
     shift = np.zeros(whole.n_terms)  # the output is its deviation plus the point's output
     shift[index[()]] = point.output
-    rows = np.flatnonzero(np.any(expansion != 0.0, axis=1) | (shift != 0.0))
-    expansion, shift = expansion[rows], shift[rows]
+    theta = expansion @ model.coefficients + shift
+    parts = np.abs(expansion) @ np.abs(model.coefficients) + np.abs(shift)
+    rows = np.flatnonzero(np.abs(theta) > ROUNDING_SHARE * parts)
+    expansion, theta = expansion[rows], theta[rows]
     uncertainty = model.uncertainty
     if uncertainty is not None:
         cov = expansion @ uncertainty.covariance @ expansion.T
         uncertainty = replace(uncertainty, covariance=(cov + cov.T) / 2.0)
     doc = point.to_dict(space)
     doc["selected_terms"] = model.terms
-    doc["terms_added"] = int(len(rows) - len(model.term_indices))
+    doc["terms_added"] = int(len(set(rows) - {index[space.terms[i]]
+                                             for i in model.term_indices}))
     model.metadata["operating_point"] = doc
     return replace(model, term_space=whole, term_indices=[int(r) for r in rows],
-                   coefficients=expansion @ model.coefficients + shift,
-                   uncertainty=uncertainty)
+                   coefficients=theta, uncertainty=uncertainty)
 
 
 def operating_point_words(doc: dict | None) -> str:

@@ -291,12 +291,14 @@ def run_ga(
     evals0, lookups0 = evaluator.evaluations, evaluator.lookups
 
     init_prob, mutation = config.rates(length)
-    pop = rng.random((size, length)) < init_prob
+    pop, scores = _feasible_start(rng.random((size, length)) < init_prob, evaluator,
+                                  init_prob, rng)
     result = GAResult(best_mask=pop[0].copy(), best_score=np.inf, first_best_generation=0)
     best_key: bytes | None = None
     for gen in range(config.generations + 1):
         keys = structure_keys(pop)
-        scores = evaluator.score(pop, keys)
+        if gen:  # the first population's scores come with it
+            scores = evaluator.score(pop, keys)
         i_best = int(np.argmin(scores))
         if scores[i_best] < result.best_score or best_key is None:
             result.best_score = float(scores[i_best])
@@ -324,6 +326,25 @@ def run_ga(
     result.lookups = evaluator.lookups - lookups0
     result.elapsed = time.perf_counter() - start
     return result
+
+
+def _feasible_start(pop: np.ndarray, evaluator, init_prob: float,
+                    rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """The first population, drawn again at half the density while no structure can be fitted.
+
+    A record with exact dependencies among its candidates (a noise-free step test,
+    a two-level input) can make every structure of the first draw rank-deficient;
+    the selection then has nothing to prefer and the search never starts. Smaller
+    structures hold fewer dependencies. A draw with one structure that fits is
+    kept as it is. Returns the population and its scores.
+    """
+    size, length = pop.shape
+    scores = evaluator.score(pop, structure_keys(pop))
+    while not np.isfinite(scores).any() and init_prob * length >= 1.0:
+        init_prob /= 2.0
+        pop = rng.random((size, length)) < init_prob
+        scores = evaluator.score(pop, structure_keys(pop))
+    return pop, scores
 
 
 def _next_generation(pop: np.ndarray, scores: np.ndarray, best: np.ndarray, config: GAConfig,

@@ -22,6 +22,7 @@ __all__ = ["add_parser", "cmd_certify"]
 def cmd_certify(args) -> int:
     """``spm-sysid certify``: the GA's best as warm start, then the branch and bound."""
     import time
+    from dataclasses import replace
 
     from ...core.files import atomic_write_text, document_json
     from ...core.search.certify import certify_data, check_certify_memory, describe_certificate
@@ -34,11 +35,16 @@ def cmd_certify(args) -> int:
     settings = record_settings(settings, record)
     space = settings.term_space
     segments = usable_segments(record, space.max_lag)
+    u, y, around = _around(settings, record, segments)
+    if u is not record.u:  # the deviations' space, as identify searches it: the constant
+        space = replace(space, constant=True)  # a candidate
+        settings = replace(settings, term_space=space)
     check_certify_memory(sum(b - a - space.max_lag for a, b in segments),
                          space.n_terms)  # before the GA: nothing wasted
     print(f"data: {record.source}, {len(record)} samples; "
           f"{space.n_terms} candidate terms, {args.criterion.upper()}")
-    u, y = _around(settings, record, segments)
+    if around:
+        print(around)
     _compile_first()
     started = time.perf_counter()  # the time limit covers the warm start and the proof
     bars = PhaseBars(not args.quiet).for_generations(settings.ga.generations)
@@ -102,7 +108,7 @@ def _compile_first() -> None:
 
 
 def _around(settings, record, segments):
-    """The record's samples, or their deviations from its means, as identify selects on them."""
+    """The samples certify reads (the record's, or their deviations from its means), and why."""
     import numpy as np
 
     from ...core.model.operating_point import choose_operating_point
@@ -111,16 +117,15 @@ def _around(settings, record, segments):
     point, kept = choose_operating_point(settings.operating_point, record.u[rows],
                                          record.y[rows], settings.term_space)
     if point is None:
-        if kept:
-            print(f"as recorded: {kept}")
-        return record.u, record.y
+        return record.u, record.y, f"as recorded: {kept}" if kept else ""
     values = ", ".join(f"{name} = {v:.6g}" for name, v in zip(
         (settings.term_space.output, *settings.term_space.inputs),
         (point.output, *point.inputs)))
-    print(f"around the estimation data's means ({values}; {point.reason}): the structures "
-          "certified are of the deviations from them, as identify selects them "
-          "(--operating-point none: of the record as it is)")
-    return point.centred(record.u, record.y)
+    u, y = point.centred(record.u, record.y)
+    return u, y, (f"around the estimation data's means ({values}; {point.reason}): the "
+                  "structures certified are of the deviations from them, the constant a "
+                  "candidate, as identify selects them (--operating-point none: of the "
+                  "record as it is)")
 
 
 def _warm_start(args, signals, settings, segments, bars, started: float):
