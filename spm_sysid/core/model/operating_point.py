@@ -9,8 +9,9 @@ compares mostly that. The same record moved by a constant gave a different and
 much worse model: the tests' simulated joint, its position 30 rad from zero,
 simulated another recording at a fit of 7 % instead of 70 % (docs/method.md).
 
-So a job identifies the deviations from the estimation data's means, and writes
-the model in the record's units: each product of deviations
+So a job identifies the deviations from the estimation data's means (the
+constant a candidate: a model of the record that needs none needs one around its
+means), and writes the model in the record's units: each product of deviations
 ``(x1 - c1)(x2 - c2)...`` expanded into the products of the record's signals it
 stands for, the constant among them. That is exact: the document is a polynomial
 NARX like any other, read and simulated as any other; its terms are the selected
