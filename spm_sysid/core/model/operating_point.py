@@ -117,8 +117,11 @@ def choose_operating_point(setting: str, u_rows: np.ndarray, y_rows: np.ndarray,
         return None, None
     u = np.asarray(u_rows, dtype=float).reshape(len(y_rows), -1)
     y = np.asarray(y_rows, dtype=float)
-    means = np.append(u.mean(axis=0), y.mean())
-    spread = np.append(u.std(axis=0), y.std())
+    with np.errstate(over="ignore", invalid="ignore"):  # magnitudes are the problem's to refuse
+        means = np.append(u.mean(axis=0), y.mean())
+        spread = np.append(u.std(axis=0), y.std())
+    if not (np.all(np.isfinite(means)) and np.all(np.isfinite(spread))):
+        return None, None
     varies = spread > CONSTANT_SHARE * np.abs(means)
     names = (*space.inputs, space.output)
     far = [f"{n}'s mean {m:.6g} is {abs(m) / s:.3g} standard deviations from zero"
