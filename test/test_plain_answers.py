@@ -39,6 +39,31 @@ def test_a_glitch_in_the_output_is_named_with_its_sample(robot_arm):
     assert not any("far outside" in w for w in clean)
 
 
+def test_a_wrapped_joint_angle_is_named_and_steps_and_slow_angles_are_not(tmp_path):
+    """A continuous joint's position kept in [-pi, pi): the command as typed says so."""
+    from spm_sysid.core.validate.excitation import wraps
+
+    from .helpers.joint import joint_record
+
+    tau, q = joint_record(5.0, seed=1)
+    turns = 20.0 * q + 2.5  # several turns of a wheel, slow against its samples
+    wrapped = (turns + np.pi) % (2 * np.pi) - np.pi
+    jumps = int(np.sum(np.abs(np.diff(wrapped)) > np.pi))
+    assert jumps > 0
+    data = tmp_path / "wheel.csv"
+    np.savetxt(data, np.c_[tau, wrapped], delimiter=",", header="tau,q", comments="")
+    out = cli("identify", "--data", str(data), "--inputs", "tau", "--output", "q", "--seed",
+              "1")
+    assert out.returncode == 0, out.stderr
+    assert (f"warning: the output q jumps by nearly a turn (2*pi) at {jumps} sample(s)"
+            in out.stdout), out.stdout
+    degrees = (np.degrees(turns) + 180.0) % 360.0 - 180.0
+    assert wraps(degrees)[:2] == (360.0, "360")
+    assert wraps(np.unwrap(wrapped)) is None and wraps(turns) is None
+    step = np.where(np.arange(1000) < 500, 0.0, 6.0)  # a step test is not a wrap
+    assert wraps(step) is None and wraps(np.where(step > 0, 2.0, -2.0)) is None
+
+
 def test_a_constant_output_has_no_fit_percent_instead_of_minus_1e16():
     y = np.full(500, 0.25) + np.where(np.arange(500) % 2, 1e-17, 0.0)  # a mean that rounds
     m = metrics(y, np.full(500, 0.25))

@@ -42,7 +42,11 @@ from ..defaults import (
 from ..errors import DataError
 
 __all__ = ["COLLINEAR_LIMIT", "DataCheck", "check_problem", "describe_check",
-           "describe_glitches", "excitation_order", "glitches", "oversampling"]
+           "describe_glitches", "describe_wraps", "excitation_order", "glitches",
+           "oversampling", "wraps"]
+
+#: The turns an angle may be wrapped at, and their names: radians and degrees.
+TURNS = ((2.0 * np.pi, "2*pi"), (360.0, "360"))
 
 #: Terms named on one line of the report (the document lists them all).
 SHOWN_TERMS = 20
@@ -86,6 +90,55 @@ def describe_glitches(y: np.ndarray, at: list[int], name: str = "y") -> str:
             f"{d[at[0]] / ref:.0f} times the 99th percentile of its distance from the "
             "median): a glitch (a spike, a bad read)? It dominates any least-squares fit: "
             "remove it, or split the record there")
+
+
+def wraps(x: np.ndarray, segments=None) -> tuple[float, str, list[int]] | None:
+    """Where ``x`` wraps around like an angle: (turn, its name, the samples after each jump).
+
+    An angle kept within one turn (``[-pi, pi)``, ``[0, 360)``) jumps by nearly a
+    turn each time it passes the end: a continuous joint, a wheel, a yaw. Those
+    jumps are not the plant's, and a model of them is none of the plant's. A
+    signal counts when it stays within one turn, 99 % of its steps are below a
+    twentieth of a turn (a signal that moves that fast is not told from its
+    wraps), and every step of more than half a turn is a turn less a step of
+    that size: a turn minus the jump within three times the 99th percentile of
+    the other steps (a step input from 0 to 6 is not a wrap at 2*pi, the input
+    does not move between its samples). None otherwise.
+    """
+    x = np.asarray(x, dtype=float)
+    bounds = segments or [(0, len(x))]
+    steps = [(a + 1, np.diff(x[a:b])) for a, b in bounds if b - a > 1]
+    if not steps or not np.all(np.isfinite(x)):
+        return None
+    span = float(np.max(x) - np.min(x))
+    for turn, name in TURNS:
+        if span > 1.001 * turn:
+            continue
+        at = [start + int(i) for start, d in steps
+              for i in np.flatnonzero(np.abs(d) > turn / 2)]
+        if not at:
+            continue
+        jumps = np.abs(np.concatenate([d for _, d in steps]))
+        big = jumps > turn / 2
+        if np.all(big):
+            continue
+        typical = float(np.quantile(jumps[~big], 0.99))
+        if typical < turn / 20 and np.all(np.abs(turn - jumps[big])
+                                           <= 3.0 * typical + 1e-9 * turn):
+            return turn, name, at
+    return None
+
+
+def describe_wraps(x: np.ndarray, segments, name: str, role: str) -> str:
+    """The wraps of :func:`wraps` in words ('' when none)."""
+    found = wraps(x, segments)
+    if found is None:
+        return ""
+    _, turn, at = found
+    return (f"the {role} {name} jumps by nearly a turn ({turn}) at {len(at)} sample(s) (the "
+            f"first at sample {at[0]}) and stays within one turn: a wrapped angle? Its model "
+            "would fit the jumps, not the plant: unwrap it before identifying "
+            "(numpy.unwrap; a continuous joint's position in /joint_states wraps)")
 
 
 def excitation_order(u: np.ndarray, segments, max_order: int) -> int:
@@ -271,6 +324,12 @@ def _warn(check: DataCheck, problem, criterion: str | None = None) -> None:
     glitch = describe_glitches(problem.y, glitches(problem.y, problem.segments), ts.output)
     if glitch:  # first: it explains the warnings after it
         w.append(glitch)
+    for signal, name, role in [(problem.y, ts.output, "output"),
+                               *((problem.u[:, i], n, "input") for i, n in
+                                 enumerate(ts.inputs))]:
+        wrapped = describe_wraps(signal, problem.segments, name, role)
+        if wrapped:
+            w.append(wrapped)
     if check.rows_per_candidate < ROWS_PER_TERM:
         strong = criterion in ("bic", "aicc")
         w.append(f"{check.rows} rows for {check.usable} candidate terms (fewer than "
