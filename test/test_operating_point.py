@@ -212,3 +212,23 @@ def test_the_paper_record_far_from_zero_gets_equation_1_certified(robot_arm, tmp
                                  timeout=300)
     assert as_recorded.returncode == 0, as_recorded.stderr
     assert "around" not in as_recorded.stdout and "value: -10744.78" not in as_recorded.stdout
+
+
+def test_an_interrupted_jobs_best_model_so_far_is_written_in_the_record_units():
+    """Ctrl-C writes the progress record's best model: mapped like the returned one."""
+    from spm_sysid.core.jobs.single import _in_units
+    from spm_sysid.core.progress import Progress
+
+    space = TermSpace(ny=1, nu=1, degree=1)
+    point = OperatingPoint((2.0,), 30.0, "test")
+    seen = []
+    report = _in_units(seen.append, point)
+    report(Progress("search", best_model=lambda: _model(space, ["y(t-1)", "u(t-1)"],
+                                                        [0.5, 0.1])))
+    report(Progress("polish"))
+    model = seen[0].best_model()
+    assert dict(zip(model.terms, model.coefficients)) == pytest.approx(
+        {"1": 30.0 - 0.5 * 30.0 - 0.1 * 2.0, "y(t-1)": 0.5, "u(t-1)": 0.1})
+    assert seen[1].best_model is None
+    report = seen.append
+    assert _in_units(report, None) is report
