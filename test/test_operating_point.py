@@ -232,3 +232,25 @@ def test_an_interrupted_jobs_best_model_so_far_is_written_in_the_record_units():
     assert seen[1].best_model is None
     report = seen.append
     assert _in_units(report, None) is report
+
+
+def test_two_joints_far_from_zero_get_the_coupled_model_they_get_near_zero():
+    """Each output's job and the coupled judgement work around the same point."""
+    from .helpers.two_joints import two_joint_record
+
+    names = {"input_names": ("t1", "t2"), "output_names": ("q1", "q2")}
+    (u1, Y1), (u2, Y2) = two_joint_record(3000, seed=0), two_joint_record(3000, seed=1)
+    shift = np.array([5.0, -3.0])
+    settings = JobSettings.from_values({"focus": "simulation", "ny": 2, "nu": 2, "degree": 2,
+                                        "criterion": "bic", "seed": 1})
+    errors = []
+    for moved in (0.0 * shift, shift):
+        model = run_job(Record.from_samples(u1, Y1 + moved, source="arm", **names),
+                        settings).model
+        sim, diverged = model.simulate(u2, Y2 + moved)
+        assert diverged == [None, None]
+        errors.append(np.sqrt(np.mean((Y2[model.max_lag:] + moved - sim)[50:] ** 2, axis=0)))
+    assert errors[1] == pytest.approx(errors[0], rel=0.02)
+    points = [m.metadata["operating_point"] for m in model.models]
+    assert points[0]["output"]["q1"] == pytest.approx(5.0 + Y1[:, 0].mean(), abs=1e-9)
+    assert points[1]["inputs"]["q1"] == points[0]["output"]["q1"]

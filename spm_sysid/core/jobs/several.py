@@ -36,6 +36,7 @@ import numpy as np
 
 from ..defaults import PARALLEL_OUTPUT_BYTES
 from ..model.mimo import MimoModel, augmented_inputs, in_threads, output_space
+from ..model.operating_point import OperatingPoint, in_deviations, in_record_units
 from ..online.monitor import store_monitor_reference
 from ..progress import Progress, ProgressFn
 from ..record import Record
@@ -426,7 +427,7 @@ def run_mimo_job(record: Record, settings, *, progress: ProgressFn | None = None
     est, val, _ = validation_segments(record, base)
     # the coupled judgement, in both focuses: the joined model, its joint refinement
     # and the linear MIMO ARX structures compete on the coupled run
-    chosen, account = select_coupled(model, u, Y, est, lambda i, n: relay(
+    chosen, account = _select_around(model, u, Y, est, lambda i, n: relay(
         Progress("refinement", i, n)))
     if chosen is not model:
         model = _take_coupled_choice(model, chosen, account, outputs, record, settings, val)
@@ -444,6 +445,41 @@ def run_mimo_job(record: Record, settings, *, progress: ProgressFn | None = None
     model.metadata.update(metadata or {})
     times = record.row_seconds(val, model.max_lag) if settings.validation != "none" else None
     return MimoJobResult(model, outputs, cross, data, seconds, times)
+
+
+def _select_around(model: MimoModel, u: np.ndarray, Y: np.ndarray, est: list, progress
+                   ) -> tuple[MimoModel, dict]:
+    """The coupled judgement, on the deviations from the point the outputs' jobs used.
+
+    The outputs' own jobs identified around the estimation data's means when the
+    record sits far from zero (:mod:`~spm_sysid.core.model.operating_point`); the
+    coupled runs, the joint refinement and the linear MIMO ARX finalists compare on
+    the same deviations, and the choice is written in the record's units. The
+    joined model itself is returned as it is when it is chosen.
+    """
+    offsets, reason = {}, ""
+    for m in model.models:
+        doc = m.metadata.get("operating_point") or {}
+        offsets.update({**doc.get("inputs", {}), **doc.get("output", {})})
+        reason = reason or doc.get("reason", "")
+    if not any(offsets.values()):
+        return select_coupled(model, u, Y, est, progress)
+
+    def point(m) -> OperatingPoint:
+        space = m.term_space
+        return OperatingPoint(tuple(offsets.get(n, 0.0) for n in space.inputs),
+                              offsets.get(space.output, 0.0), reason)
+
+    u = np.asarray(u, dtype=float)
+    du = u - np.array([offsets.get(n, 0.0) for n in model.inputs]).reshape(
+        (1, -1) if u.ndim == 2 else ())
+    dY = Y - np.array([offsets.get(n, 0.0) for n in model.outputs])
+    around = replace(model, models=[in_deviations(m, point(m)) for m in model.models])
+    chosen, account = select_coupled(around, du, dY, est, progress)
+    if chosen is around:
+        return model, account
+    return replace(chosen, models=[in_record_units(m, point(m)) for m in chosen.models]
+                   ), account
 
 
 def _take_coupled_choice(model: MimoModel, chosen: MimoModel, account: dict, outputs: list,

@@ -33,8 +33,8 @@ from ..errors import SettingsError
 from .narx import NarxModel
 from .terms import TermSpace
 
-__all__ = ["OFFSET_RATIO", "OperatingPoint", "choose_operating_point", "in_record_units",
-           "operating_point_words"]
+__all__ = ["OFFSET_RATIO", "OperatingPoint", "choose_operating_point", "expanded",
+           "in_deviations", "in_record_units", "operating_point_words"]
 
 #: ``auto``: a record is identified around its means when some signal's mean is
 #: farther from zero than this many of its standard deviations.
@@ -166,6 +166,31 @@ def in_record_units(model: NarxModel, point: OperatingPoint) -> NarxModel:
     predictions and the output bands are those of the model identified. The term
     space gains the constant. The model's metadata (the same dict) records the point.
     """
+    whole = expanded(model, point)
+    doc = point.to_dict(model.term_space)
+    doc["selected_terms"] = model.terms
+    doc["terms_added"] = len(set(whole.terms) - set(model.terms))
+    model.metadata["operating_point"] = doc
+    return whole
+
+
+def in_deviations(model: NarxModel, point: OperatingPoint) -> NarxModel:
+    """A model of the record's signals as the same model of their deviations from ``point``.
+
+    The inverse of :func:`in_record_units` (the record's signals are their
+    deviations plus the point); the metadata is a copy, left as it was.
+    """
+    back = OperatingPoint(tuple(-v for v in point.inputs), -point.output, point.reason)
+    return replace(expanded(model, back), metadata=dict(model.metadata))
+
+
+def expanded(model: NarxModel, point: OperatingPoint) -> NarxModel:
+    """The model with every signal ``x`` read as ``x - c`` and ``point.output`` added.
+
+    The products expanded into the term space with the constant; coefficients
+    zero to rounding (:data:`ROUNDING_SHARE`) left out; the covariance mapped.
+    The metadata is the model's own dict.
+    """
     space = model.term_space
     whole = replace(space, constant=True)
     index = {term: i for i, term in enumerate(whole.terms)}
@@ -186,11 +211,6 @@ def in_record_units(model: NarxModel, point: OperatingPoint) -> NarxModel:
     if uncertainty is not None:
         cov = expansion @ uncertainty.covariance @ expansion.T
         uncertainty = replace(uncertainty, covariance=(cov + cov.T) / 2.0)
-    doc = point.to_dict(space)
-    doc["selected_terms"] = model.terms
-    doc["terms_added"] = int(len(set(rows) - {index[space.terms[i]]
-                                             for i in model.term_indices}))
-    model.metadata["operating_point"] = doc
     return replace(model, term_space=whole, term_indices=[int(r) for r in rows],
                    coefficients=theta, uncertainty=uncertainty)
 
