@@ -221,8 +221,8 @@ def operating_point_words(doc: dict | None) -> str:
         return ""
     if "output" not in doc:
         return f"identified as recorded: {doc['reason']}"
-    values = ", ".join(f"{name} = {value:.6g}"
-                       for name, value in {**doc["output"], **doc["inputs"]}.items())
+    values = ", ".join(f"{name} = {value:.6g}"  # a signal kept as it is has 0
+                       for name, value in {**doc["output"], **doc["inputs"]}.items() if value)
     added = doc.get("terms_added", 0)
     return (f"identified around the estimation data's means ({values}; {doc['reason']}), "
             f"written in the record's units: {len(doc.get('selected_terms', []))} selected "

@@ -120,7 +120,7 @@ def _around(settings, record, segments):
         return record.u, record.y, f"as recorded: {kept}" if kept else ""
     values = ", ".join(f"{name} = {v:.6g}" for name, v in zip(
         (settings.term_space.output, *settings.term_space.inputs),
-        (point.output, *point.inputs)))
+        (point.output, *point.inputs)) if v)
     u, y = point.centred(record.u, record.y)
     return u, y, (f"around the estimation data's means ({values}; {point.reason}): the "
                   "structures certified are of the deviations from them, the constant a "

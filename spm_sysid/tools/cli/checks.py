@@ -74,7 +74,7 @@ def _around(record, setting: str):
         return record.u, record.y, ""
     u, y = point.centred(record.u, record.y)
     values = ", ".join(f"{name} = {v:.6g}" for name, v in
-                       zip((space.output, *space.inputs), (point.output, *point.inputs)))
+                       zip((space.output, *space.inputs), (point.output, *point.inputs)) if v)
     return u, y, (f"around the record's means ({values}; {point.reason}): the scans read "
                   "the deviations, as identify does")
 
