@@ -81,62 +81,69 @@ def identify(
         Default: the paper's (ny=4, nu=4, degree 2, delay 1; population 200, 300
         generations, SPM 0.15), or those of the settings given by name.
     segments : list of (start, stop), optional
-        Contiguous parts of the record: regression rows never cross a gap; parts
-        no longer than the largest lag are skipped. Default: the whole record.
-    callback : callable, optional
-        Each generation's statistics; ``False`` stops the search (:func:`run_ga`).
-    progress : callable, optional
-        Called with :class:`~spm_sysid.core.progress.Progress` records.
+        Contiguous parts (no regression row crosses a gap; parts no longer than
+        the largest lag skipped); default: the whole record.
+    callback, progress : callable, optional
+        Called with each generation's statistics (``False`` stops the search,
+        :func:`run_ga`), and with :class:`~spm_sysid.core.progress.Progress` records.
     **settings
         Any job setting of the schema (:mod:`spm_sysid.core.settings`, ``spm-sysid
         settings``) by its name, checked here once: ``criterion`` (a name, or a
         :class:`~spm_sysid.core.fit.criteria.Criterion` or a user's ``f(sse, n, k,
         coefficients)``), ``seed``, ``focus``, ``selection``, ``shortlist``,
         ``max_terms``, ``polish``, ``certify``, ``certify_time_limit``,
-        ``auto_certify_time_limit``, ``horizon``, ``operating_point`` (``auto``:
-        around the estimation data's means when a signal sits far from zero,
-        :mod:`~spm_sysid.core.model.operating_point`), ``orders`` (``auto``: the lags
-        and degree proposed from the data), ``decimate`` (at 1/N of the rate:
-        :mod:`~spm_sysid.core.model.decimation`), the term space's and the GA's. A
-        ``certify_time_limit`` given alone asks for the certification. The
-        validation's settings are refused: ``identify`` fits; validation is
+        ``auto_certify_time_limit``, ``horizon``, ``operating_point``, ``orders``
+        (``auto``: proposed from the data), ``decimate`` (at 1/N of the rate), the
+        term space's and the GA's. A ``certify_time_limit`` given alone asks for the
+        certification. The validation's settings are refused: validation is
         :func:`~spm_sysid.core.validate.validation.validate_model`'s (or a job's).
 
     Raises
     ------
     SettingsError, DataError
-        An unknown setting, a validation setting, or a value out of range; data that
-        cannot identify the space (see :meth:`Problem.from_signals`).
+        An unknown or validation setting, a value out of range; data that cannot
+        identify the space (:meth:`Problem.from_signals`).
 
     Notes
     -----
-    u and y are scaled internally by powers of two (exact), so data of any
-    magnitude identify alike; coefficients and criteria are in the user's units.
-    Candidate terms whose regressor is zero on all rows, or proportional to an
-    earlier term's, are left out of the search, and the result says so
-    (``model.metadata["excluded_zero_terms"]``, ``["excluded_duplicate_terms"]``).
+    u and y are scaled by powers of two (exact), so data of any magnitude identify
+    alike; data far from zero are identified around their means
+    (:mod:`~spm_sysid.core.model.operating_point`); coefficients and criteria are in
+    the user's units. Terms zero on all rows, or repeating an earlier term, are left
+    out (``metadata["excluded_zero_terms"]``, ``["excluded_duplicate_terms"]``).
     """
     u, y, segments, decimation = _decimated(u, y, segments, settings.pop("decimate", None))
-    around = check_setting("operating_point", settings.pop("operating_point", "auto"))
+    around = settings.pop("operating_point", "auto")
     options, term_space, ga, orders, regressors = _edge(settings, term_space, ga)
     point, kept_as_is = _operating_point(around, u, y, segments, term_space, regressors)
+    u, y, space, why = _space(u, y, segments, term_space, options, orders, regressors, point)
+    result = identify_problem(Problem.from_signals(u, y, space, segments), options, ga=ga,
+                              callback=callback, progress=progress)
+    result.model = model = (result.model if point is None
+                            else in_record_units(result.model, point))
+    model.metadata.update({k: v for k, v in (("orders", why), ("decimation", decimation),
+                                             ("operating_point", kept_as_is and {
+                                                 "reason": kept_as_is})) if v})
+    return result
+
+
+def _space(u, y, segments, term_space: TermSpace, options: SearchOptions, orders: str,
+           regressors: list[str], point: OperatingPoint | None):
+    """The signals to fit (their deviations from ``point``), the space, why its orders.
+
+    The orders proposed from those signals when ``orders`` is ``auto``; the
+    regressors added; the constant a candidate around an operating point (a
+    model of the deviations may need it).
+    """
     if point is not None:
         u, y = point.centred(u, y)
     term_space, why = (_orders_from_data(u, y, segments, term_space, options)
                        if orders == "auto" else (term_space, None))
     if regressors:
         term_space = _with_regressors(term_space, regressors, y, u)
-    if point is not None:  # a model of the deviations may need the constant
-        term_space = replace(term_space, constant=True)
-    problem = Problem.from_signals(u, y, term_space, segments)
-    result = identify_problem(problem, options, ga=ga, callback=callback, progress=progress)
     if point is not None:
-        result.model = in_record_units(result.model, point)
-    result.model.metadata.update({k: v for k, v in (("orders", why),
-                                                    ("decimation", decimation)) if v})
-    if kept_as_is:
-        result.model.metadata["operating_point"] = {"reason": kept_as_is}
-    return result
+        term_space = replace(term_space, constant=True)
+    return u, y, term_space, why
 
 
 def _operating_point(setting: str, u, y, segments, term_space: TermSpace,
@@ -144,6 +151,7 @@ def _operating_point(setting: str, u, y, segments, term_space: TermSpace,
     """The point ``identify`` works around (None: the record as it is), and why not if not."""
     from .model.segments import normalise_segments
 
+    setting = check_setting("operating_point", setting)
     y, u = np.asarray(y, dtype=float), np.asarray(u, dtype=float)
     if (y.ndim != 1 or u.ndim not in (1, 2) or len(u) != len(y) or not np.all(np.isfinite(y))
             or not np.all(np.isfinite(u))):

@@ -387,16 +387,10 @@ def run_single_job(
         settings = settings.with_regressors(_rows(dy, est), _rows(du, est))
         est, val, data = validation_segments(record, settings)
     space = settings.term_space
-    if point is not None:  # a model of the record's units may need no constant, one of
-        space = replace(space, constant=True)  # the deviations does: a candidate
-    problem = Problem.from_signals(du, dy, space, est)
-    ident = identify_problem(problem, settings.search, ga=settings.ga,
-                             progress=_in_units(_throttled(report, progress_every), point),
-                             started=t0)
+    problem, ident = _identified((du, dy), est, settings, (point, kept_as_is),
+                                 _throttled(report, progress_every), t0)
     t1 = time.perf_counter()
-    model = ident.model if point is None else in_record_units(ident.model, point)
-    if kept_as_is:
-        model.metadata["operating_point"] = {"reason": kept_as_is}
+    model = ident.model
     validation = None
     if settings.validation != "none":
         report(Progress("validation", elapsed=t1 - t0, best_model=lambda: model))
@@ -408,6 +402,26 @@ def run_single_job(
     return JobResult(model=model, report=validation, search=ident.ga, data=data,
                      estimation_samples=problem.n_samples, seconds=seconds,
                      validation_segments=list(val), times=times)
+
+
+def _identified(signals, est, settings: JobSettings, around, report: ProgressFn, t0: float):
+    """The problem of ``signals`` (u, y or their deviations) and its identification.
+
+    ``around``: the operating point and why the record was kept as it is (either
+    None); the model is returned in the record's units, the point in its metadata.
+    """
+    point, kept_as_is = around
+    space = settings.term_space
+    if point is not None:  # a model of the record's units may need no constant, one of
+        space = replace(space, constant=True)  # the deviations does: a candidate
+    problem = Problem.from_signals(*signals, space, est)
+    ident = identify_problem(problem, settings.search, ga=settings.ga,
+                             progress=_in_units(report, point), started=t0)
+    if point is not None:
+        ident.model = in_record_units(ident.model, point)
+    if kept_as_is:
+        ident.model.metadata["operating_point"] = {"reason": kept_as_is}
+    return problem, ident
 
 
 def _throttled(report: ProgressFn, every: int) -> ProgressFn:
