@@ -206,6 +206,14 @@ def test_the_paper_record_far_from_zero_gets_equation_1_certified(robot_arm, tmp
     assert cert.returncode == 0, cert.stderr
     assert "around the estimation data's means (y = 1000" in cert.stdout
     assert "status: optimal" in cert.stdout and "value: -10744.78" in cert.stdout
+    check = subprocess.run([*cli, "check-data", "--data", str(data)], capture_output=True,
+                           text=True, timeout=300)
+    assert check.returncode == 0, check.stderr
+    assert "around the record's means (y = 1000" in check.stdout
+    assert "no warning: the data can identify this space" in check.stdout
+    raw = subprocess.run([*cli, "check-data", "--data", str(data), "--operating-point", "none"],
+                         capture_output=True, text=True, timeout=300)
+    assert "nearly combinations of others" in raw.stdout  # what identify no longer meets
     as_recorded = subprocess.run([*cli, "certify", "--data", str(data), "--criterion", "aic",
                                   "--seed", "1", "--quiet", "--operating-point", "none",
                                   "--node-limit", "2000"], capture_output=True, text=True,

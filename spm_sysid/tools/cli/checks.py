@@ -20,6 +20,8 @@ __all__ = ["add_parsers", "cmd_check_data", "cmd_compile", "cmd_propose_lags"]
 
 
 def cmd_check_data(args) -> int:
+    from dataclasses import replace
+
     from ...core.fit.problem import Problem
     from ...core.validate.excitation import check_problem
 
@@ -28,10 +30,15 @@ def cmd_check_data(args) -> int:
     settings = record_settings(settings, record)
     space = settings.term_space
     segments = usable_segments(record, space.max_lag)
-    problem = Problem.from_signals(record.u, record.y, space, segments)
+    u, y, around = _around(record, settings.operating_point, space)
+    if around:  # the deviations, as identify checks them: the constant a candidate
+        space = replace(space, constant=True)
+    problem = Problem.from_signals(u, y, space, segments)
     print(f"data: {record.source}, {len(record)} samples in {len(segments)} segment(s); "
           f"term space ny={space.ny}, nu={space.nu}, degree={space.degree}, "
           f"delay={space.delay}{', constant' if space.constant else ''}")
+    if around:
+        print(around)
     check = check_problem(problem)  # a hopeless space is refused (DataError: one line)
     print("\n".join(check.lines()))
     if not check.warnings:
@@ -47,7 +54,7 @@ def cmd_propose_lags(args) -> int:
     if info.gaps or len(info.bounds) > 1:
         raise UserError(f"{record.source} has gaps or several records; propose lags on one "
                         "contiguous record")
-    u, y, around = _around(record, args.operating_point)
+    u, y, around = _around(record, args.operating_point, None)
     proposal = propose_orders(u, y, max_order=args.max_order,
                               max_degree=args.max_degree, delay=args.delay,
                               criterion=args.criterion, inputs=record.input_names,
@@ -62,21 +69,25 @@ def cmd_propose_lags(args) -> int:
     return 0
 
 
-def _around(record, setting: str):
-    """The record's samples, or their deviations from its means, as identify takes them."""
+def _around(record, setting: str, space=None):
+    """The record's samples, or their deviations from its means, as identify takes them.
+
+    ``space``: the term space checked (its regressors decide too); None: the scans'.
+    Returns u, y and what was done ('' when the record is read as it is).
+    """
     from ...core.model.operating_point import choose_operating_point
     from ...core.model.terms import TermSpace
 
-    space = TermSpace(ny=1, nu=1, degree=1, inputs=record.input_names,
-                      output=record.output_name)
-    point, _ = choose_operating_point(setting, record.u, record.y, space)
+    space = space or TermSpace(ny=1, nu=1, degree=1, inputs=record.input_names,
+                               output=record.output_name)
+    point, kept = choose_operating_point(setting, record.u, record.y, space)
     if point is None:
-        return record.u, record.y, ""
+        return record.u, record.y, f"as recorded: {kept}" if kept else ""
     u, y = point.centred(record.u, record.y)
     values = ", ".join(f"{name} = {v:.6g}" for name, v in
                        zip((space.output, *space.inputs), (point.output, *point.inputs)) if v)
-    return u, y, (f"around the record's means ({values}; {point.reason}): the scans read "
-                  "the deviations, as identify does")
+    return u, y, (f"around the record's means ({values}; {point.reason}): read as their "
+                  "deviations, as identify reads them")
 
 
 def cmd_compile(args) -> int:
