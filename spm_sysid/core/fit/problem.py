@@ -207,25 +207,22 @@ def excluded_columns(P: np.ndarray, constant: bool = False) -> tuple[np.ndarray,
     zero = norms == 0
     duplicate_of = np.full(P.shape[1], -1)
 
-    def key(j: int) -> bytes:
-        col = P[:, j] / norms[j]
-        pivot = col[int(np.argmax(np.abs(col)))]
-        return np.round(np.ldexp(col * np.sign(pivot), _BITS)).astype(np.int64).tobytes()
-
-    _mark_repeats(np.flatnonzero(~zero), key, duplicate_of)
+    _mark_repeats(np.flatnonzero(~zero), lambda j: _key(P[:, j], norms[j]), duplicate_of)
     if constant and P.shape[1] > 1:
         centred_norms = np.array([np.linalg.norm(P[:, j] - P[:, j].mean()) for j in
                                   range(P.shape[1])])
         moving = np.flatnonzero(~zero & (duplicate_of < 0)
                                 & (centred_norms > 1e-9 * np.maximum(norms, 1e-300)))
-
-        def centred_key(j: int) -> bytes:
-            col = (P[:, j] - P[:, j].mean()) / centred_norms[j]
-            pivot = col[int(np.argmax(np.abs(col)))]
-            return np.round(np.ldexp(col * np.sign(pivot), _BITS)).astype(np.int64).tobytes()
-
-        _mark_repeats(moving[moving > 0], centred_key, duplicate_of)
+        _mark_repeats(moving[moving > 0],
+                      lambda j: _key(P[:, j] - P[:, j].mean(), centred_norms[j]), duplicate_of)
     return zero, duplicate_of
+
+
+def _key(col: np.ndarray, norm: float) -> bytes:
+    """A column scaled to unit norm, its sign fixed, rounded to ``_BITS`` bits: as bytes."""
+    col = col / norm
+    pivot = col[int(np.argmax(np.abs(col)))]
+    return np.round(np.ldexp(col * np.sign(pivot), _BITS)).astype(np.int64).tobytes()
 
 
 def _mark_repeats(columns: np.ndarray, key: Callable[[int], bytes], duplicate_of: np.ndarray

@@ -34,7 +34,7 @@ from .narx import NarxModel
 from .terms import TermSpace
 
 __all__ = ["OFFSET_RATIO", "OperatingPoint", "choose_operating_point", "expanded",
-           "in_deviations", "in_record_units", "operating_point_words"]
+           "in_deviations", "in_record_units", "operating_point_words", "point_clause"]
 
 #: ``auto``: a record is identified around its means when some signal's mean is
 #: farther from zero than this many of its standard deviations.
@@ -221,9 +221,14 @@ def operating_point_words(doc: dict | None) -> str:
         return ""
     if "output" not in doc:
         return f"identified as recorded: {doc['reason']}"
-    values = ", ".join(f"{name} = {value:.6g}"  # a signal kept as it is has 0
-                       for name, value in {**doc["output"], **doc["inputs"]}.items() if value)
     added = doc.get("terms_added", 0)
-    return (f"identified around the estimation data's means ({values}; {doc['reason']}), "
+    return (f"identified around the estimation data's means ({point_clause(doc)}), "
             f"written in the record's units: {len(doc.get('selected_terms', []))} selected "
             f"terms" + (f" and the {added} their expansion adds" if added else ""))
+
+
+def point_clause(doc: dict) -> str:
+    """``q = 30.003; <reason>``: the signals moved (a signal kept as it is has 0), and why."""
+    values = ", ".join(f"{name} = {value:.6g}"
+                       for name, value in {**doc["output"], **doc["inputs"]}.items() if value)
+    return f"{values}; {doc['reason']}"

@@ -9,6 +9,7 @@ from .common import (
     check_outputs,
     job_settings,
     load,
+    read_around,
     record_settings,
     schema_type,
     seed_type,
@@ -111,21 +112,14 @@ def _around(settings, record, segments):
     """The samples certify reads (the record's, or their deviations from its means), and why."""
     import numpy as np
 
-    from ...core.model.operating_point import choose_operating_point
-
     rows = np.concatenate([np.arange(a, b) for a, b in segments])
-    point, kept = choose_operating_point(settings.operating_point, record.u[rows],
-                                         record.y[rows], settings.term_space)
-    if point is None:
-        return record.u, record.y, f"as recorded: {kept}" if kept else ""
-    values = ", ".join(f"{name} = {v:.6g}" for name, v in zip(
-        (settings.term_space.output, *settings.term_space.inputs),
-        (point.output, *point.inputs)) if v)
-    u, y = point.centred(record.u, record.y)
-    return u, y, (f"around the estimation data's means ({values}; {point.reason}): the "
-                  "structures certified are of the deviations from them, the constant a "
-                  "candidate, as identify selects them (--operating-point none: of the "
-                  "record as it is)")
+    u, y, what = read_around(record, settings.operating_point, settings.term_space, rows,
+                             "the estimation data's")
+    if u is record.u:
+        return u, y, what
+    return u, y, (f"{what}: the structures certified are of the deviations from them, the "
+                  "constant a candidate, as identify selects them (--operating-point none: "
+                  "of the record as it is)")
 
 
 def _warm_start(args, signals, settings, segments, bars, started: float):

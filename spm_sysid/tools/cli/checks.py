@@ -11,6 +11,7 @@ from .common import (
     job_settings,
     load,
     positive_int,
+    read_around,
     record_settings,
     schema_type,
     usable_segments,
@@ -75,19 +76,14 @@ def _around(record, setting: str, space=None):
     ``space``: the term space checked (its regressors decide too); None: the scans'.
     Returns u, y and what was done ('' when the record is read as it is).
     """
-    from ...core.model.operating_point import choose_operating_point
     from ...core.model.terms import TermSpace
 
     space = space or TermSpace(ny=1, nu=1, degree=1, inputs=record.input_names,
                                output=record.output_name)
-    point, kept = choose_operating_point(setting, record.u, record.y, space)
-    if point is None:
-        return record.u, record.y, f"as recorded: {kept}" if kept else ""
-    u, y = point.centred(record.u, record.y)
-    values = ", ".join(f"{name} = {v:.6g}" for name, v in
-                       zip((space.output, *space.inputs), (point.output, *point.inputs)) if v)
-    return u, y, (f"around the record's means ({values}; {point.reason}): read as their "
-                  "deviations, as identify reads them")
+    u, y, what = read_around(record, setting, space)
+    if u is record.u:
+        return u, y, what
+    return u, y, f"{what}: read as their deviations, as identify reads them"
 
 
 def cmd_compile(args) -> int:

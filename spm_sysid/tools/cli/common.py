@@ -256,6 +256,23 @@ def usable_segments(record, max_lag: int) -> list[tuple[int, int]]:
     return bounds
 
 
+def read_around(record, setting: str, space, rows=None, means: str = "the record's"):
+    """The samples a command reads: the record's, or their deviations from its means.
+
+    As ``identify`` reads them (:mod:`~spm_sysid.core.model.operating_point`),
+    decided on ``rows`` (default: every sample) with ``space``'s regressors.
+    Returns u, y and what was done, '' when the record is read as it is.
+    """
+    from ...core.model.operating_point import choose_operating_point, point_clause
+
+    pick = slice(None) if rows is None else rows
+    point, kept = choose_operating_point(setting, record.u[pick], record.y[pick], space)
+    if point is None:
+        return record.u, record.y, f"as recorded: {kept}" if kept else ""
+    u, y = point.centred(record.u, record.y)
+    return u, y, f"around {means} means ({point_clause(point.to_dict(space))})"
+
+
 def check_outputs(args) -> None:
     """Check every destination before any work (a search must not be lost, nor an input).
 
