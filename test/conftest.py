@@ -19,6 +19,8 @@ sys.path.insert(0, str(ROOT))
 from spm_sysid.core.io.data import load_io  # noqa: E402
 from spm_sysid.core.io.datasets import find_robot_arm  # noqa: E402
 
+from .helpers.scheduling import pytest_xdist_make_scheduler  # noqa: E402, F401 (a crash never hangs the suite)
+
 # Ctrl-C reaches the processes the tests start, as in a terminal: a suite started in the
 # background (`make test &` from a script) inherits SIGINT ignored, and so would every
 # process it starts (an ignored signal survives exec), so the tests' Ctrl-C would be lost.

@@ -1,0 +1,62 @@
+"""A test that takes its worker down fails alone: the suite goes on and ends.
+
+``make test`` runs ``pytest -n 3 --dist loadgroup``; with pytest-xdist 3.8 a worker's
+crash (a segmentation fault) made such a run wait forever after the crash (CI stopped
+it at its limit, with no summary). test/helpers/scheduling.py mends the scheduler;
+this runs a real xdist session over a small suite that crashes one worker.
+"""
+
+import os
+import subprocess
+import sys
+import textwrap
+
+from .conftest import ROOT
+
+QUICK = "import time\n\ndef test_quick():\n    time.sleep(0.05)\n"
+
+GROUPED = """
+import os
+import signal
+
+import pytest
+
+pytestmark = pytest.mark.xdist_group("{group}")
+
+
+def test_before():
+    pass
+
+
+def test_crash():
+    if {crash}:
+        os.kill(os.getpid(), signal.SIGSEGV)
+
+
+def test_after():
+    pass
+"""
+
+
+def test_a_worker_that_crashes_costs_one_failed_test_and_the_run_ends(tmp_path):
+    # many finished modules on the worker that dies (they went back on the queue as
+    # empty units and the run never ended), and a group whose middle test crashes
+    for i in range(20):
+        (tmp_path / f"test_quick_{i:02d}.py").write_text(QUICK)
+    (tmp_path / "test_g1.py").write_text(textwrap.dedent(
+        GROUPED.format(group="g", crash=True)))
+    (tmp_path / "test_g2.py").write_text(textwrap.dedent(
+        GROUPED.format(group="g", crash=False)))
+    run = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-n", "2", "--dist", "loadgroup",
+         "-p", "no:cacheprovider", "-p", "test.helpers.scheduling",
+         str(tmp_path)],
+        cwd=tmp_path, capture_output=True, text=True, timeout=240,
+        env={**{k: v for k, v in os.environ.items() if not k.startswith("PYTEST")},
+             "PYTHONPATH": str(ROOT)})
+    out = run.stdout + run.stderr
+    assert run.returncode == 1, out
+    assert "crashed while running 'test_g1.py::test_crash'" in out, out
+    # the crashed test is not run again; every other test ran, after it too
+    assert "1 failed, 25 passed" in out, out
+
