@@ -65,8 +65,26 @@ class Harness:
         self._executor.add_node(self.node)
         self.diag: list[DiagnosticArray] = []
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self.diag.append, 50)
+        self._action_clients: list = []
+
+    def action_client(self, action_type, name: str, **options):
+        """An action client on the harness's node, destroyed by :meth:`close`.
+
+        ``destroy_node`` leaves an action client alive (rclpy destroys only topics,
+        services, timers and guard conditions); one destroyed later by the garbage
+        collector, after its context's shutdown and in some other test, is how a
+        client library can crash a process, so each is destroyed before the node.
+        """
+        from rclpy.action import ActionClient
+
+        client = ActionClient(self.node, action_type, name, **options)
+        self._action_clients.append(client)
+        return client
 
     def close(self):
+        for client in self._action_clients:
+            client.destroy()
+        self._action_clients.clear()
         self._executor.shutdown()
         self.node.destroy_node()
         rclpy.shutdown(context=self.context)
@@ -172,11 +190,10 @@ class IdentifyClient:
     """An action client of ``/spm_sysid/identify`` on a harness's node."""
 
     def __init__(self, harness: Harness, name: str = "/spm_sysid/identify"):
-        from rclpy.action import ActionClient
         from spm_sysid_interfaces.action import Identify
 
         self.harness, self.Identify = harness, Identify
-        self.client = ActionClient(harness.node, Identify, name)
+        self.client = harness.action_client(Identify, name)
         assert self.client.wait_for_server(timeout_sec=30.0), f"no action server {name}"
 
     def send(self, feedback: list | None = None, bag_path: str = "", **overrides):

@@ -55,14 +55,12 @@ def test_thirty_goals_and_thirty_cancels_at_once_each_get_an_answer(ros_env, har
     which no server can prevent (the clients of one node share the answers' topic).
     """
     from action_msgs.srv import CancelGoal
-    from rclpy.action import ActionClient
-
     node = start_node(ros_env, "seed:=1")
     try:
         harness.wait_ready()
-        client = ActionClient(harness.node, Identify, "/spm_sysid/identify",
-                              goal_service_qos_profile=REQUESTS,
-                              result_service_qos_profile=REQUESTS)
+        client = harness.action_client(Identify, "/spm_sysid/identify",
+                                       goal_service_qos_profile=REQUESTS,
+                                       result_service_qos_profile=REQUESTS)
         assert client.wait_for_server(timeout_sec=30.0)
         goal = Identify.Goal(setting_names=["generations"], setting_values=["100000"],
                              bag_path=str(arm_bag))
