@@ -19,7 +19,13 @@ sys.path.insert(0, str(ROOT))
 from spm_sysid.core.io.data import load_io  # noqa: E402
 from spm_sysid.core.io.datasets import find_robot_arm  # noqa: E402
 
-from .helpers.scheduling import pytest_xdist_make_scheduler  # noqa: E402, F401 (a crash never hangs the suite)
+# a worker's crash never hangs the suite; its test runs once more on a fresh worker
+from .helpers.scheduling import (  # noqa: E402, F401
+    pytest_handlecrashitem,
+    pytest_report_teststatus,
+    pytest_terminal_summary,
+    pytest_xdist_make_scheduler,
+)
 
 # Ctrl-C reaches the processes the tests start, as in a terminal: a suite started in the
 # background (`make test &` from a script) inherits SIGINT ignored, and so would every

@@ -17,6 +17,7 @@ QUICK = "import time\n\ndef test_quick():\n    time.sleep(0.05)\n"
 
 GROUPED = """
 import os
+import pathlib
 import signal
 
 import pytest
@@ -28,8 +29,10 @@ def test_before():
     pass
 
 
-def test_crash():
-    if {crash}:
+def test_{name}():
+    mark = pathlib.Path(__file__).with_name("{name}.crashed")
+    if {always} or not mark.exists():
+        mark.touch()
         os.kill(os.getpid(), signal.SIGSEGV)
 
 
@@ -38,15 +41,17 @@ def test_after():
 """
 
 
-def test_a_worker_that_crashes_costs_one_failed_test_and_the_run_ends(tmp_path):
+def test_a_crash_that_comes_back_fails_one_test_one_that_does_not_is_a_rerun_and_the_run_ends(
+        tmp_path):
     # many finished modules on the worker that dies (they went back on the queue as
-    # empty units and the run never ended), and a group whose middle test crashes
+    # empty units and the run never ended), and a group with a test that crashes its
+    # worker each time it runs and one that crashes it only the first time
     for i in range(20):
         (tmp_path / f"test_quick_{i:02d}.py").write_text(QUICK)
     (tmp_path / "test_g1.py").write_text(textwrap.dedent(
-        GROUPED.format(group="g", crash=True)))
+        GROUPED.format(group="g", name="always", always=True)))
     (tmp_path / "test_g2.py").write_text(textwrap.dedent(
-        GROUPED.format(group="g", crash=False)))
+        GROUPED.format(group="g", name="once", always=False)))
     run = subprocess.run(
         [sys.executable, "-m", "pytest", "-q", "-n", "2", "--dist", "loadgroup",
          "-p", "no:cacheprovider", "-p", "test.helpers.scheduling",
@@ -56,7 +61,10 @@ def test_a_worker_that_crashes_costs_one_failed_test_and_the_run_ends(tmp_path):
              "PYTHONPATH": str(ROOT)})
     out = run.stdout + run.stderr
     assert run.returncode == 1, out
-    assert "crashed while running 'test_g1.py::test_crash'" in out, out
-    # the crashed test is not run again; every other test ran, after it too
-    assert "1 failed, 25 passed" in out, out
+    # each crashed once, ran again on a fresh worker; the one that crashed again failed
+    assert "1 failed, 25 passed, 2 rerun" in out, out
+    assert "FAILED test_g1.py::test_always - worker" in out, out
+    summary = out[out.index("workers that crashed"):]
+    for test, times in (("test_g1.py::test_always", 2), ("test_g2.py::test_once", 1)):
+        assert summary.count(f"crashed while running {test}") == times, out
 

@@ -10,11 +10,14 @@ no summary.
 
 This scheduler is xdist's own with three mends:
 
-- the test the worker died on is reported failed (by xdist) and not run again;
 - only groups that still hold tests go back on the queue, and an empty unit is
   never sent;
 - a worker is told to finish as soon as the queue is empty, so a replacement
-  given one test does not wait for a second.
+  given one test does not wait for a second;
+- the test the worker died on is run once more, on a fresh worker
+  (:func:`pytest_handlecrashitem`): a crash that comes back is a failure; one
+  that does not is counted ("1 rerun" in the last line) and named in the
+  summary, never passed over in silence.
 """
 
 from __future__ import annotations
@@ -35,13 +38,21 @@ class CrashSafeGroupScheduling(LoadGroupScheduling):
         crashed = pending[0]
         for unit in workload.values():
             if crashed in unit:
-                unit[crashed] = True  # reported failed by xdist: not run a second time
+                unit[crashed] = True  # run again, if at all, by mark_test_pending
         for scope, unit in workload.items():
             if not all(unit.values()):
                 self.workqueue[scope] = unit
         for other in self.nodes:
             self._reschedule(other)
         return crashed
+
+    def mark_test_pending(self, item):
+        """Queue a test that crashed its worker once more (its group's unit if queued)."""
+        scope = self._split_scope(item)
+        self.workqueue.setdefault(scope, {})[item] = False
+        self.workqueue.move_to_end(scope, last=False)
+        for node in self.nodes:
+            self._reschedule(node)
 
     def _assign_work_unit(self, node):
         while self.workqueue:
@@ -60,6 +71,39 @@ class CrashSafeGroupScheduling(LoadGroupScheduling):
             self._assign_work_unit(node)
         if not self.workqueue:
             node.shutdown()
+
+
+#: Crashes seen in this session: (worker, test), in order.
+CRASHES: list[tuple[str, str]] = []
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_handlecrashitem(crashitem, report, sched):
+    """A test's first crash: run it again on a fresh worker, reported as a rerun."""
+    if not isinstance(sched, CrashSafeGroupScheduling):
+        return
+    first = all(test != crashitem for _, test in CRASHES)
+    CRASHES.append((report.node.gateway.id, crashitem))
+    if first:
+        sched.mark_test_pending(crashitem)
+        report.outcome = "rerun"
+
+
+def pytest_report_teststatus(report):
+    if report.outcome == "rerun":
+        return "rerun", "R", ("RERUN", {"yellow": True})
+    return None
+
+
+def pytest_terminal_summary(terminalreporter):
+    """Every crash of a worker, and what became of its test."""
+    if not CRASHES:
+        return
+    terminalreporter.section("workers that crashed", sep="-", yellow=True, bold=True)
+    for worker, test in CRASHES:
+        terminalreporter.line(f"worker {worker} crashed while running {test}")
+    terminalreporter.line("a test whose worker crashed once runs again on a fresh worker; "
+                          "a second crash is its failure")
 
 
 @pytest.hookimpl(optionalhook=True)
