@@ -47,7 +47,8 @@ $(BROWSER):
 
 test: $(KERNELS) $(BROWSER)
 	# three workers on 2 cores (most ROS tests wait on processes); tests spread one by one,
-	# the files with an expensive module fixture (Dask cluster, colcon build) kept together
+	# the files with an expensive module fixture (Dask cluster, colcon build) kept together;
+	# a worker's crash fails one test, never hangs the run (test/helpers/scheduling.py)
 	ROS_DOMAIN_ID=62 $(BIN)/python -m pytest -q -n 3 --dist loadgroup test
 
 ## The tests without those marked slow (each over about 15 s): a quicker check while working.
