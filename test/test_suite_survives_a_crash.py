@@ -52,14 +52,7 @@ def test_a_crash_that_comes_back_fails_one_test_one_that_does_not_is_a_rerun_and
         GROUPED.format(group="g", name="always", always=True)))
     (tmp_path / "test_g2.py").write_text(textwrap.dedent(
         GROUPED.format(group="g", name="once", always=False)))
-    run = subprocess.run(
-        [sys.executable, "-m", "pytest", "-q", "-n", "2", "--dist", "loadgroup",
-         "-p", "no:cacheprovider", "-p", "test.helpers.scheduling",
-         str(tmp_path)],
-        cwd=tmp_path, capture_output=True, text=True, timeout=240,
-        env={**{k: v for k, v in os.environ.items() if not k.startswith("PYTEST")},
-             "PYTHONPATH": str(ROOT)})
-    out = run.stdout + run.stderr
+    run, out = _session(tmp_path)
     assert run.returncode == 1, out
     # each crashed once, ran again on a fresh worker; the one that crashed again failed
     assert "1 failed, 25 passed, 2 rerun" in out, out
@@ -68,3 +61,25 @@ def test_a_crash_that_comes_back_fails_one_test_one_that_does_not_is_a_rerun_and
     for test, times in (("test_g1.py::test_always", 2), ("test_g2.py::test_once", 1)):
         assert summary.count(f"crashed while running {test}") == times, out
 
+
+
+def test_a_crash_when_no_worker_may_replace_the_crashed_one_is_a_failure(tmp_path):
+    # past --max-worker-restart no worker would run it again: counted as a rerun, the
+    # test would end without a result and the run would pass
+    (tmp_path / "test_g.py").write_text(textwrap.dedent(
+        GROUPED.format(group="g", name="once", always=False)))
+    run, out = _session(tmp_path, "--max-worker-restart", "0")
+    assert run.returncode == 1, out
+    last = run.stdout.strip().splitlines()[-1]
+    assert "1 failed, 2 passed" in last and "rerun" not in last, out
+
+
+def _session(folder, *options):
+    """A real xdist session (two workers, groups, this project's scheduler) over folder."""
+    run = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-n", "2", "--dist", "loadgroup", *options,
+         "-p", "no:cacheprovider", "-p", "test.helpers.scheduling", str(folder)],
+        cwd=folder, capture_output=True, text=True, timeout=240,
+        env={**{k: v for k, v in os.environ.items() if not k.startswith("PYTEST")},
+             "PYTHONPATH": str(ROOT)})
+    return run, run.stdout + run.stderr

@@ -84,9 +84,17 @@ def pytest_handlecrashitem(crashitem, report, sched):
         return
     first = all(test != crashitem for _, test in CRASHES)
     CRASHES.append((report.node.gateway.id, crashitem))
-    if first:
+    if first and _a_worker_replaces(sched.config):
         sched.mark_test_pending(crashitem)
         report.outcome = "rerun"
+
+
+def _a_worker_replaces(config) -> bool:
+    """Whether xdist starts a worker for the crashed one (past ``--max-worker-restart``
+    it stops: a test queued again would never run, and its rerun would hide a failure)."""
+    session = config.pluginmanager.getplugin("dsession")
+    limit = getattr(session, "_max_worker_restart", 0)
+    return limit is None or getattr(session, "_failed_nodes_count", limit) + 1 <= limit
 
 
 def pytest_report_teststatus(report):
