@@ -262,3 +262,27 @@ def test_two_joints_far_from_zero_get_the_coupled_model_they_get_near_zero():
     points = [m.metadata["operating_point"] for m in model.models]
     assert points[0]["output"]["q1"] == pytest.approx(5.0 + Y1[:, 0].mean(), abs=1e-9)
     assert points[1]["inputs"]["q1"] == points[0]["output"]["q1"]
+
+
+def test_lags_that_stand_in_for_one_another_are_reported_with_their_sum():
+    """Each of y(t-1), y(t-2) spans zero; their sum (the pole near 1) does not."""
+    from scipy import stats
+
+    space = TermSpace(ny=2, nu=1, degree=1)
+    names = ["y(t-1)", "y(t-2)", "u(t-1)"]
+    var, cov = 4.0, -3.9999  # var of the sum: 4 + 4 - 2 * 3.9999 = 2e-4
+    model = _model(space, names, [1.5, -0.499, 0.01],
+                   [[var, cov, 0.0], [cov, var, 0.0], [0.0, 0.0, 1e-6]])
+    (group,) = model.lags_together()
+    se = np.sqrt(2e-4)
+    half = stats.t.ppf(0.975, 100) * se
+    assert group["signal"] == "y" and group["terms"] == ["y(t-1)", "y(t-2)"]
+    assert group["sum"] == pytest.approx(1.001)
+    assert group["standard_error"] == pytest.approx(se, rel=1e-9)
+    assert np.allclose(group["interval"], (1.001 - half, 1.001 + half), rtol=1e-6)
+    table = model.coefficient_table()
+    assert "the 2 y(t-i) terms together" in table and "sum 1.001, std. error 0.0141" in table
+    # uncorrelated lags: nothing stands in for anything, no line
+    plain = _model(space, names, [1.5, -0.499, 0.01],
+                   [[var, 0.0, 0.0], [0.0, var, 0.0], [0.0, 0.0, 1e-6]])
+    assert plain.lags_together() == [] and "together" not in plain.coefficient_table()

@@ -307,6 +307,10 @@ def _coefficient_table(section: OutputSection) -> str:
     note = (f'<p class="small">{_esc(unc.method)} uncertainty, {unc.dof} degrees of freedom; '
             "intervals in red span zero.</p>" if unc is not None else
             '<p class="small">no coefficient uncertainty for this model.</p>')
+    from ..core.model.narx import together_words
+
+    for group in m.lags_together() if hasattr(m, "lags_together") else []:
+        note += f'<p class="small">{_esc(" ".join(together_words(group).split()))}</p>'
     return (f'<table class="coefficients" id="coefficients-{_esc(section.name)}">'
             f"{head}{''.join(rows)}</table>{note}")
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from functools import cached_property
@@ -24,7 +25,7 @@ from .metadata import check_metadata
 from .segments import normalise_segments
 from .simulation import CompiledModel, divergence_bounds, run_model
 from .terms import TermSpace
-from .uncertainty import Uncertainty
+from .uncertainty import Uncertainty, t_quantile
 
 __all__ = ["MODEL_SCHEMA", "MODEL_SCHEMA_VERSION", "NarxModel"]
 
@@ -33,6 +34,20 @@ MODEL_SCHEMA_VERSION = 3
 #: Versions this code reads (1: one input named u, no "inputs" in the term space;
 #: 2: no coefficient uncertainty).
 READABLE_VERSIONS = (1, 2, 3)
+
+
+
+#: A linear lag of one signal, ``q(t-3)`` (not a product, power or regressor).
+_LINEAR_LAG = re.compile(r"([^()*^ ]+)\(t-\d+\)")
+
+
+def together_words(group: dict, level: float = 0.95) -> str:
+    """One line for :meth:`NarxModel.lags_together`'s group."""
+    a, b = group["interval"]
+    return (f"the {len(group['terms'])} {group['signal']}(t-i) terms together (each "
+            "alone spans zero: they stand in for one another):\n    sum "
+            f"{group['sum']:.6g}, std. error {group['standard_error']:.3g}, {level:.0%} "
+            f"interval [{a:.6g}, {b:.6g}]")
 
 
 @dataclass
@@ -133,7 +148,41 @@ class NarxModel:
         else:
             rows.append(f"  {self.uncertainty.method}, {self.uncertainty.dof} degrees of "
                         "freedom")
+        rows += ["  " + together_words(g, level) for g in self.lags_together(level)]
         return "\n".join(rows)
+
+    def lags_together(self, level: float = 0.95) -> list[dict]:
+        """Lags of one signal that each span zero while the data fix their sum.
+
+        The lagged terms of a slowly moving signal stand in for one another: an
+        integrating output's ``y(t-1) ... y(t-8)`` may each carry a standard error
+        of 8 while their sum, the pole that makes it integrate, is 0.99998 +- 7e-5.
+        Each group of a signal's linear lags with two or more terms spanning zero,
+        whose sum's standard error (``sqrt(1' Sigma 1)`` over the group) is below a
+        tenth of theirs and whose sum's interval leaves out zero: ``signal``,
+        ``terms``, ``sum``, ``standard_error``, ``interval``.
+        """
+        unc = self.uncertainty
+        if unc is None:
+            return []
+        zero = unc.spans_zero(self.coefficients, level)
+        se = unc.standard_errors
+        groups: dict[str, list[int]] = {}
+        for i, term in enumerate(self.terms):
+            lag = _LINEAR_LAG.fullmatch(term)
+            if lag:
+                groups.setdefault(lag.group(1), []).append(i)
+        t = t_quantile(max(unc.dof, 1), 0.5 + level / 2.0)
+        out = []
+        for signal, idx in groups.items():
+            alone = [i for i in idx if zero[i]]
+            total = float(np.sum(self.coefficients[idx]))
+            s = math.sqrt(max(float(unc.covariance[np.ix_(idx, idx)].sum()), 0.0))
+            if len(alone) >= 2 and s < 0.1 * float(se[alone].min()) and abs(total) > t * s:
+                out.append({"signal": signal, "terms": [self.terms[i] for i in idx],
+                            "sum": total, "standard_error": s,
+                            "interval": (total - t * s, total + t * s)})
+        return out
 
     # -- prediction -------------------------------------------------------------------
     @cached_property
