@@ -11,7 +11,12 @@ import subprocess
 import sys
 import textwrap
 
+import pytest
+
 from .conftest import ROOT
+
+#: real xdist sessions: a few seconds each (more on a busy machine)
+pytestmark = pytest.mark.slow
 
 QUICK = "import time\n\ndef test_quick():\n    time.sleep(0.05)\n"
 
