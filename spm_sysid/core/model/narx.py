@@ -36,7 +36,6 @@ MODEL_SCHEMA_VERSION = 3
 READABLE_VERSIONS = (1, 2, 3)
 
 
-
 #: A linear lag of one signal, ``q(t-3)`` (not a product, power or regressor).
 _LINEAR_LAG = re.compile(r"([^()*^ ]+)\(t-\d+\)")
 
