@@ -411,6 +411,41 @@ def test_a_job_submitted_when_one_is_canceled_goes_to_the_new_worker():
         worker.close()
 
 
+def test_a_worker_started_from_a_thread_that_ends_lives_on():
+    """Linux sends the parent-death signal when the *thread* that started a child ends.
+
+    The workers ask for SIGKILL when their parent dies; one started by a cancel on a
+    timer's thread (a job timeout) or by a dead worker's reader thread was killed as
+    soon as that thread returned, if it had asked by then (CI, 2026-12-07: the job
+    after a cancel died with SIGKILL). Here the thread waits until the new worker is
+    ready, so it has asked, and then ends.
+    """
+    from spm_sysid.ros.worker import JobCancelledError, JobWorker
+
+    worker = JobWorker("test.helpers.jobs:sleepy", env={**os.environ, "PYTHONPATH": str(ROOT)})
+    try:
+        assert worker.wait_ready(120)
+        first = worker.submit(60.0)
+
+        def cancel_then_wait():
+            worker.cancel("job_timeout")  # starts the new worker (from this thread)
+            assert worker.wait_ready(120)  # it has asked for its parent-death signal
+
+        thread = threading.Thread(target=cancel_then_wait)
+        thread.start()
+        thread.join()
+        with pytest.raises(JobCancelledError):
+            first.result(timeout=60)
+        pid = worker.pid
+        deadline = time.monotonic() + 2.0  # a SIGKILL at the thread's end arrives at once
+        while time.monotonic() < deadline and worker.pid == pid and worker.ready:
+            time.sleep(0.05)
+        assert worker.pid == pid and worker.ready, "the worker died with its thread"
+        assert worker.submit(0.01).result(timeout=120) == 0.01
+    finally:
+        worker.close()
+
+
 def test_a_worker_that_dies_while_starting_backs_off_and_says_why(tmp_path):
     from spm_sysid.ros.worker import JobWorker
 

@@ -10,7 +10,8 @@ involved, so nothing is left behind:
 
 * the worker ends itself when its stdin closes (the parent died, even by
   ``kill -9``) and, on Linux, also gets SIGKILL when the parent dies
-  (``PR_SET_PDEATHSIG``);
+  (``PR_SET_PDEATHSIG``; every worker is started from one thread that lives as
+  long as the parent, since the signal follows the starting thread);
 * :meth:`JobWorker.cancel` kills a running job (a stuck search, a job timeout,
   shutdown) and starts a fresh worker;
 * a worker that dies is noticed at once (its pipe closes), the job gets an
@@ -24,6 +25,7 @@ from __future__ import annotations
 
 import os
 import pickle
+import queue
 import signal
 import struct
 import subprocess
@@ -67,6 +69,46 @@ class JobError(RuntimeError):
     def kind(self) -> str:
         """The exception's own class name ('' when unknown)."""
         return self.kinds[0] if self.kinds else ""
+
+
+class _Spawner:
+    """Starts the worker processes, all from one thread that lives as long as this process.
+
+    Linux sends a child its parent-death signal (:func:`_die_with_parent`) when the
+    *thread* that started it ends, not the process. A worker started by a cancel on
+    a timer's thread (a job timeout) or by a dead worker's reader thread was killed
+    as soon as that thread returned, if it had asked for the signal by then: the next
+    job died with SIGKILL.
+    """
+
+    def __init__(self) -> None:
+        self._requests: queue.SimpleQueue = queue.SimpleQueue()
+        self._thread: threading.Thread | None = None
+        self._lock = threading.Lock()
+
+    def popen(self, *args: Any, **kwargs: Any) -> subprocess.Popen:
+        """``subprocess.Popen(*args, **kwargs)``, run on the spawning thread."""
+        with self._lock:
+            if self._thread is None or not self._thread.is_alive():
+                self._thread = threading.Thread(target=self._serve, name="worker-spawner",
+                                                daemon=True)
+                self._thread.start()
+        if threading.current_thread() is self._thread:
+            return subprocess.Popen(*args, **kwargs)
+        started: Future = Future()
+        self._requests.put((args, kwargs, started))
+        return started.result()
+
+    def _serve(self) -> None:
+        while True:
+            args, kwargs, started = self._requests.get()
+            try:
+                started.set_result(subprocess.Popen(*args, **kwargs))
+            except BaseException as exc:  # handed to the caller, who raises it
+                started.set_exception(exc)
+
+
+_SPAWNER = _Spawner()
 
 
 def _send(stream, message: Any) -> None:
@@ -196,7 +238,7 @@ class JobWorker:
     def _start(self) -> None:
         self._ready.clear()
         self._retry = None
-        self._proc = subprocess.Popen(
+        self._proc = _SPAWNER.popen(
             [sys.executable, "-m", "spm_sysid.ros.worker", self.function],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
             env=self.env, start_new_session=False)
@@ -315,7 +357,6 @@ def _die_with_parent() -> None:
 
 def _worker_main(function: str) -> int:
     import importlib
-    import queue
 
     _die_with_parent()
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when we stop
