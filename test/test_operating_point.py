@@ -214,6 +214,12 @@ def test_the_paper_record_far_from_zero_gets_equation_1_certified(robot_arm, tmp
     raw = subprocess.run([*cli, "check-data", "--data", str(data), "--operating-point", "none"],
                          capture_output=True, text=True, timeout=300)
     assert "nearly combinations of others" in raw.stdout  # what identify no longer meets
+    # a regressor that moves with an offset keeps the record: the space identify uses,
+    # without the constant the deviations would add
+    kept = subprocess.run([*cli, "check-data", "--data", str(data), "--regressors",
+                           "abs(y(t-1))"], capture_output=True, text=True, timeout=300)
+    assert kept.returncode == 0, kept.stderr
+    assert "as recorded: y's mean" in kept.stdout and ", constant" not in kept.stdout
     as_recorded = subprocess.run([*cli, "certify", "--data", str(data), "--criterion", "aic",
                                   "--seed", "1", "--quiet", "--operating-point", "none",
                                   "--node-limit", "2000"], capture_output=True, text=True,

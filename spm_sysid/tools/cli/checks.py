@@ -32,7 +32,7 @@ def cmd_check_data(args) -> int:
     space = settings.term_space
     segments = usable_segments(record, space.max_lag)
     u, y, around = _around(record, settings.operating_point, space)
-    if around:  # the deviations, as identify checks them: the constant a candidate
+    if u is not record.u:  # the deviations, as identify checks them: the constant a candidate
         space = replace(space, constant=True)
     problem = Problem.from_signals(u, y, space, segments)
     print(f"data: {record.source}, {len(record)} samples in {len(segments)} segment(s); "
