@@ -84,14 +84,82 @@ def test_a_search_whose_first_draw_cannot_be_fitted_starts_with_smaller_structur
     assert result.history[0].best < np.inf
 
 
-@pytest.mark.parametrize("levels", [(1.0, 2.0), (-0.3, 0.7)])
-def test_a_two_level_inputs_square_repeats_it_when_the_constant_is_a_candidate(levels):
-    """u^2 = (a + b) u - a b: with the constant, the square adds nothing and is left out."""
-    u, _ = step_record()
-    u = np.where(u > 0, levels[1], levels[0])
-    rng = np.random.default_rng(0)
-    y = np.convolve(u, [0.0, 0.5, 0.25])[:len(u)] + 0.01 * rng.standard_normal(len(u))
+def _two_level_record(levels=(1.0, 2.0), n: int = 600):
+    """A PRBS-like input of two levels; the output driven by the input's square."""
+    rng = np.random.default_rng(3)
+    u = np.where(np.repeat(rng.random(n // 6) < 0.5, 6), levels[1], levels[0])
+    y = np.zeros(n)
+    for t in range(1, n):
+        y[t] = 0.5 * y[t - 1] + 0.4 * u[t - 1] ** 2
+    return u, y + 0.01 * rng.standard_normal(n)
+
+
+def test_a_two_level_inputs_square_stays_a_term_of_its_own():
+    """u^2 = 3u - 2 on levels 1 and 2: alone it is not u, so it stays a candidate.
+
+    The plant is y(t) = 0.5y(t-1) + 0.4u(t-1)^2: two terms with the square, three
+    (u, the constant) without it. The search and its certificate must find the
+    optimum of every structure of the space, counted by brute force (before, the
+    square was left out as "u plus a constant" and the optimum was lost).
+    """
+    u, y = _two_level_record()
+    space = TermSpace(ny=1, nu=1, degree=2, constant=True)
+    problem = Problem.from_signals(u, y, space)
+    assert problem.excluded_terms()["duplicate"] == {}
+    evaluator = problem.evaluator("aic")
+    m = evaluator.n_terms
+    every = (np.arange(1, 2 ** m)[:, None] >> np.arange(m)) & 1 == 1
+    brute = float(np.min(evaluator.score(every)))
+    model = identify(u=u, y=y, term_space=space, criterion="aic", seed=1,
+                     operating_point="none").model
+    assert [str(t) for t in model.terms] == ["y(t-1)", "u(t-1)^2"]
+    assert model.criterion_value == pytest.approx(brute, abs=1e-6)
+    assert model.metadata["certificate"]["status"] == "optimal"
+
+
+def test_a_square_equal_to_a_number_repeats_the_constant():
+    """Levels -1 and 1: u^2 is 1 on every row, the constant's column; it is left out."""
+    u, y = _two_level_record((-1.0, 1.0))
     with_constant = Problem.from_signals(u, y, TermSpace(ny=1, nu=1, constant=True))
-    assert with_constant.excluded_terms()["duplicate"] == {"u(t-1)^2": "u(t-1)"}
+    assert with_constant.excluded_terms()["duplicate"] == {"u(t-1)^2": "1"}
     without = Problem.from_signals(u, y, TermSpace(ny=1, nu=1))
     assert without.excluded_terms()["duplicate"] == {}
+
+
+def test_of_structures_that_fit_exactly_the_lowest_degree_is_taken():
+    """Around its means the step fits with y(t-1)*u(t-1) as exactly as with y(t-1).
+
+    Both score the SSE floor with three terms: a tie, which the search met in
+    either order; the tie goes to the linear structure, the plant's.
+    """
+    from spm_sysid.core.search.ties import lowest_degree_of_ties
+
+    u, y = step_record()
+    problem = Problem.from_signals(u - u.mean(), y - y.mean(),
+                                   TermSpace(ny=1, nu=1, degree=2, constant=True))
+    names = [n for n, ok in zip(problem.term_space.term_names(), problem.usable) if ok]
+    evaluator = problem.evaluator("aic")
+
+    def mask(*terms):
+        return np.isin(names, terms)
+
+    product, plant = mask("1", "u(t-1)", "y(t-1)*u(t-1)"), mask("1", "y(t-1)", "u(t-1)")
+    values = evaluator.score(np.array([product, plant]))
+    assert values[0] == values[1]  # a tie at the floor
+    degrees = problem.term_space.term_degrees[problem.usable]
+    out = lowest_degree_of_ties(evaluator, product, degrees)
+    assert sorted(np.array(names)[out]) == sorted(["1", "y(t-1)", "u(t-1)"])
+
+
+def test_noisy_data_have_no_ties_to_resolve(robot_arm):
+    """Nothing moves where no fit is exact: the robot arm's optimum, a noisy nonlinear one."""
+    from spm_sysid.core.search.ties import lowest_degree_of_ties
+
+    for (u, y), space in ((robot_arm, TermSpace()),
+                          (_two_level_record(), TermSpace(ny=1, nu=1, degree=2, constant=True))):
+        problem = Problem.from_signals(u, y, space)
+        model = identify(u=u, y=y, term_space=space, seed=1, operating_point="none").model
+        best = np.isin(space.term_names(), [str(t) for t in model.terms])[problem.usable]
+        out = lowest_degree_of_ties(problem.evaluator("aic"), best,
+                                    space.term_degrees[problem.usable])
+        assert np.array_equal(out, best)

@@ -35,6 +35,7 @@ from .progress import Progress, ProgressFn
 from .search.ga import GAConfig, GAResult, GenerationStats, run_ga
 from .search.local import polish
 from .search.neighbourhood import MoveScreen
+from .search.ties import lowest_degree_of_ties
 from .select.choose import choose, overfit_warnings, selection_account
 from .select.plan import SelectionPlan, plan_selection
 from .select.simulation import select_for_simulation
@@ -285,6 +286,7 @@ def identify_problem(
     if within is not None:
         certificate = _certify_search(problem, evaluator, result, crit, within, report,
                                       started)
+    _lowest_degree_of_ties(problem, evaluator, result, certificate)
     result.best_mask = problem.expand(result.best_mask)
     info = _search_account(problem, result, ga, options, plan, polished, certificate,
                            data_check, seed_drawn=drawn)
@@ -418,6 +420,28 @@ def _polish(problem: Problem, evaluator, result: GAResult, report: ProgressFn,
     return {"ga_value": ga_value, "value": float(result.best_score), "steps": res.steps,
             "structures": res.scored, "kicks": res.kicks, "moves": list(res.moves),
             "stopped": res.stopped, "budget": res.budget}
+
+
+def _lowest_degree_of_ties(problem: Problem, evaluator, result: GAResult,
+                           certificate: dict | None) -> None:
+    """An exact fit's ties resolved to the lowest degree, in place (:mod:`.search.ties`).
+
+    Only for criteria of the SSE and the size, which keep their value; a
+    certificate then names the structure returned.
+    """
+    degrees = problem.term_space.term_degrees[problem.usable]
+    if not (np.isfinite(result.best_score) and MoveScreen.usable(evaluator)
+            and len(degrees) == evaluator.n_terms):
+        return
+    mask = lowest_degree_of_ties(evaluator, result.best_mask, degrees)
+    if np.array_equal(mask, result.best_mask):
+        return
+    value = float(evaluator.score(mask[None, :])[0])
+    if value <= result.best_score + 1e-9 * max(1.0, abs(result.best_score)):
+        result.best_mask, result.best_score = mask, value
+        if certificate is not None and certificate.get("terms") is not None:
+            names = problem.term_space.term_names()
+            certificate["terms"] = [names[i] for i in np.flatnonzero(problem.expand(mask))]
 
 
 def _certify_search(problem: Problem, evaluator, result: GAResult, crit: Criterion,

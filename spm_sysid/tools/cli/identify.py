@@ -132,7 +132,7 @@ def data_notes(account: dict, metadata: dict) -> list[str]:
         term, first = next(iter(repeats.items()))
         notes.append(f"{len(repeats)} candidate term(s) repeat an earlier term on this data "
                      f"and were left out of the search (e.g. {term} is proportional to "
-                     f"{first}, or to it plus a constant); is an input constant, two-level, or "
+                     f"{first}); is an input constant, two-level, or "
                      "equal to another signal?")
     return [n for n in notes if n]
 
