@@ -447,15 +447,15 @@ def _lowest_degree_of_ties(problem: Problem, evaluator, result: GAResult,
 def _certify_search(problem: Problem, evaluator, result: GAResult, crit: Criterion,
                     time_limit: float, report: ProgressFn, started: float) -> dict:
     """Certify the GA's result in place (a better structure found replaces it)."""
-    from .search.certify import certify
+    from .search.split import certify_split
 
     def on_nodes(nodes: int, best: float, lower: float) -> None:
         report(Progress("certification", nodes, 0, best, bound=lower,
                         elapsed=time.perf_counter() - started))
 
     try:
-        cert = certify(None, None, crit, warm_start=result.best_mask, time_limit=time_limit,
-                       evaluator=evaluator, progress=on_nodes)
+        cert = certify_split(evaluator, problem.constant_split(), warm_start=result.best_mask,
+                             time_limit=time_limit, progress=on_nodes)
     except ValueError as exc:  # a criterion that cannot be certified
         return {"status": "refused", "reason": str(exc)}
     names = problem.term_space.term_names()

@@ -254,6 +254,16 @@ class StructureEvaluator:
         other._reset()
         return other
 
+    def without(self, columns: np.ndarray) -> StructureEvaluator:
+        """A copy with ``columns`` (a mask) left out of every search's moves.
+
+        Marked as zero columns, which the branch and bound and forward selection
+        leave out; scores are unchanged, so the cache is shared.
+        """
+        other = copy.copy(self)
+        other.zero_columns = self.zero_columns | np.asarray(columns, dtype=bool)
+        return other
+
     @property
     def cache_hit_rate(self) -> float:
         """Fraction of lookups answered from the cache."""

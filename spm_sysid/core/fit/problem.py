@@ -419,6 +419,27 @@ class Problem:
             self._evaluators[rank_tol] = base
         return base.with_criterion(crit, max_terms)
 
+    def constant_split(self) -> tuple[int | None, np.ndarray]:
+        """The constant's column and the columns that are another plus a number.
+
+        Over the evaluator's columns: the constant's index (None: not a usable
+        candidate) and, for each column equal to an earlier non-constant column
+        times a number plus a number (a two-level input's square), that column's
+        index (-1 otherwise). Such a column stands for the other in a structure
+        with the constant and is a term of its own without it: the certification
+        searches the two cases apart (:mod:`~spm_sysid.core.search.split`).
+        """
+        columns = np.flatnonzero(self.usable)
+        source = np.full(len(columns), -1)
+        if not (self.term_space.constant and len(columns) and columns[0] == 0):
+            return None, source
+        P = self.columns
+        centred = np.array([np.linalg.norm(P[:, j] - P[:, j].mean()) for j in columns[1:]])
+        moving = np.flatnonzero(centred > 1e-9 * column_norms(P)[columns[1:]]) + 1
+        _mark_repeats(moving, lambda i: _key(P[:, columns[i]] - P[:, columns[i]].mean(),
+                                             centred[i - 1]), source)
+        return 0, source
+
     def expand(self, masks: np.ndarray) -> np.ndarray:
         """Masks over the usable columns -> masks over the whole term space."""
         masks = np.asarray(masks, dtype=bool)

@@ -187,6 +187,7 @@ def certify(
     rank_tol: float = DEFAULT_RANK_TOL, progress: Callable[[int, float, float], None] | None = None,
     evaluator: StructureEvaluator | None = None, enumeration_budget: int | None = None,
     threads: int | None = None, started: float | None = None, explain: int = 0,
+    cutoff: float | None = None,
 ) -> Certificate:
     """Search all structures of the columns of ``P`` exactly (see the module doc).
 
@@ -216,6 +217,10 @@ def certify(
     explain : int, optional
         When stopped by a limit: its weakest open nodes, bounded again size by size
         (:attr:`Certificate.weakest`, :mod:`.explain`; after the time limit).
+    cutoff : float, optional
+        A value known elsewhere (another part of a split space, :mod:`.split`):
+        only structures below it are sought. "optimal" then also means that none
+        is below it, with ``lower_bound`` the cutoff when the best found is above.
 
     Raises
     ------
@@ -235,11 +240,11 @@ def certify(
         return _unsearched(search, best_full, float(best_value), warm_value, t0=t0,
                            time_limit=time_limit)
     budget = ENUMERATION_BUDGET if enumeration_budget is None else int(enumeration_budget)
-    heaps = search.heaps(best_value, best_full)
+    heaps = search.heaps(best_value if cutoff is None else min(best_value, cutoff), best_full)
     status, reason = search.run(heaps, budget, deadline=deadline, time_limit=time_limit,
                                 node_limit=node_limit, progress=progress)
     return _certificate(ev, search, heaps, status, reason, t0=t0, tolerance=tolerance,
-                        warm_value=warm_value, explain=(explain, budget))
+                        warm_value=warm_value, explain=(explain, budget), cutoff=cutoff)
 
 
 def _evaluator(given: StructureEvaluator | None, P: np.ndarray, target: np.ndarray,
@@ -445,11 +450,14 @@ class _Rounds:
 
 def _certificate(ev: StructureEvaluator, search: _Search, heaps: list[OpenNodes], status: str,
                  reason: str | None, *, t0: float, tolerance: float, warm_value: float | None,
-                 explain: tuple[int, int] = (0, 0)) -> Certificate:
+                 explain: tuple[int, int] = (0, 0), cutoff: float | None = None
+                 ) -> Certificate:
     """The best structure re-scored by the evaluator, with its lower bound.
 
     ``explain``: (nodes, enumeration budget): a search stopped by a limit gets that many
     of its weakest open nodes bounded again (:func:`~.explain.weakest_nodes`).
+    ``cutoff``: as for :func:`certify`; a proof that nothing is below it stays a proof
+    when the best structure found is above it.
     """
     best = heaps[0].best
     nodes = sum(h.nodes for h in heaps)
@@ -457,7 +465,8 @@ def _certificate(ev: StructureEvaluator, search: _Search, heaps: list[OpenNodes]
     mask = np.zeros(ev.n_terms, dtype=bool)
     mask[search.usable[heaps[0].best_mask]] = True
     value = ev.cached_score(mask) if mask.any() else np.inf
-    if value > best[0] + tolerance and status == "optimal":
+    below_cutoff = cutoff is None or best[0] < cutoff
+    if value > best[0] + tolerance and status == "optimal" and below_cutoff:
         # the evaluator (the GA's numbers) disagrees with the search's accurate refit
         status = "limit"
         reason = "the best structure found is near rank-deficient; the evaluator scores it higher"
@@ -503,9 +512,11 @@ def certify_data(
     crit = get_criterion(criterion)
     warm = None if warm_start is None else problem.restrict(
         np.asarray(warm_start, dtype=bool) & problem.usable)
-    cert = certify(None, None, crit, warm_start=warm, time_limit=time_limit,
-                   node_limit=node_limit, progress=progress, threads=threads, started=started,
-                   evaluator=problem.evaluator(crit), explain=explain)
+    from .split import certify_split  # it builds on this module
+
+    cert = certify_split(problem.evaluator(crit), problem.constant_split(), warm_start=warm,
+                         time_limit=time_limit, node_limit=node_limit, progress=progress,
+                         threads=threads, started=started, explain=explain)
     cert.mask = problem.expand(cert.mask)
     names = term_space.term_names()
     cert.terms = [names[i] for i in np.flatnonzero(cert.mask)]
