@@ -187,8 +187,7 @@ def certify(
     rank_tol: float = DEFAULT_RANK_TOL, progress: Callable[[int, float, float], None] | None = None,
     evaluator: StructureEvaluator | None = None, enumeration_budget: int | None = None,
     threads: int | None = None, started: float | None = None, explain: int = 0,
-    cutoff: float | None = None,
-) -> Certificate:
+    cutoff: float | None = None) -> Certificate:
     """Search all structures of the columns of ``P`` exactly (see the module doc).
 
     Parameters
@@ -196,37 +195,33 @@ def certify(
     P, target : ndarray
         As for :class:`StructureEvaluator` (None when ``evaluator`` is given).
     criterion : str or Criterion
-        ``aic`` or ``bic``.
+        ``aic``, ``aicc`` or ``bic``.
     warm_start : ndarray of bool, optional
         A good structure (the GA's; default: forward selection's), polished first.
     time_limit, node_limit : float, int, optional
         Seconds, nodes before stopping with ``limit``.
     sse_scale, rank_tol, tolerance : float
         As for the evaluator; subtrees within ``tolerance`` of the incumbent are cut.
-    progress : callable, optional
-        ``progress(nodes, best, lower_bound)`` about every 0.5 s.
-    evaluator : StructureEvaluator, optional
-        Reuse the GA's (same data and criterion): its cache and numbers.
+    progress, evaluator : callable, StructureEvaluator, optional
+        ``progress(nodes, best, lower_bound)`` about every 0.5 s; the GA's evaluator
+        (same data and criterion) to reuse its cache and numbers.
     enumeration_budget : int, optional
         Subsets of free terms a node enumerates (default :data:`ENUMERATION_BUDGET`).
     threads : int, optional
-        Workers, each with its own open nodes (default: the usable cores, at most 8; one
-        with ``node_limit``; fewer when the memory bound does not hold more).
+        Workers, each with its own open nodes (default: usable cores, at most 8; 1 with
+        ``node_limit``; fewer when memory is short).
     started : float, optional
         ``time.perf_counter()`` when the caller's set-up began (default: now).
     explain : int, optional
         When stopped by a limit: its weakest open nodes, bounded again size by size
         (:attr:`Certificate.weakest`, :mod:`.explain`; after the time limit).
     cutoff : float, optional
-        A value known elsewhere (another part of a split space, :mod:`.split`):
-        only structures below it are sought. "optimal" then also means that none
-        is below it, with ``lower_bound`` the cutoff when the best found is above.
+        Seek only structures below this (a split space's other part, :mod:`.split`).
 
     Raises
     ------
     ValueError, MemoryLimitError
-        A criterion that cannot be certified (e.g. PMIC2), an impossible limit; the
-        set-up or one search worker would exceed the memory bound.
+        An uncertifiable criterion (PMIC2), an impossible limit; memory past the bound.
     """
     ensure_compiled()
     t0 = time.perf_counter() if started is None else started
