@@ -107,7 +107,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     from spm_sysid.core.identify import identify
     from spm_sysid.core.model.terms import TermSpace
-    from spm_sysid.core.search.certify import certify_data
+    from spm_sysid.core.search.split import certify_data
 
     cases = [c.strip() for c in args.cases.split(",") if c.strip()]
     unknown = [c for c in cases if c not in CASES]

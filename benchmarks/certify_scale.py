@@ -89,8 +89,9 @@ def _problem(case: dict):
 def _ours(case: dict) -> dict:
     """The GA, then the branch and bound (one process)."""
     from spm_sysid.core.identify import identify
-    from spm_sysid.core.search.certify import certify_data, ensure_compiled
+    from spm_sysid.core.search.certify import ensure_compiled
     from spm_sysid.core.search.explain import explain_table
+    from spm_sysid.core.search.split import certify_data
 
     u, y = _record(case["file"])
     space = _space(case)

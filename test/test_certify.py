@@ -11,7 +11,8 @@ from spm_sysid.core.fit.criteria import get_criterion
 from spm_sysid.core.fit.evaluator import StructureEvaluator
 from spm_sysid.core.identify import identify
 from spm_sysid.core.model.terms import TermSpace
-from spm_sysid.core.search.certify import certify, certify_data, penalty_per_size
+from spm_sysid.core.search.certify import certify, penalty_per_size
+from spm_sysid.core.search.split import certify_data
 
 from .conftest import EQ1, EQ2, ROOT
 from .helpers.narx import smooth_narx_record

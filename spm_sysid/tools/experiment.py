@@ -371,7 +371,8 @@ def certify_optima(u: np.ndarray, y: np.ndarray, config: ExperimentConfig,
     Only for the prediction focus (with the simulation focus the runs' values are
     criteria of the simulation error, which branch and bound does not search).
     """
-    from ..core.search.certify import CERTIFIABLE, certify_data
+    from ..core.search.certify import CERTIFIABLE
+    from ..core.search.split import certify_data
 
     if config.focus != "prediction":
         return {}

@@ -59,7 +59,6 @@ from ..fit.criteria import CERTIFIABLE, Criterion, get_criterion
 from ..fit.evaluator import NEAR_RANK, StructureEvaluator
 from ..fit.lstsq import DEFAULT_RANK_TOL
 from ..memory import check_memory, memory_limit
-from ..model.segments import rows_segments
 from .branch_bound import (
     DONE,
     FULL,
@@ -84,7 +83,7 @@ from .heaps import (
 )
 from .local import polish as search_polish
 
-__all__ = ["CERTIFIABLE", "Certificate", "certify", "certify_data", "check_certify_memory",
+__all__ = ["CERTIFIABLE", "Certificate", "certify", "check_certify_memory",
            "describe_certificate", "ensure_compiled", "penalty_per_size", "search_is_compiled"]
 
 
@@ -474,48 +473,3 @@ def _certificate(ev: StructureEvaluator, search: _Search, heaps: list[OpenNodes]
         cert.weakest = weakest_nodes(heaps, search.data, search.usable, explain[1], explain[0])
     return cert
 
-
-def certify_data(
-    u: np.ndarray, y: np.ndarray, *, term_space, criterion: str = "bic",
-    segments: list[tuple[int, int]] | None = None, warm_start: np.ndarray | None = None,
-    time_limit: float = 60.0, node_limit: int | None = None,
-    progress: Callable[[int, float, float], None] | None = None,
-    threads: int | None = None,
-    started: float | None = None,
-    explain: int = 0,
-) -> Certificate:
-    """:func:`certify` on measured signals (the term space's candidates of u, y).
-
-    The data are scaled by powers of two as :func:`identify` scales them, so the
-    values are the GA's; ``warm_start`` is a mask over all candidate terms.
-    Terms whose regressor is zero on all rows, or proportional to an earlier
-    term's, are left out as :func:`identify` leaves them out. The certificate's
-    ``terms`` are the term names.
-    ``started`` (``time.perf_counter()``) is when the caller's work began, e.g. a
-    warm-start GA: the time limit counts from there (default: now). ``explain``: as
-    for :func:`certify`, the weakest open nodes' terms fixed in by name.
-    """
-    from ..fit.problem import Problem
-
-    ensure_compiled()  # the first use compiles; the time limit starts after
-    started = time.perf_counter() if started is None else started
-    n = len(np.asarray(y))
-    lag = term_space.max_lag
-    segs = rows_segments(segments, n, lag)
-    check_certify_memory(max(sum(b - a - lag for a, b in segs), 0), term_space.n_terms)
-    problem = Problem.from_signals(u, y, term_space, segments)
-    crit = get_criterion(criterion)
-    warm = None if warm_start is None else problem.restrict(
-        np.asarray(warm_start, dtype=bool) & problem.usable)
-    from .split import certify_split  # it builds on this module
-
-    cert = certify_split(problem.evaluator(crit), problem.constant_split(), warm_start=warm,
-                         time_limit=time_limit, node_limit=node_limit, progress=progress,
-                         threads=threads, started=started, explain=explain)
-    cert.mask = problem.expand(cert.mask)
-    names = term_space.term_names()
-    cert.terms = [names[i] for i in np.flatnonzero(cert.mask)]
-    columns = np.flatnonzero(problem.usable)  # the evaluator's column j is term columns[j]
-    for node in cert.weakest:
-        node.names = [names[columns[j]] for j in node.inside]
-    return cert

@@ -1,4 +1,8 @@
-"""Certifying a space whose constant makes columns interchangeable: two searches.
+"""Certifying a problem's space, split in two where its constant makes columns interchangeable.
+
+:func:`certify_data` certifies the candidates of measured signals, as
+:func:`~spm_sysid.core.identify.identify` builds them; :func:`certify_split`
+certifies an evaluator's space, in two searches where that pays:
 
 With the constant a candidate, a column that is another plus a number (a
 two-level input's square, ``u^2 = (a + b) u - a b``) stands for that other
@@ -20,13 +24,16 @@ and the second seeks only structures below the first's best (``cutoff``).
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 
 import numpy as np
 
+from ..fit.criteria import get_criterion
+from ..model.segments import rows_segments
 from .certificate import Certificate, mse_bounds
-from .certify import certify, penalty_per_size
+from .certify import certify, check_certify_memory, ensure_compiled, penalty_per_size
 
-__all__ = ["certify_split"]
+__all__ = ["certify_data", "certify_split"]
 
 
 def certify_split(evaluator, split: tuple[int | None, np.ndarray], *,
@@ -104,4 +111,48 @@ def _joined(evaluator, halves: list[Certificate], warm: np.ndarray | None,
         reason=next((c.reason for c in halves if c.reason), None), warm_start=warm_value,
         **mse_bounds(best.value, lower, best.mask, pen, evaluator.n))
     cert.weakest = [node for c in halves for node in c.weakest]
+    return cert
+
+
+def certify_data(
+    u: np.ndarray, y: np.ndarray, *, term_space, criterion: str = "bic",
+    segments: list[tuple[int, int]] | None = None, warm_start: np.ndarray | None = None,
+    time_limit: float = 60.0, node_limit: int | None = None,
+    progress: Callable[[int, float, float], None] | None = None,
+    threads: int | None = None,
+    started: float | None = None,
+    explain: int = 0,
+) -> Certificate:
+    """:func:`~.certify.certify` on measured signals (the term space's candidates of u, y).
+
+    The data are scaled by powers of two as :func:`identify` scales them, so the
+    values are the GA's; ``warm_start`` is a mask over all candidate terms.
+    Terms whose regressor is zero on all rows, or proportional to an earlier
+    term's, are left out as :func:`identify` leaves them out. The certificate's
+    ``terms`` are the term names.
+    ``started`` (``time.perf_counter()``) is when the caller's work began, e.g. a
+    warm-start GA: the time limit counts from there (default: now). ``explain``: as
+    for :func:`~.certify.certify`, the weakest open nodes' terms fixed in by name.
+    """
+    from ..fit.problem import Problem
+
+    ensure_compiled()  # the first use compiles; the time limit starts after
+    started = time.perf_counter() if started is None else started
+    n = len(np.asarray(y))
+    lag = term_space.max_lag
+    segs = rows_segments(segments, n, lag)
+    check_certify_memory(max(sum(b - a - lag for a, b in segs), 0), term_space.n_terms)
+    problem = Problem.from_signals(u, y, term_space, segments)
+    crit = get_criterion(criterion)
+    warm = None if warm_start is None else problem.restrict(
+        np.asarray(warm_start, dtype=bool) & problem.usable)
+    cert = certify_split(problem.evaluator(crit), problem.constant_split(), warm_start=warm,
+                         time_limit=time_limit, node_limit=node_limit, progress=progress,
+                         threads=threads, started=started, explain=explain)
+    cert.mask = problem.expand(cert.mask)
+    names = term_space.term_names()
+    cert.terms = [names[i] for i in np.flatnonzero(cert.mask)]
+    columns = np.flatnonzero(problem.usable)  # the evaluator's column j is term columns[j]
+    for node in cert.weakest:
+        node.names = [names[columns[j]] for j in node.inside]
     return cert

@@ -26,8 +26,9 @@ def cmd_certify(args) -> int:
     from dataclasses import replace
 
     from ...core.files import atomic_write_text, document_json
-    from ...core.search.certify import certify_data, check_certify_memory, describe_certificate
+    from ...core.search.certify import check_certify_memory, describe_certificate
     from ...core.search.explain import explain_table
+    from ...core.search.split import certify_data
 
     settings = _checked_settings(args)
     time_limit = settings.search.certify_time_limit
