@@ -164,7 +164,7 @@ def test_the_online_predictor_predicts_as_the_model_does():
 @pytest.mark.parametrize("criterion", ["aic", "bic"])
 def test_the_certified_optimum_with_regressors_equals_every_subset_by_least_squares(criterion):
     """Every subset of the candidate terms (products of two regressors are none)."""
-    from spm_sysid.core.search.certify import certify_data
+    from spm_sysid.core.search.split import certify_data
 
     u, y = _signals(n=400, seed=3)
     ts = TermSpace(ny=1, nu=1, degree=2,
