@@ -88,3 +88,39 @@ def _session(folder, *options):
         env={**{k: v for k, v in os.environ.items() if not k.startswith("PYTEST")},
              "PYTHONPATH": str(ROOT)})
     return run, run.stdout + run.stderr
+
+
+def test_a_replacement_worker_still_collecting_is_given_work_only_once_it_has_collected():
+    """A reschedule of every node (after a crash) must pass over a worker still collecting.
+
+    Seen in a loaded CI run: a crash's reschedule reached the crashed worker's
+    replacement before its collection was in, and the session ended with an
+    INTERNALERROR (KeyError in the scheduler).
+    """
+    from collections import OrderedDict
+
+    from .helpers.scheduling import CrashSafeGroupScheduling
+
+    class Worker:
+        def __init__(self):
+            self.shutting_down, self.sent = False, []
+
+        def send_runtest_some(self, indexes):
+            self.sent.append(indexes)
+
+        def shutdown(self):
+            self.shutting_down = True
+
+    tests = ["test_a.py::test_one", "test_a.py::test_two"]
+    sched = CrashSafeGroupScheduling.__new__(CrashSafeGroupScheduling)  # no xdist session
+    sched.collection, sched.log = list(tests), lambda *args: None
+    collected, collecting = Worker(), Worker()
+    sched.assigned_work = {collected: {}, collecting: {}}
+    sched.registered_collections = {collected: list(tests)}
+    sched.workqueue = OrderedDict()
+    sched.mark_test_pending(tests[1])  # what a crash's rerun does: every node rescheduled
+    assert collecting.sent == [] and not collecting.shutting_down
+    assert collected.sent == [[1]]
+    sched.registered_collections[collecting] = list(tests)
+    sched._reschedule(collecting)  # its collection in: nothing left, so it is told to end
+    assert collecting.shutting_down

@@ -65,7 +65,10 @@ class CrashSafeGroupScheduling(LoadGroupScheduling):
                 return
 
     def _reschedule(self, node):
-        if node.shutting_down:
+        # a replacement worker still collecting gets its work once its collection is in
+        # (worker_collectionfinish schedules every node again); before, a reschedule of
+        # all nodes after another worker's crash asked for its collection: KeyError
+        if node.shutting_down or node not in self.registered_collections:
             return
         while self.workqueue and self._pending_of(self.assigned_work[node]) <= 2:
             self._assign_work_unit(node)
