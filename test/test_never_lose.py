@@ -169,6 +169,23 @@ def test_the_open_loop_check_tells_resonance_from_integrator_and_instability(rob
     assert "unstable in open loop" in loop.reason()
 
 
+@pytest.mark.parametrize("order", [5, 6])
+def test_an_instability_read_at_one_order_only_is_not_one(robot_arm, order):
+    """The robot arm's ARX puts a pole beyond 1 at orders 5 (1.124) and 6 (1.0071), none
+    at 4 or 7-10: the README's `--orders auto` chose order 6 and was judged on the
+    10-step prediction (an overfit of 41-44 terms), not on its free run."""
+    from spm_sysid.core.validate import open_loop
+
+    u, y = robot_arm
+    alone = open_loop._verdict(u.reshape(-1, 1), y, [(0, len(y))], order)
+    assert alone.kind == "unstable" and abs(alone.pole) > 1.007  # the single order's reading
+    check = open_loop_check(u, y, [(0, len(y))], order)
+    assert check.kind == "stable" and check.order == 7 and check.free_run_applies
+    u, y = _stabilised_unstable_plant(2000)  # a real instability reads at every order
+    for n in range(2, 10):
+        assert open_loop_check(u, y, [(0, len(y))], n).kind == "unstable"
+
+
 def _two_outputs(n: int = 1500, seed: int = 0):
     """A stable coupled system: each output feeds the other with gain 0.3."""
     rng = np.random.default_rng(seed)

@@ -292,6 +292,12 @@ STABLE_START_RADIUS = 0.999
 #: 1.002-1.005 (equation-error bias), order 4 at 1.001.
 OPEN_LOOP_ORDER = 4
 
+#: An unstable reading of the open-loop check is read again at this many higher orders;
+#: one that reads stable there wins (a real instability reads at every order: a pole at
+#: 1.05 or 1.014 behind feedback reads at orders 2 to 13; the robot arm reads 1.124 at
+#: order 5 and 1.0071 at 6, and at most 0.9989 at 4 and 7 to 10).
+OPEN_LOOP_CONFIRM = 3
+
 #: A column whose part not explained by the columns before it is below this share of its
 #: norm repeats them (the open-loop check drops it before it reads the poles).
 DEPENDENT = 1e-9

@@ -19,8 +19,8 @@ its autoregressive polynomial:
   puts a drive's integrator a little beyond 1). Its free run is still what
   users compare (benchmarks of positioning drives are free-run errors), so it
   is judged on its free run (:meth:`OpenLoop.note`);
-* **unstable** -- any other pole with ``|p| > 1 + 2 / N``: judged on the k-step
-  prediction;
+* **unstable** -- any other pole with ``|p| > 1 + 2 / N``, read again at the
+  next orders (:func:`open_loop_check`): judged on the k-step prediction;
 * **stable** otherwise. A lightly damped resonance (a complex pair close to the
   unit circle, as the flexible robot arm has) is stable: its free run is
   meaningful.
@@ -32,7 +32,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..defaults import DEPENDENT, HORIZON, INTEGRATOR_MARGIN, REAL_ANGLE, STRUCTURE_SLICE_BYTES
+from ..defaults import (
+    DEPENDENT,
+    HORIZON,
+    INTEGRATOR_MARGIN,
+    OPEN_LOOP_CONFIRM,
+    REAL_ANGLE,
+    STRUCTURE_SLICE_BYTES,
+)
 from ..model.uncertainty import stacked_factor
 
 __all__ = ["HORIZON", "OpenLoop", "REAL_ANGLE", "independent_columns", "open_loop_check"]
@@ -170,6 +177,14 @@ def open_loop_check(u: np.ndarray, y: np.ndarray, segments: list[tuple[int, int]
                     order: int) -> OpenLoop | None:
     """The open-loop verdict of the record (None when too short to fit the ARX model).
 
+    An "unstable" reading at ``order`` is confirmed at the next
+    :data:`~spm_sysid.core.defaults.OPEN_LOOP_CONFIRM` orders: a model of a higher
+    order fits the record at least as well, so when one of them reads stable (or
+    integrating) the record does not show an instability, and that verdict is
+    returned. A real instability reads the same pole at every order; a spurious
+    one is a least-squares accident of one order (the robot arm's order-6 ARX puts
+    a pole at 1.0071, its orders 7 to 10 none beyond 0.999).
+
     Parameters
     ----------
     u : ndarray, shape (n,) or (n, inputs)
@@ -184,6 +199,20 @@ def open_loop_check(u: np.ndarray, y: np.ndarray, segments: list[tuple[int, int]
     u = np.asarray(u, dtype=float).reshape(len(u), -1)
     y = np.asarray(y, dtype=float)
     n = max(int(order), 1)
+    verdict = _verdict(u, y, segments, n)
+    if verdict is None or verdict.kind != "unstable":
+        return verdict
+    for higher in range(n + 1, n + 1 + OPEN_LOOP_CONFIRM):
+        other = _verdict(u, y, segments, higher)
+        if other is None:  # too short for the higher order: the reading stands
+            break
+        if other.kind != "unstable":
+            return other
+    return verdict
+
+
+def _verdict(u: np.ndarray, y: np.ndarray, segments, n: int) -> OpenLoop | None:
+    """The verdict of the order-n ARX model's poles alone (see the module)."""
     fit = _arx_fit(u, y, segments, n)
     if fit is None:
         return None
