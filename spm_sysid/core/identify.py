@@ -141,7 +141,7 @@ def _space(u, y, segments, term_space: TermSpace, options: SearchOptions, orders
     term_space, why = (_orders_from_data(u, y, segments, term_space, options)
                        if orders == "auto" else (term_space, None))
     if regressors:
-        term_space = _with_regressors(term_space, regressors, y, u)
+        term_space = _with_regressors(term_space, regressors, y, u, point and point.own_sign)
     if point is not None:
         term_space = replace(term_space, constant=True)
     return u, y, term_space, why
@@ -162,7 +162,8 @@ def _operating_point(setting: str, u, y, segments, term_space: TermSpace,
     u_rows, y_rows = np.concatenate([u[r] for r in rows]), np.concatenate([y[r] for r in rows])
     if len(y_rows) < 2 or term_space.n_inputs != u.shape[1]:
         return None, None
-    space = _with_regressors(term_space, regressors, y, u) if regressors else term_space
+    space = (_with_regressors(term_space, regressors, y, u, False if setting == "mean" else None)
+             if regressors else term_space)
     return choose_operating_point(setting, u_rows, y_rows, space)
 
 
@@ -184,14 +185,18 @@ def _decimated(u, y, segments, factor: int | None):
     return u2, y2, [b for b in out if b[1] > b[0]], doc
 
 
-def _with_regressors(term_space: TermSpace, regressors: list[str], y, u) -> TermSpace:
-    """The term space with ``regressors`` added (presets take their scales from y, u)."""
-    from .model.regressors import expand_presets, preset_inputs
+def _with_regressors(term_space: TermSpace, regressors: list[str], y, u,
+                     own_sign: bool | None = None) -> TermSpace:
+    """The term space with ``regressors`` added (presets take their scales from y, u).
+
+    ``own_sign``: see :func:`~.model.presets.expand_presets` (False: y, u around a point).
+    """
+    from .model.presets import expand_presets, preset_inputs
 
     try:
         return replace(term_space, regressors=term_space.regressors + tuple(
             expand_presets(regressors, term_space.output, y, preset_inputs(term_space, u),
-                           term_space.ny)))
+                           term_space.ny, own_sign)))
     except ValueError as exc:
         raise SettingsError(f"regressors: {exc}") from None
 

@@ -117,7 +117,8 @@ _LIST = [
        "term_space", low=0, high=100),
     _s("constant", bool, False, "include a constant candidate term", "term_space"),
     _s("regressors", str, "", "regressors beside the polynomial terms: 'friction' (the "
-       "sign, the absolute value and a smooth sign of the output's last step), 'saturation' "
+       "sign, the absolute value and a smooth sign of the output's last step; of a speed, "
+       "its own sign and a smooth one), 'saturation' "
        "(each input's lags clipped at the level the data prefer) or expressions such as "
        "'sign(y(t-1)-y(t-2))', separated by ';' (docs/model_format.md)",
        "term_space", many=True),

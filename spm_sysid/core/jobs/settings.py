@@ -115,8 +115,11 @@ class JobSettings:
                                  output=output),
             ga=GAConfig(**{k: raw(k) for k in _GA_FIELDS}), search=search, **own)
 
-    def with_regressors(self, y, u=None) -> JobSettings:
+    def with_regressors(self, y, u=None, own_sign: bool | None = None) -> JobSettings:
         """These settings with the term space holding the regressors (presets expanded on y, u).
+
+        ``own_sign``: whether ``friction`` adds the output's own sign (None: from the
+        data; False for samples around an operating point; :mod:`..model.presets`).
 
         Raises
         ------
@@ -126,11 +129,12 @@ class JobSettings:
         items = [t.strip() for t in self.regressors.split(";") if t.strip()]
         if not items:
             return self
-        from ..model.regressors import expand_presets, preset_inputs
+        from ..model.presets import expand_presets, preset_inputs
 
         try:
             texts = expand_presets(items, self.term_space.output, y,
-                                   preset_inputs(self.term_space, u), self.term_space.ny)
+                                   preset_inputs(self.term_space, u), self.term_space.ny,
+                                   own_sign)
             space = replace(self.term_space, regressors=tuple(texts))
         except ValueError as exc:
             raise SettingsError(f"regressors: {exc}") from None

@@ -333,7 +333,8 @@ def _with_regressors(record: Record, base):
         another output at t.
     """
     from ..errors import SettingsError
-    from ..model.regressors import RegressorError, expand_presets, parse, preset_inputs
+    from ..model.presets import expand_presets, preset_inputs
+    from ..model.regressors import RegressorError, parse
 
     items = [t.strip() for t in base.regressors.split(";") if t.strip()]
     if not items:

@@ -278,7 +278,8 @@ def _operating_point(settings: JobSettings, u: np.ndarray, y: np.ndarray, est
     """
     space = settings.term_space
     if settings.regressors and settings.operating_point != "none":
-        space = settings.with_regressors(_rows(y, est), _rows(u, est)).term_space
+        space = settings.with_regressors(_rows(y, est), _rows(u, est), own_sign=(
+            False if settings.operating_point == "mean" else None)).term_space
     return choose_operating_point(settings.operating_point, _rows(u, est), _rows(y, est), space)
 
 
@@ -384,7 +385,8 @@ def run_single_job(
         settings, orders = choose_orders(record, settings, est, du, dy)
         est, val, data = validation_segments(record, settings)
     if settings.regressors:  # presets take their scales from the estimation data
-        settings = settings.with_regressors(_rows(dy, est), _rows(du, est))
+        settings = settings.with_regressors(_rows(dy, est), _rows(du, est),
+                                            own_sign=point and point.own_sign)
         est, val, data = validation_segments(record, settings)
     space = settings.term_space
     problem, ident = _identified((du, dy), est, settings, (point, kept_as_is),

@@ -72,6 +72,15 @@ class OperatingPoint:
     output: float
     reason: str
 
+    @property
+    def own_sign(self) -> bool | None:
+        """For the ``friction`` preset: whether it may add the output's own sign.
+
+        None (decide from the data) when the output keeps its samples, False when
+        it is taken around its mean (its sign is then not the record's).
+        """
+        return None if self.output == 0.0 else False
+
     def centred(self, u: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``u`` and ``y`` minus the point (new arrays of the same shapes)."""
         u = np.asarray(u, dtype=float)

@@ -24,7 +24,9 @@ max(|x| - w, 0)``). Text of at most :data:`MAX_TEXT` characters and
 :data:`MAX_DEPTH` levels of nesting.
 
 An expression is kept in its canonical text (:func:`canonical`), which is
-what model documents store: parsing it again gives the same expression.
+what model documents store: parsing it again gives the same expression. Named
+sets (``friction``, ``saturation``) are expanded from the data in
+:mod:`.presets`.
 """
 
 from __future__ import annotations
@@ -35,9 +37,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["FUNCTIONS", "MAX_DEPTH", "MAX_TEXT", "PRESETS", "SATURATION_PERCENTILES", "Expr",
-           "Program", "RegressorError", "canonical", "evaluate", "expand_presets", "parse",
-           "preset_inputs", "program", "saturation_level"]
+__all__ = ["FUNCTIONS", "MAX_DEPTH", "MAX_TEXT", "Expr", "Program", "RegressorError", "canonical",
+           "evaluate", "parse", "program"]
 
 #: Longest expression text, and deepest nesting.
 MAX_TEXT = 200
@@ -45,12 +46,6 @@ MAX_DEPTH = 12
 
 #: Functions and their number of arguments.
 FUNCTIONS = {"sign": 1, "abs": 1, "tanh": 1, "min": 2, "max": 2, "sat": 2, "deadzone": 2}
-
-#: Named sets of regressors (expanded with the data: :func:`expand_presets`).
-PRESETS = ("friction", "saturation")
-
-#: Percentiles of an input's magnitude where the ``saturation`` preset looks for its limit.
-SATURATION_PERCENTILES = tuple(range(5, 100, 5))
 
 
 class RegressorError(ValueError):
@@ -335,107 +330,3 @@ def program(exprs: list[Expr], output: str, inputs: tuple[str, ...]) -> Program:
         start.append(len(code))
     return Program(np.array(code or [(0, 0, 0)], dtype=np.int64).reshape(-1, 3),
                    np.array(consts or [0.0]), np.array(start, dtype=np.int64), depth + 1)
-
-
-# -- presets -----------------------------------------------------------------------------
-
-def expand_presets(items: list[str], output: str, y: np.ndarray | None = None,
-                   inputs: list[tuple[str, tuple[int, ...], np.ndarray]] | None = None,
-                   ny: int = 2) -> list[str]:
-    """Regressor texts with presets expanded (their scales and levels from the data).
-
-    ``friction``: for the output, the sign and the absolute value of its last
-    step ``y(t-1)-y(t-2)``, and ``tanh`` of it over a scale from the data (the
-    median absolute step: a smooth Coulomb friction); needs ``y``.
-
-    ``saturation``: each lag of each input clipped at one level,
-    ``sat(u(t-1), a)``: the level at which a linear ARX with that input clipped
-    predicts y best (:func:`saturation_level`; an actuator's limit is not in
-    the command's own samples). Needs ``y``, ``inputs`` ((name, lags,
-    estimation samples) per input) and ``ny``, the ARX's output lags.
-    """
-    out: list[str] = []
-    for item in items:
-        name = item.strip()
-        if name == "friction":
-            out += _friction(output, y)
-        elif name == "saturation":
-            out += _saturation(inputs or [], y, ny)
-        else:
-            out.append(item)
-    return out
-
-
-def preset_inputs(term_space, u: np.ndarray | None
-                  ) -> list[tuple[str, tuple[int, ...], np.ndarray]]:
-    """(name, lags, samples) of each input of a term space, for :func:`expand_presets`.
-
-    ``u``: the estimation samples, one column per input (None: no input preset).
-    """
-    if u is None:
-        return []
-    u = np.asarray(u, dtype=float)
-    u = u[:, None] if u.ndim == 1 else u
-    return [(name, tuple(lag for src, lag in term_space.linear if src == j), u[:, j])
-            for j, name in enumerate(term_space.inputs[:u.shape[1]])]
-
-
-def _friction(output: str, y: np.ndarray | None) -> list[str]:
-    step = f"{output}(t-1)-{output}(t-2)"
-    scale = 1.0
-    if y is not None and len(y) > 2:
-        d = np.abs(np.diff(np.asarray(y, dtype=float)))
-        d = d[np.isfinite(d) & (d > 0)]
-        if d.size:
-            scale = float(f"{float(np.median(d)):.3g}")
-    return [f"sign({step})", f"abs({step})", f"tanh(({step})/{scale!r})"]
-
-
-def _saturation(inputs: list[tuple[str, tuple[int, ...], np.ndarray]], y: np.ndarray | None,
-                ny: int) -> list[str]:
-    out: list[str] = []
-    for j, (name, lags, _) in enumerate(inputs):
-        level = saturation_level(y, inputs, j, ny)
-        if level is not None:
-            out += [f"sat({name}(t-{lag}),{level!r})" if lag else f"sat({name}(t),{level!r})"
-                    for lag in lags]
-    return out
-
-
-def saturation_level(y: np.ndarray | None, inputs: list[tuple[str, tuple[int, ...], np.ndarray]],
-                     j: int, ny: int) -> float | None:
-    """The level at which input j is clipped best: a linear ARX's error profiled over it.
-
-    The ARX regresses y(t) on its ``ny`` lags, every input's lags and a constant,
-    input j clipped at the level; the level runs over the 5th..95th percentiles
-    of |u_j| (:data:`SATURATION_PERCENTILES`), then is refined between the best
-    one's neighbours (scipy's bounded scalar search), 3 digits. None: an input
-    that is always zero, or too few samples.
-    """
-    from scipy.optimize import minimize_scalar
-
-    u_j = np.asarray(inputs[j][2], dtype=float)
-    size = np.abs(u_j[np.isfinite(u_j)])
-    size = size[size > 0]
-    lag0 = max([ny] + [max(lags, default=0) for _, lags, _ in inputs])
-    if y is None or not size.size or len(y) - lag0 < 4 * (ny + 2):
-        return None
-    y = np.asarray(y, dtype=float)
-    n = len(y)
-    fixed = [y[lag0 - k:n - k] for k in range(1, ny + 1)] + [np.ones(n - lag0)]
-    fixed += [np.asarray(x, dtype=float)[lag0 - lag:n - lag] for i, (_, lags, x)
-              in enumerate(inputs) if i != j for lag in lags]
-    lagged = [u_j[lag0 - lag:n - lag] for lag in inputs[j][1]]
-    target = y[lag0:]
-    ok = np.isfinite(target) & np.all(np.isfinite(np.column_stack(fixed + lagged)), axis=1)
-
-    def sse(level: float) -> float:
-        X = np.column_stack(fixed + [np.clip(x, -level, level) for x in lagged])[ok]
-        r = target[ok] - X @ np.linalg.lstsq(X, target[ok], rcond=None)[0]
-        return float(r @ r)
-
-    grid = np.percentile(size, SATURATION_PERCENTILES)
-    best = int(np.argmin([sse(level) for level in grid]))
-    lo, hi = grid[max(best - 1, 0)], grid[min(best + 1, len(grid) - 1)]
-    level = minimize_scalar(sse, bounds=(lo, hi), method="bounded").x if hi > lo else lo
-    return float(f"{float(level):.3g}")

@@ -81,7 +81,7 @@ class TermSpace:
         The output's name in term names (default ``y``).
     regressors : tuple of str
         Expressions of lagged signals (:mod:`.regressors`), stored in their
-        canonical text; presets are expanded before (:func:`.regressors.expand_presets`).
+        canonical text; presets are expanded before (:func:`.presets.expand_presets`).
     """
 
     ny: int = 4
