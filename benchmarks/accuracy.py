@@ -31,7 +31,9 @@ polynomial space, the lines under it.
 Records: the robot arm, the dryer and the heat exchanger (``../shared/data``;
 skipped with a line when missing), the two-tank simulator, the simulated joint
 with Coulomb friction (``test/helpers/joint.py``: 20 s to identify, another
-20 s to simulate; position out, so a free run drifts), the velocity loop whose
+20 s to simulate; position out, so a free run drifts), the speed loop with
+Coulomb friction (``test/helpers/velocity_loop.py``, 20 s each at 1 kHz: its
+friction follows the output's own sign), the velocity loop whose
 amplifier clips (``benchmarks/actuator.py``: 4 s at 1 kHz each), and the two-link
 arm with two outputs (coupled free run, against a linear MIMO ARX fitted the
 same way; both focuses, the given space and ``--orders auto``; the simulation
@@ -93,6 +95,10 @@ def _records():
     from .scale import _joint
 
     yield "joint with Coulomb friction (simulator)", _joint(20.0, 1), _joint(20.0, 2)
+    from .scale import test_helper
+
+    speed = test_helper("velocity_loop").velocity_record
+    yield "speed loop with Coulomb friction (simulator)", speed(20.0, seed=1), speed(20.0, seed=2)
     from . import actuator
 
     yield "velocity loop, saturating amplifier (simulator)", actuator.record(4000, 0), \
@@ -208,6 +214,45 @@ def calls(seeds: int) -> None:
         sys.stdout.flush()
 
 
+def record_rows(name: str, first, second, base: dict) -> None:
+    """One record's lines, estimated on ``first`` and scored on ``second``.
+
+    The linear ARX, the default space and its presets, the orders chosen from the
+    data, and the command as typed.
+    """
+    from spm_sysid.core.validate.arx import choose_arx
+
+    (u1, y1), (u2, y2) = first, second
+    print(name)
+    t0 = time.perf_counter()
+    arx = choose_arx(u1, y1)
+    print(_line(f"linear ARX (order {arx.order}, first half)", y2, arx.simulate(u2, y2),
+                f"{arx.theta.shape[0]} params", time.perf_counter() - t0))
+    model, seconds = _narx(u1, y1, base)
+    print(_line("default, --focus simulation", y2, _narx_run(model, u2, y2),
+                f"{len(model.terms)} terms", seconds))
+    print(_call(model))
+    model, seconds = _narx(u1, y1, {**base, "regressors": "friction"})
+    print(_line("default + --regressors friction", y2, _narx_run(model, u2, y2),
+                f"{len(model.terms)} terms", seconds))
+    print(_call(model) + _regressor_terms(model))
+    model, seconds = _narx(u1, y1, {**base, "regressors": "saturation"})
+    print(_line("default + --regressors saturation", y2, _narx_run(model, u2, y2),
+                f"{len(model.terms)} terms", seconds))
+    print(_call(model) + _regressor_terms(model))
+    model, seconds = _narx(u1, y1, {**base, "orders": "auto"})
+    o = model.metadata["orders"]
+    print(_line(f"--orders auto (chose {o['ny']}, {o['nu']}, {o['degree']})", y2,
+                _narx_run(model, u2, y2), f"{len(model.terms)} terms", seconds))
+    print(_call(model))
+    model, seconds = _narx(u1, y1, TYPED)
+    o = model.metadata["orders"]
+    print(_line(f"as typed, AIC (chose {o['ny']}, {o['nu']}, {o['degree']})", y2,
+                _narx_run(model, u2, y2), f"{len(model.terms)} terms", seconds))
+    print(_call(model))
+    sys.stdout.flush()
+
+
 def run(args) -> None:
     from spm_sysid.core.validate.arx import choose_arx
 
@@ -216,35 +261,8 @@ def run(args) -> None:
     base = {"focus": "simulation", "constant": True, "criterion": "bic", "seed": 1}
     print("second-half free-run RMSE (each record's units) and fit, estimated on the first "
           f"half; errors from sample {START} of the held-out part")
-    for name, (u1, y1), (u2, y2) in _records():
-        print(name)
-        t0 = time.perf_counter()
-        arx = choose_arx(u1, y1)
-        print(_line(f"linear ARX (order {arx.order}, first half)", y2, arx.simulate(u2, y2),
-                    f"{arx.theta.shape[0]} params", time.perf_counter() - t0))
-        model, seconds = _narx(u1, y1, base)
-        print(_line("default, --focus simulation", y2, _narx_run(model, u2, y2),
-                    f"{len(model.terms)} terms", seconds))
-        print(_call(model))
-        model, seconds = _narx(u1, y1, {**base, "regressors": "friction"})
-        print(_line("default + --regressors friction", y2, _narx_run(model, u2, y2),
-                    f"{len(model.terms)} terms", seconds))
-        print(_call(model) + _regressor_terms(model))
-        model, seconds = _narx(u1, y1, {**base, "regressors": "saturation"})
-        print(_line("default + --regressors saturation", y2, _narx_run(model, u2, y2),
-                    f"{len(model.terms)} terms", seconds))
-        print(_call(model) + _regressor_terms(model))
-        model, seconds = _narx(u1, y1, {**base, "orders": "auto"})
-        o = model.metadata["orders"]
-        print(_line(f"--orders auto (chose {o['ny']}, {o['nu']}, {o['degree']})", y2,
-                    _narx_run(model, u2, y2), f"{len(model.terms)} terms", seconds))
-        print(_call(model))
-        model, seconds = _narx(u1, y1, TYPED)
-        o = model.metadata["orders"]
-        print(_line(f"as typed, AIC (chose {o['ny']}, {o['nu']}, {o['degree']})", y2,
-                    _narx_run(model, u2, y2), f"{len(model.terms)} terms", seconds))
-        print(_call(model))
-        sys.stdout.flush()
+    for name, first, second in _records():
+        record_rows(name, first, second, base)
     joint_rates()
     benchmarks()
     tau1, q1 = two_link.record(args.samples, seed=0)

@@ -47,14 +47,19 @@ SIZES = (10_000, 30_000, 100_000)
 COMMAND = ("identify", "--focus", "simulation", "--orders", "auto")
 
 
-def _joint(seconds: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """Torque and position of the tests' simulated joint (``test/helpers/joint.py``)."""
-    path = ROOT / "test" / "helpers" / "joint.py"
-    spec = importlib.util.spec_from_file_location("spm_sysid_test_joint", path)
+def test_helper(name: str):
+    """The tests' simulator module ``test/helpers/<name>.py`` (the tests are no package here)."""
+    spec = importlib.util.spec_from_file_location(f"spm_sysid_test_{name}",
+                                                  ROOT / "test" / "helpers" / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module  # dataclasses look their module up
     spec.loader.exec_module(module)
-    return module.joint_record(seconds, seed=seed)
+    return module
+
+
+def _joint(seconds: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Torque and position of the tests' simulated joint (``test/helpers/joint.py``)."""
+    return test_helper("joint").joint_record(seconds, seed=seed)
 
 
 def _run(data: Path, extra: tuple[str, ...]) -> tuple[float, float, int, list[str]]:
