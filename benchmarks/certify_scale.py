@@ -124,7 +124,7 @@ def _scip(case: dict) -> dict:
     from spm_sysid.core.fit.criteria import get_criterion
 
     problem = _problem(case)
-    X = problem.columns[:, problem.usable]
+    X = problem.columns[:, problem.column_index(np.flatnonzero(problem.usable))]
     t = problem.target
     n, m = X.shape
     full = np.linalg.lstsq(X, t, rcond=None)[0]
@@ -185,7 +185,7 @@ def _el0ps(case: dict) -> dict:
 
     problem = _problem(case)
     usable = np.flatnonzero(problem.usable)
-    X, t = problem.columns[:, usable], problem.target
+    X, t = problem.columns[:, problem.column_index(usable)], problem.target
     A = np.asfortranarray(X / np.linalg.norm(X, axis=0))
     target = t / np.linalg.norm(t)
     rows = len(target)

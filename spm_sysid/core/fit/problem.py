@@ -282,8 +282,10 @@ class Problem:
     u_scale : ndarray, shape (n_inputs,)
     y_scale : float
         The powers of two the signals were divided by.
-    columns : ndarray, shape (rows, n_terms)
-        Every candidate term's column of the scaled signals.
+    columns : ndarray, shape (rows, stored)
+        Every candidate term's column of the scaled signals but the products of
+        regressors (no candidates: on a long record with the friction preset
+        they were half the matrix); :meth:`column_index` maps terms to them.
     target : ndarray, shape (rows,)
         The scaled output of the regression rows.
     zero : ndarray of bool, shape (n_terms,)
@@ -306,13 +308,21 @@ class Problem:
         self.y_scale = power_of_two_scale(self.y)
         self.r_scale = term_space.regressor_scales(self.u, self.y)
         scales = (self.u_scale, self.y_scale, self.r_scale) if term_space.regressors else None
-        self.columns, self.target = term_space.regression(self.u / self.u_scale,
-                                                          self.y / self.y_scale, self.segments,
-                                                          scales=scales)
+        products = term_space.regressor_products
+        stored = np.flatnonzero(~products)
+        self._position = np.full(term_space.n_terms, -1)
+        self._position[stored] = np.arange(len(stored))
+        self.columns, self.target = term_space.regression(
+            self.u / self.u_scale, self.y / self.y_scale, self.segments,
+            terms=stored if products.any() else None, scales=scales)
         lag = term_space.max_lag
         self.row_times = np.concatenate([np.arange(a + lag, b) for a, b in self.segments])
-        self.zero, self.duplicate_of = excluded_columns(self.columns)
-        self.usable = ~self.zero & (self.duplicate_of < 0) & ~term_space.regressor_products
+        zero, duplicate_of = excluded_columns(self.columns)
+        self.zero = np.zeros(term_space.n_terms, dtype=bool)
+        self.zero[stored] = zero
+        self.duplicate_of = np.full(term_space.n_terms, -1)
+        self.duplicate_of[stored] = np.where(duplicate_of >= 0, stored[duplicate_of], -1)
+        self.usable = ~self.zero & (self.duplicate_of < 0) & ~products
         self._factors = term_space.coefficient_factors(self.u_scale, self.y_scale, self.r_scale)
         self._evaluators: dict[float, object] = {}  # the shared numbers, by rank_tol
         self._norms: np.ndarray | None = None
@@ -352,7 +362,7 @@ class Problem:
             raise DataError(f"the output {name} is constant ({y[0]:g} throughout; a stuck or "
                             "disconnected sensor?): there is nothing to identify")
         rows = sum(b - a - term_space.max_lag for a, b in segs)
-        m = term_space.n_terms
+        m = term_space.n_terms - int(term_space.regressor_products.sum())
         # on top of what the process holds when the user set the bound
         check_memory(working_bytes(rows, m),
                      f"the regression matrix of {rows} rows x {m} candidate terms", held=True)
@@ -381,11 +391,32 @@ class Problem:
 
     @property
     def column_norms(self) -> np.ndarray:
-        """Every candidate column's norm in the user's units, shape (n_terms,)."""
+        """Every candidate column's norm in the user's units, shape (n_terms,).
+
+        0 for a product of regressors (not a candidate; its column is not built).
+        """
         if self._norms is None:
+            norms = np.zeros(self.term_space.n_terms)
+            stored = self._position >= 0
             with np.errstate(divide="ignore", invalid="ignore"):
-                self._norms = column_norms(self.columns) * self.y_scale / self._factors
+                norms[stored] = (column_norms(self.columns) * self.y_scale
+                                 / self._factors[stored])
+            self._norms = norms
         return self._norms
+
+    def column_index(self, terms) -> np.ndarray:
+        """The positions in :attr:`columns` of these term indices.
+
+        Raises
+        ------
+        ValueError
+            A term is a product of regressors (no candidate: its column is not built).
+        """
+        at = self._position[np.asarray(terms, dtype=int)]
+        if (at < 0).any():
+            raise ValueError("a structure holds a product of two regressors, which is no "
+                             "candidate term (write such a product as one expression)")
+        return at
 
     def excluded_terms(self) -> dict[str, dict]:
         """The terms set aside, by reason.
@@ -415,7 +446,7 @@ class Problem:
         if base is None:
             base = StructureEvaluator(self.columns, self.target, crit, rank_tol=rank_tol,
                                       sse_scale=self.sse_scale,
-                                      columns=np.flatnonzero(self.usable))
+                                      columns=self.column_index(np.flatnonzero(self.usable)))
             self._evaluators[rank_tol] = base
         return base.with_criterion(crit, max_terms)
 
@@ -434,6 +465,7 @@ class Problem:
         if not (self.term_space.constant and len(columns) and columns[0] == 0):
             return None, source
         P = self.columns
+        columns = self.column_index(columns)
         centred = np.array([np.linalg.norm(P[:, j] - P[:, j].mean()) for j in columns[1:]])
         moving = np.flatnonzero(centred > 1e-9 * column_norms(P)[columns[1:]]) + 1
         _mark_repeats(moving, lambda i: _key(P[:, columns[i]] - P[:, columns[i]].mean(),
@@ -481,8 +513,8 @@ class Problem:
         if not mask.any():
             raise ValueError("cannot fit a structure with no terms")
         # the structure's columns, read a slice of rows at a time on a long record
-        res, residuals = structure_fit(self.columns, self.target, np.flatnonzero(mask), rows,
-                                       rank_tol)
+        res, residuals = structure_fit(self.columns, self.target,
+                                       self.column_index(np.flatnonzero(mask)), rows, rank_tol)
         if res.rank_deficient:
             names = [ts.term_names()[i] for i in np.flatnonzero(mask)]
             raise ValueError(f"the regressors {names} are linearly dependent on this data")

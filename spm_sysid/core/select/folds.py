@@ -164,11 +164,12 @@ def fold_excitation(problem, folds: list[Fold]) -> float:
     if not folds or len(cols) == 0:
         return 1.0
     P = problem.columns  # its linear columns' Gram matrices, a slice of rows at a time
+    at = problem.column_index(cols)
     step = max(1, FACTOR_SLICE_BYTES // (8 * len(cols)))
     gram = np.zeros((len(cols), len(cols)))
     grams = np.zeros((len(folds), len(cols), len(cols)))
     for a in range(0, P.shape[0], step):
-        X = P[a:a + step][:, cols]
+        X = P[a:a + step][:, at]
         gram += X.T @ X
         for g, f in zip(grams, folds):
             part = X[f.train[a:a + step]]

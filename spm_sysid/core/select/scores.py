@@ -90,7 +90,7 @@ def _fold_mse(problem, fold: Fold, mask: np.ndarray, simulate: bool,
     train = fold.train
     if not mask.any() or (mask & ~problem.usable).any() or train.sum() <= mask.sum():
         return np.nan
-    cols = np.flatnonzero(mask)  # the structure's columns only, in slices of rows
+    cols = problem.column_index(np.flatnonzero(mask))  # its columns only, in slices of rows
     fit, _ = structure_fit(problem.columns, problem.target, cols, train)
     if fit.rank_deficient:
         return np.nan
