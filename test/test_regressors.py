@@ -250,6 +250,9 @@ def test_the_friction_preset_reads_a_velocity_outputs_own_sign():
     u, y = load_robot_arm()
     for signal, inputs in ((q, [("u", (1, 2), q_tau)]), (y, [("u", (1, 2, 3, 4), u)])):
         assert len(expand_presets(["friction"], "y", signal, inputs, ny=2)) == 3
+    for seed in range(20):  # 50 samples of noise: a sign that removes 5 % by chance is no friction
+        noise = np.random.default_rng(seed).standard_normal(50)
+        assert len(expand_presets(["friction"], "y", noise)) == 3
     settings = dict(u=tau, y=v, ny=1, nu=1, degree=1, criterion="bic", focus="simulation",
                     seed=1)
     model = identify(**settings, regressors="friction").model

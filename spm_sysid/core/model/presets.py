@@ -45,6 +45,10 @@ OWN_SIGN_SHARE = 0.05
 #: stays on one side of zero has no sign to read).
 OWN_SIGN_SIDE = 0.05
 
+#: ... and when that reduction is significant at this level (an F test: on a short
+#: record a column of noise removes 5 % by chance).
+OWN_SIGN_LEVEL = 1e-3
+
 Inputs = list[tuple[str, tuple[int, ...], np.ndarray]]
 
 
@@ -133,9 +137,12 @@ def own_sign_matters(y: np.ndarray | None, inputs: Inputs, ny: int) -> bool:
     ``sign(y(t-1))`` beside a linear ARX model and the last step's sign (``ny``
     output lags, at least 2, every input's lags, a constant,
     ``sign(y(t-1)-y(t-2))``; least squares) removes at least
-    :data:`OWN_SIGN_SHARE` of its squared residual: the output's own sign says
+    :data:`OWN_SIGN_SHARE` of its squared residual, significantly
+    (:data:`OWN_SIGN_LEVEL`, scipy's F distribution): the output's own sign says
     what its last step's does not.
     """
+    from scipy.stats import f as f_distribution
+
     if y is None:
         return False
     y = np.asarray(y, dtype=float)
@@ -155,8 +162,12 @@ def own_sign_matters(y: np.ndarray | None, inputs: Inputs, ny: int) -> bool:
         r = target - A @ np.linalg.lstsq(A, target, rcond=None)[0]
         return float(r @ r)
 
-    without = sse(X[:, :-1])
-    return without > 0 and sse(X) <= (1.0 - OWN_SIGN_SHARE) * without
+    without, dof = sse(X[:, :-1]), len(target) - X.shape[1]
+    with_sign = sse(X)
+    if not (without > 0 and with_sign <= (1.0 - OWN_SIGN_SHARE) * without and dof > 0):
+        return False
+    statistic = (without - with_sign) / max(with_sign / dof, np.finfo(float).tiny)
+    return bool(f_distribution.sf(statistic, 1, dof) < OWN_SIGN_LEVEL)
 
 
 def _saturation(inputs: Inputs, y: np.ndarray | None, ny: int) -> list[str]:
