@@ -301,20 +301,26 @@ def test_the_own_sign_and_an_operating_point(how):
     """An input far from zero is identified around its mean and the speed keeps its own
     sign; a mean asked for moves the speed too, and its sign is then not the record's:
     the preset leaves it out instead of refusing the point."""
+    from spm_sysid.core.jobs import JobSettings, run_job
+    from spm_sysid.core.record import Record
+
     from .helpers.velocity_loop import velocity_record
 
     tau, v = velocity_record(6.0, seed=1)
     point = "auto" if how.startswith("input") else "mean"
-    res = identify(u=tau + 5.0, y=v, ny=1, nu=1, degree=1, criterion="bic", seed=1,
-                   regressors="friction", operating_point=point)
-    model = res.model
-    own = {"sign(y(t-1))", *(r for r in model.term_space.regressors if r.startswith("tanh(y"))}
-    assert ("operating_point" in model.metadata) is True
-    if point == "auto":
-        assert model.metadata["operating_point"]["output"] == {"y": 0.0}
-        assert own & set(model.term_space.regressors) and own & set(model.terms), model.terms
-    else:
-        assert not own & set(model.term_space.regressors), model.term_space.regressors
+    settings = dict(ny=1, nu=1, degree=1, criterion="bic", seed=1, regressors="friction",
+                    operating_point=point)
+    job = run_job(Record.from_samples(tau + 5.0, v, source="speed"),
+                  JobSettings.from_values(settings)).model  # the CLI's and the node's way
+    for model in (identify(u=tau + 5.0, y=v, **settings).model, job):
+        space = model.term_space
+        own = {"sign(y(t-1))", *(r for r in space.regressors if r.startswith("tanh(y"))}
+        assert "operating_point" in model.metadata
+        if point == "auto":
+            assert model.metadata["operating_point"]["output"] == {"y": 0.0}
+            assert own & set(space.regressors) and own & set(model.terms), model.terms
+        else:
+            assert not own & set(space.regressors), space.regressors
 
 
 def test_the_saturation_preset_finds_the_actuators_limit_and_its_model():

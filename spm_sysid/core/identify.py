@@ -28,7 +28,12 @@ from .errors import DataError, SettingsError
 from .fit.criteria import CERTIFIABLE, Criterion, get_criterion
 from .fit.problem import Problem, check_samples, validate_signals
 from .model.narx import NarxModel
-from .model.operating_point import OperatingPoint, choose_operating_point, in_record_units
+from .model.operating_point import (
+    OperatingPoint,
+    choose_operating_point,
+    in_record_units,
+    own_sign_at,
+)
 from .model.terms import TermSpace
 from .options import SEARCH_SETTINGS, SearchOptions
 from .progress import Progress, ProgressFn
@@ -141,7 +146,7 @@ def _space(u, y, segments, term_space: TermSpace, options: SearchOptions, orders
     term_space, why = (_orders_from_data(u, y, segments, term_space, options)
                        if orders == "auto" else (term_space, None))
     if regressors:
-        term_space = _with_regressors(term_space, regressors, y, u, point and point.own_sign)
+        term_space = _with_regressors(term_space, regressors, y, u, own_sign_at(point))
     if point is not None:
         term_space = replace(term_space, constant=True)
     return u, y, term_space, why

@@ -31,6 +31,7 @@ from ..model.operating_point import (
     choose_operating_point,
     in_record_units,
     operating_point_words,
+    own_sign_at,
 )
 from ..model.segments import describe_data, segment_report
 from ..online.monitor import store_monitor_reference
@@ -385,8 +386,7 @@ def run_single_job(
         settings, orders = choose_orders(record, settings, est, du, dy)
         est, val, data = validation_segments(record, settings)
     if settings.regressors:  # presets take their scales from the estimation data
-        settings = settings.with_regressors(_rows(dy, est), _rows(du, est),
-                                            own_sign=point and point.own_sign)
+        settings = settings.with_regressors(_rows(dy, est), _rows(du, est), own_sign_at(point))
         est, val, data = validation_segments(record, settings)
     space = settings.term_space
     problem, ident = _identified((du, dy), est, settings, (point, kept_as_is),

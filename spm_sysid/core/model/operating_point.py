@@ -34,7 +34,8 @@ from .narx import NarxModel
 from .terms import TermSpace
 
 __all__ = ["OFFSET_RATIO", "OperatingPoint", "choose_operating_point", "expanded",
-           "in_deviations", "in_record_units", "operating_point_words", "point_clause"]
+           "in_deviations", "in_record_units", "operating_point_words", "own_sign_at",
+           "point_clause"]
 
 #: ``auto``: a record is identified around its means when some signal's mean is
 #: farther from zero than this many of its standard deviations.
@@ -72,15 +73,6 @@ class OperatingPoint:
     output: float
     reason: str
 
-    @property
-    def own_sign(self) -> bool | None:
-        """For the ``friction`` preset: whether it may add the output's own sign.
-
-        None (decide from the data) when the output keeps its samples, False when
-        it is taken around its mean (its sign is then not the record's).
-        """
-        return None if self.output == 0.0 else False
-
     def centred(self, u: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``u`` and ``y`` minus the point (new arrays of the same shapes)."""
         u = np.asarray(u, dtype=float)
@@ -99,6 +91,16 @@ class OperatingPoint:
         return {"output": {space.output: float(self.output)},
                 "inputs": {name: float(v) for name, v in zip(space.inputs, self.inputs)},
                 "reason": self.reason}
+
+
+def own_sign_at(point: OperatingPoint | None) -> bool | None:
+    """For the ``friction`` preset: whether samples around ``point`` may read the output's sign.
+
+    None (decide from the data) when the output keeps its samples (no point, or
+    its output not moved); False when the output is taken around its mean: the
+    sign of a deviation is not the record's.
+    """
+    return None if point is None or point.output == 0.0 else False
 
 
 def choose_operating_point(setting: str, u_rows: np.ndarray, y_rows: np.ndarray,
