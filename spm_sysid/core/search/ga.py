@@ -267,7 +267,8 @@ class _Scorer:
 
 
 def run_ga(
-    evaluator: _Scorer, config: GAConfig | None = None, seed: int | None = None,
+    evaluator: _Scorer, config: GAConfig | None = None,
+    seed: int | np.random.SeedSequence | None = None,
     callback: Callable[[GenerationStats], bool | None] | None = None,
 ) -> GAResult:
     """Search structures with the GA; return the best one found.
@@ -278,7 +279,7 @@ def run_ga(
         Scores a (B, n_terms) boolean population; lower is better.
     config : GAConfig
         Settings (defaults: the paper's).
-    seed : int, optional
+    seed : int or numpy.random.SeedSequence, optional
         Seed of the random generator; the same seed gives the same run.
     callback : callable, optional
         Called with each generation's :class:`GenerationStats`; returning
