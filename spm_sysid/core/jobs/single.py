@@ -171,14 +171,14 @@ def _certificate_words(meta: dict) -> str:
         cert += (f"; the {meta['excluded_regressor_products']} products of two regressors "
                  "are not candidates")
     pol = meta.get("polish") or {}
+    again = pol.get("restart")
+    if again:
+        cert = (f"a second GA and polish from another seed stream ended at "
+                f"{again['second']:.2f}, the first at {again['first']:.2f}: the "
+                f"{again['kept']} kept" + (f"; {cert}" if cert else ""))
     if pol.get("value") is not None and pol["value"] < pol["ga_value"]:
         cert = (f"the polish after the GA improved its best from {pol['ga_value']:.2f} "
                 f"({pol['steps']} step(s))" + (f", {cert}" if cert else ""))
-    again = pol.get("restart")
-    if again:
-        first, second = again["first"], again["second"]
-        cert = (f"a second GA and polish from another seed stream ended at {second:.2f}, the "
-                f"first at {first:.2f}: the {again['kept']} kept" + (f"; {cert}" if cert else ""))
     return cert
 
 
