@@ -178,7 +178,7 @@ def test_large_spaces_rank_fewer_steps_as_each_step_costs_more(arm84, robot_arm)
 def test_mid_size_spaces_are_searched_twice_and_the_better_kept():
     """84 candidates (more than RESTART_TERMS): a second GA and polish from another seed
     stream; the model is the better of the two and the answer says what each ended at.
-    The paper's 44 candidates stay one search."""
+    The paper's 44 candidates and validated selections stay one search."""
     from spm_sysid.core.jobs.single import _certificate_words
 
     u, y = CASES["dryer-0"]()
@@ -199,3 +199,6 @@ def test_mid_size_spaces_are_searched_twice_and_the_better_kept():
     options = SearchOptions(criterion="bic", seed=0, auto_certify_time_limit=0,
                             selection="criterion")
     assert "restart" not in identify_problem(small, options).model.metadata["polish"]
+    # a selection judged on held-out data is not the criterion's optimum: one search
+    held_out = SearchOptions(criterion="bic", seed=0, selection="validated")
+    assert "restart" not in identify_problem(problem, held_out).model.metadata["polish"]

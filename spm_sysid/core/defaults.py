@@ -134,7 +134,8 @@ PARALLEL_OUTPUT_BYTES = 512 << 20
 AUTO_CERTIFY_TERMS = 120
 
 #: Spaces of more usable terms than this, on records that are not long, are searched
-#: twice: a second GA and polish from an independent seed stream, the better kept. At
+#: twice when the criterion's optimum is the answer (selection ``criterion``): a second
+#: GA and polish from an independent seed stream, the better kept. At
 #: 84 candidates ((3, 3, 3) with the constant, first halves, 20 seeds) one GA and
 #: polish reached the best value known in 20 / 20 / 19 / 12 / 1 / 5 runs (robot arm,
 #: dryer, heat exchanger; AIC, BIC), the better of two in 20 / 20 / 20 / 19 / 4 / 10,

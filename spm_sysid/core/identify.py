@@ -288,8 +288,9 @@ def identify_problem(
     ga = ga or GAConfig()
     data_check = _check_data(problem, crit) if check_data else None
     evaluator = problem.evaluator(crit, max_terms=options.max_terms)
-    result, polished = _searched(problem, evaluator, ga, options, callback, report, started)
     plan = plan_selection(problem, options)
+    result, polished = _searched(problem, evaluator, ga, options, plan, (callback, report),
+                                 started)
     certificate = None
     within = _certify_within(plan, options, crit, problem)
     if within is not None:
@@ -315,12 +316,19 @@ def _check_data(problem: Problem, crit: Criterion):
     return check_problem(problem, criterion=crit.name)
 
 
-def _searched(problem, evaluator, ga: GAConfig, options: SearchOptions, callback, report,
-              started) -> tuple[GAResult, dict | None]:
+def _searched(problem, evaluator, ga: GAConfig, options: SearchOptions, plan: SelectionPlan,
+              calls, started) -> tuple[GAResult, dict | None]:
     """The GA and its polish; twice in mid-size spaces (:data:`RESTART_TERMS`), the better kept.
 
-    Twice where the space has more usable terms than that and the record is not
-    long. The second GA draws from an independent stream of the same seed (numpy's
+    Twice where the space has more usable terms than that, the record is not
+    long and the criterion's optimum is the answer (``plan.mode`` ``criterion``):
+    a validated selection judges the GA's structures on held-out data, and a
+    second search only changed which of them it met (the heat exchanger's
+    `--focus simulation --orders auto` on its first half went from a 44-term
+    model, 0.480 on the second half, to a 5-term linear one, 0.700). ``calls``:
+    the GA's callback and the progress function.
+
+    The second GA draws from an independent stream of the same seed (numpy's
     ``SeedSequence`` spawned from it), so a run repeats with its seed; its phases
     are reported again (search, polish), the best so far never worse than the
     first's. The polish account then says what each search ended at and which was
@@ -328,12 +336,13 @@ def _searched(problem, evaluator, ga: GAConfig, options: SearchOptions, callback
     """
     from .select.folds import is_long
 
+    callback, report = calls
     result = _search(problem, evaluator, ga, options, callback, report, started)
     if not options.polish:
         return result, None
     polished = _polish(problem, evaluator, result, report, started)
     if (result.stopped_early or problem.usable.sum() <= RESTART_TERMS or is_long(problem)
-            or not np.isfinite(result.best_score)):
+            or plan.mode != "criterion" or not np.isfinite(result.best_score)):
         return result, polished
     first = float(result.best_score)
 
