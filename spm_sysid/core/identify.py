@@ -42,6 +42,7 @@ from .search.local import polish
 from .search.neighbourhood import MoveScreen
 from .search.ties import lowest_degree_of_ties
 from .select.choose import choose, overfit_warnings, selection_account
+from .select.folds import is_long
 from .select.plan import SelectionPlan, plan_selection
 from .select.simulation import select_for_simulation
 from .settings import SETTINGS
@@ -334,8 +335,6 @@ def _searched(problem, evaluator, ga: GAConfig, options: SearchOptions, plan: Se
     first's. The polish account then says what each search ended at and which was
     kept.
     """
-    from .select.folds import is_long
-
     callback, report = calls
     result = _search(problem, evaluator, ga, options, callback, report, started)
     if not options.polish:

@@ -266,11 +266,9 @@ class _Scorer:
     def score(self, masks: np.ndarray, keys: np.ndarray | None = None) -> np.ndarray: ...
 
 
-def run_ga(
-    evaluator: _Scorer, config: GAConfig | None = None,
-    seed: int | np.random.SeedSequence | None = None,
-    callback: Callable[[GenerationStats], bool | None] | None = None,
-) -> GAResult:
+def run_ga(evaluator: _Scorer, config: GAConfig | None = None,
+           seed: int | np.random.SeedSequence | None = None,
+           callback: Callable[[GenerationStats], bool | None] | None = None) -> GAResult:
     """Search structures with the GA; return the best one found.
 
     Parameters
