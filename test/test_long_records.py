@@ -72,6 +72,29 @@ def test_progress_off_a_terminal_is_a_line_per_phase_and_one_every_few_seconds()
     assert not any("\r" in x for x in lines)  # lines, not a redrawn bar
 
 
+def test_the_estimate_left_goes_by_the_steps_after_a_phases_first():
+    """A dear first step (a cold cache) does not make the rest look as dear."""
+    now = [0.0]
+    out = io.StringIO()
+    bars = PhaseBars(True, stream=out, every=1e9, clock=lambda: now[0])
+    try:
+        bars(Progress("held-out blocks", 0, 15))
+        for step, at in ((1, 10.0), (2, 11.0), (3, 12.0)):
+            now[0] = at
+            bars(Progress("held-out blocks", step, 15))
+            bars._print(bars._last, at)  # a line at each step
+        now[0] = 14.0  # the fourth step under way for 2 s
+        bars._print(bars._last, now[0], still=True)
+    finally:
+        bars.close()
+    lines = out.getvalue().splitlines()[1:]
+    assert "step 1/15" in lines[0] and "left" not in lines[0], lines  # no pace yet
+    assert "step 2/15" in lines[1] and "about 13 s left in it" in lines[1], lines
+    # 1 s a step after the first: 12 left, not 4 x 12 s = 48 s from the phase's start
+    assert "step 3/15" in lines[2] and "about 12 s left in it" in lines[2], lines
+    assert "still working" in lines[3] and "about 10 s left in it" in lines[3], lines
+
+
 def test_identify_off_a_terminal_reports_its_phases_in_order(robot_arm_path):
     r = subprocess.run([EXE, "identify", "--focus", "simulation"], capture_output=True,
                        text=True, cwd=ROOT, timeout=600)

@@ -8,7 +8,10 @@ refined, the held-out blocks judged ...):
 * off a terminal (a log, CI, ``| tee``), a line on stderr at each new phase and
   then at least every :data:`LINE_EVERY` seconds -- the phase, how far it is
   (``step/total`` and the share done, when the total is known), the seconds
-  elapsed, and an estimate of the phase's remaining seconds from its pace. A
+  elapsed, and an estimate of the phase's remaining seconds from its pace
+  after its first step (a phase's first step is often its dearest: a cold
+  cache, a compiled kernel, the longest fold; its pace alone said 146 s where
+  30 s followed on a 10-minute record), none until a second step is done. A
   phase whose steps are long (one refinement on 10^5 samples) still gets its
   line: a clock prints the last record again, with the time, when nothing new
   came for that long.
@@ -46,8 +49,10 @@ def _bar(**kw):
 class PhaseBars:
     """Shows Progress records: a bar on a terminal, lines off it (see the module doc)."""
 
-    def __init__(self, enabled: bool = True, stream=None, every: float = LINE_EVERY) -> None:
+    def __init__(self, enabled: bool = True, stream=None, every: float = LINE_EVERY,
+                 clock=time.monotonic) -> None:
         self.stream = stream or sys.stderr
+        self.clock = clock  # seconds, monotonic (a test gives its own)
         # tqdm stays silent off a terminal; not importing it then saves its import time
         self.enabled = enabled and _terminal(self.stream)
         self.logging = enabled and not self.enabled
@@ -58,8 +63,9 @@ class PhaseBars:
         self.best_model = None  # builds the job's best model so far (Progress.best_model)
         self.best_phase = self.last_phase = ""
         self._fresh = False  # a record came since the last line
-        self._phase_start = self._printed = time.monotonic()
-        self._t0 = time.monotonic()
+        self._printed = self._t0 = clock()
+        self._pace_from: tuple[float, int] | None = None  # (time, step) after the first step
+        self._seen_at = self._t0  # when the last record came
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._clock = None
@@ -94,30 +100,42 @@ class PhaseBars:
     # -- lines off a terminal -------------------------------------------------------------
     def _log(self, p: Progress) -> None:
         with self._lock:
-            now = time.monotonic()
+            now = self.clock()
             new_phase = p.phase != (self._last.phase if self._last else None)
-            if new_phase:
-                self._phase_start = now
-            self._last, self._fresh = p, True
+            if new_phase or (self._pace_from and p.step < self._pace_from[1]):  # began anew
+                self._pace_from = None
+            if self._pace_from is None and p.step >= 1:
+                self._pace_from = (now, p.step)
+            self._last, self._fresh, self._seen_at = p, True, now
             if new_phase or now - self._printed >= self.every:
                 self._print(p, now)
 
     def _print(self, p: Progress, now: float, still: bool = False) -> None:
         text = p.line() + (" (still working on this step)" if still else "")
         if p.total and p.step:
-            share = min(p.step / p.total, 1.0)
-            text += f"; {share:.0%} of this phase"
-            spent = now - self._phase_start
-            if spent >= 1.0 and share < 1.0:  # a pace to go by
-                text += f", about {spent * (1.0 - share) / share:.0f} s left in it"
+            text += f"; {min(p.step / p.total, 1.0):.0%} of this phase"
+            left = self._left(p, now)
+            if left is not None:
+                text += f", about {left:.0f} s left in it"
         print(text, file=self.stream, flush=True)
         self._printed, self._fresh = now, False
+
+    def _left(self, p: Progress, now: float) -> float | None:
+        """Seconds left in the phase at the pace of its steps after the first (None: no pace)."""
+        if self._pace_from is None or p.step >= p.total:
+            return None
+        since, first = self._pace_from
+        if p.step <= first or self._seen_at - since < 1.0:
+            return None
+        left = (self._seen_at - since) / (p.step - first) * (p.total - p.step)
+        left -= now - self._seen_at  # a step under way has spent part of it
+        return left if left >= 1.0 else None
 
     def _tick(self) -> None:
         """Every so often: the last record again when nothing new came (a long step)."""
         while not self._stop.wait(min(1.0, self.every / 2)):
             with self._lock:
-                now = time.monotonic()
+                now = self.clock()
                 if self._last is not None and now - self._printed >= self.every:
                     last = replace(self._last, elapsed=now - self._t0)
                     self._print(last, now, still=not self._fresh)
@@ -126,7 +144,7 @@ class PhaseBars:
     def generation(self, stats) -> None:
         """A GA generation (:class:`~spm_sysid.core.search.ga.GenerationStats`) as progress."""
         self(Progress("search", stats.generation, self._total, stats.best, stats.evaluations,
-                      elapsed=time.monotonic() - self._t0))
+                      elapsed=self.clock() - self._t0))
 
     def for_generations(self, total: int) -> PhaseBars:
         """Set the number of generations for :meth:`generation`; returns self."""
@@ -138,7 +156,7 @@ class PhaseBars:
     def nodes(self, nodes: int, best: float, lower: float) -> None:
         """A branch-and-bound report as progress."""
         self(Progress("certification", nodes, 0, best, bound=lower,
-                      elapsed=time.monotonic() - self._t0))
+                      elapsed=self.clock() - self._t0))
 
     def close_bar(self) -> None:
         if self.bar is not None:
