@@ -296,6 +296,83 @@ def test_a_velocity_record_with_the_friction_preset_from_the_command_line(tmp_pa
     assert float(line.split("RMSE ")[1].split(",")[0]) < 0.05, line  # 0.40 without
 
 
+def _duffing(n=20000, seed=0):
+    """A cubic spring (Silverbox in small): odd, but a polynomial's case, not friction."""
+    rng = np.random.default_rng(seed)
+    u = np.convolve(rng.standard_normal(n), np.ones(4) / 4, mode="same")
+    y = np.zeros(n)
+    for t in range(2, n):
+        y[t] = 1.6 * y[t - 1] - 0.8 * y[t - 2] + 0.1 * u[t - 1] - 0.2 * y[t - 1] ** 3
+    return u, y + 1e-3 * rng.standard_normal(n)
+
+
+def test_the_friction_test_against_an_independent_least_squares_and_f_test():
+    """The share and p-value of ``friction_sign``: numpy's least squares on the columns
+    the docs name, scipy's chi-square (the large-sample form of the F test, which agrees)."""
+    from scipy.stats import chi2
+    from scipy.stats import f as f_distribution
+
+    from spm_sysid.core.validate.friction import FRICTION_LEVEL, friction_sign
+
+    from .helpers.velocity_loop import velocity_record
+
+    tau, v = velocity_record(2.0, seed=3)
+    found = friction_sign(v, tau, ny=2, nu=2)
+    n, t = len(v), np.arange(2, len(v))
+    step = v[t - 1] - v[t - 2]
+    base = np.column_stack([v[t - 1], v[t - 2], np.ones(n - 2), tau[t - 1], tau[t - 2],
+                            v[t - 1] ** 2, v[t - 1] ** 3, step ** 3])
+    full = np.column_stack([base, np.sign(step), np.sign(v[t - 1])])
+
+    def sse(A):
+        r = v[t] - A @ np.linalg.lstsq(A, v[t], rcond=None)[0]
+        return r @ r
+
+    s0, s1 = sse(base), sse(full)
+    assert found.signs == ("sign(y(t-1)-y(t-2))", "sign(y(t-1))") and found.rows == n - 2
+    assert found.share == pytest.approx(1 - s1 / s0, rel=1e-6)
+    dof = n - 2 - full.shape[1]
+    statistic = (s0 - s1) / 2 / (s1 / dof)
+    assert found.p_value == pytest.approx(chi2.sf(2 * statistic, 2), rel=1e-6)
+    assert f_distribution.sf(statistic, 2, dof) < FRICTION_LEVEL  # the exact test agrees
+    assert friction_sign(v[:100], tau[:100]) is None  # too few rows for the test
+
+
+def test_check_data_points_to_the_friction_preset_where_signs_explain_what_a_polynomial_cannot(
+        tmp_path, robot_arm_path):
+    """``spm-sysid check-data`` (and so every answer's warnings): a velocity loop and the
+    1 kHz joint (read at the advised fifth of the rate) get the hint; with the preset
+    asked for, none; a cubic spring, the robot arm and a linear record with noise none."""
+    from .helpers.velocity_loop import velocity_record
+
+    rng = np.random.default_rng(4)
+    lin_u = rng.standard_normal(5000)
+    lin_y = np.zeros(5000)
+    for k in range(2, 5000):
+        lin_y[k] = 1.5 * lin_y[k - 1] - 0.7 * lin_y[k - 2] + lin_u[k - 1]
+    records = {"speed.csv": velocity_record(20.0, seed=1), "joint.csv": joint_record(20.0, seed=2),
+               "spring.csv": _duffing(), "linear.csv": (lin_u, lin_y + rng.standard_normal(5000))}
+    for name, (u, y) in records.items():
+        np.savetxt(tmp_path / name, np.column_stack([u, y]), delimiter=",", header="u,y",
+                   comments="", fmt="%.10g")
+    run = [sys.executable, "-m", "spm_sysid.apps.main", "check-data"]
+
+    def hint(*args):
+        out = subprocess.run([*run, *args], capture_output=True, text=True, cwd=tmp_path,
+                             timeout=120)
+        assert out.returncode == 0, out.stderr
+        return [ln for ln in out.stdout.splitlines() if "--regressors friction" in ln]
+
+    for name, rate in (("speed.csv", "the record's rate"), ("joint.csv", "every 5th sample")):
+        [line] = hint("--data", name)
+        share = float(line.split(" explain ")[1].split("%")[0])
+        assert share >= 5 and rate in line and "sign(y(t-1)-y(t-2))" in line, line
+        assert not hint("--data", name, "--regressors", "friction")
+    for name in ("spring.csv", "linear.csv"):
+        assert not hint("--data", name), name
+    assert not hint("--data", str(robot_arm_path))
+
+
 @pytest.mark.parametrize("how", ["input offset, auto", "mean asked for"])
 def test_the_own_sign_and_an_operating_point(how):
     """An input far from zero is identified around its mean and the speed keeps its own

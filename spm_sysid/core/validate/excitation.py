@@ -17,7 +17,9 @@ For a :class:`~spm_sysid.core.fit.problem.Problem` it reports:
   **warnings** otherwise: too few rows per candidate, an input too simple for
   its lags, terms that cannot be identified, an ill-conditioned matrix, a
   constant output, a record sampled far faster than its signals move
-  (:func:`oversampling`: then ``--decimate`` may fit better).
+  (:func:`oversampling`: then ``--decimate`` may fit better), an output whose
+  signs explain what a polynomial does not (:mod:`.friction`: then
+  ``--regressors friction`` may).
 
 ``spm-sysid check-data`` prints the report; ``identify`` prints its warnings
 first; the node's answer, ``/diagnostics`` and the model document carry them.
@@ -40,6 +42,7 @@ from ..defaults import (
     ROWS_PER_TERM,
 )
 from ..errors import DataError
+from .friction import FRICTION_LEVEL, strongest_friction_sign
 
 __all__ = ["COLLINEAR_LIMIT", "DataCheck", "check_problem", "describe_check",
            "describe_glitches", "describe_wraps", "excitation_order", "glitches",
@@ -370,4 +373,24 @@ def _warn(check: DataCheck, problem, criterion: str | None = None) -> None:
                  "may be small against measurement noise, which biases the fit of lagged "
                  f"outputs (gains, friction); a slower rate may fit better: --decimate "
                  f"{factor // 4} (docs/cli.md)")
+    if not ts.regressors:
+        hint = _friction_hint(problem, max(factor // 4, 1))
+        if hint:
+            w.append(hint)
+
+
+def _friction_hint(problem, advised_every: int) -> str:
+    """The friction test's warning on the longest segment ('' when it shows none)."""
+    ts = problem.term_space
+    a, b = max(problem.segments, key=lambda s: s[1] - s[0]) if problem.segments \
+        else (0, len(problem.y))
+    found = strongest_friction_sign(problem.y[a:b], problem.u[a:b], max(ts.ny, 2),
+                                    max(ts.nus, default=1), advised_every)
+    if found is None or not found.shows_friction:
+        return ""
+    signs = " and ".join(s.replace("y(", f"{ts.output}(") for s in found.signs)
+    rate = "the record's rate" if found.every == 1 else f"every {found.every}th sample"
+    return (f"{signs} explain {found.share:.0%} of the squared residual of a linear ARX "
+            f"model with cubic terms (p < {FRICTION_LEVEL:g}, read at {rate}): Coulomb "
+            "friction? --regressors friction adds such terms (docs/cli.md)")
 
