@@ -168,6 +168,6 @@ def _against_linear(selection: dict) -> str:
     ratio = call.get("ratio")
     if call.get("choice") != "nonlinear" or ratio is None or not np.isfinite(ratio):
         return ""
-    return (f"; on those blocks it is still {ratio:.2g}x the best linear model's error "
-            f"(p = {call['p_value']:.2g})" if call.get("p_value") is not None else
-            f"; on those blocks it is still {ratio:.2g}x the best linear model's error")
+    p = call.get("p_value")
+    return (f"; on those blocks it is still {ratio:.2g}x the best linear model's error"
+            + (f" (p = {p:.2g})" if p is not None else ""))
