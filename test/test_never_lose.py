@@ -379,3 +379,22 @@ def test_outputs_of_different_lags_report_the_coupled_free_run_on_the_same_rows(
         np.testing.assert_allclose(rep.measured, q[-len(rep.measured):, i])
     assert len(result.outputs[0].report.residuals) == len(result.outputs[1].report.residuals)
     assert result.model.metadata["cross_correlation_tests"]
+
+
+def test_an_overfitting_warning_compares_with_linear_only_the_model_the_test_judged():
+    """The clause "still 0.02x the best linear model's error" is the returned model's own
+    figure: not when the guard shrank it, removed it for a fallback, or linear was kept."""
+    from spm_sysid.core.select.choose import _against_linear
+
+    call = {"choice": "nonlinear", "ratio": 0.0185, "p_value": 3.6e-8,
+            "challenger_fate": "returned"}
+    assert _against_linear({"linear_or_nonlinear": call}) == (
+        "; on those blocks it is still 0.018x the best linear model's error (p = 3.6e-08)")
+    for other in ({"challenger_fate": "returned, its nonlinear coefficients scaled by 0.5 "
+                                      "to pass the stability guard"},
+                  {"challenger_fate": "removed by the stability guard"},
+                  {"choice": "linear", "challenger_fate": "not better than the best linear "
+                                                          "one by more than the noise"},
+                  {"ratio": float("inf")}):
+        assert _against_linear({"linear_or_nonlinear": {**call, **other}}) == "", other
+    assert _against_linear({}) == ""

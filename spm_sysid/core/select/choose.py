@@ -162,11 +162,13 @@ def _against_linear(selection: dict) -> str:
     A model may fit its own data far better than other data and still simulate
     the other data far better than any linear model (the robot arm's
     ``--focus simulation --orders auto``: 7.2x its own error, 0.018x the best
-    linear's): the warning says both.
+    linear's): the warning says both. Only when the model returned is the one the
+    paired test judged, unchanged (not shrunk by the guard, not a fallback).
     """
     call = selection.get("linear_or_nonlinear") or {}
     ratio = call.get("ratio")
-    if call.get("choice") != "nonlinear" or ratio is None or not np.isfinite(ratio):
+    if (call.get("challenger_fate") != "returned" or call.get("choice") != "nonlinear"
+            or ratio is None or not np.isfinite(ratio)):
         return ""
     p = call.get("p_value")
     return (f"; on those blocks it is still {ratio:.2g}x the best linear model's error"
