@@ -35,20 +35,11 @@ from spm_sysid.core.validate.orders import propose_orders
 from spm_sysid.tools.cli.progress import PhaseBars
 
 sys.path.insert(0, str(Path(__file__).parent))
+from helpers.duffing import duffing  # noqa: E402
 from helpers.joint import Joint, joint_record  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 EXE = str(Path(sys.executable).with_name("spm-sysid"))
-
-
-def duffing(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """A discrete Duffing-like oscillator driven by filtered noise (a Silverbox in small)."""
-    rng = np.random.default_rng(seed)
-    u = np.convolve(rng.standard_normal(n), np.ones(4) / 4, mode="same")
-    y = np.zeros(n)
-    for t in range(2, n):
-        y[t] = 1.6 * y[t - 1] - 0.8 * y[t - 2] + 0.1 * u[t - 1] - 0.2 * y[t - 1] ** 3
-    return u, y + 1e-3 * rng.standard_normal(n)
 
 
 # -- progress off a terminal ------------------------------------------------------------

@@ -27,6 +27,7 @@ from spm_sysid.core.model.simulation import free_run_sensitivities
 from spm_sysid.core.model.terms import TermSpace
 
 from .conftest import ROOT
+from .helpers.duffing import duffing
 from .helpers.joint import Joint, joint_record
 
 EVERY_FUNCTION = ["sign(y(t-1)-y(t-2))", "abs(u(t))", "tanh((y(t-1)-y(t-2))/0.05)",
@@ -296,16 +297,6 @@ def test_a_velocity_record_with_the_friction_preset_from_the_command_line(tmp_pa
     assert float(line.split("RMSE ")[1].split(",")[0]) < 0.05, line  # 0.40 without
 
 
-def _duffing(n=20000, seed=0):
-    """A cubic spring (Silverbox in small): odd, but a polynomial's case, not friction."""
-    rng = np.random.default_rng(seed)
-    u = np.convolve(rng.standard_normal(n), np.ones(4) / 4, mode="same")
-    y = np.zeros(n)
-    for t in range(2, n):
-        y[t] = 1.6 * y[t - 1] - 0.8 * y[t - 2] + 0.1 * u[t - 1] - 0.2 * y[t - 1] ** 3
-    return u, y + 1e-3 * rng.standard_normal(n)
-
-
 def test_the_friction_test_against_an_independent_least_squares_and_f_test():
     """The share and p-value of ``friction_sign``: numpy's least squares on the columns
     the docs name, scipy's chi-square (the large-sample form of the F test, which agrees)."""
@@ -351,7 +342,8 @@ def test_check_data_points_to_the_friction_preset_where_signs_explain_what_a_pol
     for k in range(2, 5000):
         lin_y[k] = 1.5 * lin_y[k - 1] - 0.7 * lin_y[k - 2] + lin_u[k - 1]
     records = {"speed.csv": velocity_record(20.0, seed=1), "joint.csv": joint_record(20.0, seed=2),
-               "spring.csv": _duffing(), "linear.csv": (lin_u, lin_y + rng.standard_normal(5000))}
+               "spring.csv": duffing(20000),
+               "linear.csv": (lin_u, lin_y + rng.standard_normal(5000))}
     for name, (u, y) in records.items():
         np.savetxt(tmp_path / name, np.column_stack([u, y]), delimiter=",", header="u,y",
                    comments="", fmt="%.10g")
