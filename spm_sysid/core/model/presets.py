@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["OWN_SIGN_SHARE", "PRESETS", "SATURATION_PERCENTILES", "expand_presets",
+__all__ = ["OWN_SIGN_SHARE", "PRESETS", "SATURATION_PERCENTILES", "arx_columns", "expand_presets",
            "own_sign_matters", "preset_inputs", "saturation_level"]
 
 #: The words that name a set of regressors.
@@ -116,7 +116,7 @@ def _friction(output: str, y: np.ndarray | None, own_sign: bool) -> list[str]:
     return texts
 
 
-def _arx_columns(y: np.ndarray, inputs: Inputs, ny: int, skip: int | None = None
+def arx_columns(y: np.ndarray, inputs: Inputs, ny: int, skip: int | None = None
                  ) -> tuple[list[np.ndarray], int]:
     """The columns of a linear ARX model of y, and the row they start at.
 
@@ -149,7 +149,7 @@ def own_sign_matters(y: np.ndarray | None, inputs: Inputs, ny: int) -> bool:
     finite = y[np.isfinite(y)]
     if not finite.size or min(np.mean(finite > 0), np.mean(finite < 0)) < OWN_SIGN_SIDE:
         return False
-    cols, lag0 = _arx_columns(y, inputs, max(int(ny), 2))
+    cols, lag0 = arx_columns(y, inputs, max(int(ny), 2))
     if len(y) - lag0 < 4 * (len(cols) + 2):
         return False
     step = np.sign(y[lag0 - 1:-1] - y[lag0 - 2:-2])  # the position's friction, beside
@@ -199,7 +199,7 @@ def saturation_level(y: np.ndarray | None, inputs: Inputs, j: int, ny: int) -> f
         return None
     y = np.asarray(y, dtype=float)
     n = len(y)
-    fixed, _ = _arx_columns(y, inputs, ny, skip=j)
+    fixed, _ = arx_columns(y, inputs, ny, skip=j)
     lagged = [u_j[lag0 - lag:n - lag] for lag in inputs[j][1]]
     target = y[lag0:]
     ok = np.isfinite(target) & np.all(np.isfinite(np.column_stack(fixed + lagged)), axis=1)

@@ -34,6 +34,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..model.presets import arx_columns
+
 __all__ = ["FRICTION_LEVEL", "FRICTION_MIN_ROWS", "FRICTION_ROWS", "FRICTION_SHARE",
            "FrictionSign", "friction_sign", "strongest_friction_sign"]
 
@@ -90,13 +92,14 @@ def friction_sign(y: np.ndarray, u: np.ndarray, ny: int = 2, nu: int = 2, every:
     u = u.reshape(len(u), -1)[::every][:FRICTION_ROWS]
     y = np.asarray(y, dtype=float)[::every][:FRICTION_ROWS]
     ny, nu = max(int(ny), 2), max(int(nu), 1)
-    lag0, n = max(ny, nu), len(y)
-    if n - lag0 < FRICTION_MIN_ROWS or not (np.all(np.isfinite(y)) and np.all(np.isfinite(u))):
+    n = len(y)
+    if n - max(ny, nu) < FRICTION_MIN_ROWS or not (np.all(np.isfinite(y))
+                                                   and np.all(np.isfinite(u))):
         return None
+    inputs = [(str(j), tuple(range(1, nu + 1)), u[:, j]) for j in range(u.shape[1])]
+    cols, lag0 = arx_columns(y, inputs, ny)
     last = y[lag0 - 1:n - 1]
     step = last - y[lag0 - 2:n - 2]
-    cols = [y[lag0 - k:n - k] for k in range(1, ny + 1)] + [np.ones(n - lag0)]
-    cols += [u[lag0 - k:n - k, j] for j in range(u.shape[1]) for k in range(1, nu + 1)]
     cols += [_unit(last) ** 2, _unit(last) ** 3, _unit(step) ** 3]
     signs, extra = ["sign(y(t-1)-y(t-2))"], [np.sign(step)]
     if min(np.mean(y > 0), np.mean(y < 0)) >= SIDE:
