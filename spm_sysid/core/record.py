@@ -76,6 +76,9 @@ class Record:
         Things a user should know about this data (printed by the commands).
     decimation : dict or None
         How the samples were decimated (:meth:`decimated`); None: as recorded.
+    spikes : dict or None
+        The output spikes left out of the segments (:meth:`spikes_as_gaps`):
+        ``{"spikes", "samples", "at"}`` (the first 1000 spikes' first samples).
     """
 
     u: np.ndarray
@@ -92,6 +95,7 @@ class Record:
     notes: list[str] = field(default_factory=list)
     output_names: tuple[str, ...] = ()
     decimation: dict | None = None
+    spikes: dict | None = None
 
     def __post_init__(self) -> None:
         self.u = np.asarray(self.u, dtype=float)
@@ -187,6 +191,43 @@ class Record:
         return replace(self, u=u, y=y, stamps_ns=stamps, segments=segments, decimation=doc,
                        notes=[*self.notes, describe_decimation(doc)])
 
+    def spikes_as_gaps(self, period_ns: int | None = None, gap_factor: float = 1.5
+                       ) -> Record:
+        """The record with its outputs' spikes left out of its segments.
+
+        Spikes as the data check finds them
+        (:func:`~spm_sysid.core.validate.spikes.output_spikes`), each output's;
+        the segments (:meth:`segment_info`) split around them, so no regression
+        row uses a spike's samples (the arrays keep them). :attr:`spikes` and a
+        note count them; without spikes the record is returned as it is.
+        """
+        from .validate.spikes import (
+            SPIKE_ROUNDS,
+            Spikes,
+            describe_spike_gaps,
+            output_spikes,
+            without_spikes,
+        )
+
+        info = self.segment_info(period_ns, gap_factor)
+        ys = self.y.reshape(len(self.y), -1)
+        bounds, spans = info.bounds, set()
+        for _ in range(SPIKE_ROUNDS):  # a spike hidden by others shows once they are out
+            found = [f for f in (output_spikes(ys[:, j], self.u, bounds)
+                                 for j in range(ys.shape[1])) if f is not None]
+            if not found:
+                break
+            new = {(t, w) for f in found for t, w in zip(f.starts, f.widths)}
+            bounds = without_spikes(bounds, Spikes(*zip(*sorted(new)), 0.0))
+            spans |= new
+        if not spans:
+            return self
+        every = Spikes(*zip(*sorted(spans)), 0.0)
+        left = info.n_samples - sum(b - a for a, b in bounds)
+        doc = {"spikes": len(spans), "samples": int(left), "at": list(every.starts[:1000])}
+        return replace(self, segments=replace(info, bounds=bounds), spikes=doc,
+                       notes=[*self.notes, describe_spike_gaps(doc)])
+
     def row_seconds(self, segments, lag0: int) -> np.ndarray | None:
         """Seconds (from the first sample) of the regression rows of ``segments``.
 
@@ -212,6 +253,8 @@ class Record:
             out["unset_stamps"] = int(self.unset_stamps)
         if self.decimation:
             out["decimation"] = dict(self.decimation)
+        if self.spikes:
+            out["spikes"] = dict(self.spikes)
         return out
 
 

@@ -205,6 +205,9 @@ _LIST = [
        "one (inputs averaged, outputs the block's first; for records sampled much faster "
        "than their dynamics, e.g. a 1 kHz joint; 1: the record's rate)", "data", low=1,
        high=10_000),
+    _s("spikes", str, "warn", "output spikes, samples that jump and come back within "
+       "5 (the data check finds them; docs/cli.md): warn, or gaps (no regression row uses "
+       "them; the answer counts them)", "data", choices=("warn", "gaps")),
     # -- the node's own ---------------------------------------------------------------------
     _s("input_topic", str, "/robot_arm/torque", "input signal topic(s): one, or a comma "
        "list, one per input (inputs on one topic share its messages)", "node",

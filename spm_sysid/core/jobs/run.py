@@ -49,14 +49,17 @@ def run_job(record: Record, settings: JobSettings, *, progress: ProgressFn | Non
 
     Parameters, result and errors: :func:`~spm_sysid.core.jobs.single.run_single_job`
     (one output) and :func:`~spm_sysid.core.jobs.several.run_mimo_job` (several).
-    With ``decimate`` above 1 the record is decimated first
+    With ``spikes`` ``gaps`` the output's spikes become gaps first
+    (:meth:`~spm_sysid.core.record.Record.spikes_as_gaps`); with ``decimate``
+    above 1 the record is decimated then
     (:meth:`~spm_sysid.core.record.Record.decimated`): the job, its model and its
     validation are at the slower rate.
     """
+    period = int(round(settings.sample_period * 1e9)) or None
+    if settings.spikes == "gaps":  # at the record's rate
+        record = record.spikes_as_gaps(period, settings.gap_factor)
     if settings.decimate > 1:  # the job runs at the slower rate, the document says so
-        record = record.decimated(settings.decimate,
-                                  int(round(settings.sample_period * 1e9)) or None,
-                                  settings.gap_factor)
+        record = record.decimated(settings.decimate, period, settings.gap_factor)
     if record.n_outputs > 1:  # one coupled model of several outputs
         return run_mimo_job(record, settings, progress=progress,
                             progress_every=progress_every, metadata=metadata)

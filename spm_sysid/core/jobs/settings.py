@@ -44,7 +44,7 @@ class JobSettings:
     orders : str
         ``given`` or ``auto`` (the lags and degree proposed from the data).
     validation, validation_split, correlation_lags : see the schema
-    sample_period, gap_factor, decimate : see the schema
+    sample_period, gap_factor, decimate, spikes : see the schema
     regressors : str
         As given (``;``-separated); the job expands them with the record's
         signals (:meth:`with_regressors`).
@@ -63,6 +63,7 @@ class JobSettings:
     sample_period: float = SETTINGS["sample_period"].default
     gap_factor: float = SETTINGS["gap_factor"].default
     decimate: int = SETTINGS["decimate"].default
+    spikes: str = SETTINGS["spikes"].default
     regressors: str = SETTINGS["regressors"].default
     operating_point: str = SETTINGS["operating_point"].default
 

@@ -321,6 +321,8 @@ def validation_segments(record: Record, settings: JobSettings
     period = int(round(settings.sample_period * 1e9)) or None
     segments = record.segment_info(period, settings.gap_factor)
     bounds, data = segment_report(segments, space.max_lag, record.rejected, record.unpaired)
+    if record.spikes:
+        data["spike_samples"] = int(record.spikes["samples"])
     if not bounds:
         raise DataError(
             f"no contiguous segment is longer than the largest lag ({space.max_lag}): "

@@ -234,6 +234,9 @@ DECIMATION = fields({"factor": integer(1, null=False), "samples": integer(),
                      "kept": integer(), "unused": integer(), "inputs": text(),
                      "outputs": text()}, required=("factor",))
 
+#: The output spikes left out of the identification's segments (``--spikes gaps``).
+SPIKES = fields({"spikes": integer(), "samples": integer(), "at": items(integer())})
+
 #: Every field of ``metadata`` that the product reads.
 METADATA = fields({
     "focus": text(choices=("prediction", "simulation")),
@@ -280,6 +283,7 @@ METADATA = fields({
     "monitor": lambda v, p: check_monitor(v, p),
     "interrupted": fields({"phase": text(), "model": text()}),
     "decimation": DECIMATION,
+    "spikes": SPIKES,
     "operating_point": fields({
         "output": mapping(number(null=False)), "inputs": mapping(number(null=False)),
         "reason": text(null=False), "selected_terms": items(text(null=False)),
@@ -291,7 +295,7 @@ METADATA = fields({
 MIMO_METADATA = fields({"cross_correlation_tests": items(TEST),
                         "joint_criterion": fields({"value": number(), "name": text()}),
                         "warnings": items(text(null=False)), "data": DATA,
-                        "decimation": DECIMATION})
+                        "decimation": DECIMATION, "spikes": SPIKES})
 
 
 def check_metadata(metadata, path: str = "metadata") -> dict:

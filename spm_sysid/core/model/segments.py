@@ -213,7 +213,8 @@ def describe_data(data: dict) -> str:
     """One phrase on what data a result used: samples, segments, gaps, skipped parts."""
     text = f"{data['used_samples']} samples"
     dropped = [f"{data[k]} {label}" for k, label in (
-        ("rejected_samples", "rejected as NaN/inf"), ("unpaired_samples", "unpaired"))
+        ("rejected_samples", "rejected as NaN/inf"), ("unpaired_samples", "unpaired"),
+        ("spike_samples", "left out as spikes"))
         if data.get(k)]
     if dropped:
         text += f" ({', '.join(dropped)})"

@@ -43,6 +43,7 @@ from ..defaults import (
 )
 from ..errors import DataError
 from .friction import FRICTION_LEVEL, strongest_friction_sign
+from .spikes import describe_spikes, output_spikes
 
 __all__ = ["COLLINEAR_LIMIT", "DataCheck", "check_problem", "describe_check",
            "describe_glitches", "describe_wraps", "excitation_order", "glitches",
@@ -327,6 +328,11 @@ def _warn(check: DataCheck, problem, criterion: str | None = None) -> None:
     glitch = describe_glitches(problem.y, glitches(problem.y, problem.segments), ts.output)
     if glitch:  # first: it explains the warnings after it
         w.append(glitch)
+    else:  # spikes within the range (a glitch's least squares would read them wrong)
+        spiked = describe_spikes(output_spikes(problem.y, problem.u, problem.segments),
+                                 ts.output)
+        if spiked:
+            w.append(spiked)
     for signal, name, role in [(problem.y, ts.output, "output"),
                                *((problem.u[:, i], n, "input") for i, n in
                                  enumerate(ts.inputs))]:

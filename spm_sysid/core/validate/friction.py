@@ -37,7 +37,7 @@ import numpy as np
 from ..model.presets import arx_columns
 
 __all__ = ["FRICTION_LEVEL", "FRICTION_MIN_ROWS", "FRICTION_ROWS", "FRICTION_SHARE",
-           "FrictionSign", "friction_sign", "strongest_friction_sign"]
+           "FrictionSign", "cubic_arx_design", "friction_sign", "strongest_friction_sign"]
 
 #: The hint is given when the signs remove at least this share of the squared residual ...
 FRICTION_SHARE = 0.05
@@ -96,19 +96,15 @@ def friction_sign(y: np.ndarray, u: np.ndarray, ny: int = 2, nu: int = 2, every:
     if n - max(ny, nu) < FRICTION_MIN_ROWS or not (np.all(np.isfinite(y))
                                                    and np.all(np.isfinite(u))):
         return None
-    inputs = [(str(j), tuple(range(1, nu + 1)), u[:, j]) for j in range(u.shape[1])]
-    cols, lag0 = arx_columns(y, inputs, ny)
+    X, target, lag0, _ = cubic_arx_design(y, u, ny, nu)
     last = y[lag0 - 1:n - 1]
     step = last - y[lag0 - 2:n - 2]
-    cols += [_unit(last) ** 2, _unit(last) ** 3, _unit(step) ** 3]
     signs, extra = ["sign(y(t-1)-y(t-2))"], [np.sign(step)]
     if min(np.mean(y > 0), np.mean(y < 0)) >= SIDE:
         signs.append("sign(y(t-1))")
         extra.append(np.sign(last))
-    target = y[lag0:]
-    without, with_signs = _sse(np.column_stack(cols), target), \
-        _sse(np.column_stack(cols + extra), target)
-    dof = len(target) - len(cols) - len(extra)
+    without, with_signs = _sse(X, target), _sse(np.column_stack([X, *extra]), target)
+    dof = len(target) - X.shape[1] - len(extra)
     share = 1.0 - with_signs / without if without > 0 else 0.0
     if share <= 0 or with_signs <= 0:
         p = 1.0 if share <= 0 else 0.0
@@ -116,6 +112,31 @@ def friction_sign(y: np.ndarray, u: np.ndarray, ny: int = 2, nu: int = 2, every:
         chi2 = (without - with_signs) / (with_signs / dof)
         p = math.erfc(math.sqrt(chi2 / 2)) if len(extra) == 1 else math.exp(-chi2 / 2)
     return FrictionSign(float(share), float(p), tuple(signs), every, len(target))
+
+
+def cubic_arx_design(y: np.ndarray, u: np.ndarray, ny: int, nu: int,
+                     scales: tuple[float, float] | None = None
+                     ) -> tuple[np.ndarray, np.ndarray, int, tuple[float, float]]:
+    """A linear ARX model's columns with the polynomial's answer to an odd force.
+
+    ``ny`` output lags, a constant, ``nu`` lags of each input (columns of ``u``,
+    shape (n, m)), and the last output's square and cube and the last step's
+    cube, each over a scale: ``scales`` (the last output's, the last step's),
+    by default their standard deviations here (powers stay well scaled).
+    Returns the (rows, columns) matrix, the target ``y[lag0:]``, ``lag0`` (the
+    sample of the first row) and the scales used.
+    """
+    y = np.asarray(y, dtype=float)
+    u = np.asarray(u, dtype=float).reshape(len(y), -1)
+    n = len(y)
+    inputs = [(str(j), tuple(range(1, nu + 1)), u[:, j]) for j in range(u.shape[1])]
+    cols, lag0 = arx_columns(y, inputs, ny)
+    last = y[lag0 - 1:n - 1]
+    step = last - y[lag0 - 2:n - 2]
+    if scales is None:
+        scales = (_scale(last), _scale(step))
+    cols += [(last / scales[0]) ** 2, (last / scales[0]) ** 3, (step / scales[1]) ** 3]
+    return np.column_stack(cols), y[lag0:], lag0, scales
 
 
 def strongest_friction_sign(y: np.ndarray, u: np.ndarray, ny: int = 2, nu: int = 2,
@@ -129,10 +150,10 @@ def strongest_friction_sign(y: np.ndarray, u: np.ndarray, ny: int = 2, nu: int =
     return max(found, key=lambda r: r.share, default=None)
 
 
-def _unit(x: np.ndarray) -> np.ndarray:
-    """The signal over its standard deviation (powers of it stay well scaled)."""
+def _scale(x: np.ndarray) -> float:
+    """The signal's standard deviation, 1 when it is constant."""
     s = float(np.std(x))
-    return x / s if s > 0 else x
+    return s if s > 0 else 1.0
 
 
 def _sse(X: np.ndarray, target: np.ndarray) -> float:

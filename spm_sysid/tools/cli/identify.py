@@ -114,9 +114,12 @@ def data_notes(account: dict, metadata: dict) -> list[str]:
     """What a user should know about the data an identification used."""
     from ...core.model.decimation import describe_decimation
     from ...core.model.segments import describe_data
+    from ...core.validate.spikes import describe_spike_gaps
 
-    notes = [describe_decimation(metadata.get("decimation"))]
-    if account["gaps"] or account["rejected_samples"] or account["unpaired_samples"]:
+    notes = [describe_decimation(metadata.get("decimation")),
+             describe_spike_gaps(metadata.get("spikes"))]
+    if account["gaps"] or account["rejected_samples"] or account["unpaired_samples"] \
+            or account.get("spike_samples"):
         notes.append(f"the data has gaps; used {describe_data(account)}; no regression row "
                      "crosses a gap")
     elif account["segments"] > 1:  # several records, or stamps that went back

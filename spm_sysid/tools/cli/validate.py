@@ -40,14 +40,17 @@ def _validate_one(args, model) -> int:
     from ...core.validate.validation import validate_model
     from ..html_report import OutputSection
 
-    record = at_model_rate(load_by_names(args, model.term_space.inputs,
-                                         (model.term_space.output,)), model.metadata)
+    record, spiked = _spikes(args, load_by_names(args, model.term_space.inputs,
+                                                 (model.term_space.output,)))
+    record = at_model_rate(record, model.metadata)
     segments = validated_segments(args, record, model.term_space.max_lag)
     print(f"model: {args.model}")
     print(model.equation())
     print(model.coefficient_table())
     for w in model.metadata.get("warnings") or []:
         print(f"warning (from identification): {w}")
+    if spiked:
+        print(spiked)
     print(f"data: {record.source}" + (f", last {args.tail:.0%}" if args.tail is not None
                                       else ""))
     report = validate_model(model, record.u, record.y, correlation_lags=args.correlation_lags,
@@ -75,8 +78,11 @@ def _validate_several(args, model) -> int:
     from ...core.validate.validation import validate_model
     from ..html_report import OutputSection
 
-    record = at_model_rate(load_by_names(args, model.inputs, model.outputs, several=True),
-                           model.metadata)
+    record, spiked = _spikes(args, load_by_names(args, model.inputs, model.outputs,
+                                                 several=True))
+    record = at_model_rate(record, model.metadata)
+    if spiked:
+        print(spiked)
     if record.output_names != model.outputs or record.n_inputs != len(model.inputs):
         raise UserError(f"the model has outputs {', '.join(model.outputs)} and "
                         f"{len(model.inputs)} input(s); the data has outputs "
@@ -155,6 +161,28 @@ def at_model_rate(record, metadata: dict):
     return record
 
 
+def _spikes(args, record):
+    """The record with its output spikes left out (``--spikes gaps``), and what to print.
+
+    Without the option, a warning when the data have spikes: the errors include them.
+    """
+    from ...core.validate.spikes import describe_spike_gaps, output_spikes
+
+    if args.spikes == "gaps":
+        record = record.spikes_as_gaps()
+        return record, f"note: {describe_spike_gaps(record.spikes)}" if record.spikes else ""
+    ys, bounds = record.y.reshape(len(record), -1), record.segment_info().bounds
+    found = [f for f in (output_spikes(ys[:, j], record.u, bounds)
+                         for j in range(ys.shape[1])) if f is not None]
+    if not found:
+        return record, ""
+    starts = sorted({t for f in found for t in f.starts})
+    return record, (f"warning: the output of these data has {len(starts)} spike(s) "
+                    f"(at sample {', '.join(str(t) for t in starts[:5])}"
+                    f"{', ...' if len(starts) > 5 else ''}): the errors below include "
+                    "them; --spikes gaps leaves them out")
+
+
 def validated_segments(args, record, lag0: int) -> list[tuple[int, int]]:
     """The segments ``validate`` runs on: the usable ones, their last ``--tail``."""
     from ...core.validate.validation import split_segments
@@ -188,4 +216,7 @@ def add_parser(sub) -> None:
                    help="leave each segment's first N samples (at the model's rate) out of "
                         "the error figures; the simulation still starts from its first "
                         "samples (the nonlinear benchmarks' convention: 50)")
+    p.add_argument("--spikes", type=schema_type("spikes"), default="warn",
+                   help="output spikes in these data (as identify finds them): warn, or "
+                        "gaps (left out of the error figures, counted)")
     p.set_defaults(func=cmd_validate)
