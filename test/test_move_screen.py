@@ -133,17 +133,21 @@ def test_the_polish_reports_its_progress_as_the_phase_after_the_search():
     records = []
     model = identify_problem(problem, options, progress=records.append).model
     phases = [p.phase for p in records]
-    # 84 candidates: two searches (RESTART_TERMS), each a search then its polish
+    # 84 candidates: two searches (RESTART_TERMS), each a search then its polish, and
+    # after the second the polishes from forward selection and from every term
     runs = [k for k, p in enumerate(phases)
             if p == "search" and (k == 0 or phases[k - 1] != "search")]
-    assert len(runs) == 2 and model.metadata["polish"]["restart"]["kept"] in ("first", "second")
+    assert len(runs) == 2 and model.metadata["polish"]["restart"]["kept"] in (
+        "first", "second", "forward", "all_terms")
     assert PHASES.index("search") + 1 == PHASES.index("polish")
-    for a, b in ((runs[0], runs[1]), (runs[1], len(records))):
+    for (a, b), polishes in (((runs[0], runs[1]), 1), ((runs[1], len(records)), 3)):
         assert list(dict.fromkeys(phases[a:b])) == ["search", "polish"]
         polish = [p for p in records[a:b] if p.phase == "polish"]
-        assert polish[0].step == 0
+        starts = [k for k, p in enumerate(polish) if p.step == 0 and p.total == 0]
+        assert len(starts) == polishes and starts[0] == 0
         assert all(p.total in (0, POLISH_STEPS) and p.step <= POLISH_STEPS for p in polish)
-        assert [p.step for p in polish] == sorted(p.step for p in polish)
+        for s, e in zip(starts, [*starts[1:], len(polish)]):
+            assert [p.step for p in polish[s:e]] == sorted(p.step for p in polish[s:e])
     first = [p.best for p in records[:runs[1]] if p.phase == "polish"]
     assert first == sorted(first, reverse=True)
     second = [p.best for p in records[runs[1]:]]  # the best so far: never the first's worse
@@ -188,13 +192,19 @@ def test_mid_size_spaces_are_searched_twice_and_the_better_kept():
                                 selection="criterion")
         model = identify_problem(problem, options).model
         again = model.metadata["polish"]["restart"]
-        assert model.criterion_value == pytest.approx(min(again["first"], again["second"]),
-                                                      abs=1e-9)
-        assert again["kept"] == ("second" if again["second"] < again["first"] - 1e-9
-                                 else "first")
+        ends = {k: again[k] for k in ("first", "second", "forward", "all_terms")}
+        assert model.criterion_value == pytest.approx(min(ends.values()), abs=1e-9)
+        assert ends[again["kept"]] == pytest.approx(min(ends.values()), abs=1e-9)
+        # kept: the earliest of the best (a later start must do better to be kept)
+        earlier = list(ends)[:list(ends).index(again["kept"])]
+        assert all(ends[k] > ends[again["kept"]] + 1e-9 for k in earlier)
+        assert model.criterion_value == pytest.approx(
+            problem.evaluator("bic").score(problem.restrict(model.mask)[None, :])[0], abs=1e-6)
         words = _certificate_words(model.metadata)
         assert (f"a second GA and polish from another seed stream ended at "
-                f"{again['second']:.2f}, the first at {again['first']:.2f}") in words
+                f"{again['second']:.2f}, the first at {again['first']:.2f}, the polish from "
+                f"forward selection at {again['forward']:.2f}, the polish from every term at "
+                f"{again['all_terms']:.2f}") in words
     small = Problem.from_signals(u, y, TermSpace())
     options = SearchOptions(criterion="bic", seed=0, auto_certify_time_limit=0,
                             selection="criterion")

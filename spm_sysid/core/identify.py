@@ -38,7 +38,7 @@ from .model.terms import TermSpace
 from .options import SEARCH_SETTINGS, SearchOptions
 from .progress import Progress, ProgressFn
 from .search.ga import GAConfig, GAResult, GenerationStats, run_ga
-from .search.local import polish
+from .search.local import PolishResult, polish
 from .search.neighbourhood import MoveScreen
 from .search.ties import lowest_degree_of_ties
 from .select.choose import choose, overfit_warnings, selection_account
@@ -352,10 +352,43 @@ def _searched(problem, evaluator, ga: GAConfig, options: SearchOptions, plan: Se
     again = _search(problem, evaluator, ga, options, callback, still_first, started, stream)
     polished_again = _polish(problem, evaluator, again, still_first, started)
     second = float(again.best_score)
-    kept = "second" if second < first - 1e-9 else "first"
-    if kept == "second":
+    ends = {"first": first, "second": second}
+    if second < first - 1e-9:
         result, polished = again, polished_again
-    return result, {**polished, "restart": {"first": first, "second": second, "kept": kept}}
+    kept = "second" if second < first - 1e-9 else "first"
+    greedy = _greedy_polishes(problem, evaluator, report, started, float(result.best_score))
+    for name, (value, mask) in greedy.items():
+        ends[name] = value
+        if value < result.best_score - 1e-9:
+            result.best_mask, result.best_score, kept = mask, value, name
+    return result, {**polished, "value": float(result.best_score),
+                    "restart": {**ends, "kept": kept}}
+
+
+def _greedy_polishes(problem: Problem, evaluator, report: ProgressFn, started: float,
+                     floor: float) -> dict[str, tuple[float, np.ndarray]]:
+    """The polish from two greedy starts: forward selection's end, and every usable term.
+
+    Beside the GA's two searches in mid-size spaces (:func:`_searched`): two
+    structures far from where the GA converges, deterministic (no seed). From
+    every term the ranked descent removes terms first (backward elimination,
+    with swaps). At 84 candidates ((3, 3, 3) with the constant, first halves)
+    they reach the best value known where 20 GA seeds of two searches each
+    reached it 17 times (the dryer's BIC, from forward selection) and 8 times
+    (the heat exchanger's BIC, from every term); about 1.5 s each.
+    ``{name: (value, mask)}``, names ``forward`` and ``all_terms``; the best
+    reported never above ``floor`` (the searches' best).
+    """
+    from .search.forward import forward_selection
+
+    usable = np.zeros(evaluator.n_terms, dtype=bool)
+    usable[_kick_terms(problem, evaluator)] = True
+    out = {}
+    for name, start in (("forward", forward_selection(evaluator)[1]), ("all_terms", usable)):
+        res = _polish_from(problem, evaluator, start, None, report, started, floor)
+        out[name] = (float(res.value), res.mask.copy())
+        floor = min(floor, float(res.value))
+    return out
 
 
 def _search(problem, evaluator, ga: GAConfig, options: SearchOptions, callback, report,
@@ -454,28 +487,42 @@ def _polish(problem: Problem, evaluator, result: GAResult, report: ProgressFn,
     ga_value = float(result.best_score)
     if not np.isfinite(ga_value):
         return {"ga_value": None, "value": None, "steps": 0, "structures": 0}
-    best_so_far, last = _best_so_far(problem, evaluator), -np.inf
-
-    def on_kick(done: int, budget: int, best: float) -> None:  # at most twice a second
-        nonlocal last
-        now = time.perf_counter()
-        if now - last >= POLISH_REPORT_EVERY:
-            last = now
-            report(Progress("polish", done, budget, best, evaluator.evaluations,
-                            elapsed=now - started, best_model=best_so_far))
-
-    on_kick(0, 0, ga_value)
-    usable = np.flatnonzero(problem.usable) if len(problem.usable) == evaluator.n_terms \
-        else np.arange(evaluator.n_terms)
-    screen = MoveScreen(evaluator) if MoveScreen.usable(evaluator) else None
-    res = polish(evaluator.score, result.best_mask, np.ones(evaluator.n_terms, dtype=bool),
-                 value=ga_value, kick_terms=usable, usable_terms=int(problem.usable.sum()),
-                 screen=screen, progress=on_kick)
+    res = _polish_from(problem, evaluator, result.best_mask, ga_value, report, started)
     if res.value < ga_value:
         result.best_mask, result.best_score = res.mask.copy(), res.value
     return {"ga_value": ga_value, "value": float(result.best_score), "steps": res.steps,
             "structures": res.scored, "kicks": res.kicks, "moves": list(res.moves),
             "stopped": res.stopped, "budget": res.budget}
+
+
+def _polish_from(problem: Problem, evaluator, start: np.ndarray, value: float | None,
+                 report: ProgressFn, started: float, floor: float = np.inf) -> PolishResult:
+    """The polish of ``start`` (its ``value`` if known), reported as the phase ``polish``.
+
+    At most twice a second; the best reported is never above ``floor`` (the best
+    an earlier search found).
+    """
+    best_so_far, last = _best_so_far(problem, evaluator), -np.inf
+
+    def on_kick(done: int, budget: int, best: float) -> None:
+        nonlocal last
+        now = time.perf_counter()
+        if now - last >= POLISH_REPORT_EVERY:
+            last = now
+            report(Progress("polish", done, budget, min(best, floor), evaluator.evaluations,
+                            elapsed=now - started, best_model=best_so_far))
+
+    on_kick(0, 0, np.inf if value is None else value)
+    screen = MoveScreen(evaluator) if MoveScreen.usable(evaluator) else None
+    return polish(evaluator.score, start, np.ones(evaluator.n_terms, dtype=bool),
+                  value=value, kick_terms=_kick_terms(problem, evaluator),
+                  usable_terms=int(problem.usable.sum()), screen=screen, progress=on_kick)
+
+
+def _kick_terms(problem: Problem, evaluator) -> np.ndarray:
+    """The evaluator's columns of the problem's usable terms (the polish may flip these)."""
+    return np.flatnonzero(problem.usable) if len(problem.usable) == evaluator.n_terms \
+        else np.arange(evaluator.n_terms)
 
 
 def _lowest_degree_of_ties(problem: Problem, evaluator, result: GAResult,

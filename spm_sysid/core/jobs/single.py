@@ -173,9 +173,14 @@ def _certificate_words(meta: dict) -> str:
     pol = meta.get("polish") or {}
     again = pol.get("restart")
     if again:
+        greedy = "".join(f", the polish from {words} at {again[key]:.2f}" for key, words in
+                         (("forward", "forward selection"), ("all_terms", "every term"))
+                         if again.get(key) is not None)
+        kept = {"forward": "forward selection's", "all_terms": "every term's"}.get(
+            again["kept"], again["kept"])
         cert = (f"a second GA and polish from another seed stream ended at "
-                f"{again['second']:.2f}, the first at {again['first']:.2f}: the "
-                f"{again['kept']} kept" + (f"; {cert}" if cert else ""))
+                f"{again['second']:.2f}, the first at {again['first']:.2f}{greedy}: the "
+                f"{kept} kept" + (f"; {cert}" if cert else ""))
     if pol.get("value") is not None and pol["value"] < pol["ga_value"]:
         cert = (f"the polish after the GA improved its best from {pol['ga_value']:.2f} "
                 f"({pol['steps']} step(s))" + (f", {cert}" if cert else ""))

@@ -273,7 +273,10 @@ METADATA = fields({
         "excitation_order": mapping(integer()), "lags": mapping(integer()),
         "condition": number(0.0)},
         required=("rows", "usable", "candidates", "rows_per_candidate")),
-    "polish": fields({"ga_value": number(), "value": number(), "steps": integer()}),
+    "polish": fields({"ga_value": number(), "value": number(), "steps": integer(),
+                      "restart": fields({"first": number(), "second": number(),
+                                         "forward": number(), "all_terms": number(),
+                                         "kept": text()})}),
     "data": DATA,
     "samples_used": integer(),
     "validation": fields({
