@@ -140,6 +140,8 @@ AUTO_CERTIFY_TERMS = 120
 #: polish reached the best value known in 20 / 20 / 19 / 12 / 1 / 5 runs (robot arm,
 #: dryer, heat exchanger; AIC, BIC), the better of two in 20 / 20 / 20 / 19 / 4 / 10,
 #: at about twice the time (0.5-2 s a run). The paper's 44 candidates stay one search.
+#: Since 2026-12-07 (fifth session) three more polished starts follow there (forward
+#: selection's end, every term, the best ends' common terms; ``identify._greedy_polishes``).
 RESTART_TERMS = 60
 
 # -- uncertainty bands ---------------------------------------------------------------

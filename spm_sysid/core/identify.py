@@ -352,43 +352,58 @@ def _searched(problem, evaluator, ga: GAConfig, options: SearchOptions, plan: Se
     again = _search(problem, evaluator, ga, options, callback, still_first, started, stream)
     polished_again = _polish(problem, evaluator, again, still_first, started)
     second = float(again.best_score)
-    ends = {"first": first, "second": second}
+    ends = {"first": (first, result.best_mask.copy()), "second": (second, again.best_mask.copy())}
     if second < first - 1e-9:
         result, polished = again, polished_again
     kept = "second" if second < first - 1e-9 else "first"
-    greedy = _greedy_polishes(problem, evaluator, report, started, float(result.best_score))
-    for name, (value, mask) in greedy.items():
-        ends[name] = value
+    _greedy_polishes(problem, evaluator, ends, report, started)
+    for name, (value, mask) in ends.items():
         if value < result.best_score - 1e-9:
             result.best_mask, result.best_score, kept = mask, value, name
     return result, {**polished, "value": float(result.best_score),
-                    "restart": {**ends, "kept": kept}}
+                    "restart": {**{k: v for k, (v, _) in ends.items()}, "kept": kept}}
 
 
-def _greedy_polishes(problem: Problem, evaluator, report: ProgressFn, started: float,
-                     floor: float) -> dict[str, tuple[float, np.ndarray]]:
-    """The polish from two greedy starts: forward selection's end, and every usable term.
+def _greedy_polishes(problem: Problem, evaluator, ends: dict, report: ProgressFn,
+                     started: float) -> None:
+    """Three more polished starts beside the GA's two searches, added to ``ends``.
 
-    Beside the GA's two searches in mid-size spaces (:func:`_searched`): two
-    structures far from where the GA converges, deterministic (no seed). From
-    every term the ranked descent removes terms first (backward elimination,
-    with swaps). At 84 candidates ((3, 3, 3) with the constant, first halves)
-    they reach the best value known where 20 GA seeds of two searches each
-    reached it 17 times (the dryer's BIC, from forward selection) and 8 times
-    (the heat exchanger's BIC, from every term); about 1.5 s each.
-    ``{name: (value, mask)}``, names ``forward`` and ``all_terms``; the best
-    reported never above ``floor`` (the searches' best).
+    ``ends``: ``{name: (value, mask)}`` of the searches so far (:func:`_searched`).
+    Two greedy starts far from where the GA converges, deterministic (no seed):
+    forward selection's end (``forward``), and every usable term (``all_terms``;
+    the ranked descent removes terms first: backward elimination, with swaps).
+    Then the terms the best end shares with the best other end (``common``): two
+    good structures agree on what matters, and their difference is where a
+    polish of one does not reach the other. At 84 candidates ((3, 3, 3) with the
+    constant, first halves; docs/results.md) the greedy starts reach the best
+    value known where 20 GA seeds of two searches each reached it 17 times (the
+    dryer's BIC, from forward selection) and 8 times (the heat exchanger's BIC,
+    from every term); the common terms take the heat exchanger's AIC from a
+    basin 22 terms away. About 1.5 s each; the best reported never above the
+    searches' best.
     """
     from .search.forward import forward_selection
 
     usable = np.zeros(evaluator.n_terms, dtype=bool)
     usable[_kick_terms(problem, evaluator)] = True
-    out = {}
-    for name, start in (("forward", forward_selection(evaluator)[1]), ("all_terms", usable)):
-        res = _polish_from(problem, evaluator, start, None, report, started, floor)
-        out[name] = (float(res.value), res.mask.copy())
+    floor = min(v for v, _ in ends.values())
+    starts = [("forward", lambda: forward_selection(evaluator)[1]),
+              ("all_terms", lambda: usable), ("common", lambda: _common_terms(ends))]
+    for name, start in starts:
+        mask = start()
+        if mask is None or not mask.any():
+            continue
+        res = _polish_from(problem, evaluator, mask, None, report, started, floor)
+        ends[name] = (float(res.value), res.mask.copy())
         floor = min(floor, float(res.value))
-    return out
+
+
+def _common_terms(ends: dict) -> np.ndarray | None:
+    """The terms the best end shares with the best end of another structure (None: one)."""
+    ranked = sorted(ends.values(), key=lambda end: end[0])
+    best = ranked[0][1]
+    other = next((mask for _, mask in ranked[1:] if not np.array_equal(mask, best)), None)
+    return None if other is None else best & other
 
 
 def _search(problem, evaluator, ga: GAConfig, options: SearchOptions, callback, report,

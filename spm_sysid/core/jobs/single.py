@@ -174,9 +174,11 @@ def _certificate_words(meta: dict) -> str:
     again = pol.get("restart")
     if again:
         greedy = "".join(f", the polish from {words} at {again[key]:.2f}" for key, words in
-                         (("forward", "forward selection"), ("all_terms", "every term"))
+                         (("forward", "forward selection"), ("all_terms", "every term"),
+                          ("common", "the best ends' common terms"))
                          if again.get(key) is not None)
-        kept = {"forward": "forward selection's", "all_terms": "every term's"}.get(
+        kept = {"forward": "forward selection's", "all_terms": "every term's",
+                "common": "common terms'"}.get(
             again["kept"], again["kept"])
         cert = (f"a second GA and polish from another seed stream ended at "
                 f"{again['second']:.2f}, the first at {again['first']:.2f}{greedy}: the "

@@ -276,7 +276,7 @@ METADATA = fields({
     "polish": fields({"ga_value": number(), "value": number(), "steps": integer(),
                       "restart": fields({"first": number(), "second": number(),
                                          "forward": number(), "all_terms": number(),
-                                         "kept": text()})}),
+                                         "common": number(), "kept": text()})}),
     "data": DATA,
     "samples_used": integer(),
     "validation": fields({
