@@ -325,14 +325,9 @@ def check_problem(problem, rank_tol: float = 1e-9, criterion: str | None = None)
 def _warn(check: DataCheck, problem, criterion: str | None = None) -> None:
     ts = problem.term_space
     w = check.warnings
-    glitch = describe_glitches(problem.y, glitches(problem.y, problem.segments), ts.output)
-    if glitch:  # first: it explains the warnings after it
-        w.append(glitch)
-    else:  # spikes within the range (a glitch's least squares would read them wrong)
-        spiked = describe_spikes(output_spikes(problem.y, problem.u, problem.segments),
-                                 ts.output)
-        if spiked:
-            w.append(spiked)
+    bad = _bad_samples(problem)
+    if bad:  # first: it explains the warnings after it
+        w.append(bad)
     for signal, name, role in [(problem.y, ts.output, "output"),
                                *((problem.u[:, i], n, "input") for i, n in
                                  enumerate(ts.inputs))]:
@@ -383,6 +378,17 @@ def _warn(check: DataCheck, problem, criterion: str | None = None) -> None:
         hint = _friction_hint(problem, max(factor // 4, 1))
         if hint:
             w.append(hint)
+
+
+def _bad_samples(problem) -> str:
+    """A glitch far outside the output's range, else spikes within it ('' when neither).
+
+    Spikes are not looked for beside a glitch: its least squares reads them wrong.
+    """
+    ts = problem.term_space
+    glitch = describe_glitches(problem.y, glitches(problem.y, problem.segments), ts.output)
+    return glitch or describe_spikes(output_spikes(problem.y, problem.u, problem.segments),
+                                     ts.output)
 
 
 def _friction_hint(problem, advised_every: int) -> str:
