@@ -145,7 +145,9 @@ def run_node(build: Callable[[], Node], *, until: Callable[[Node], bool] | None 
     args : list of str, optional
         Command-line arguments for ``rclpy.init``.
     """
+    quiet = _quiet_interrupts()
     if not _init(args):
+        _restore(quiet)
         return 2
     executor = SingleThreadedExecutor()
     node = None
@@ -172,4 +174,31 @@ def run_node(build: Callable[[], Node], *, until: Callable[[Node], bool] | None 
         executor.shutdown(timeout_sec=1.0)
         if rclpy.ok():
             rclpy.shutdown()
+        _restore(quiet)
     return status
+
+
+def _quiet_interrupts():
+    """SIGINT without a KeyboardInterrupt: rclpy's handler shuts the context down.
+
+    Set before ``rclpy.init``, whose handler calls the one before it: Python's
+    default raises KeyboardInterrupt wherever the interpreter is, even inside
+    a finaliser at shutdown (``Exception ignored in: Future.__del__ ...
+    KeyboardInterrupt``, a traceback in the node's log). The spin loops end on
+    ``rclpy.ok()`` instead. The handler before, to restore (None off the main
+    thread, where none can be set).
+    """
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    return signal.signal(signal.SIGINT, lambda signum, frame: None)
+
+
+def _restore(previous) -> None:
+    """The SIGINT handler :func:`_quiet_interrupts` replaced, back."""
+    import signal
+
+    if previous is not None:
+        signal.signal(signal.SIGINT, previous)
