@@ -203,28 +203,24 @@ class Record:
         """
         from .validate.spikes import (
             SPIKE_ROUNDS,
-            Spikes,
             describe_spike_gaps,
-            output_spikes,
+            spikes_of_outputs,
             without_spikes,
         )
 
         info = self.segment_info(period_ns, gap_factor)
-        ys = self.y.reshape(len(self.y), -1)
         bounds, spans = info.bounds, set()
         for _ in range(SPIKE_ROUNDS):  # a spike hidden by others shows once they are out
-            found = [f for f in (output_spikes(ys[:, j], self.u, bounds)
-                                 for j in range(ys.shape[1])) if f is not None]
-            if not found:
+            found = spikes_of_outputs(self.y, self.u, bounds)
+            if found is None:
                 break
-            new = {(t, w) for f in found for t, w in zip(f.starts, f.widths)}
-            bounds = without_spikes(bounds, Spikes(*zip(*sorted(new)), 0.0))
-            spans |= new
+            bounds = without_spikes(bounds, found)
+            spans |= set(zip(found.starts, found.widths))
         if not spans:
             return self
-        every = Spikes(*zip(*sorted(spans)), 0.0)
         left = info.n_samples - sum(b - a for a, b in bounds)
-        doc = {"spikes": len(spans), "samples": int(left), "at": list(every.starts[:1000])}
+        doc = {"spikes": len(spans), "samples": int(left),
+               "at": [t for t, _ in sorted(spans)[:1000]]}
         return replace(self, segments=replace(info, bounds=bounds), spikes=doc,
                        notes=[*self.notes, describe_spike_gaps(doc)])
 

@@ -37,7 +37,7 @@ import numpy as np
 from .friction import cubic_arx_design
 
 __all__ = ["SPIKE_ROUNDS", "SPIKE_WIDTH", "SPIKE_Z", "Spikes", "describe_spike_gaps",
-           "describe_spikes", "output_spikes", "without_spikes"]
+           "describe_spikes", "output_spikes", "spikes_of_outputs", "without_spikes"]
 
 #: A row is suspect when its one-step error exceeds this many robust standard deviations
 #: (legitimate records measured at most 8.5; Gaussian noise never reaches it) ...
@@ -122,6 +122,18 @@ def output_spikes(y: np.ndarray, u: np.ndarray, segments=None, ny: int = SPIKE_L
                 starts.append(t)
                 widths.append(width)
     return Spikes(tuple(starts), tuple(widths), largest) if starts else None
+
+
+def spikes_of_outputs(y: np.ndarray, u: np.ndarray, segments=None) -> Spikes | None:
+    """:func:`output_spikes` of each output (columns of ``y``), together; None when none."""
+    ys = np.asarray(y, dtype=float).reshape(len(y), -1)
+    found = [f for f in (output_spikes(ys[:, j], u, segments) for j in range(ys.shape[1]))
+             if f is not None]
+    if not found:
+        return None
+    spans = sorted({(t, w) for f in found for t, w in zip(f.starts, f.widths)})
+    return Spikes(tuple(t for t, _ in spans), tuple(w for _, w in spans),
+                  max(f.largest for f in found))
 
 
 def without_spikes(bounds, found: Spikes | None) -> list[tuple[int, int]]:

@@ -166,17 +166,15 @@ def _spikes(args, record):
 
     Without the option, a warning when the data have spikes: the errors include them.
     """
-    from ...core.validate.spikes import describe_spike_gaps, output_spikes
+    from ...core.validate.spikes import describe_spike_gaps, spikes_of_outputs
 
     if args.spikes == "gaps":
         record = record.spikes_as_gaps()
         return record, f"note: {describe_spike_gaps(record.spikes)}" if record.spikes else ""
-    ys, bounds = record.y.reshape(len(record), -1), record.segment_info().bounds
-    found = [f for f in (output_spikes(ys[:, j], record.u, bounds)
-                         for j in range(ys.shape[1])) if f is not None]
-    if not found:
+    found = spikes_of_outputs(record.y, record.u, record.segment_info().bounds)
+    if found is None:
         return record, ""
-    starts = sorted({t for f in found for t in f.starts})
+    starts = found.starts
     return record, (f"warning: the output of these data has {len(starts)} spike(s) "
                     f"(at sample {', '.join(str(t) for t in starts[:5])}"
                     f"{', ...' if len(starts) > 5 else ''}): the errors below include "
