@@ -472,6 +472,48 @@ def test_propose_lags_finds_the_order_and_degree_of_a_known_system(tmp_path):
                                      "  (as --orders auto identifies: the constant a candidate)")
 
 
+def _two_pumps(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """A second-order plant fed by a smooth input and a two-level one, with their product."""
+    rng = np.random.default_rng(seed)
+    u = np.column_stack([rng.uniform(-1, 1, n), np.repeat(rng.choice([-1.0, 1.0], n // 20), 20)])
+    y = np.zeros(n)
+    for t in range(2, n):
+        y[t] = (1.5 * y[t - 1] - 0.56 * y[t - 2] + 0.05 * u[t - 1, 0] + 0.02 * u[t - 1, 1]
+                + 0.01 * u[t - 1, 0] * u[t - 1, 1])
+    return u, y + 1e-4 * rng.standard_normal(n)
+
+
+def test_a_two_level_input_leaves_every_space_of_the_simulation_scan_usable(tmp_path):
+    """The two-level input's squares repeat each other at two lags and leave the search:
+    each space's forward-selected model is still built over the whole space (it was
+    refused as a wrong-sized mask, and every space of order 2 and more was scored as
+    failing, so the scan proposed order 1). Then the command as typed and validate,
+    which reads the columns u1, u2, y by the model's names."""
+    from spm_sysid.core.validate.orders import propose_orders
+
+    u, y = _two_pumps(3000, seed=1)
+    p = propose_orders(u, y, max_order=4, max_degree=2, criterion="aic", focus="simulation")
+    scored = {(n, d): r for n, d, _, r, _ in p.space_scan}
+    assert all(np.isfinite(r) for r in scored.values()), scored
+    assert (p.order, p.degree) == (2, 2)
+    assert scored[2, 2] < 0.2 * scored[1, 2]
+    for name, seed in (("a", 1), ("b", 2)):
+        uu, yy = _two_pumps(3000, seed)
+        np.savetxt(tmp_path / f"pumps_{name}.csv", np.column_stack([uu, yy]), delimiter=",",
+                   header="u1,u2,y", comments="")
+    r = cli("identify", "--data", str(tmp_path / "pumps_a.csv"), "--output", "y",
+            "--focus", "simulation", "--orders", "auto", "--seed", "1",
+            "--json", str(tmp_path / "m.json"))
+    assert r.returncode == 0, r.stderr
+    assert "orders from the data: ny = nu = 2, degree 2" in r.stdout
+    r = cli("validate", str(tmp_path / "m.json"), "--data", str(tmp_path / "pumps_b.csv"),
+            "--errors-from", "50")
+    assert r.returncode == 0, r.stderr
+    assert "note: columns chosen by the model's signal names: inputs u1, u2, output y" in r.stdout
+    free = float(r.stdout.split("free-run: MSE")[1].split("RMSE")[1].split(",")[0])
+    assert free < 5e-4  # the noise is 1e-4; order 1 simulates at about 2e-2
+
+
 def test_large_term_spaces_run_to_the_end_and_too_large_is_refused(robot_arm, monkeypatch):
     from spm_sysid.core.errors import MemoryLimitError
 

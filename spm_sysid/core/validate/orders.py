@@ -250,7 +250,7 @@ def _scan_spaces(out: OrderProposal, u, y, problem, crit, start, max_order, max_
             try:
                 fitted = problem(space, cut)
                 _, mask = forward_selection(fitted.evaluator(crit))
-                model = fitted.model(mask)
+                model = fitted.model(fitted.expand(mask))
                 r = _held_out_rmse(model, u, y, cut)
             except (ValueError, np.linalg.LinAlgError):
                 model = None

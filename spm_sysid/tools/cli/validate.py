@@ -118,15 +118,16 @@ def _validate_several(args, model) -> int:
 def load_by_names(args, inputs, outputs, several: bool = False):
     """The data, its columns chosen by the model's signal names when the options do not.
 
-    A model identified on columns ``tau``, ``acc`` validates on a file's columns of
-    those names; a file without them (no header, other names) is read in its
-    default layout, and a note says so.
+    A model identified on columns ``tau``, ``acc`` (or ``u1``, ``u2``, ``y``) validates
+    on a file's columns of those names; a file without them (no header, other
+    names) is read in its default layout, and a note says so. A model of one input
+    ``u`` and output ``y`` reads the default layout, which takes those columns.
     """
     from ...core.errors import DataError
 
-    default = {"u", "y"} | {f"u{i}" for i in range(1, 10)} | {f"y{i}" for i in range(1, 10)}
     given = getattr(args, "inputs", None) or getattr(args, "output_column", None)
-    if given or getattr(args, "data", None) is None or set(inputs) | set(outputs) <= default:
+    if given or getattr(args, "data", None) is None or (tuple(inputs), tuple(outputs)) == (
+            ("u",), ("y",)):
         return load(args, several)
     named = argparse.Namespace(**{**vars(args), "inputs": list(inputs),
                                   "output_column": ",".join(outputs)})
