@@ -16,7 +16,8 @@ For a :class:`~spm_sysid.core.fit.problem.Problem` it reports:
 * a **refusal** when nothing can be identified (no candidate term varies), and
   **warnings** otherwise: too few rows per candidate, an input too simple for
   its lags, terms that cannot be identified, an ill-conditioned matrix, a
-  constant output, a record sampled far faster than its signals move
+  constant output, an output held at its largest or smallest value
+  (:mod:`.clipping`), a record sampled far faster than its signals move
   (:func:`oversampling`: then ``--decimate`` may fit better), an output whose
   signs explain what a polynomial does not (:mod:`.friction`: then
   ``--regressors friction`` may).
@@ -42,6 +43,7 @@ from ..defaults import (
     ROWS_PER_TERM,
 )
 from ..errors import DataError
+from .clipping import clipped_ends, describe_clipping
 from .friction import FRICTION_LEVEL, strongest_friction_sign
 from .spikes import describe_spikes, output_spikes
 
@@ -328,6 +330,9 @@ def _warn(check: DataCheck, problem, criterion: str | None = None) -> None:
     bad = _bad_samples(problem)
     if bad:  # first: it explains the warnings after it
         w.append(bad)
+    held = describe_clipping(clipped_ends(problem.y, problem.segments), ts.output)
+    if held:
+        w.append(held)
     for signal, name, role in [(problem.y, ts.output, "output"),
                                *((problem.u[:, i], n, "input") for i, n in
                                  enumerate(ts.inputs))]:
