@@ -312,7 +312,8 @@ def test_the_friction_test_against_an_independent_least_squares_and_f_test():
     n, t = len(v), np.arange(2, len(v))
     step = v[t - 1] - v[t - 2]
     base = np.column_stack([v[t - 1], v[t - 2], np.ones(n - 2), tau[t - 1], tau[t - 2],
-                            v[t - 1] ** 2, v[t - 1] ** 3, step ** 3])
+                            v[t - 1] ** 2, v[t - 1] ** 3, step ** 3, tau[t - 1] ** 2,
+                            tau[t - 1] ** 3])
     full = np.column_stack([base, np.sign(step), np.sign(v[t - 1])])
 
     def sse(A):
@@ -333,7 +334,8 @@ def test_check_data_points_to_the_friction_preset_where_signs_explain_what_a_pol
         tmp_path, robot_arm_path):
     """``spm-sysid check-data`` (and so every answer's warnings): a velocity loop and the
     1 kHz joint (read at the advised fifth of the rate) get the hint; with the preset
-    asked for, none; a cubic spring, the robot arm and a linear record with noise none."""
+    asked for, none; a cubic spring, a plant behind a cubic of its input, the robot arm and
+    a linear record with noise none."""
     from .helpers.velocity_loop import velocity_record
 
     rng = np.random.default_rng(4)
@@ -341,9 +343,16 @@ def test_check_data_points_to_the_friction_preset_where_signs_explain_what_a_pol
     lin_y = np.zeros(5000)
     for k in range(2, 5000):
         lin_y[k] = 1.5 * lin_y[k - 1] - 0.7 * lin_y[k - 2] + lin_u[k - 1]
+    cubic_u = np.sin(np.arange(20000)[:, None] * rng.uniform(0.005, 0.3, 20)
+                     + rng.uniform(0, 6, 20)).sum(axis=1) / np.sqrt(10)
+    cubic_y = np.zeros(20000)
+    for k in range(2, 20000):  # Hammerstein: its input's cubic read as friction before
+        cubic_y[k] = (1.3 * cubic_y[k - 1] - 0.45 * cubic_y[k - 2] + 0.4 * cubic_u[k - 1]
+                      + 0.1 * cubic_u[k - 1] ** 3)
     records = {"speed.csv": velocity_record(20.0, seed=1), "joint.csv": joint_record(20.0, seed=2),
                "spring.csv": duffing(20000),
-               "linear.csv": (lin_u, lin_y + rng.standard_normal(5000))}
+               "linear.csv": (lin_u, lin_y + rng.standard_normal(5000)),
+               "cubic.csv": (cubic_u, cubic_y + 0.01 * rng.standard_normal(20000))}
     for name, (u, y) in records.items():
         np.savetxt(tmp_path / name, np.column_stack([u, y]), delimiter=",", header="u,y",
                    comments="", fmt="%.10g")
@@ -360,7 +369,7 @@ def test_check_data_points_to_the_friction_preset_where_signs_explain_what_a_pol
         share = float(line.split(" explain ")[1].split("%")[0])
         assert share >= 5 and rate in line and "sign(y(t-1)-y(t-2))" in line, line
         assert not hint("--data", name, "--regressors", "friction")
-    for name in ("spring.csv", "linear.csv"):
+    for name in ("spring.csv", "linear.csv", "cubic.csv"):
         assert not hint("--data", name), name
     assert not hint("--data", str(robot_arm_path))
 
