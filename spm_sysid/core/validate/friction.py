@@ -155,8 +155,11 @@ def strongest_friction_sign(y: np.ndarray, u: np.ndarray, ny: int = 2, nu: int =
 
 
 def _input_powers(u: np.ndarray, lag0: int) -> list[np.ndarray]:
-    """Each input's last sample squared and cubed (over its deviation): an input's own
-    odd nonlinearity (a Hammerstein cubic, a square root) is not read as friction."""
+    """Each input's last sample squared and cubed (over its deviation).
+
+    An input's own odd nonlinearity (a Hammerstein cubic, a square root) is then not
+    read as friction.
+    """
     last = u[lag0 - 1:len(u) - 1]
     out = []
     for j in range(last.shape[1]):
