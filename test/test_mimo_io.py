@@ -271,3 +271,52 @@ def test_the_coupled_judgement_reports_how_far_it_is():
                if p.phase == "refinement" and p.total == finalists + 1]
     assert [s for s, _ in coupled] == list(range(finalists + 1))
     assert all(p.elapsed >= 0 for p in seen)
+
+
+def test_outputs_of_different_orders_validate_on_a_record_with_gaps(tmp_path):
+    """``--orders auto`` gives each output its own space: a second-order y1 beside a
+    first-order y2. ``validate`` (as typed, columns by the model's names) scores each
+    output from the coupled run's first row of every segment, so their residuals line up
+    for the cross tests (it stopped on arrays of 3 different lengths: one per segment);
+    each output's RMSE from sample 50 equals the coupled free run's, computed here."""
+    def record(n, seed):
+        rng = np.random.default_rng(seed)
+        u = rng.uniform(-1, 1, (n, 2))
+        y = np.zeros((n, 2))
+        for t in range(2, n):
+            y[t, 0] = (1.2 * y[t - 1, 0] - 0.5 * y[t - 2, 0] + 0.3 * u[t - 1, 0]
+                       + 0.1 * y[t - 1, 1] + 0.05 * u[t - 1, 0] ** 2)
+            y[t, 1] = 0.7 * y[t - 1, 1] + 0.4 * u[t - 1, 1] - 0.1 * y[t - 1, 0] * u[t - 1, 1]
+        return u, y + 1e-3 * rng.standard_normal((n, 2))
+
+    keep = np.ones(3000, bool)
+    keep[1000:1040] = keep[2000:2005] = False  # two gaps: three segments
+    for name, seed in (("a", 1), ("b", 2)):
+        u, y = record(3000, seed)
+        np.savetxt(tmp_path / f"{name}.csv", np.column_stack([np.arange(3000) * 0.01, u, y])[keep],
+                   delimiter=",", header="time,u1,u2,y1,y2", comments="", fmt="%.12g")
+    run = [sys.executable, "-m", "spm_sysid.apps.main"]
+    r = subprocess.run([*run, "identify", "--data", str(tmp_path / "a.csv"), "--output", "y1,y2",
+                        "--focus", "simulation", "--orders", "auto", "--seed", "1", "--json",
+                        str(tmp_path / "m.json")], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    model = MimoModel.load(tmp_path / "m.json")
+    lags = [m.term_space.max_lag for m in model.models]
+    assert lags[0] > lags[1], lags  # the case: outputs of different orders
+    r = subprocess.run([*run, "validate", str(tmp_path / "m.json"), "--data",
+                        str(tmp_path / "b.csv"), "--errors-from", "50"],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "cross-correlation of the outputs' residuals" in r.stdout
+    rec = load_record(DataSpec(data=(str(tmp_path / "b.csv"),), output="y1,y2"))
+    lag, got = model.max_lag, r.stdout.split("coupled free-run: MSE")[1:]
+    errors, bounds = [], rec.segment_info().bounds
+    assert len(bounds) == 3
+    for a, b in bounds:
+        sim, _ = model.simulate(rec.u[a:b], rec.y[a:b])
+        errors.append(rec.y[a + 50:b] - sim[50 - lag:])
+    e = np.concatenate(errors)
+    for i in range(2):
+        rmse = float(got[i].split("RMSE")[1].split(",")[0])
+        assert rmse == pytest.approx(np.sqrt(np.mean(e[:, i] ** 2)), rel=1e-3)
+        assert rmse < 3e-3  # the noise is 1e-3

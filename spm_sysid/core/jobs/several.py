@@ -45,8 +45,8 @@ from ..validate.correlation import CorrelationTest, ccf
 from ..validate.validation import validate_model
 from .single import choose_orders, run_single_job, validation_segments
 
-__all__ = ["MimoJobResult", "couple_reports", "cross_correlation_tests", "cross_summary",
-           "describe_coupled", "run_mimo_job"]
+__all__ = ["MimoJobResult", "couple_reports", "coupled_rows", "cross_correlation_tests",
+           "cross_summary", "describe_coupled", "run_mimo_job"]
 
 
 @dataclass
@@ -229,6 +229,20 @@ def _per_segment(run, lag: int, u: np.ndarray, Y: np.ndarray,
             if d is not None and diverged[i] is None:
                 diverged[i] = a + d
     return np.concatenate(runs), diverged
+
+
+def coupled_rows(model: MimoModel, i: int, segments: list[tuple[int, int]]
+                 ) -> list[tuple[int, int]]:
+    """Output ``i``'s validation segments: from the coupled run's first row of each.
+
+    With ``orders: auto`` each output has its own space; one whose largest lag is
+    below the coupled model's starts each segment that much later, so that every
+    output's report has the coupled run's rows (its residuals line up with the
+    others' for the cross-correlation tests).
+    """
+    lag = model.max_lag
+    shift = lag - model.models[i].term_space.max_lag
+    return [(a + shift, b) for a, b in segments if b - a > lag]
 
 
 def couple_reports(model: MimoModel, u: np.ndarray, Y: np.ndarray,
@@ -521,15 +535,12 @@ def _validate_coupled(model: MimoModel, outputs: list, u: np.ndarray, Y: np.ndar
     gives each output its own space) is validated again from the coupled run's
     first row of each segment, so that every report has the coupled run's rows.
     """
-    lag = model.max_lag
     for i, r in enumerate(outputs):
-        own = r.model.term_space.max_lag
-        if r.report is not None and own < lag:
+        if r.report is not None and r.model.term_space.max_lag < model.max_lag:
             r.report = validate_model(
                 r.model, augmented_inputs(u, Y, i), Y[:, i],
                 correlation_lags=settings.correlation_lags, segment=settings.validation,
-                segments=[(a + lag - own, b) for a, b in val if b - a > lag],
-                horizon=settings.horizon or None)
+                segments=coupled_rows(model, i, val), horizon=settings.horizon or None)
     cross = couple_reports(model, u, Y, val, [r.report for r in outputs],
                            settings.correlation_lags)
     for i, r in enumerate(outputs):

@@ -73,7 +73,7 @@ def _validate_several(args, model) -> int:
     Each output's report with the coupled free run, the residuals'
     cross-correlation, a panel per output.
     """
-    from ...core.jobs.several import couple_reports, cross_summary
+    from ...core.jobs.several import couple_reports, coupled_rows, cross_summary
     from ...core.model.mimo import augmented_inputs
     from ...core.validate.validation import validate_model
     from ..html_report import OutputSection
@@ -94,12 +94,17 @@ def _validate_several(args, model) -> int:
     print(f"model: {args.model} (outputs {', '.join(model.outputs)}, coupled)")
     print(f"data: {record.source}" + (f", last {args.tail:.0%}" if args.tail is not None
                                       else ""))
-    reports = [validate_model(m, augmented_inputs(u, Y, i), Y[:, i],
-                              correlation_lags=args.correlation_lags,
-                              segment="holdout" if args.tail is not None else "supplied",
-                              segments=segments, horizon=args.horizon or None,
-                              errors_from=args.errors_from)
-               for i, m in enumerate(model.models)]
+    reports = []
+    for i, m in enumerate(model.models):  # each from the coupled run's first rows
+        shift = model.max_lag - m.term_space.max_lag
+        rep = validate_model(m, augmented_inputs(u, Y, i), Y[:, i],
+                             correlation_lags=args.correlation_lags,
+                             segment="holdout" if args.tail is not None else "supplied",
+                             segments=coupled_rows(model, i, segments),
+                             horizon=args.horizon or None,
+                             errors_from=max(args.errors_from - shift, 0))
+        rep.errors_from = args.errors_from  # of the segments as given
+        reports.append(rep)
     cross = couple_reports(model, u, Y, segments, reports, args.correlation_lags)
     for name, m, rep in zip(model.outputs, model.models, reports):
         print(f"== output {name} ==")
