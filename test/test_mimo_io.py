@@ -320,3 +320,48 @@ def test_outputs_of_different_orders_validate_on_a_record_with_gaps(tmp_path):
         rmse = float(got[i].split("RMSE")[1].split(",")[0])
         assert rmse == pytest.approx(np.sqrt(np.mean(e[:, i] ** 2)), rel=1e-3)
         assert rmse < 3e-3  # the noise is 1e-3
+
+
+def test_validate_reads_another_bag_on_the_topics_the_model_was_identified_from(tmp_path):
+    """``identify --bag`` on one JointState topic's efforts and velocities writes them in
+    ``metadata.topics``; ``validate MODEL --bag OTHER`` (no options: the command as typed)
+    reads the other recording the same way and says so; given options win; a document
+    whose topics are not text is refused naming the field."""
+    run = [sys.executable, "-m", "spm_sysid.apps.main"]
+    u, Y = two_output_system(600, seed=1, noise=0.001)
+    u2, Y2 = two_output_system(600, seed=2, noise=0.001)
+    first = write_joint_state_bag(tmp_path / "first", u, Y)
+    second = write_joint_state_bag(tmp_path / "second", u2, Y2, shuffled=True)
+    options = {"--input-topic": "/joint_states", "--input-field": "effort[j1],effort[j2]",
+               "--input-names": "tau1,tau2", "--output-topic": "/joint_states",
+               "--output-field": "velocity[j1],velocity[j2]", "--output-names": "q1,q2"}
+    r = subprocess.run([*run, "identify", "--bag", str(first), *sum(options.items(), ()),
+                        "--ny", "1", "--nu", "1", "--degree", "2", "--criterion", "bic",
+                        "--seed", "0", "--quiet", "--json", str(tmp_path / "m.json")],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    doc = json.loads((tmp_path / "m.json").read_text())
+    topics = doc["metadata"]["topics"]
+    assert {f"--{k.replace('_', '-')}": v for k, v in topics.items()
+            if k != "stamp_tolerance"} == options
+    r = subprocess.run([*run, "validate", str(tmp_path / "m.json"), "--bag", str(second)],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert ("note: the bag is read on the model's topics and fields: --input-topic "
+            "/joint_states, --input-field effort[j1],effort[j2]") in r.stdout
+    model = MimoModel.load(tmp_path / "m.json")
+    sim, _ = model.simulate(u2, Y2)
+    for i, text in enumerate(r.stdout.split("coupled free-run: MSE")[1:]):
+        rmse = float(text.split("RMSE")[1].split(",")[0])
+        e = Y2[model.max_lag:, i] - sim[:, i]
+        assert rmse == pytest.approx(np.sqrt(np.mean(e * e)), rel=1e-3)
+    r = subprocess.run([*run, "validate", str(tmp_path / "m.json"), "--bag", str(second),
+                        "--output-topic", "/nowhere"], capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 2 and "note: the bag" not in r.stdout  # the options as given
+    assert "has no topic /robot_arm/torque" in r.stderr
+    doc["metadata"]["topics"]["input_topic"] = 7
+    (tmp_path / "bad.json").write_text(json.dumps(doc))
+    r = subprocess.run([*run, "validate", str(tmp_path / "bad.json"), "--bag", str(second)],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 2 and "metadata.topics.input_topic must be text" in r.stderr

@@ -254,6 +254,16 @@ def test_two_joint_efforts_recorded_from_one_jointstate_topic(ros_env, harness, 
                 "+ 0.300shoulder(t-2)*elbow(t-1)") in res.message
         doc = json.loads(harness.latched(String, "/spm_sysid/model").data)
         assert doc["term_space"]["inputs"] == ["shoulder", "elbow"]
+        topics = doc["metadata"]["topics"]  # what validate --bag reads by default
+        assert (topics["input_topic"], topics["input_field"], topics["input_names"]) == (
+            "/arm/joint_states", "effort[0],effort[1]", "shoulder,elbow")
+        (tmp_path / "model.json").write_text(json.dumps(doc))
+        r = subprocess.run([sys.executable, "-m", "spm_sysid.apps.main", "validate",
+                            str(tmp_path / "model.json"), "--bag", str(bag)],
+                           capture_output=True, text=True, env=ros_env, timeout=120, cwd=ROOT)
+        assert r.returncode == 0, r.stderr
+        assert "--input-topic /arm/joint_states, --input-field effort[0],effort[1]" in r.stdout
+        assert "free-run: MSE" in r.stdout
     finally:
         stop(node)
 

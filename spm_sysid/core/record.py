@@ -79,6 +79,10 @@ class Record:
     spikes : dict or None
         The output spikes left out of the segments (:meth:`spikes_as_gaps`):
         ``{"spikes", "samples", "at"}`` (the first 1000 spikes' first samples).
+    topics : dict or None
+        The topics, fields and names a bag's signals were read from (the reader's
+        options as given, the topics always; the node's from its parameters):
+        ``validate --bag`` reads another bag the same way by default.
     """
 
     u: np.ndarray
@@ -96,6 +100,7 @@ class Record:
     output_names: tuple[str, ...] = ()
     decimation: dict | None = None
     spikes: dict | None = None
+    topics: dict | None = None
 
     def __post_init__(self) -> None:
         self.u = np.asarray(self.u, dtype=float)
@@ -251,6 +256,8 @@ class Record:
             out["decimation"] = dict(self.decimation)
         if self.spikes:
             out["spikes"] = dict(self.spikes)
+        if self.topics:
+            out["topics"] = dict(self.topics)
         return out
 
 
@@ -286,7 +293,9 @@ def combine(records: Sequence[Record]) -> Record:
         rejected=sum(r.rejected for r in records), unpaired=sum(r.unpaired for r in records),
         unset_stamps=sum(r.unset_stamps for r in records),
         parts=[p for r in records for p in r.parts],
-        notes=[n for r in records for n in r.notes], output_names=first.output_names)
+        notes=[n for r in records for n in r.notes], output_names=first.output_names,
+        topics=first.topics if all(r.topics == first.topics
+                                             for r in records) else None)
 
 
 # -- where data come from ---------------------------------------------------------------
@@ -387,7 +396,7 @@ def _load_file(path: str, spec: DataSpec) -> Record:
 
 
 def _load_bag(spec: DataSpec) -> Record:
-    from .io.bagio import read_bag_signals
+    from .io.bagio import DEFAULT_INPUT_TOPIC, DEFAULT_OUTPUT_TOPIC, read_bag_signals
 
     opts = {k: v for k, v in spec.bag_options.items() if v not in (None, "")}  # 0 s is a value
     if "stamp_tolerance" in opts:  # seconds, as the node's parameter (text from a command)
@@ -399,6 +408,8 @@ def _load_bag(spec: DataSpec) -> Record:
             raise DataError(str(exc)) from None
         opts["tolerance_ns"] = int(round(seconds * 1e9))
     sig = read_bag_signals(spec.bag, **opts)
+    read = {"input_topic": DEFAULT_INPUT_TOPIC, "output_topic": DEFAULT_OUTPUT_TOPIC,
+            **{k: str(v) for k, v in spec.bag_options.items() if v not in (None, "")}}
     notes = list(sig.notes)
     if sig.unset_stamps:
         notes.append(f"{sig.unset_stamps} message(s) in {spec.bag} repeat header.stamp 0 (the "
@@ -407,4 +418,5 @@ def _load_bag(spec: DataSpec) -> Record:
                   sig.output_names[0] if len(sig.output_names) == 1 else "y", sig.stamps_ns,
                   rejected=sig.rejected_nonfinite, unpaired=sig.unpaired,
                   unset_stamps=sig.unset_stamps, notes=notes,
-                  output_names=sig.output_names if len(sig.output_names) > 1 else ())
+                  output_names=sig.output_names if len(sig.output_names) > 1 else (),
+                  topics=read)

@@ -237,6 +237,11 @@ DECIMATION = fields({"factor": integer(1, null=False), "samples": integer(),
 #: The output spikes left out of the identification's segments (``--spikes gaps``).
 SPIKES = fields({"spikes": integer(), "samples": integer(), "at": items(integer())})
 
+#: The topics, fields and names the signals were read from (a bag, the node; ``validate --bag``).
+TOPICS = fields({k: text() for k in ("input_topic", "input_field", "input_names",
+                                          "output_topic", "output_field", "output_names",
+                                          "stamp_tolerance")})
+
 #: Every field of ``metadata`` that the product reads.
 METADATA = fields({
     "focus": text(choices=("prediction", "simulation")),
@@ -287,6 +292,7 @@ METADATA = fields({
     "interrupted": fields({"phase": text(), "model": text()}),
     "decimation": DECIMATION,
     "spikes": SPIKES,
+    "topics": TOPICS,
     "operating_point": fields({
         "output": mapping(number(null=False)), "inputs": mapping(number(null=False)),
         "reason": text(null=False), "selected_terms": items(text(null=False)),
@@ -298,7 +304,8 @@ METADATA = fields({
 MIMO_METADATA = fields({"cross_correlation_tests": items(TEST),
                         "joint_criterion": fields({"value": number(), "name": text()}),
                         "warnings": items(text(null=False)), "data": DATA,
-                        "decimation": DECIMATION, "spikes": SPIKES})
+                        "decimation": DECIMATION, "spikes": SPIKES,
+                        "topics": TOPICS})
 
 
 def check_metadata(metadata, path: str = "metadata") -> dict:

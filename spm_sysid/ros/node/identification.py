@@ -279,6 +279,8 @@ class Identification:
                  "input_topic": values["input_topic"], "output_topic": values["output_topic"]}
         if values.get("output_field"):
             extra["output_field"] = values["output_field"]
+        extra["topics"] = {k: str(values[k]) for k in BAG_OPTIONS  # validate --bag reads so
+                           if values.get(k) not in (None, "")}
         job = self.worker.submit(record, settings, metadata=extra)
         timeout = values["job_timeout"]
         timer = threading.Timer(timeout, self.worker.cancel,

@@ -15,7 +15,7 @@ from .common import (
 )
 from .outputs import Written, write_outputs
 
-__all__ = ["add_parser", "at_model_rate", "cmd_validate", "load_by_names"]
+__all__ = ["add_parser", "at_model_rate", "bag_as_identified", "cmd_validate", "load_by_names"]
 
 
 def cmd_validate(args) -> int:
@@ -31,9 +31,32 @@ def cmd_validate(args) -> int:
         model, _ = read_model_document(args.model)
     except ModelFormatError as exc:
         raise UserError(str(exc)) from None
+    args = bag_as_identified(args, model.metadata)
     if isinstance(model, MimoModel):
         return _validate_several(args, model)
     return _validate_one(args, model)
+
+
+def bag_as_identified(args, metadata: dict):
+    """``--bag`` read on the model's own topics, fields and names when none is given.
+
+    A model identified from a bag's ``/joint_states`` efforts and positions
+    validates on another recording of the same topics without repeating the
+    options (``metadata.topics``: written by ``identify --bag`` and by the node); a
+    note says which were used.
+    """
+    from ...core.settings import BAG_OPTIONS, SETTINGS
+
+    known = metadata.get("topics") or {}
+    if getattr(args, "bag", None) is None or not known:
+        return args
+    given = [k for k in BAG_OPTIONS if getattr(args, k, None) != (SETTINGS[k].default or None)]
+    if given:
+        return args
+    shown = ", ".join(f"{SETTINGS[k].option} {known[k]}" for k in BAG_OPTIONS if k in known)
+    print(f"note: the bag is read on the model's topics and fields: {shown}")
+    return argparse.Namespace(**{**vars(args), **{k: v for k, v in known.items()
+                                                  if k in BAG_OPTIONS}})
 
 
 def _validate_one(args, model) -> int:
