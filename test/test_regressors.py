@@ -334,8 +334,8 @@ def test_check_data_points_to_the_friction_preset_where_signs_explain_what_a_pol
         tmp_path, robot_arm_path):
     """``spm-sysid check-data`` (and so every answer's warnings): a velocity loop and the
     1 kHz joint (read at the advised fifth of the rate) get the hint; with the preset
-    asked for, none; a cubic spring, a plant behind a cubic of its input, the robot arm and
-    a linear record with noise none."""
+    asked for, none; a cubic spring, a plant behind a cubic of its input, steps held long at
+    100x oversampling, the robot arm and a linear record with noise none."""
     from .helpers.velocity_loop import velocity_record
 
     rng = np.random.default_rng(4)
@@ -349,10 +349,16 @@ def test_check_data_points_to_the_friction_preset_where_signs_explain_what_a_pol
     for k in range(2, 20000):  # Hammerstein: its input's cubic read as friction before
         cubic_y[k] = (1.3 * cubic_y[k - 1] - 0.45 * cubic_y[k - 2] + 0.4 * cubic_u[k - 1]
                       + 0.1 * cubic_u[k - 1] ** 3)
+    held = np.repeat(rng.uniform(-1, 1, 20), 1000)  # steps held 1000 samples: 100x oversampled
+    held_y = np.zeros(20000)
+    for k in range(2, 20000):  # its steps are noise, whose sign the lagged outputs' noise reads
+        held_y[k] = (1.5 * held_y[k - 1] - 0.56 * held_y[k - 2] + 0.05 * held[k - 1]
+                     + 0.03 * held[k - 1] ** 3)
     records = {"speed.csv": velocity_record(20.0, seed=1), "joint.csv": joint_record(20.0, seed=2),
                "spring.csv": duffing(20000),
                "linear.csv": (lin_u, lin_y + rng.standard_normal(5000)),
-               "cubic.csv": (cubic_u, cubic_y + 0.01 * rng.standard_normal(20000))}
+               "cubic.csv": (cubic_u, cubic_y + 0.01 * rng.standard_normal(20000)),
+               "held.csv": (held, held_y + 1e-3 * rng.standard_normal(20000))}
     for name, (u, y) in records.items():
         np.savetxt(tmp_path / name, np.column_stack([u, y]), delimiter=",", header="u,y",
                    comments="", fmt="%.10g")
@@ -364,13 +370,16 @@ def test_check_data_points_to_the_friction_preset_where_signs_explain_what_a_pol
         assert out.returncode == 0, out.stderr
         return [ln for ln in out.stdout.splitlines() if "--regressors friction" in ln]
 
-    for name, rate in (("speed.csv", "the record's rate"), ("joint.csv", "every 5th sample")):
+    # the speed's own sign at the record's rate; the position's step at the advised one
+    for name, rate, sign in (("speed.csv", "the record's rate", "warning: sign(y(t-1)) "),
+                             ("joint.csv", "every 5th sample", "sign(y(t-1)-y(t-2))")):
         [line] = hint("--data", name)
         share = float(line.split(" explain ")[1].split("%")[0])
-        assert share >= 5 and rate in line and "sign(y(t-1)-y(t-2))" in line, line
+        assert share >= 5 and rate in line and sign in line, line
         assert not hint("--data", name, "--regressors", "friction")
     for name in ("spring.csv", "linear.csv", "cubic.csv"):
         assert not hint("--data", name), name
+    assert not hint("--data", "held.csv", "--ny", "2", "--nu", "2")  # read 30 % before
     assert not hint("--data", str(robot_arm_path))
 
 
