@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 # ROS traffic stays on this machine; each target picks its own domain.
 export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
 
-.PHONY: setup run identify test test-quick test-durations lint bench bench-sizes bench-node bench-dask bench-certify bench-certify-scale bench-reach bench-generalise bench-speed bench-online bench-mimo bench-accuracy bench-scale bag experiment report clean
+.PHONY: setup run identify test test-quick test-durations lint bench bench-sizes bench-node bench-dask bench-certify bench-certify-scale bench-reach bench-generalise bench-unseen bench-speed bench-online bench-mimo bench-accuracy bench-scale bag experiment report clean
 
 INTERFACES := $(wildcard interfaces/spm_sysid_interfaces/*.* interfaces/spm_sysid_interfaces/*/*)
 
@@ -117,6 +117,10 @@ bench-scale: $(KERNELS)
 ## Models on data they were not fitted on: two-tank cascade, robot-arm halves, coverage.
 bench-generalise: $(KERNELS)
 	$(BIN)/python -m benchmarks.generalise
+
+## The command as typed on kinds of record nobody here fitted (two-level and PRBS inputs, spikes, ...).
+bench-unseen: $(KERNELS)
+	$(BIN)/python -m benchmarks.unseen
 
 ## Online monitor and tracker: detection delay, false alarms, drift tracking, cost per sample.
 bench-online: $(KERNELS)

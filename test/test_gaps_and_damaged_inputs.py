@@ -535,3 +535,18 @@ def test_large_term_spaces_run_to_the_end_and_too_large_is_refused(robot_arm, mo
     monkeypatch.setenv("SPM_SYSID_MAX_MEMORY", "20M")
     with pytest.raises(MemoryLimitError, match="2299 candidate terms would need about"):
         identify(u=u, y=y, term_space=TermSpace(ny=11, nu=11, degree=3), ga=short)
+
+
+def test_make_bench_unseen_runs_as_its_makefile_line_does():
+    """``python -m benchmarks.unseen`` (``make bench-unseen``), one kind, a tenth of its
+    samples: the row of a record whose second input is constant. The scan's bug gave it
+    order 1, degree 1 and a free run of about 0.5; the linear ARX stays there."""
+    r = subprocess.run([sys.executable, "-m", "benchmarks.unseen", "--only", "unused",
+                        "--scale", "0.2"], capture_output=True, text=True, timeout=300,
+                       cwd=ROOT)
+    assert r.returncode == 0, r.stderr
+    [line] = [ln for ln in r.stdout.splitlines() if ln.startswith("unused (constant) input")]
+    fields = line.split()
+    ours, arx = float(fields[4]), float(fields[5])
+    assert ours < 3e-3 < 0.1 < arx, line  # the noise is 1e-3
+    assert "(2, 2, 2)" in line and line.endswith("constant input")

@@ -21,6 +21,7 @@ from spm_sysid.core.record import DataSpec, Record, load_record
 from spm_sysid.core.stream.buffer import SampleBuffer, pair_streams
 
 from .conftest import TRUE, reference_simulation, two_output_system, write_joint_state_bag
+from .helpers.two_orders import coupled_outputs
 
 SETTINGS = {"ny": 1, "nu": 1, "degree": 2, "criterion": "bic", "seed": 0}
 
@@ -282,12 +283,7 @@ def test_outputs_of_different_orders_validate_on_a_record_with_gaps(tmp_path):
     def record(n, seed):
         rng = np.random.default_rng(seed)
         u = rng.uniform(-1, 1, (n, 2))
-        y = np.zeros((n, 2))
-        for t in range(2, n):
-            y[t, 0] = (1.2 * y[t - 1, 0] - 0.5 * y[t - 2, 0] + 0.3 * u[t - 1, 0]
-                       + 0.1 * y[t - 1, 1] + 0.05 * u[t - 1, 0] ** 2)
-            y[t, 1] = 0.7 * y[t - 1, 1] + 0.4 * u[t - 1, 1] - 0.1 * y[t - 1, 0] * u[t - 1, 1]
-        return u, y + 1e-3 * rng.standard_normal((n, 2))
+        return u, coupled_outputs(u, rng)
 
     keep = np.ones(3000, bool)
     keep[1000:1040] = keep[2000:2005] = False  # two gaps: three segments
