@@ -294,8 +294,7 @@ def combine(records: Sequence[Record]) -> Record:
         unset_stamps=sum(r.unset_stamps for r in records),
         parts=[p for r in records for p in r.parts],
         notes=[n for r in records for n in r.notes], output_names=first.output_names,
-        topics=first.topics if all(r.topics == first.topics
-                                             for r in records) else None)
+        topics=first.topics if all(r.topics == first.topics for r in records) else None)
 
 
 # -- where data come from ---------------------------------------------------------------
