@@ -34,7 +34,7 @@ from .errors import DataError
 from .model.segments import SegmentInfo, find_segments
 from .settings import BAG_OPTIONS, SETTINGS, check, parse_text
 
-__all__ = ["DataSpec", "Record", "combine", "load_record"]
+__all__ = ["DataSpec", "Record", "combine", "load_record", "topics_read"]
 
 
 def default_input_names(m: int) -> tuple[str, ...]:
@@ -394,8 +394,23 @@ def _load_file(path: str, spec: DataSpec) -> Record:
                   notes=list(d.notes), output_names=d.output_names)
 
 
+def topics_read(options: Mapping[str, object]) -> dict[str, str]:
+    """Where signals were read, as a document keeps it (``metadata.topics``).
+
+    The topics always; the other reading options (:data:`BAG_OPTIONS`) when they are
+    not their defaults, so that every command and the node write the same for the
+    same reading.
+    """
+    out = {k: str(SETTINGS[k].default) for k in ("input_topic", "output_topic")}
+    for k in BAG_OPTIONS:
+        v = options.get(k)
+        if v not in (None, "") and str(v) != str(SETTINGS[k].default):
+            out[k] = str(v)
+    return out
+
+
 def _load_bag(spec: DataSpec) -> Record:
-    from .io.bagio import DEFAULT_INPUT_TOPIC, DEFAULT_OUTPUT_TOPIC, read_bag_signals
+    from .io.bagio import read_bag_signals
 
     opts = {k: v for k, v in spec.bag_options.items() if v not in (None, "")}  # 0 s is a value
     if "stamp_tolerance" in opts:  # seconds, as the node's parameter (text from a command)
@@ -407,8 +422,6 @@ def _load_bag(spec: DataSpec) -> Record:
             raise DataError(str(exc)) from None
         opts["tolerance_ns"] = int(round(seconds * 1e9))
     sig = read_bag_signals(spec.bag, **opts)
-    read = {"input_topic": DEFAULT_INPUT_TOPIC, "output_topic": DEFAULT_OUTPUT_TOPIC,
-            **{k: str(v) for k, v in spec.bag_options.items() if v not in (None, "")}}
     notes = list(sig.notes)
     if sig.unset_stamps:
         notes.append(f"{sig.unset_stamps} message(s) in {spec.bag} repeat header.stamp 0 (the "
@@ -418,4 +431,4 @@ def _load_bag(spec: DataSpec) -> Record:
                   rejected=sig.rejected_nonfinite, unpaired=sig.unpaired,
                   unset_stamps=sig.unset_stamps, notes=notes,
                   output_names=sig.output_names if len(sig.output_names) > 1 else (),
-                  topics=read)
+                  topics=topics_read(spec.bag_options))

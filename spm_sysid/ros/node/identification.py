@@ -22,7 +22,7 @@ from spm_sysid_interfaces.action import Identify
 
 from ...core.errors import TooFewSamplesError
 from ...core.progress import Progress
-from ...core.record import BAG_OPTIONS, DataSpec, Record, load_record
+from ...core.record import BAG_OPTIONS, DataSpec, Record, load_record, topics_read
 from ..futures import Pending
 from ..worker import JobCancelledError, JobError, JobTimeoutError, JobWorker
 from .parameters import NodeParameters
@@ -279,8 +279,7 @@ class Identification:
                  "input_topic": values["input_topic"], "output_topic": values["output_topic"]}
         if values.get("output_field"):
             extra["output_field"] = values["output_field"]
-        extra["topics"] = {k: str(values[k]) for k in BAG_OPTIONS  # validate --bag reads so
-                           if values.get(k) not in (None, "")}
+        extra["topics"] = topics_read(values)  # validate --bag reads another bag so
         job = self.worker.submit(record, settings, metadata=extra)
         timeout = values["job_timeout"]
         timer = threading.Timer(timeout, self.worker.cancel,
