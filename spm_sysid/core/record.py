@@ -80,9 +80,9 @@ class Record:
         The output spikes left out of the segments (:meth:`spikes_as_gaps`):
         ``{"spikes", "samples", "at"}`` (the first 1000 spikes' first samples).
     topics : dict or None
-        The topics, fields and names a bag's signals were read from (the reader's
-        options as given, the topics always; the node's from its parameters):
-        ``validate --bag`` reads another bag the same way by default.
+        The topics, fields and names a bag's signals were read from
+        (:func:`topics_read`; the node's from its parameters): ``validate --bag``
+        reads another bag the same way by default.
     """
 
     u: np.ndarray
