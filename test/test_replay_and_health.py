@@ -158,17 +158,21 @@ def test_player_without_subscribers_times_out_with_a_clear_error(ros_env, readme
 
 
 def test_interrupted_player_reports_counts_and_exits_nonzero(ros_env, harness, readme_bag):
+    """SIGINT while it plays. The node is up first: on a loaded machine a node slower than
+    the player's wait for subscribers (30 s) had the player end with 'no subscriber'."""
     node = readme_node(ros_env)
     try:
+        harness.wait_ready()
         player = subprocess.Popen([_script("bag_player"), "--ros-args",
                                    "-p", "bag:=bags/robot_arm", "-p", "rate:=1.0"],
                                   env=ros_env, cwd=ROOT, stderr=subprocess.PIPE, text=True)
-        harness.wait_buffer(lambda kv: int(kv["samples"]) >= 100, 30)
+        kv = harness.wait_buffer(lambda kv: int(kv["samples"]) >= 100, 60)
+        assert int(kv.get("samples", 0)) >= 100, kv
         player.send_signal(signal.SIGINT)
         _, err = player.communicate(timeout=20)
     finally:
         stop(node)
-    assert player.returncode == 130
+    assert player.returncode == 130, err
     assert "interrupted: /robot_arm/acceleration:" in err and " published" in err
     assert "Traceback" not in err
 
