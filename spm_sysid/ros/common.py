@@ -83,7 +83,25 @@ def _spin_resilient(executor, errors: CallbackErrors) -> None:
         except (KeyboardInterrupt, ExternalShutdownException):
             raise
         except Exception as exc:  # noqa: BLE001 - one bad callback must not stop the node
+            if not rclpy.ok():  # SIGINT/SIGTERM shut the context down mid-wait
+                return
             errors(exc)
+
+
+def _spin_once(executor, timeout_sec: float) -> None:
+    """One wait of the executor; nothing when the context was shut down meanwhile.
+
+    SIGINT or SIGTERM may shut the context down between the loop's ``rclpy.ok()``
+    and the wait, which then raises ``RCLError`` (the context is not valid): an
+    interruption, not a failure (a loaded CI run's bag_player printed a traceback).
+    """
+    from rclpy._rclpy_pybind11 import RCLError
+
+    try:
+        executor.spin_once(timeout_sec=timeout_sec)
+    except RCLError:
+        if rclpy.ok():
+            raise
 
 
 def asks_for_help(args: list[str] | None) -> bool:
@@ -117,7 +135,7 @@ def _spin(executor: SingleThreadedExecutor, node: Node,
                         else CallbackErrors(node.get_logger()))
         return
     while rclpy.ok() and not until(node):
-        executor.spin_once(timeout_sec=0.1)
+        _spin_once(executor, 0.1)
 
 
 def run_node(build: Callable[[], Node], *, until: Callable[[Node], bool] | None = None,
