@@ -28,11 +28,11 @@ __all__ = ["KINDS", "main"]
 Draw = Callable[[int, int], tuple[np.ndarray, np.ndarray]]
 
 
-def _multisine(n: int, rng, top: float, k: int = 20) -> np.ndarray:
-    """Sum of ``k`` sines of random frequencies below ``top`` (cycles/sample), unit RMS."""
-    t = np.arange(n)
-    f, ph = rng.uniform(0.001, top, k), rng.uniform(0, 2 * np.pi, k)
-    return np.sin(2 * np.pi * f[:, None] * t[None, :] + ph[:, None]).sum(0) / np.sqrt(k / 2)
+def _multisine(n: int, rng, top: float) -> np.ndarray:
+    """The tests' multisine (``test/helpers/signals.py``): 20 sines below ``top``."""
+    from .scale import test_helper
+
+    return test_helper("signals").multisine(n, rng, top)
 
 
 def _second_order(u: np.ndarray, extra=lambda u, t: 0.0, a=(1.2, -0.5), b=0.5) -> np.ndarray:

@@ -20,6 +20,7 @@ from spm_sysid.core.io.datasets import find_robot_arm
 from spm_sysid.core.validate.clipping import clipped_ends
 
 from .helpers.joint import joint_record
+from .helpers.signals import multisine
 
 RUN = [sys.executable, "-m", "spm_sysid.apps.main"]
 
@@ -27,9 +28,7 @@ RUN = [sys.executable, "-m", "spm_sysid.apps.main"]
 def clipped_record(n: int, top: float, bottom: float, seed: int = 1):
     """u and the measured output of a second-order plant, its sensor clipped to a range."""
     rng = np.random.default_rng(seed)
-    t = np.arange(n)
-    u = sum(np.sin(2 * np.pi * f * t + p) for f, p in
-            zip(rng.uniform(0.001, 0.03, 20), rng.uniform(0, 2 * np.pi, 20))) / np.sqrt(10)
+    u = multisine(n, rng, 0.03)
     y = np.zeros(n)
     for k in range(2, n):
         y[k] = 1.3 * y[k - 1] - 0.45 * y[k - 2] + 0.5 * u[k - 1]

@@ -22,6 +22,7 @@ from spm_sysid.core.validate.spikes import output_spikes, without_spikes
 
 from .helpers.duffing import duffing
 from .helpers.joint import joint_record
+from .helpers.signals import multisine
 from .helpers.velocity_loop import velocity_record
 
 RUN = [sys.executable, "-m", "spm_sysid.apps.main"]
@@ -30,9 +31,7 @@ RUN = [sys.executable, "-m", "spm_sysid.apps.main"]
 def system(n: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """u, the clean output and the measured one (noise 0.01) of a second-order NARX system."""
     rng = np.random.default_rng(seed)
-    t = np.arange(n)
-    u = sum(np.sin(2 * np.pi * f * t + p) for f, p in
-            zip(rng.uniform(0.001, 0.05, 20), rng.uniform(0, 2 * np.pi, 20))) / np.sqrt(10)
+    u = multisine(n, rng, 0.05)
     y = np.zeros(n)
     for k in range(2, n):
         y[k] = (1.2 * y[k - 1] - 0.5 * y[k - 2] + 0.5 * u[k - 1] + 0.2 * u[k - 1] ** 2
