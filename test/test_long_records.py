@@ -378,6 +378,36 @@ def test_the_order_scan_refines_a_linear_space_whose_integrator_least_squares_pu
     assert stabilised_start(space, model.term_indices, model.coefficients) is not None
 
 
+def test_many_inputs_widen_the_scan_to_the_quadratic_space_of_order_two():
+    """Seven inputs (or six and the other outputs of a coupled model): every quadratic
+    space above order 1 has more than the 120 candidate terms of the scan's budget,
+    and a second-order plant with a squared input was proposed at order 1 (six inputs
+    and six coupled outputs: 0.034 free run on a new draw, noise 0.001). The budget
+    grows to the quadratic space of order 2, which the scan then proposes."""
+    from spm_sysid.core.defaults import AUTO_MAX_TERMS
+    from spm_sysid.core.validate.orders import automatic_budget
+
+    rng = np.random.default_rng(3)
+    n, m = 3000, 7
+    u = rng.standard_normal((n, m))
+    b = np.linspace(0.5, 0.2, m)
+    y = np.zeros(n)
+    for t in range(2, n):
+        y[t] = 1.5 * y[t - 1] - 0.6 * y[t - 2] + b @ u[t - 1] + 0.3 * u[t - 1, 0] ** 2
+    y += 0.01 * rng.standard_normal(n)
+    quadratic = TermSpace(ny=2, nu=2, degree=2, inputs=tuple(f"u{i}" for i in range(m)))
+    assert [automatic_budget(k) for k in range(1, 7)] == [AUTO_MAX_TERMS] * 6
+    assert automatic_budget(m) == quadratic.n_terms > AUTO_MAX_TERMS
+    p = propose_orders(u, y, max_order=3, max_degree=2, criterion="aic", focus="simulation")
+    scored = {(k, d): min(r, rr) for k, d, _, r, rr in p.space_scan}
+    assert p.budget == quadratic.n_terms and (p.order, p.degree) == (2, 2)
+    assert scored[2, 2] < 0.2 * min(r for (k, d), r in scored.items() if (k, d) != (2, 2))
+    capped = propose_orders(u, y, max_order=3, max_degree=2, criterion="aic",
+                            focus="simulation", max_terms=AUTO_MAX_TERMS)
+    assert (2, 2) not in {(k, d) for k, d, *_ in capped.space_scan}
+    assert (capped.order, capped.degree) != (2, 2)
+
+
 @pytest.mark.slow
 def test_a_long_joint_record_gets_a_model_that_integrates(tmp_path):
     """100 s of the joint at 1 kHz: every structure's refinement ended beyond 1 and the

@@ -5,7 +5,11 @@ The proposal scans the first :data:`~spm_sysid.core.defaults.SCAN_ROWS` samples
 terms (:data:`~spm_sysid.core.defaults.AUTO_MAX_TERMS`, fewer on short records:
 one term per :data:`~spm_sysid.core.defaults.ROWS_PER_TERM` rows), so that what
 follows -- the search, the screening, a certification -- stays quick whatever
-the record.
+the record. With many signals (six inputs and six coupled outputs: 12 lagged
+signals) every quadratic space above order 1 exceeds that budget, and a
+second-order plant with a squared input was fitted at order 1, 7x the noise in
+free run; the budget then grows to the quadratic space of order 2
+(:func:`automatic_budget`), the commonest nonlinear model of a mechanical joint.
 
 1. **order** (both focuses): for n = 1 .. ``max_order``, the full linear model
    with output lags 1..n and input lags delay..delay+n-1 (every input) is fitted
@@ -57,7 +61,7 @@ from ..fit.refine import refine_simulation, stabilised_start
 from ..model.terms import TermSpace
 from ..search.forward import forward_selection
 
-__all__ = ["OrderProposal", "orders_from_data", "propose_orders"]
+__all__ = ["OrderProposal", "automatic_budget", "orders_from_data", "propose_orders"]
 
 
 @dataclass
@@ -131,6 +135,19 @@ def _space(n: int, d: int, delay: int, names) -> TermSpace:
     return TermSpace(ny=n, nu=n, degree=d, delay=delay, inputs=names)
 
 
+def automatic_budget(inputs: int, delay: int = 1) -> int:
+    """Candidate terms a proposed space may have when the user gives no cap.
+
+    :data:`~spm_sysid.core.defaults.AUTO_MAX_TERMS`, or the quadratic space of
+    order 2 when ``inputs`` (the inputs and, in a coupled model, the other outputs)
+    make it larger: the scan then still tries a second-order plant's squares and
+    products. One output and up to 3 inputs never reach it (their (2, 2) space has
+    at most 45 terms).
+    """
+    names = tuple(f"u{i + 1}" for i in range(inputs))
+    return max(AUTO_MAX_TERMS, _space(2, 2, delay, names).n_terms)
+
+
 def _largest_order(d: int, top: int, budget: int, delay: int, names) -> int:
     """The largest order <= top whose degree-d space fits the budget (0: none)."""
     for n in range(top, 0, -1):
@@ -141,7 +158,7 @@ def _largest_order(d: int, top: int, budget: int, delay: int, names) -> int:
 
 def propose_orders(u: np.ndarray, y: np.ndarray, *, max_order: int = 10, max_degree: int = 3,
                    delay: int = 1, criterion: str = "bic", inputs: tuple[str, ...] = (),
-                   max_terms: int = AUTO_MAX_TERMS, focus: str = "prediction",
+                   max_terms: int | None = None, focus: str = "prediction",
                    max_rows: int = SCAN_ROWS) -> OrderProposal:
     """Propose ``ny = nu = order`` and ``degree`` for data u, y (see the module doc).
 
@@ -155,8 +172,9 @@ def propose_orders(u: np.ndarray, y: np.ndarray, *, max_order: int = 10, max_deg
         ``aic`` or ``bic`` (criteria that need coefficients are not supported here).
     inputs : tuple of str
         Input names (their number must match u's columns).
-    max_terms : int
-        Candidate terms a proposed space may have (fewer on short records).
+    max_terms : int or None
+        Candidate terms a proposed space may have (fewer on short records); None:
+        :func:`automatic_budget`.
     focus : str
         ``prediction`` or ``simulation`` (how spaces are compared).
     max_rows : int
@@ -172,6 +190,8 @@ def propose_orders(u: np.ndarray, y: np.ndarray, *, max_order: int = 10, max_deg
     start = max(max_order, delay + max_order - 1)
     if len(y) - start <= (1 + m) * max_order + 1:
         raise ValueError(f"too few samples ({len(y)}) for orders up to {max_order}")
+    if max_terms is None:
+        max_terms = automatic_budget(m, delay)
     budget = max(min(max_terms, (len(y) - start) // ROWS_PER_TERM), 1 + m)
 
     def problem(space: TermSpace, stop: int = len(y)) -> Problem:

@@ -135,8 +135,9 @@ def add_parsers(sub) -> None:
                    help="scan the deviations from the record's means, as identify does "
                    "(default auto: when a signal's mean is farther from zero than its "
                    "standard deviation)")
-    p.add_argument("--max-terms", type=positive_int, default=AUTO_MAX_TERMS,
+    p.add_argument("--max-terms", type=positive_int, default=None,
                    help="candidate terms a proposed space may have at most (default "
-                   f"{AUTO_MAX_TERMS}; fewer on records of fewer than {ROWS_PER_TERM} rows "
-                   "per term)")
+                   f"{AUTO_MAX_TERMS}, or the quadratic space of order 2 when many inputs "
+                   f"make it larger, as identify --orders auto; fewer on records of fewer "
+                   f"than {ROWS_PER_TERM} rows per term)")
     p.set_defaults(func=cmd_propose_lags)
