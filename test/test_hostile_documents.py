@@ -65,6 +65,10 @@ HOSTILE = {
     "decimation of zero": ({"decimation": {"factor": 0}},
                            "metadata.decimation.factor must be an integer >= 1"),
     "decimation text": ({"decimation": "5"}, "metadata.decimation must be an object"),
+    "a range upside down": ({"ranges": {"inputs": {"u": [2.0, -1.0]}}},
+                            "metadata.ranges.inputs.u must be [low, high] with low <= high"),
+    "a range as text": ({"ranges": {"outputs": {"y": ["a", 1.0]}}},
+                        "metadata.ranges.outputs.y[0] must be a finite number"),
 }
 
 

@@ -42,6 +42,7 @@ from ..progress import Progress, ProgressFn
 from ..record import Record
 from ..select.coupled import select_coupled
 from ..validate.correlation import CorrelationTest, ccf
+from ..validate.envelope import data_ranges
 from ..validate.validation import validate_model
 from .single import choose_orders, run_single_job, validation_segments
 
@@ -454,6 +455,7 @@ def run_mimo_job(record: Record, settings, *, progress: ProgressFn | None = None
         cross = _validate_coupled(model, outputs, u, Y, val, settings)
     data = outputs[0].data
     model.metadata["data"] = data
+    model.metadata["ranges"] = data_ranges(u, Y, est, record.input_names, record.output_names)
     model.metadata.update(record.metadata())
     seconds["total"] = time.perf_counter() - t0
     model.metadata["identify_seconds"] = round(seconds["total"], 4)

@@ -39,6 +39,7 @@ from ..progress import Progress, ProgressFn
 from ..record import Record
 from ..search.certify import describe_certificate
 from ..search.ga import GAResult
+from ..validate.envelope import data_ranges
 from ..validate.validation import (
     ValidationReport,
     check_correlation_lags,
@@ -414,6 +415,7 @@ def run_single_job(
     t2 = time.perf_counter()
     seconds = {"search": t1 - t0, "validation": t2 - t1, "total": t2 - t0}
     _record_account(model.metadata, record, data, orders, seconds, metadata)
+    model.metadata["ranges"] = data_ranges(u, y, est, record.input_names, (record.output_name,))
     times = record.row_seconds(val, space.max_lag) if validation is not None else None
     return JobResult(model=model, report=validation, search=ident.ga, data=data,
                      estimation_samples=problem.n_samples, seconds=seconds,

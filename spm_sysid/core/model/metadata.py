@@ -242,6 +242,17 @@ TOPICS = fields({k: text() for k in ("input_topic", "input_field", "input_names"
                                           "output_topic", "output_field", "output_names",
                                           "stamp_tolerance")})
 
+def _interval(value, path: str) -> None:
+    """A signal's fitted range: [low, high], finite, low <= high."""
+    row(number(null=False), number(null=False))(value, path)
+    if value[0] > value[1]:
+        _fail(path, "[low, high] with low <= high", value)
+
+
+#: Each signal's smallest and largest value on the estimation samples (validate names
+#: new data beyond them: spm_sysid.core.validate.envelope).
+RANGES = fields({"inputs": mapping(_interval), "outputs": mapping(_interval)})
+
 #: Every field of ``metadata`` that the product reads.
 METADATA = fields({
     "focus": text(choices=("prediction", "simulation")),
@@ -293,6 +304,7 @@ METADATA = fields({
     "decimation": DECIMATION,
     "spikes": SPIKES,
     "topics": TOPICS,
+    "ranges": RANGES,
     "operating_point": fields({
         "output": mapping(number(null=False)), "inputs": mapping(number(null=False)),
         "reason": text(null=False), "selected_terms": items(text(null=False)),
@@ -305,7 +317,7 @@ MIMO_METADATA = fields({"cross_correlation_tests": items(TEST),
                         "joint_criterion": fields({"value": number(), "name": text()}),
                         "warnings": items(text(null=False)), "data": DATA,
                         "decimation": DECIMATION, "spikes": SPIKES,
-                        "topics": TOPICS})
+                        "topics": TOPICS, "ranges": RANGES})
 
 
 def check_metadata(metadata, path: str = "metadata") -> dict:

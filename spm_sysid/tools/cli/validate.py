@@ -76,6 +76,8 @@ def _validate_one(args, model) -> int:
         print(spiked)
     print(f"data: {record.source}" + (f", last {args.tail:.0%}" if args.tail is not None
                                       else ""))
+    notes = _beyond(model.metadata, record, segments, model.term_space.inputs,
+                    (model.term_space.output,))
     report = validate_model(model, record.u, record.y, correlation_lags=args.correlation_lags,
                             segment="holdout" if args.tail is not None else "supplied",
                             segments=segments, horizon=args.horizon or None,
@@ -86,8 +88,20 @@ def _validate_one(args, model) -> int:
     write_outputs(args, Written(None, [OutputSection(model.term_space.output, model, report,
                                                      times)], [],
                                 f"{model.term_space.output}: model {args.model} validated",
-                                f"data: {record.source}", report.summary()))
+                                f"data: {record.source}",
+                                "".join(n + "\n" for n in notes) + report.summary()))
     return 0
+
+
+def _beyond(metadata: dict, record, segments, inputs, outputs) -> list[str]:
+    """Printed notes on each signal of the data beyond the range the model was fitted on."""
+    from ...core.validate.envelope import range_notes
+
+    notes = [f"note: {n}" for n in range_notes(metadata.get("ranges"), record.u, record.y,
+                                               segments, inputs, outputs)]
+    for n in notes:
+        print(n)
+    return notes
 
 
 def _validate_several(args, model) -> int:
@@ -117,6 +131,7 @@ def _validate_several(args, model) -> int:
     print(f"model: {args.model} (outputs {', '.join(model.outputs)}, coupled)")
     print(f"data: {record.source}" + (f", last {args.tail:.0%}" if args.tail is not None
                                       else ""))
+    _beyond(model.metadata, record, segments, model.inputs, model.outputs)
     reports = []
     for i, m in enumerate(model.models):  # each from the coupled run's first rows
         shift = model.max_lag - m.term_space.max_lag
