@@ -88,3 +88,19 @@ def test_validate_names_the_input_that_leaves_the_range_the_model_was_fitted_on(
             f"{u1.min():.4g} to {u1.max():.4g} the model was fitted on ({share:.0%} of the "
             "samples outside)") in r.stdout
     assert r.stdout.index("note: the input u") < r.stdout.index("validation on supplied data")
+
+
+def test_the_live_watch_counts_samples_beyond_and_says_the_first_once():
+    from spm_sysid.core.validate.envelope import RangeWatch
+
+    ranges = {"inputs": {"tau": [-1.0, 1.0]}, "outputs": {"q1": [0.0, 10.0], "q2": [0.0, 1.0]}}
+    watch = RangeWatch(ranges, ("tau",), ("q1", "q2"))
+    assert watch.update(1.04, [10.4, 0.5]) is None  # within 5 % of the widths
+    first = watch.update(0.0, [11.0, 0.5])
+    assert first.startswith("q1 = 11, beyond the 0 to 10 the model was fitted on")
+    assert watch.update(-2.0, [5.0, 1.5]) is None  # counted, not said again
+    assert watch.update(0.0, [5.0, 0.5]) is None
+    assert watch.values() == {"beyond_fitted_range": 2, "beyond_fitted_range_signals":
+                              "tau down to -2; q1 up to 11; q2 up to 1.5"}
+    old = RangeWatch(None, ("tau",), ("q1", "q2"))  # a document without ranges
+    assert old.update(1e9, [1e9, -1e9]) is None and old.values()["beyond_fitted_range"] == 0

@@ -204,7 +204,8 @@ class SysidNode(Node):
             ignored_parameters=self.params.unknown)
         statuses.append(online_status(self.get_fully_qualified_name(), self.online.session,
                                       {**self.reidentify.counts,
-                                       "online_errors": self.online.errors}))
+                                       "online_errors": self.online.errors},
+                                      self.online.ranges.values()))
         server = self.dashboard_server
         if server is not None:
             statuses.append(dashboard_status(self.get_fully_qualified_name(), server.url,

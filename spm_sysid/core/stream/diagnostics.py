@@ -213,15 +213,17 @@ def dashboard_status(name: str, url: str, requests: int, counts: dict) -> Status
                   _values({"url": url, "requests": requests, **counts}))
 
 
-def online_status(name: str, session, auto: dict) -> Status:
+def online_status(name: str, session, auto: dict, ranges: dict | None = None) -> Status:
     """The ``model validity`` status: the monitor's state, its statistics, the counts.
 
     ``session`` is the node's :class:`~spm_sysid.core.online.session.OnlineSession`
     (None without a model, or with ``monitor`` off); ``auto`` counts the
     automatic re-identifications (``runs``, ``replaced``, ``kept``, ``failed``,
-    ``last``).
+    ``last``); ``ranges``: the live samples beyond the model's fitted ranges
+    (:meth:`~spm_sysid.core.validate.envelope.RangeWatch.values`).
     """
     values = {f"reidentify_{k}": v for k, v in auto.items()}
+    values.update(ranges or {})
     if session is None:
         return Status(0, f"{name}: model validity", "no model monitored", _values(values))
     st = session.state

@@ -7,7 +7,8 @@ down. On a short record whose input never went below -1.3, a model of
 held -2.4 for 20 samples, and then diverged; ``validate`` said "DIVERGED" and
 nothing of why. The model document keeps each signal's smallest and largest
 value on the estimation samples (``metadata.ranges``, in the record's units), and
-``validate`` names each signal of the new data that goes beyond them.
+``validate`` names each signal of the new data that goes beyond them; the node
+counts the live samples beyond them (:class:`RangeWatch`, ``/diagnostics``).
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-__all__ = ["BEYOND", "data_ranges", "range_notes"]
+__all__ = ["BEYOND", "RangeWatch", "data_ranges", "range_notes"]
 
 #: A signal is named when it goes beyond its fitted range by more than this share of
 #: the range's width: a new draw of the same experiment crosses the edges by its noise.
@@ -92,3 +93,61 @@ def range_notes(ranges: dict | None, u: np.ndarray, y: np.ndarray,
                 "outside): the model extrapolates there, and a nonlinear model's free run "
                 "may drift or diverge")
     return notes
+
+
+class RangeWatch:
+    """Counts live samples beyond the ranges a model was fitted on (the node's monitor).
+
+    Parameters
+    ----------
+    ranges : dict or None
+        The document's ``metadata.ranges`` (None or empty: nothing is watched).
+    inputs, outputs : sequence of str
+        The names of the values :meth:`update` is given, in that order.
+    """
+
+    def __init__(self, ranges: dict | None, inputs: Sequence[str],
+                 outputs: Sequence[str]) -> None:
+        self.names: list[str] = []
+        limits = []
+        for kind, names in (("inputs", inputs), ("outputs", outputs)):
+            fitted = (ranges or {}).get(kind) or {}
+            for name in names:
+                low, high = fitted.get(name, (-np.inf, np.inf))
+                margin = BEYOND * (high - low) if np.isfinite(high - low) else 0.0
+                limits.append((low - margin, high + margin, low, high))
+                self.names.append(name)
+        self.limits = np.array(limits, dtype=float).reshape(-1, 4)
+        self.count = 0
+        self.low = np.full(len(self.names), np.inf)
+        self.high = np.full(len(self.names), -np.inf)
+
+    def update(self, u, y) -> str | None:
+        """Check one sample (inputs u, outputs y); a sentence for the first one beyond."""
+        x = np.concatenate([np.atleast_1d(np.asarray(u, dtype=float)),
+                            np.atleast_1d(np.asarray(y, dtype=float))])
+        if x.shape[0] != self.limits.shape[0]:
+            return None
+        out = (x < self.limits[:, 0]) | (x > self.limits[:, 1])
+        if not out.any():
+            return None
+        self.count += 1
+        self.low[out] = np.minimum(self.low[out], x[out])
+        self.high[out] = np.maximum(self.high[out], x[out])
+        if self.count > 1:
+            return None
+        i = int(np.flatnonzero(out)[0])
+        return (f"{self.names[i]} = {x[i]:.4g}, beyond the {self.limits[i, 2]:.4g} to "
+                f"{self.limits[i, 3]:.4g} the model was fitted on: its predictions there are "
+                "extrapolations (counted in /diagnostics, beyond_fitted_range)")
+
+    def values(self) -> dict:
+        """The counts for ``/diagnostics``: samples beyond, and how far each signal went."""
+        seen = []
+        for i, name in enumerate(self.names):
+            ends = ([f"down to {self.low[i]:.4g}"] if self.low[i] < self.limits[i, 0] else []) \
+                + ([f"up to {self.high[i]:.4g}"] if self.high[i] > self.limits[i, 1] else [])
+            if ends:
+                seen.append(f"{name} {' and '.join(ends)}")
+        return {"beyond_fitted_range": self.count,
+                "beyond_fitted_range_signals": "; ".join(seen)}

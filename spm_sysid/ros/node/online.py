@@ -5,7 +5,9 @@ Every paired sample the buffer makes goes to the current model's session
 :class:`~spm_sysid.core.online.coupled.CoupledSession` for several outputs):
 its one-step (and k-step) prediction on ``~/prediction``, the monitor's state
 on ``~/validity`` (each change logged), the tracked coefficients on
-``~/tracked_model``. A failure is counted, never fatal to recording.
+``~/tracked_model``; samples beyond the ranges the model was fitted on are
+counted (:class:`~spm_sysid.core.validate.envelope.RangeWatch`, the first one
+logged). A failure is counted, never fatal to recording.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from spm_sysid_interfaces.msg import Prediction, Validity
 from ...core.model.mimo import MimoModel
 from ...core.online.coupled import CoupledSession
 from ...core.online.session import OnlineSession
+from ...core.validate.envelope import RangeWatch
 from ..common import LATCHED
 from ..typed import prediction_message, tracked_message, validity_message
 from .recording import Recorder
@@ -74,6 +77,7 @@ class OnlinePart:
         self.tracked_pub = node.create_publisher(NarxModelMsg, "~/tracked_model", LATCHED)
         self.session: OnlineSession | CoupledSession | None = None
         self.doc: dict | None = None
+        self.ranges = RangeWatch(None, (), ())
         self.errors = 0
         self.predictions = 0
         self.model_time = time.monotonic()
@@ -86,6 +90,9 @@ class OnlinePart:
         """A new current model: a fresh session (its monitor starts VALID)."""
         v = self.values()
         self.model_time, self.doc = time.monotonic(), doc
+        names = ((model.inputs, model.outputs) if isinstance(model, MimoModel) else
+                 (model.term_space.inputs, (model.term_space.output,)))
+        self.ranges = RangeWatch((doc.get("metadata") or {}).get("ranges"), *names)
         if self.dashboard is not None:
             self.dashboard.new_model()
         if not v["monitor"]:
@@ -127,6 +134,7 @@ class OnlinePart:
         if session is None:
             return
         u = u[self.recorder.order] if len(u) > 1 else u[0]
+        self._watch_range(u, y)
         try:
             samples, changed, names = self._feed(session, stamp, u, y)
         except Exception as exc:  # noqa: BLE001 - counted and reported, recording goes on
@@ -147,6 +155,13 @@ class OnlinePart:
                                                              output_name=name))
         if changed:
             self._validity_changed(session, stamp)
+
+    def _watch_range(self, u, y) -> None:
+        """Count a sample beyond the model's fitted ranges; log the first of each model."""
+        y = np.asarray(y)[self.recorder.out_order] if np.ndim(y) else y
+        first = self.ranges.update(u, y)
+        if first is not None:
+            self.node.get_logger().warning(first)
 
     def _feed(self, session, stamp: int, u, y) -> tuple[list, bool, tuple[str, ...]]:
         """The session's new samples (one per output), whether validity changed, the names."""
