@@ -28,6 +28,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..linalg import scaled_lstsq
+
 __all__ = ["OWN_SIGN_SHARE", "PRESETS", "SATURATION_PERCENTILES", "arx_columns", "expand_presets",
            "own_sign_matters", "preset_inputs", "saturation_level"]
 
@@ -159,7 +161,7 @@ def own_sign_matters(y: np.ndarray | None, inputs: Inputs, ny: int) -> bool:
     X, target = X[ok], target[ok]
 
     def sse(A: np.ndarray) -> float:
-        r = target - A @ np.linalg.lstsq(A, target, rcond=None)[0]
+        r = target - A @ scaled_lstsq(A, target)
         return float(r @ r)
 
     without, dof = sse(X[:, :-1]), len(target) - X.shape[1]
@@ -206,7 +208,7 @@ def saturation_level(y: np.ndarray | None, inputs: Inputs, j: int, ny: int) -> f
 
     def sse(level: float) -> float:
         X = np.column_stack(fixed + [np.clip(x, -level, level) for x in lagged])[ok]
-        r = target[ok] - X @ np.linalg.lstsq(X, target[ok], rcond=None)[0]
+        r = target[ok] - X @ scaled_lstsq(X, target[ok])
         return float(r @ r)
 
     grid = np.percentile(size, SATURATION_PERCENTILES)

@@ -23,6 +23,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from ..linalg import scaled_lstsq
 from ..memory import slice_rows
 from ..model.mimo import MimoModel, augmented_inputs
 from ..model.narx import NarxModel
@@ -91,9 +92,10 @@ def _direct_fit(model: MimoModel, u, Y, segments) -> MimoModel | None:
     for i, m in enumerate(model.models):
         P, t = m.term_space.regression(augmented_inputs(u, Y, i), Y[:, i], segments,
                                        terms=m.term_indices)
-        if len(t) <= P.shape[1] or np.linalg.matrix_rank(P) < P.shape[1]:
+        norms = np.where(np.linalg.norm(P, axis=0) > 0, np.linalg.norm(P, axis=0), 1.0)
+        if len(t) <= P.shape[1] or np.linalg.matrix_rank(P / norms) < P.shape[1]:
             return None
-        theta, *_ = np.linalg.lstsq(P, t, rcond=None)
+        theta = scaled_lstsq(P, t)
         models.append(replace(m, coefficients=theta, metadata=dict(m.metadata)))
     return replace(model, models=models, metadata=dict(model.metadata))
 

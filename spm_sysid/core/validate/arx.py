@@ -14,6 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..linalg import scaled_lstsq
+
 __all__ = ["ArxModel", "choose_arx", "fit_arx", "fit_percent", "rmse"]
 
 
@@ -67,7 +69,7 @@ def fit_arx(u: np.ndarray, y: np.ndarray, order: int, constant: bool = True) -> 
     """Least squares of the order-``order`` ARX model on u, y (rows t = order .. n-1)."""
     u, y = _as_2d(u), _as_2d(y)
     X = np.array([_row(u, y, t, order, constant) for t in range(order, len(y))])
-    theta, *_ = np.linalg.lstsq(X, y[order:], rcond=None)
+    theta = scaled_lstsq(X, y[order:])
     return ArxModel(order, theta, constant)
 
 

@@ -40,6 +40,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..linalg import scaled_lstsq
 from ..model.presets import arx_columns
 
 __all__ = ["FRICTION_LEVEL", "FRICTION_MIN_ROWS", "FRICTION_ROWS", "FRICTION_SHARE",
@@ -188,5 +189,5 @@ def _scale(x: np.ndarray) -> float:
 
 
 def _sse(X: np.ndarray, target: np.ndarray) -> float:
-    r = target - X @ np.linalg.lstsq(X, target, rcond=None)[0]
+    r = target - X @ scaled_lstsq(X, target)
     return float(r @ r)

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..linalg import scaled_lstsq
 from .friction import cubic_arx_design
 
 __all__ = ["SPIKE_ROUNDS", "SPIKE_WIDTH", "SPIKE_Z", "Spikes", "describe_spike_gaps",
@@ -162,7 +163,7 @@ def _robust_fit(X: np.ndarray, target: np.ndarray) -> tuple[np.ndarray | None, f
     keep = np.ones(len(target), dtype=bool)
     theta, scale = None, 0.0
     for _ in range(SPIKE_FITS):
-        theta = np.linalg.lstsq(X[keep], target[keep], rcond=None)[0]
+        theta = scaled_lstsq(X[keep], target[keep])
         e = target - X @ theta
         scale = _robust_deviation(e[keep])
         if not scale > 0:
