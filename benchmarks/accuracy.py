@@ -110,8 +110,9 @@ def _narx(u1, y1, settings: dict):
     from spm_sysid.core.record import Record
 
     names = {}
-    if np.ndim(y1) == 2:
-        names = {"input_names": ("tau1", "tau2"), "output_names": ("q1", "q2")}
+    if np.ndim(y1) == 2:  # the two-link arm's names; more joints numbered on
+        names = {"input_names": tuple(f"tau{i + 1}" for i in range(np.shape(u1)[1])),
+                 "output_names": tuple(f"q{i + 1}" for i in range(np.shape(y1)[1]))}
     record = Record.from_samples(u1, y1, source="first half", **names)
     t0 = time.perf_counter()
     result = run_job(record, JobSettings.from_values(settings))
