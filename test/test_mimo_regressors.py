@@ -91,6 +91,30 @@ def test_joint_refinement_of_structures_with_regressors_lowers_the_coupled_error
     assert div == [None, None] and float(np.sum(r * r)) == pytest.approx(info["after"], rel=1e-9)
 
 
+def test_a_joint_refinement_beyond_its_finite_difference_budget_keeps_the_outputs_own(
+        monkeypatch):
+    """Six coupled joints with the friction preset (240 coefficients, 4·10^4 samples) spent
+    over ten minutes on one finalist's folds: one coupled run per coefficient per step.
+    Beyond JOINT_DIFFERENCE_SAMPLES the outputs' own coefficients are kept, and the
+    account says why; within it the same start is refined (the test above)."""
+    import spm_sysid.core.fit.refine_coupled as joint
+    from spm_sysid.core.defaults import JOINT_DIFFERENCE_SAMPLES
+
+    u, Y = _system(600, seed=4)
+    off = {k: {t: c * 0.9 for t, c in v.items()} for k, v in TRUE.items()}
+    start = _model(off, [_space(0), _space(1)])
+    coefficients = sum(len(m.term_indices) for m in start.models)
+    work = (coefficients + 1) * 2 * (600 - start.max_lag)
+    assert work < JOINT_DIFFERENCE_SAMPLES  # the default refines it
+    monkeypatch.setattr(joint, "JOINT_DIFFERENCE_SAMPLES", work - 1)
+    kept, info = joint.refine_coupled(start, u, Y, max_evaluations=20)
+    assert kept is start and not info["taken"] and info["evaluations"] == 1
+    assert info["message"] == (
+        f"not refined jointly: with regressors each of the {coefficients} coefficients costs "
+        f"a coupled run of {2 * (600 - start.max_lag)} samples per step ({work:.2g} in all, "
+        f"more than {work - 1:.2g}); each output's own refinement kept")
+
+
 def _stepped_together(models, u, Y) -> np.ndarray:
     """Every output at t from the simulated past of both (numpy columns, plain loop)."""
     S, lag = Y.copy(), max(m.term_space.max_lag for m in models)

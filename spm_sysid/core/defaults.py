@@ -335,6 +335,11 @@ DIVERGENCE_FACTOR = 10.0
 COUPLED_FOLDS = 6
 JOINT_FOLD_STEPS = 30
 
+#: A joint refinement of structures with regressors (a finite-difference Jacobian: one
+#: coupled run per coefficient) runs only while (coefficients + 1) x samples x outputs
+#: stays within this: about 10 s a step at the measured 5 us per simulated sample.
+JOINT_DIFFERENCE_SAMPLES = 2_000_000
+
 #: A joint refinement steps only along the directions the record identifies: the
 #: singular vectors of the start's Jacobian (columns scaled to unit norm) whose
 #: singular value is at least ``JOINT_RCOND`` times the largest, or onto which the
