@@ -126,9 +126,9 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
-            "spm-sysid = spm_sysid.apps.main:main",
-            "sysid_node = spm_sysid.ros.entry:sysid_node",
-            "bag_player = spm_sysid.ros.bag_player:main",
+            "spm-sysid = spm_sysid.apps.launch:spm_sysid",
+            "sysid_node = spm_sysid.apps.launch:sysid_node",
+            "bag_player = spm_sysid.apps.launch:bag_player",
         ],
     },
 )

@@ -431,3 +431,19 @@ def test_a_long_joint_record_gets_a_model_that_integrates(tmp_path):
     assert diverged is None
     rmse = float(np.sqrt(np.mean((q2[m.term_space.max_lag:] - yhat) ** 2)))
     assert rmse < 0.8 * float(np.std(q2)), rmse
+
+
+def test_ctrl_c_while_a_command_still_imports_says_interrupted(tmp_path, monkeypatch, capsys):
+    """A Ctrl-C in the first fraction of a second (numpy, scipy, rclpy still loading) ended
+    spm-sysid with a KeyboardInterrupt traceback and status -2: the console scripts now
+    import each command inside the guard (a module whose import is interrupted stands
+    for those imports here)."""
+    from spm_sysid.apps.launch import run_guarded
+
+    (tmp_path / "slow_to_import.py").write_text("raise KeyboardInterrupt\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    assert run_guarded("slow_to_import", "main") == 130
+    assert capsys.readouterr().err == "interrupted\n"
+    for exe in ("spm-sysid", "sysid_node", "bag_player"):  # what users run goes through it
+        script = Path(sys.executable).with_name(exe).read_text()
+        assert "from spm_sysid.apps.launch import" in script, (exe, script)
