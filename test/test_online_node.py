@@ -125,27 +125,31 @@ def test_the_robot_arm_bag_replayed_again_stays_valid_and_scaled_by_one_and_a_ha
         # time the statistic was zero) the last samples of the pass before -- each pass
         # replays the same stamps
         assert change <= stamps[200] or change >= stamps[-20], change
-        assert harness.spin_until(lambda: harness.statuses().get(
-            "model validity", (0,))[0] == 2, 10)
-        assert harness.statuses()["model validity"][2]["state"] == "INVALID"
-        # the samples beyond the ranges the model was fitted on, counted over both passes
-        # (the document's ranges; the unscaled pass may cross them where the node's
-        # validation part went beyond its estimation part)
-        (name_u, (lo_u, hi_u)), = doc["metadata"]["ranges"]["inputs"].items()
-        (name_y, (lo_y, hi_y)), = doc["metadata"]["ranges"]["outputs"].items()
-
-        def beyond(uu, yy):
-            mu, my = 0.05 * (hi_u - lo_u), 0.05 * (hi_y - lo_y)
-            return (uu < lo_u - mu) | (uu > hi_u + mu) | (yy < lo_y - my) | (yy > hi_y + my)
-
-        expected = int(beyond(u, y).sum() + beyond(1.5 * u, 1.5 * y).sum())
-        assert beyond(1.5 * u, 1.5 * y).sum() > 50
-        assert harness.spin_until(lambda: harness.statuses()["model validity"][2].get(
-            "beyond_fitted_range") == str(expected), 10), harness.statuses()["model validity"]
-        seen = harness.statuses()["model validity"][2]["beyond_fitted_range_signals"]
-        assert f"{name_u} down to {1.5 * u.min():.4g} and up to {1.5 * u.max():.4g}" in seen
+        _diagnostics_after_the_scaled_pass(harness, doc, u, y)
     finally:
         stop(node)
+
+
+def _diagnostics_after_the_scaled_pass(harness, doc, u, y):
+    """INVALID in /diagnostics too; and the samples beyond the ranges the model was fitted
+    on, counted over both passes (the document's ranges; the unscaled pass may cross them
+    where the node's validation part went beyond its estimation part)."""
+    assert harness.spin_until(lambda: harness.statuses().get(
+        "model validity", (0,))[0] == 2, 10)
+    assert harness.statuses()["model validity"][2]["state"] == "INVALID"
+    (name_u, (lo_u, hi_u)), = doc["metadata"]["ranges"]["inputs"].items()
+    (name_y, (lo_y, hi_y)), = doc["metadata"]["ranges"]["outputs"].items()
+
+    def beyond(uu, yy):
+        mu, my = 0.05 * (hi_u - lo_u), 0.05 * (hi_y - lo_y)
+        return (uu < lo_u - mu) | (uu > hi_u + mu) | (yy < lo_y - my) | (yy > hi_y + my)
+
+    expected = int(beyond(u, y).sum() + beyond(1.5 * u, 1.5 * y).sum())
+    assert beyond(1.5 * u, 1.5 * y).sum() > 50
+    assert harness.spin_until(lambda: harness.statuses()["model validity"][2].get(
+        "beyond_fitted_range") == str(expected), 10), harness.statuses()["model validity"]
+    seen = harness.statuses()["model validity"][2]["beyond_fitted_range_signals"]
+    assert f"{name_u} down to {1.5 * u.min():.4g} and up to {1.5 * u.max():.4g}" in seen
 
 
 def test_a_decimated_model_is_predicted_once_a_block_on_the_live_stream(

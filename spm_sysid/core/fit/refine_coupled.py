@@ -83,13 +83,8 @@ def refine_coupled(model, u: np.ndarray, Y: np.ndarray,
     if run.measured.size <= theta0.size:
         info["message"] = "too few rows to refine"
         return model, info
-    work = (theta0.size + 1) * run.measured.size
-    if not run.exact and work > JOINT_DIFFERENCE_SAMPLES:
-        info["message"] = (
-            f"not refined jointly: with regressors each of the {theta0.size} coefficients "
-            f"costs a coupled run of {run.measured.size} samples per step ({work:.2g} in "
-            f"all, more than {JOINT_DIFFERENCE_SAMPLES:.2g}); each output's own refinement "
-            "kept")
+    if beyond := run.beyond_budget(theta0.size):
+        info["message"] = beyond
         return model, info
     try:
         x, evaluations, message, jac = run.solve(theta0, max_evaluations)
@@ -132,6 +127,16 @@ class _CoupledResiduals:
         self.measured = np.concatenate([self.Y[a + lag:b] for a, b in self.segs])  # (rows, q)
         self.sizes = np.cumsum((0,) + self.cc.n_terms)
         self.penalty = 10.0 * np.array([(hi - lo) for lo, hi in self.bounds]) / self.scale
+
+    def beyond_budget(self, coefficients: int) -> str | None:
+        """Why a finite-difference refinement would cost too much (None: it would not)."""
+        work = (coefficients + 1) * self.measured.size
+        if self.exact or work <= JOINT_DIFFERENCE_SAMPLES:
+            return None
+        return (f"not refined jointly: with regressors each of the {coefficients} coefficients "
+                f"costs a coupled run of {self.measured.size} samples per step ({work:.2g} in "
+                f"all, more than {JOINT_DIFFERENCE_SAMPLES:.2g}); each output's own refinement "
+                "kept")
 
     def split(self, theta: np.ndarray) -> list[np.ndarray]:
         """Each output's coefficients."""

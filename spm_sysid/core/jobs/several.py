@@ -453,8 +453,7 @@ def run_mimo_job(record: Record, settings, *, progress: ProgressFn | None = None
     cross = []
     if settings.validation != "none":
         cross = _validate_coupled(model, outputs, u, Y, val, settings)
-    data = outputs[0].data
-    model.metadata["data"] = data
+    data = model.metadata["data"] = outputs[0].data
     model.metadata["ranges"] = data_ranges(u, Y, est, record.input_names, record.output_names)
     model.metadata.update(record.metadata())
     seconds["total"] = time.perf_counter() - t0

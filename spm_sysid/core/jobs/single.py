@@ -414,8 +414,7 @@ def run_single_job(
         validation = _validated(model, u, y, settings, val)
     t2 = time.perf_counter()
     seconds = {"search": t1 - t0, "validation": t2 - t1, "total": t2 - t0}
-    _record_account(model.metadata, record, data, orders, seconds, metadata)
-    model.metadata["ranges"] = data_ranges(u, y, est, record.input_names, (record.output_name,))
+    _record_account(model.metadata, record, (data, est), orders, seconds, metadata)
     times = record.row_seconds(val, space.max_lag) if validation is not None else None
     return JobResult(model=model, report=validation, search=ident.ga, data=data,
                      estimation_samples=problem.n_samples, seconds=seconds,
@@ -461,12 +460,18 @@ def _validated(model: NarxModel, u: np.ndarray, y: np.ndarray, settings: JobSett
     return validation
 
 
-def _record_account(meta: dict, record: Record, data: dict, orders: dict | None,
+def _record_account(meta: dict, record: Record, used: tuple[dict, list], orders: dict | None,
                     seconds: dict, metadata: Mapping[str, Any] | None) -> None:
-    """The model's metadata gains what the job used: orders, data, record, seconds, extras."""
+    """The model's metadata gains what the job used: orders, data, ranges, record, seconds.
+
+    ``used``: the data account and the estimation segments (each signal's range on them).
+    """
+    data, est = used
     if orders is not None:
         meta["orders"] = orders
     meta["data"] = data
+    meta["ranges"] = data_ranges(record.u, record.y, est, record.input_names,
+                                 (record.output_name,))
     meta["samples_used"] = data["used_samples"]
     meta.update(record.metadata())
     meta["identify_seconds"] = round(seconds["total"], 4)
