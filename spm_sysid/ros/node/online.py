@@ -134,8 +134,8 @@ class OnlinePart:
         if session is None:
             return
         u = u[self.recorder.order] if len(u) > 1 else u[0]
-        self._watch_range(u, y)
         try:
+            self._watch_range(u, y)
             samples, changed, names = self._feed(session, stamp, u, y)
         except Exception as exc:  # noqa: BLE001 - counted and reported, recording goes on
             self.errors += 1
