@@ -13,7 +13,13 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["scaled_lstsq"]
+__all__ = ["column_scales", "scaled_lstsq"]
+
+
+def column_scales(X: np.ndarray) -> np.ndarray:
+    """Each column's norm (1 for a zero column): dividing by it gives unit-norm columns."""
+    norms = np.linalg.norm(X, axis=0)
+    return np.where(norms > 0, norms, 1.0)
 
 
 def scaled_lstsq(X: np.ndarray, target: np.ndarray) -> np.ndarray:
@@ -21,7 +27,6 @@ def scaled_lstsq(X: np.ndarray, target: np.ndarray) -> np.ndarray:
 
     The coefficients are in X's units; a zero column gets a zero coefficient.
     """
-    norms = np.linalg.norm(X, axis=0)
-    norms = np.where(norms > 0, norms, 1.0)
+    norms = column_scales(X)
     theta = np.linalg.lstsq(X / norms, target, rcond=None)[0]
     return theta / (norms[:, None] if theta.ndim == 2 else norms)

@@ -23,7 +23,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..linalg import scaled_lstsq
+from ..linalg import column_scales, scaled_lstsq
 from ..memory import slice_rows
 from ..model.mimo import MimoModel, augmented_inputs
 from ..model.narx import NarxModel
@@ -92,8 +92,7 @@ def _direct_fit(model: MimoModel, u, Y, segments) -> MimoModel | None:
     for i, m in enumerate(model.models):
         P, t = m.term_space.regression(augmented_inputs(u, Y, i), Y[:, i], segments,
                                        terms=m.term_indices)
-        norms = np.where(np.linalg.norm(P, axis=0) > 0, np.linalg.norm(P, axis=0), 1.0)
-        if len(t) <= P.shape[1] or np.linalg.matrix_rank(P / norms) < P.shape[1]:
+        if len(t) <= P.shape[1] or np.linalg.matrix_rank(P / column_scales(P)) < P.shape[1]:
             return None
         theta = scaled_lstsq(P, t)
         models.append(replace(m, coefficients=theta, metadata=dict(m.metadata)))

@@ -29,6 +29,25 @@ def _columns(x: np.ndarray) -> np.ndarray:
     return x[:, None] if x.ndim == 1 else x
 
 
+def _rows(segments: Sequence[tuple[int, int]] | None, n: int) -> np.ndarray:
+    """The sample indices of ``segments`` (None or empty: all ``n``)."""
+    if not segments:
+        return np.arange(n)
+    return np.concatenate([np.arange(a, b) for a, b in segments])
+
+
+def _edges(low: float, high: float) -> tuple[float, float]:
+    """Beyond these a value counts as outside [low, high]: :data:`BEYOND` of its width."""
+    margin = BEYOND * max(high - low, 1e-12 * max(abs(low), abs(high), 1.0))
+    return low - margin, high + margin
+
+
+def _ends(smallest: float, largest: float, edges: tuple[float, float]) -> list[str]:
+    """``down to ...`` and ``up to ...`` for the extremes beyond ``edges``."""
+    return ([f"down to {smallest:.4g}"] if smallest < edges[0] else []) + \
+        ([f"up to {largest:.4g}"] if largest > edges[1] else [])
+
+
 def data_ranges(u: np.ndarray, y: np.ndarray, segments: Sequence[tuple[int, int]],
                 inputs: Sequence[str], outputs: Sequence[str]) -> dict:
     """``{"inputs": {name: [low, high]}, "outputs": {...}}`` over the samples of ``segments``.
@@ -36,8 +55,7 @@ def data_ranges(u: np.ndarray, y: np.ndarray, segments: Sequence[tuple[int, int]
     NaN samples (never inside a segment a job uses) are ignored; a signal with no
     finite sample is left out.
     """
-    rows = np.concatenate([np.arange(a, b) for a, b in segments]) if segments else \
-        np.arange(len(y))
+    rows = _rows(segments, len(y))
 
     def ranges(x: np.ndarray, names: Sequence[str]) -> dict:
         out = {}
@@ -68,8 +86,7 @@ def range_notes(ranges: dict | None, u: np.ndarray, y: np.ndarray,
     """
     if not ranges:
         return []
-    segments = segments or [(0, len(y))]
-    rows = np.concatenate([np.arange(a, b) for a, b in segments])
+    rows = _rows(segments, len(y))
     notes = []
     for kind, x, names in (("input", u, inputs), ("output", y, outputs)):
         fitted = ranges.get(kind + "s") or {}
@@ -78,15 +95,10 @@ def range_notes(ranges: dict | None, u: np.ndarray, y: np.ndarray,
                 continue
             low, high = fitted[name]
             col = col[np.isfinite(col)]
-            margin = BEYOND * max(high - low, 1e-12 * max(abs(low), abs(high), 1.0))
-            if not col.size or (col.min() >= low - margin and col.max() <= high + margin):
+            ends = _ends(col.min(), col.max(), _edges(low, high)) if col.size else []
+            if not ends:
                 continue
             share = float(np.mean((col < low) | (col > high)))
-            ends = []
-            if col.min() < low - margin:
-                ends.append(f"down to {col.min():.4g}")
-            if col.max() > high + margin:
-                ends.append(f"up to {col.max():.4g}")
             notes.append(
                 f"the {kind} {name} goes {' and '.join(ends)} on these data, beyond the "
                 f"{low:.4g} to {high:.4g} the model was fitted on ({share:.0%} of the samples "
@@ -114,8 +126,7 @@ class RangeWatch:
             fitted = (ranges or {}).get(kind) or {}
             for name in names:
                 low, high = fitted.get(name, (-np.inf, np.inf))
-                margin = BEYOND * (high - low) if np.isfinite(high - low) else 0.0
-                limits.append((low - margin, high + margin, low, high))
+                limits.append((*_edges(low, high), low, high))
                 self.names.append(name)
         self.limits = np.array(limits, dtype=float).reshape(-1, 4)
         self.count = 0
@@ -145,8 +156,7 @@ class RangeWatch:
         """The counts for ``/diagnostics``: samples beyond, and how far each signal went."""
         seen = []
         for i, name in enumerate(self.names):
-            ends = ([f"down to {self.low[i]:.4g}"] if self.low[i] < self.limits[i, 0] else []) \
-                + ([f"up to {self.high[i]:.4g}"] if self.high[i] > self.limits[i, 1] else [])
+            ends = _ends(self.low[i], self.high[i], tuple(self.limits[i, :2]))
             if ends:
                 seen.append(f"{name} {' and '.join(ends)}")
         return {"beyond_fitted_range": self.count,

@@ -7,8 +7,8 @@ one term per :data:`~spm_sysid.core.defaults.ROWS_PER_TERM` rows), so that what
 follows -- the search, the screening, a certification -- stays quick whatever
 the record. With many signals (six inputs and six coupled outputs: 12 lagged
 signals) every quadratic space above order 1 exceeds that budget, and a
-second-order plant with a squared input was fitted at order 1, 7x the noise in
-free run; the budget then grows to the quadratic space of order 2
+second-order plant with a squared input was fitted at order 1, 30-40x the noise
+in free run; the budget then grows to the quadratic space of order 2
 (:func:`automatic_budget`), the commonest nonlinear model of a mechanical joint.
 
 1. **order** (both focuses): for n = 1 .. ``max_order``, the full linear model
@@ -141,8 +141,8 @@ def automatic_budget(inputs: int, delay: int = 1) -> int:
     :data:`~spm_sysid.core.defaults.AUTO_MAX_TERMS`, or the quadratic space of
     order 2 when ``inputs`` (the inputs and, in a coupled model, the other outputs)
     make it larger: the scan then still tries a second-order plant's squares and
-    products. One output and up to 3 inputs never reach it (their (2, 2) space has
-    at most 45 terms).
+    products. One output and up to six inputs keep 120 (their (2, 2) space has at
+    most 119 terms).
     """
     names = tuple(f"u{i + 1}" for i in range(inputs))
     return max(AUTO_MAX_TERMS, _space(2, 2, delay, names).n_terms)
