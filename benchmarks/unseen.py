@@ -165,17 +165,10 @@ def dead_time(n: int, seed: int, delay: int = 30):
 
 
 def speed_sensor(n: int, seed: int):
-    """A third-order drive behind a sensor that reads |speed|, held random input levels."""
-    rng = np.random.default_rng(seed)
-    u, t = np.zeros(n), 0
-    while t < n:
-        hold = int(rng.integers(5, 40))
-        u[t:t + hold] = rng.uniform(-3, 3)
-        t += hold
-    v = np.zeros(n)
-    for t in range(3, n):
-        v[t] = 1.6 * v[t - 1] - 0.8 * v[t - 2] + 0.1 * v[t - 3] + 0.08 * u[t - 1] + 0.04 * u[t - 2]
-    return u, np.abs(v) + 0.02 * rng.standard_normal(n)
+    """A third-order drive behind a sensor that reads |speed| (``test/helpers/speed_sensor.py``)."""
+    from .scale import test_helper
+
+    return test_helper("speed_sensor").speed_sensor(n, seed)
 
 
 def hysteresis(n: int, seed: int):

@@ -15,27 +15,14 @@ import numpy as np
 
 from spm_sysid.core.validate.envelope import BEYOND, data_ranges, range_notes
 
+sys.path.insert(0, str(Path(__file__).parent))
+from helpers.speed_sensor import speed_sensor  # noqa: E402
+
 EXE = str(Path(sys.executable).with_name("spm-sysid"))
 
 
 def cli(*args, cwd):
     return subprocess.run([EXE, *args], capture_output=True, text=True, cwd=cwd, timeout=300)
-
-
-def _speed_sensor(n: int, seed: int, low: float = -3.0, high: float = 3.0):
-    """A third-order plant behind a sensor that reads |speed|, driven by held random levels
-    (the coupled electric drives' kind of record)."""
-    rng = np.random.default_rng(seed)
-    u = np.zeros(n)
-    t = 0
-    while t < n:
-        hold = int(rng.integers(5, 40))
-        u[t:t + hold] = rng.uniform(low, high)
-        t += hold
-    v = np.zeros(n)
-    for t in range(3, n):
-        v[t] = 1.6 * v[t - 1] - 0.8 * v[t - 2] + 0.1 * v[t - 3] + 0.08 * u[t - 1] + 0.04 * u[t - 2]
-    return u, np.abs(v) + 0.02 * rng.standard_normal(n)
 
 
 def test_ranges_cover_the_segments_samples_and_leave_nan_out():
@@ -67,8 +54,8 @@ def test_only_a_signal_beyond_its_range_by_more_than_the_margin_is_named():
 def test_validate_names_the_input_that_leaves_the_range_the_model_was_fitted_on(tmp_path):
     """The command as typed on a short record, then validate on a second record whose input
     reaches levels the first never had (and on the first itself: nothing said)."""
-    u1, y1 = _speed_sensor(300, seed=7, low=-1.0, high=3.0)
-    u2, y2 = _speed_sensor(400, seed=8)
+    u1, y1 = speed_sensor(300, seed=7, low=-1.0, high=3.0)
+    u2, y2 = speed_sensor(400, seed=8)
     for name, u, y in (("a", u1, y1), ("b", u2, y2)):
         np.savetxt(tmp_path / f"{name}.csv", np.column_stack([u, y]), delimiter=",",
                    header="u,y", comments="")
