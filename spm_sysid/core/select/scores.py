@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..defaults import MAX_CANDIDATES, ONE_SE
-from ..fit.lstsq import columns_product, structure_fit
+from ..fit.lstsq import columns_product, sse_floor, structure_fit
 from ..model.simulation import divergence_bounds, run_model
 from .folds import Fold
 
@@ -41,22 +41,37 @@ def mean_and_stderr(values: Sequence[float]) -> tuple[float, float]:
 
 @dataclass
 class Scores:
-    """Validated scores of structures: mean held-out MSE and its standard error."""
+    """Validated scores of structures: mean held-out MSE and its standard error.
+
+    ``floor``: the error of an exact fit (rounding); means below it count as equal.
+    ``degrees``: each term's degree, which breaks ties among equal sizes and errors.
+    """
 
     masks: list[np.ndarray] = field(default_factory=list)
     mean: list[float] = field(default_factory=list)
     stderr: list[float] = field(default_factory=list)
     rejected: int = 0  # structures whose held-out simulation left the range
+    floor: float = 0.0
+    degrees: np.ndarray | None = None
 
     def best(self) -> int | None:
-        """Index of the chosen structure: fewest terms within one SE of the lowest mean."""
+        """Index of the chosen structure: fewest terms within one SE of the lowest mean.
+
+        Among as many terms, the lower mean; among exact fits (means at the floor,
+        where rounding alone orders them: a noise-free step record's three-term
+        models, each exact, at 1e-30), the lower total degree.
+        """
         finite = [i for i, v in enumerate(self.mean) if np.isfinite(v)]
         if not finite:
             return None
-        low = min(finite, key=lambda i: self.mean[i])
-        limit = self.mean[low] + ONE_SE * self.stderr[low]
-        near = [i for i in finite if self.mean[i] <= limit]
-        return min(near, key=lambda i: (int(self.masks[i].sum()), self.mean[i]))
+        level = [max(v, self.floor) for v in self.mean]
+        low = min(finite, key=lambda i: level[i])
+        limit = level[low] + ONE_SE * self.stderr[low]
+        near = [i for i in finite if level[i] <= limit]
+        return min(near, key=lambda i: (int(self.masks[i].sum()), level[i], self._degree(i)))
+
+    def _degree(self, i: int) -> int:
+        return 0 if self.degrees is None else int(self.degrees[self.masks[i]].sum())
 
     def order(self) -> list[int]:
         """Indices by the selection rule: the chosen first, then by mean."""
@@ -72,7 +87,8 @@ def cv_scores(problem, folds: list[Fold], masks, simulate: bool,
 
     ``simulate``: the held-out free run, or with ``horizon`` the k-step prediction.
     """
-    out = Scores()
+    floor = sse_floor(float(np.linalg.norm(problem.target)) * problem.y_scale) / problem.rows
+    out = Scores(floor=floor, degrees=problem.term_space.term_degrees)
     for mask in masks:
         values = [_fold_mse(problem, f, mask, simulate, horizon) for f in folds]
         out.masks.append(np.asarray(mask, dtype=bool))
