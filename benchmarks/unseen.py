@@ -11,7 +11,7 @@ PRBS, spikes, an output held at the end of its range, steps held long, a
 positioning drive with friction, two outputs of different orders, six inputs
 and six coupled outputs (the scan's budget), a dead time beyond the scanned
 lags (not found: ``--delay`` given by hand beside it), a short record of a
-sensor that reads |speed|; and a few
+sensor that reads |speed|, a gain that changes halfway (said: "changed"); and a few
 that did not (a hysteresis, a heater far from zero, a tiny record, a pendulum,
 a drifting sensor, an offset of 1000). Figures, not assertions
 (docs/results.md, "Records nobody here fitted").
@@ -217,6 +217,13 @@ def drifting_sensor(n: int, seed: int):
     return u, 3 + y + np.cumsum(0.002 * rng.standard_normal(n)) + 0.01 * rng.standard_normal(n)
 
 
+def gain_change(n: int, seed: int):
+    """The input gain of a second-order plant goes from 0.5 to 0.6 halfway (a payload)."""
+    from .scale import test_helper
+
+    return test_helper("changing_gain").changing_gain(n, seed)
+
+
 def far_from_zero(n: int, seed: int):
     """An output of 1000 +- 0.01."""
     rng = np.random.default_rng(seed)
@@ -247,12 +254,14 @@ KINDS: dict[str, tuple[Draw, int, dict]] = {
     "dead time of 30 samples": (dead_time, 5_000, {}),
     "  the same, --delay 28": (dead_time, 5_000, {"delay": 28}),
     "|speed| sensor, 500 samples": (speed_sensor, 500, {}),
+    "gain 0.5 then 0.6": (gain_change, 20_000, {}),
 }
 
 #: What the data check said, by a phrase of its warning.
 SAID = (("holds exactly", "held at an end"), ("spike", "spikes"),
         ("Coulomb friction?", "friction?"), ("faster than they move", "oversampled"),
-        ("integrates", "integrates"), ("is constant", "constant input"))
+        ("integrates", "integrates"), ("is constant", "constant input"),
+        ("halves fit different", "changed"))
 
 #: Samples at the start of the second record left out of the errors (the benchmarks').
 START = 50

@@ -47,6 +47,7 @@ from .select.plan import SelectionPlan, plan_selection
 from .select.simulation import select_for_simulation
 from .settings import SETTINGS
 from .settings import check as check_setting
+from .validate.constancy import constancy, constancy_warnings
 
 __all__ = ["FOCUS", "SELECTION", "IdentificationResult", "check_samples", "identify",
            "identify_problem", "select_for_simulation", "validate_signals"]
@@ -305,10 +306,18 @@ def identify_problem(
                            crit, options, info, report, started)
     model.metadata["selection"] = selection_account(problem, plan, model, chosen)
     warnings = (data_check.warnings if data_check else []) + plan.warnings \
-        + overfit_warnings(problem, model)
+        + overfit_warnings(problem, model) + _constancy(problem, model)
     if warnings:
         model.metadata["warnings"] = warnings
     return IdentificationResult(model=model, ga=result, problem=problem)
+
+
+def _constancy(problem: Problem, model: NarxModel) -> list[str]:
+    """Whether the record's halves fit the returned structure alike; its warning if not."""
+    found = constancy(model, problem.u, problem.y, problem.segments)
+    if found is not None:
+        model.metadata["constancy"] = found
+    return constancy_warnings(found)
 
 
 def _check_data(problem: Problem, crit: Criterion):
