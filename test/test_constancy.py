@@ -75,6 +75,19 @@ def test_one_system_throughout_is_not_called_changed():
     assert constancy(NarxModel(space, terms, np.zeros(4)), u[:12], y[:12]) is None
 
 
+def test_a_noise_free_record_is_judged_on_its_changes_not_on_rounding():
+    """Exact fits (1e-30) compare at the rounding floor: unchanged about 1, changed warned."""
+    space = TermSpace(ny=2, nu=1, degree=2)
+    terms = [space.term_names().index(name) for name in ("y(t-1)", "y(t-2)", "u(t-1)", "u(t-1)^2")]
+    model = NarxModel(space, terms, np.zeros(4))
+    same = constancy(model, *changing_gain(2000, seed=5, after=0.5, noise=0.0))
+    assert same["ratios"] == pytest.approx([1.0, 1.0], abs=0.01) and not same["changed"]
+    changed = constancy(model, *changing_gain(2000, seed=5, noise=0.0))
+    # the first half's rows end at t = 1000, the first sample at the new gain: not exact
+    assert changed["ratios"][0] > 100 and changed["ratios"][1] > 1e12
+    assert changed["p_value"] < 1e-12 and changed["changed"]
+
+
 def test_identify_as_typed_warns_of_a_gain_that_changed_halfway(tmp_path):
     """The command as typed on a record whose gain changes halfway: the warning on the
     terminal and in the document; the same plant unchanged: no warning."""

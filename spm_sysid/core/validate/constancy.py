@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..fit.lstsq import sse_floor
 from ..linalg import scaled_lstsq
 from ..model.segments import normalise_segments
 from ..model.uncertainty import stacked_factor
@@ -73,10 +74,20 @@ def _factor(model, u, y, segments) -> tuple[np.ndarray, int]:
     return r, rows[0]
 
 
+def _fit(r: np.ndarray) -> np.ndarray:
+    """The least-squares coefficients from the factor of ``[P t]``."""
+    return scaled_lstsq(r[:, :-1], r[:, -1])
+
+
 def _sse(r: np.ndarray, theta: np.ndarray) -> float:
-    """||P theta - t||^2 from the factor of ``[P t]``."""
+    """||P theta - t||^2 from the factor of ``[P t]``, never below the rounding floor.
+
+    A noise-free record fits exactly (1e-30, rounding): at the floor
+    (:func:`~spm_sysid.core.fit.lstsq.sse_floor` of the target's norm, the
+    factor's last column's) two exact fits compare as equal, not by rounding.
+    """
     e = r[:, :-1] @ theta - r[:, -1]
-    return float(e @ e)
+    return max(float(e @ e), sse_floor(float(np.linalg.norm(r[:, -1]))))
 
 
 def constancy(model, u: np.ndarray, y: np.ndarray, segments=None) -> dict | None:
@@ -97,13 +108,13 @@ def constancy(model, u: np.ndarray, y: np.ndarray, segments=None) -> dict | None
     (r1, m1), (r2, m2) = _factor(model, u, y, first), _factor(model, u, y, second)
     if min(m1, m2) < 3 * p:
         return None
-    t1, t2 = scaled_lstsq(r1[:, :-1], r1[:, -1]), scaled_lstsq(r2[:, :-1], r2[:, -1])
+    t1, t2 = _fit(r1), _fit(r2)
     own1, own2 = _sse(r1, t1), _sse(r2, t2)
-    if own1 <= 0 or own2 <= 0:
+    if own1 <= 0 or own2 <= 0:  # an output that is zero on a half
         return None
     ratios = [(_sse(r1, t2) / m1) / (own1 / (m1 - p)), (_sse(r2, t1) / m2) / (own2 / (m2 - p))]
-    pooled = np.linalg.qr(np.vstack([r1, r2]), mode="r")
-    joint = _sse(pooled, scaled_lstsq(pooled[:, :-1], pooled[:, -1]))
+    pooled = stacked_factor([r1, r2], r1.shape[1])
+    joint = _sse(pooled, _fit(pooled))
     dof = m1 + m2 - 2 * p
     f = max(joint - own1 - own2, 0.0) / p / ((own1 + own2) / dof)
     p_value = None
