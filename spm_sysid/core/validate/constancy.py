@@ -135,7 +135,12 @@ def constancy_warnings(found: dict | None, name: str = "") -> list[str]:
     who = f"{name}: " if name else ""
     return [f"{who}the record's first and second halves fit different coefficients"
             f": each half's one-step error with the other half's is {a:.3g}x and "
-            f"{b:.3g}x its own fit's (Chow test p = {p:.2g}): the system may have changed "
+            f"{b:.3g}x its own fit's (Chow test p {_p_text(p)}): the system may have changed "
             "during the record (a load, a temperature, wear, a drifting sensor), or the "
             "halves visit ranges that this structure does not describe alike; one model of "
             "both describes neither well: identify each part alone to compare"]
+
+
+def _p_text(p: float) -> str:
+    """``= 2.1e-05``; ``< 1e-300`` where the distribution's tail underflowed to 0."""
+    return f"= {p:.2g}" if p > 0 else "< 1e-300"
