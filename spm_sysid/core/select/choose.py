@@ -29,13 +29,12 @@ from ..defaults import (
     ROWS_PER_TERM,
 )
 from ..errors import DataError
-from ..fit.lstsq import sse_floor
 from ..model.narx import NarxModel
 from ..progress import Progress
 from .finalists import validated_simulation
 from .folds import is_long
 from .plan import SelectionPlan
-from .scores import candidate_structures, cv_scores
+from .scores import candidate_structures, cv_scores, held_out_floor
 from .simulation import select_for_simulation
 
 __all__ = ["choose", "overfit_warnings", "selection_account", "validated_prediction"]
@@ -131,7 +130,7 @@ def selection_account(problem, plan: SelectionPlan, model, chosen: dict | None) 
     out["in_sample_mse"] = in_sample
     held = out.get("held_out_mse")
     # errors at rounding level (an exact fit) have no meaningful ratio: the floor counts
-    floor = sse_floor(float(np.linalg.norm(problem.target)) * problem.y_scale) / problem.rows
+    floor = held_out_floor(problem)
     out["ratio"] = (max(held, floor) / max(in_sample, floor)
                     if held is not None and in_sample is not None else None)
     return out

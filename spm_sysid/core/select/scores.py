@@ -21,7 +21,7 @@ from ..fit.lstsq import columns_product, sse_floor, structure_fit
 from ..model.simulation import divergence_bounds, run_model
 from .folds import Fold
 
-__all__ = ["Scores", "candidate_structures", "cv_scores", "mean_and_stderr"]
+__all__ = ["Scores", "candidate_structures", "cv_scores", "held_out_floor", "mean_and_stderr"]
 
 
 def mean_and_stderr(values: Sequence[float]) -> tuple[float, float]:
@@ -81,14 +81,18 @@ class Scores:
         return ([first] if first is not None else []) + rest
 
 
+def held_out_floor(problem) -> float:
+    """The mean square error of an exact fit, in the record's units: rounding, no more."""
+    return sse_floor(float(np.linalg.norm(problem.target)) * problem.y_scale) / problem.rows
+
+
 def cv_scores(problem, folds: list[Fold], masks, simulate: bool,
               horizon: int | None = None) -> Scores:
     """Validated scores of structures (masks over the whole term space).
 
     ``simulate``: the held-out free run, or with ``horizon`` the k-step prediction.
     """
-    floor = sse_floor(float(np.linalg.norm(problem.target)) * problem.y_scale) / problem.rows
-    out = Scores(floor=floor, degrees=problem.term_space.term_degrees)
+    out = Scores(floor=held_out_floor(problem), degrees=problem.term_space.term_degrees)
     for mask in masks:
         values = [_fold_mse(problem, f, mask, simulate, horizon) for f in folds]
         out.masks.append(np.asarray(mask, dtype=bool))

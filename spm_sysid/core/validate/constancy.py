@@ -114,14 +114,13 @@ def constancy(model, u: np.ndarray, y: np.ndarray, segments=None) -> dict | None
     if own1 <= 0 or own2 <= 0:  # an output that is zero on a half
         return None
     ratios = [(_sse(r1, t2) / m1) / (own1 / (m1 - p)), (_sse(r2, t1) / m2) / (own2 / (m2 - p))]
-    pooled = stacked_factor([r1, r2], r1.shape[1])
-    joint = _sse(pooled, _fit(pooled))
-    dof = m1 + m2 - 2 * p
-    f = max(joint - own1 - own2, 0.0) / p / ((own1 + own2) / dof)
     p_value = None
     if min(ratios) >= CHANGED:  # only then does the test decide (scipy loaded only then)
         from scipy import stats
 
+        pooled = stacked_factor([r1, r2], r1.shape[1])
+        dof = m1 + m2 - 2 * p
+        f = max(_sse(pooled, _fit(pooled)) - own1 - own2, 0.0) / p / ((own1 + own2) / dof)
         p_value = float(stats.f.sf(f, p, dof))
     changed = p_value is not None and p_value < SIGNIFICANCE
     return {"at": int(at), "ratios": [float(x) for x in ratios], "p_value": p_value,
