@@ -232,6 +232,16 @@ def far_from_zero(n: int, seed: int):
     return u, 1000 + 0.01 * y + 1e-5 * rng.standard_normal(n)
 
 
+def sine_input(n: int, seed: int):
+    """y(t) = 0.8 y(t-1) + sin(2 u(t-1)), u of std 2: no low-degree polynomial describes it."""
+    rng = np.random.default_rng(seed)
+    u = 2.0 * _multisine(n, rng, 0.05)
+    y = np.zeros(n)
+    for t in range(1, n):
+        y[t] = 0.8 * y[t - 1] + np.sin(2.0 * u[t - 1])
+    return u, y + 0.01 * rng.standard_normal(n)
+
+
 #: name -> (draw, samples, settings beside the command's)
 KINDS: dict[str, tuple[Draw, int, dict]] = {
     "two-level input": (two_level, 20_000, {}),
@@ -255,13 +265,14 @@ KINDS: dict[str, tuple[Draw, int, dict]] = {
     "  the same, --delay 28": (dead_time, 5_000, {"delay": 28}),
     "|speed| sensor, 500 samples": (speed_sensor, 500, {}),
     "gain 0.5 then 0.6": (gain_change, 20_000, {}),
+    "input through sin(2u)": (sine_input, 20_000, {}),
 }
 
 #: What the data check said, by a phrase of its warning.
 SAID = (("holds exactly", "held at an end"), ("spike", "spikes"),
         ("Coulomb friction?", "friction?"), ("faster than they move", "oversampled"),
         ("integrates", "integrates"), ("is constant", "constant input"),
-        ("halves fit different", "changed"))
+        ("halves fit different", "changed"), ("explains little", "explains little"))
 
 #: Samples at the start of the second record left out of the errors (the benchmarks').
 START = 50

@@ -43,6 +43,7 @@ from ..record import Record
 from ..select.coupled import select_coupled
 from ..validate.correlation import CorrelationTest, ccf
 from ..validate.envelope import data_ranges
+from ..validate.explained import set_explained_warning
 from ..validate.validation import validate_model
 from .single import choose_orders, run_single_job, validation_segments
 
@@ -547,6 +548,7 @@ def _validate_coupled(model: MimoModel, outputs: list, u: np.ndarray, Y: np.ndar
     for i, r in enumerate(outputs):
         if r.report is not None:
             r.model.metadata["validation"] = {**r.report.to_dict(), "free_run_coupled": True}
+            set_explained_warning(r.model.metadata)
             store_monitor_reference(r.model.metadata, r.report.residuals,
                                     augmented_inputs(u, Y, i))
     model.metadata["cross_correlation_tests"] = [t.to_dict() for t in cross]

@@ -40,6 +40,7 @@ from ..record import Record
 from ..search.certify import describe_certificate
 from ..search.ga import GAResult
 from ..validate.envelope import data_ranges
+from ..validate.explained import set_explained_warning
 from ..validate.validation import (
     ValidationReport,
     check_correlation_lags,
@@ -456,6 +457,7 @@ def _validated(model: NarxModel, u: np.ndarray, y: np.ndarray, settings: JobSett
                                 segment=settings.validation, segments=val,
                                 horizon=settings.horizon or None)
     model.metadata["validation"] = validation.to_dict()
+    set_explained_warning(model.metadata)
     store_monitor_reference(model.metadata, validation.residuals, u)
     return validation
 
