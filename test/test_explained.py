@@ -13,7 +13,6 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from spm_sysid.core.jobs import run_job
 from spm_sysid.core.jobs.settings import JobSettings
@@ -125,17 +124,47 @@ def test_the_rule_on_validation_documents():
     assert "warnings" not in meta
 
 
-@pytest.mark.parametrize("focus", ["simulation"])
-def test_each_output_of_a_coupled_model_is_judged_on_the_coupled_run(focus):
-    """Two outputs: a plant, and noise that nothing drives: only the second warns."""
+def test_validate_on_other_data_warns_when_the_model_does_not_describe_them(tmp_path):
+    """`spm-sysid validate MODEL --data FILE` as typed: the plant's own record, then another."""
+    u, y = _quadratic_plant(3000, seed=2)
+    _identify(_csv(tmp_path / "quad.csv", u, y), tmp_path / "m.json", "--focus", "simulation")
+    u2, y2 = _quadratic_plant(3000, seed=3)
+    rng = np.random.default_rng(3)
+    for name, y_new, warned in (("same.csv", y2, False),
+                                ("other.csv", rng.standard_normal(3000), True)):
+        r = subprocess.run([EXE, "validate", str(tmp_path / "m.json"), "--data",
+                            str(_csv(tmp_path / name, u2, y_new))],
+                           capture_output=True, text=True, timeout=120)
+        assert r.returncode == 0, r.stderr
+        said = [line for line in r.stdout.splitlines() if line.startswith(f"warning: {OPENING}")]
+        assert len(said) == int(warned), r.stdout
+        if warned:
+            assert "free-run fit on the supplied data" in said[0]
+            assert "identify a model on data like these" in said[0]
+
+
+def test_each_output_of_a_coupled_model_is_judged_on_the_coupled_run(tmp_path):
+    """Two outputs: a plant, and noise that nothing drives: only the second warns.
+
+    The same of ``spm-sysid validate`` on the coupled model's document.
+    """
     u, y1 = _quadratic_plant(2000, seed=5)
     y2 = np.random.default_rng(6).standard_normal(2000)
     record = Record.from_samples(u, np.column_stack([y1, y2]), source="test",
                                  input_names=("u",), output_names=("a", "b"))
-    settings = JobSettings.from_values({"ny": 2, "nu": 1, "degree": 2, "focus": focus,
+    settings = JobSettings.from_values({"ny": 2, "nu": 1, "degree": 2, "focus": "simulation",
                                         "generations": 20, "seed": 1})
     result = run_job(record, settings)
     warned = [any(w.startswith(OPENING) for w in m.metadata.get("warnings") or [])
               for m in result.model.models]
     assert warned == [False, True]
     assert result.model.models[1].metadata["validation"]["free_run_coupled"] is True
+    result.model.save(tmp_path / "two.json")
+    np.savetxt(tmp_path / "two.csv", np.column_stack([u, y1, y2]), delimiter=",",
+               header="u,a,b", comments="")
+    r = subprocess.run([EXE, "validate", str(tmp_path / "two.json"), "--data",
+                        str(tmp_path / "two.csv"), "--output", "a,b"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    blocks = r.stdout.split("== output ")[1:]
+    assert [f"warning: {OPENING}" in b for b in blocks] == [False, True]

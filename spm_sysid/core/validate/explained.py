@@ -20,7 +20,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, MutableMapping
 
-__all__ = ["LITTLE", "explained_warning", "set_explained_warning"]
+__all__ = ["IDENTIFIED", "LITTLE", "OTHER_DATA", "explained_warning", "set_explained_warning"]
 
 #: Fit (percent) below which the model is said to explain little of the output.
 LITTLE = 10.0
@@ -28,13 +28,27 @@ LITTLE = 10.0
 #: The warning's first words (how a later validation finds and replaces it).
 OPENING = "the model explains little of the output"
 
+#: What to do, after an identification ...
+IDENTIFIED = ("the output is mostly noise, or it depends on the inputs in a way these terms "
+              "do not describe (other lags, a dead time, a nonlinearity that is no "
+              "low-degree polynomial, an input that is missing); check the signals given, "
+              "and whether other lags, a larger --degree, a --delay or --regressors "
+              "describe it")
 
-def explained_warning(validation: Mapping, focus: str | None) -> str | None:
+#: ... and on other data than the model's own (``spm-sysid validate``).
+OTHER_DATA = ("these data may visit ranges the model was not fitted on, or the system "
+              "changed since; check the signals given, and identify a model on data like "
+              "these")
+
+
+def explained_warning(validation: Mapping, focus: str | None,
+                      advice: str = IDENTIFIED) -> str | None:
     """The warning for a validation document whose focus run fits below LITTLE; else None.
 
     ``validation``: ``metadata["validation"]`` (``one_step``, ``free_run``, ``k_step``
     metrics and ``segment``). A run that diverged is reported elsewhere and an
     output that does not vary has no fit: neither gives a warning here.
+    ``advice``: the sentence's end, what the user may do.
     """
     run, label = (("free_run", "free-run") if focus == "simulation"
                   else ("one_step", "one-step"))
@@ -45,11 +59,7 @@ def explained_warning(validation: Mapping, focus: str | None) -> str | None:
         return None
     where = validation.get("segment") or "validation"
     return (f"{OPENING}: its {label} fit on the {where} data is {round(fit, 1) + 0.0:.1f} % "
-            "(100 % is exact, 0 % no better than the output's mean): the output is mostly "
-            "noise, or it depends on the inputs in a way these terms do not describe "
-            "(other lags, a dead time, a nonlinearity that is no low-degree polynomial, "
-            "an input that is missing); check the signals given, and whether other lags, "
-            "a larger --degree, a --delay or --regressors describe it")
+            f"(100 % is exact, 0 % no better than the output's mean): {advice}")
 
 
 def set_explained_warning(metadata: MutableMapping, focus: str | None = None) -> None:

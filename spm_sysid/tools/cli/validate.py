@@ -84,6 +84,7 @@ def _validate_one(args, model) -> int:
                             errors_from=args.errors_from)
     model.metadata["validation"] = report.to_dict()
     print(report.summary())
+    _explained(model, report)
     times = record.row_seconds(segments, model.term_space.max_lag)
     write_outputs(args, Written(None, [OutputSection(model.term_space.output, model, report,
                                                      times)], [],
@@ -148,6 +149,7 @@ def _validate_several(args, model) -> int:
         print(f"== output {name} ==")
         print(m.equation())
         print(rep.summary().replace("free-run:", "coupled free-run:"))
+        _explained(m, rep)
     if cross:
         print(cross_summary(cross))
     times = record.row_seconds(segments, model.max_lag)
@@ -156,6 +158,15 @@ def _validate_several(args, model) -> int:
                                 f"{', '.join(model.outputs)}: coupled model {args.model} "
                                 "validated", f"data: {record.source}"))
     return 0
+
+
+def _explained(model, report) -> None:
+    """A warning line when the model explains little of these data (its focus run's fit)."""
+    from ...core.validate.explained import OTHER_DATA, explained_warning
+
+    said = explained_warning(report.to_dict(), model.metadata.get("focus"), OTHER_DATA)
+    if said:
+        print(f"warning: {said}")
 
 
 def load_by_names(args, inputs, outputs, several: bool = False):
