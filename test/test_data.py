@@ -103,6 +103,24 @@ def test_the_time_columns_unit_is_told_from_its_values_and_said(tmp_path, first,
     assert (unit in said[0] and "'timestamp'" in said[0]) if unit else not said
 
 
+def test_cells_that_say_a_value_is_missing_are_gaps_and_counted(tmp_path):
+    """R writes NA, spreadsheets #N/A, databases null: rows dropped as gaps, each counted."""
+    from spm_sysid.core.record import DataSpec, load_record
+
+    rng = np.random.default_rng(1)
+    rows = [f"{0.01 * t:.2f},{a:.6f},{b:.6f}" for t, (a, b) in enumerate(rng.random((200, 2)))]
+    missing = {20: "NA", 50: "N/A", 80: "#N/A", 110: "null", 140: "", 170: "nan"}
+    for i, token in missing.items():
+        rows[i] = rows[i].rsplit(",", 1)[0] + "," + token
+    p = tmp_path / "take.csv"
+    p.write_text("time,u,y\n" + "\n".join(rows) + "\n")
+    record = load_record(DataSpec(data=(str(p),)))
+    assert record.rejected == len(missing) and len(record.y) == 200 - len(missing)
+    assert record.segment_info().gaps == len(missing)
+    kept = [i for i in range(200) if i not in missing]
+    assert np.allclose(record.y, [float(rows[i].rsplit(",", 1)[1]) for i in kept])
+
+
 @pytest.mark.parametrize("header, scale", [("time [ms]", 1e-3), ("t (s)", 1.0),
                                            ("timestamp_ns", 1e-9), ("Time [us]", 1e-6),
                                            ("time [min]", 60.0)])
@@ -206,6 +224,8 @@ def test_plotjugglers_time_column(tmp_path):
     ("u,y\n", "no data rows"),
     ("u,y\n1,2\n3\n", "line 3: expected 2 columns"),
     ("u,y\n1,x\n", "'x' is not a number"),
+    ("u,y\n1,2\n3,NA\n", "line 3: a value is missing \\('NA'; add a time column"),
+    ("u,y\n1,2\n#N/A,4\n", "line 3: a value is missing \\('#N/A'"),
 ])
 def test_malformed_files_give_clear_errors(tmp_path, content, message):
     p = tmp_path / "bad.txt"

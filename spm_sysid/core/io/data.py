@@ -234,6 +234,16 @@ def _show(token: str) -> str:
     return repr(token) if len(token) <= 40 else f"{token[:20]!r}... ({len(token)} characters)"
 
 
+#: Cells that spreadsheets, R and databases write for a missing value: read as NaN,
+#: as an empty cell is (a row with one is a gap where the table has a time column).
+MISSING = frozenset({"na", "n/a", "#n/a", "null", "none", "-"})
+
+
+def is_missing(token: str) -> bool:
+    """Whether a cell says that its value is missing (empty, ``NA``, ``#N/A``, ``null`` ...)."""
+    return not token.strip() or token.strip().lower() in MISSING
+
+
 def _is_number(token: str) -> bool:
     try:
         float(token)
@@ -265,8 +275,12 @@ def _separator(line: str) -> tuple[str | None, bool]:
     return ("," if "," in line else (";" if ";" in line else None)), False
 
 
+#: Where a comment starts: a ``#`` that does not begin a spreadsheet's ``#N/A``.
+_COMMENT_START = re.compile(r"#(?!n/a)", re.IGNORECASE)
+
+
 def _split(line: str, sep: str | None) -> list[str]:
-    line = line.split("#", 1)[0]  # a comment after the values
+    line = _COMMENT_START.split(line, 1)[0]  # a comment after the values
     if sep and '"' in line:  # a quoted field may hold the separator ("torque, Nm")
         cells = next(csv.reader([line], delimiter=sep), [])
     else:
@@ -278,7 +292,7 @@ def _content_lines(lines: list[str]):
     """(1-based number, line) of the lines that are neither blank nor comments."""
     for number, line in enumerate(lines, start=1):
         s = line.strip()
-        if s and s[0] not in _COMMENT:
+        if s and (s[0] not in _COMMENT or s[:4].lower() == "#n/a"):  # #N/A: a missing value
             yield number, line
 
 
@@ -403,7 +417,7 @@ def _parse_rows(rows, sep, width, source, two_column_hint, header_line: int = 0,
                             "number at all: a second header line (units?) is not data: "
                             "delete it or start it with #")
         for j, c in enumerate(cells):
-            if not c:
+            if is_missing(c):
                 values[i, j] = math.nan
                 continue
             try:
@@ -633,8 +647,11 @@ def _check_all_finite(table: Table, source: str, signals: np.ndarray, cols: list
     row = int(bad[0])
     cells = table.tokens(row)
     token = next((cells[j] for j in cols if j < len(cells)
-                  and not (cells[j] and math.isfinite(float(cells[j])))), "")
+                  and not (not is_missing(cells[j]) and math.isfinite(float(cells[j])))), "")
     where = table.where(row)
+    if token and is_missing(token):
+        raise DataError(f"{where}: a value is missing ({_show(token)}; add a time column to "
+                        "have such rows dropped as gaps)")
     if token:
         raise DataError(f"{where}: value {_show(token)} is not finite (NaN or inf are not "
                         "allowed; add a time column to have such rows dropped as gaps)")
