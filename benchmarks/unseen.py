@@ -242,6 +242,14 @@ def sine_input(n: int, seed: int):
     return u, y + 0.01 * rng.standard_normal(n)
 
 
+def held_output(n: int, seed: int):
+    """A second-order plant's output read every 10th sample and held (a slow sensor's)."""
+    rng = np.random.default_rng(seed)
+    u = _multisine(n, rng, 0.02)
+    y = _second_order(u, lambda u, t: 0.2 * u[t - 1] ** 2) + 0.002 * rng.standard_normal(n)
+    return u, y[(np.arange(n) // 10) * 10]
+
+
 #: name -> (draw, samples, settings beside the command's)
 KINDS: dict[str, tuple[Draw, int, dict]] = {
     "two-level input": (two_level, 20_000, {}),
@@ -266,13 +274,15 @@ KINDS: dict[str, tuple[Draw, int, dict]] = {
     "|speed| sensor, 500 samples": (speed_sensor, 500, {}),
     "gain 0.5 then 0.6": (gain_change, 20_000, {}),
     "input through sin(2u)": (sine_input, 20_000, {}),
+    "output held 10 samples": (held_output, 20_000, {}),
 }
 
 #: What the data check said, by a phrase of its warning.
 SAID = (("holds exactly", "held at an end"), ("spike", "spikes"),
         ("Coulomb friction?", "friction?"), ("faster than they move", "oversampled"),
         ("integrates", "integrates"), ("is constant", "constant input"),
-        ("halves fit different", "changed"), ("explains little", "explains little"))
+        ("halves fit different", "changed"), ("explains little", "explains little"),
+        ("repeats each value", "held output"))
 
 #: Samples at the start of the second record left out of the errors (the benchmarks').
 START = 50

@@ -45,6 +45,7 @@ from ..defaults import (
 from ..errors import DataError
 from .clipping import clipped_ends, describe_clipping
 from .friction import FRICTION_LEVEL, strongest_friction_sign
+from .held_output import describe_held_output, held_output
 from .spikes import describe_spikes, output_spikes
 
 __all__ = ["COLLINEAR_LIMIT", "DataCheck", "check_problem", "describe_check",
@@ -333,6 +334,9 @@ def _warn(check: DataCheck, problem, criterion: str | None = None) -> None:
     held = describe_clipping(clipped_ends(problem.y, problem.segments), ts.output)
     if held:
         w.append(held)
+    repeats = describe_held_output(held_output(problem.y, problem.segments), ts.output)
+    if repeats:
+        w.append(repeats)
     for signal, name, role in [(problem.y, ts.output, "output"),
                                *((problem.u[:, i], n, "input") for i, n in
                                  enumerate(ts.inputs))]:
