@@ -328,21 +328,7 @@ def check_problem(problem, rank_tol: float = 1e-9, criterion: str | None = None)
 def _warn(check: DataCheck, problem, criterion: str | None = None) -> None:
     ts = problem.term_space
     w = check.warnings
-    bad = _bad_samples(problem)
-    if bad:  # first: it explains the warnings after it
-        w.append(bad)
-    held = describe_clipping(clipped_ends(problem.y, problem.segments), ts.output)
-    if held:
-        w.append(held)
-    repeats = describe_held_output(held_output(problem.y, problem.segments), ts.output)
-    if repeats:
-        w.append(repeats)
-    for signal, name, role in [(problem.y, ts.output, "output"),
-                               *((problem.u[:, i], n, "input") for i, n in
-                                 enumerate(ts.inputs))]:
-        wrapped = describe_wraps(signal, problem.segments, name, role)
-        if wrapped:
-            w.append(wrapped)
+    w += _signal_warnings(problem)
     if check.rows_per_candidate < ROWS_PER_TERM:
         strong = criterion in ("bic", "aicc")
         w.append(f"{check.rows} rows for {check.usable} candidate terms (fewer than "
@@ -387,6 +373,23 @@ def _warn(check: DataCheck, problem, criterion: str | None = None) -> None:
         hint = _friction_hint(problem, max(factor // 4, 1))
         if hint:
             w.append(hint)
+
+
+def _signal_warnings(problem) -> list[str]:
+    """What the samples themselves show, in the order the warnings are given.
+
+    Bad samples first (they explain the warnings after them), then an output held
+    at an end or in regular runs, then a wrapped angle.
+    """
+    ts = problem.term_space
+    found = [_bad_samples(problem),
+             describe_clipping(clipped_ends(problem.y, problem.segments), ts.output),
+             describe_held_output(held_output(problem.y, problem.segments), ts.output)]
+    for signal, name, role in [(problem.y, ts.output, "output"),
+                               *((problem.u[:, i], n, "input") for i, n in
+                                 enumerate(ts.inputs))]:
+        found.append(describe_wraps(signal, problem.segments, name, role))
+    return [text for text in found if text]
 
 
 def _bad_samples(problem) -> str:
