@@ -20,7 +20,8 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, MutableMapping
 
-__all__ = ["IDENTIFIED", "LITTLE", "OTHER_DATA", "explained_warning", "set_explained_warning"]
+__all__ = ["IDENTIFIED", "LITTLE", "OPENING", "OTHER_DATA", "explained_warning",
+           "set_explained_warning"]
 
 #: Fit (percent) below which the model is said to explain little of the output.
 LITTLE = 10.0
