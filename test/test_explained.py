@@ -132,15 +132,19 @@ def test_validate_on_other_data_warns_when_the_model_does_not_describe_them(tmp_
     rng = np.random.default_rng(3)
     for name, y_new, warned in (("same.csv", y2, False),
                                 ("other.csv", rng.standard_normal(3000), True)):
+        page = tmp_path / f"{name}.html"
         r = subprocess.run([EXE, "validate", str(tmp_path / "m.json"), "--data",
-                            str(_csv(tmp_path / name, u2, y_new))],
+                            str(_csv(tmp_path / name, u2, y_new)), "--report", str(page)],
                            capture_output=True, text=True, timeout=120)
         assert r.returncode == 0, r.stderr
         said = [line for line in r.stdout.splitlines() if line.startswith(f"warning: {OPENING}")]
         assert len(said) == int(warned), r.stdout
+        # the page's warnings say it too (the model file is left as it was)
+        assert ("free-run fit on the supplied data" in page.read_text()) == warned
         if warned:
             assert "free-run fit on the supplied data" in said[0]
             assert "identify a model on data like these" in said[0]
+    assert OPENING not in (tmp_path / "m.json").read_text()
 
 
 def test_each_output_of_a_coupled_model_is_judged_on_the_coupled_run(tmp_path):

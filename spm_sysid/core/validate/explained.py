@@ -63,18 +63,22 @@ def explained_warning(validation: Mapping, focus: str | None,
             f"(100 % is exact, 0 % no better than the output's mean): {advice}")
 
 
-def set_explained_warning(metadata: MutableMapping, focus: str | None = None) -> None:
-    """Put the warning of ``metadata["validation"]`` into ``metadata["warnings"]``.
+def set_explained_warning(metadata: MutableMapping, focus: str | None = None,
+                          advice: str = IDENTIFIED, validation: Mapping | None = None
+                          ) -> str | None:
+    """Put the warning of ``metadata["validation"]`` into ``metadata["warnings"]``; return it.
 
     An earlier one (a validation replaced by a later one: the coupled run of
-    several outputs) is taken out first; ``focus`` defaults to the metadata's.
+    several outputs, a model validated on other data) is taken out first;
+    ``focus`` defaults to the metadata's, ``validation`` to its validation.
     """
     kept = [w for w in metadata.get("warnings") or [] if not str(w).startswith(OPENING)]
-    found = explained_warning(metadata.get("validation") or {},
-                              focus or metadata.get("focus"))
+    found = explained_warning(metadata.get("validation") or {} if validation is None
+                              else validation, focus or metadata.get("focus"), advice)
     if found:
         kept.append(found)
     if kept:
         metadata["warnings"] = kept
     else:
         metadata.pop("warnings", None)
+    return found

@@ -161,10 +161,15 @@ def _validate_several(args, model) -> int:
 
 
 def _explained(model, report) -> None:
-    """A warning line when the model explains little of these data (its focus run's fit)."""
-    from ...core.validate.explained import OTHER_DATA, explained_warning
+    """A warning line when the model explains little of these data (its focus run's fit).
 
-    said = explained_warning(report.to_dict(), model.metadata.get("focus"), OTHER_DATA)
+    The model's warnings (in memory: the page's) then hold it in place of the
+    identification's own.
+    """
+    from ...core.validate.explained import OTHER_DATA, set_explained_warning
+
+    said = set_explained_warning(model.metadata, advice=OTHER_DATA,
+                                 validation=report.to_dict())
     if said:
         print(f"warning: {said}")
 
