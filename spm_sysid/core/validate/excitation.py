@@ -44,6 +44,7 @@ from ..defaults import (
 )
 from ..errors import DataError
 from .clipping import clipped_ends, describe_clipping
+from .feedthrough import describe_feedthrough, within_sample
 from .friction import FRICTION_LEVEL, strongest_friction_sign
 from .held_output import describe_held_output, held_output
 from .spikes import describe_spikes, output_spikes
@@ -373,6 +374,9 @@ def _warn(check: DataCheck, problem, criterion: str | None = None) -> None:
         hint = _friction_hint(problem, max(factor // 4, 1))
         if hint:
             w.append(hint)
+    hint = _feedthrough_hint(problem)
+    if hint:
+        w.append(hint)
 
 
 def _signal_warnings(problem) -> list[str]:
@@ -401,6 +405,17 @@ def _bad_samples(problem) -> str:
     glitch = describe_glitches(problem.y, glitches(problem.y, problem.segments), ts.output)
     return glitch or describe_spikes(output_spikes(problem.y, problem.u, problem.segments),
                                      ts.output)
+
+
+def _feedthrough_hint(problem) -> str:
+    """The within-sample test's warning on the longest segment ('' when no input acts so)."""
+    ts = problem.term_space
+    a, b = max(problem.segments, key=lambda s: s[1] - s[0]) if problem.segments \
+        else (0, len(problem.y))
+    used = [i for i, nu in enumerate(ts.nus) if nu]
+    found = within_sample(problem.y[a:b], problem.u[a:b][:, used],
+                          [ts.delays[i] for i in used], [ts.inputs[i] for i in used])
+    return describe_feedthrough(found, ts.output)
 
 
 def _friction_hint(problem, advised_every: int) -> str:
