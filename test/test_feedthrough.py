@@ -71,6 +71,9 @@ def test_a_plant_acting_within_the_sample_is_said_with_the_delay_to_use(tmp_path
     line = next(w for w in r.stdout.splitlines() if "in the same step" in w)
     assert line.startswith("warning: y moves with u(t) in the same step")
     assert "identify with --delay 0" in line and "feedback controller" in line
+    # propose-lags proposes lags from --delay on, and says the same
+    lags = spm("propose-lags", "--data", str(path), "--inputs", "u", "--output", "y")
+    assert lags.returncode == 0 and lags.stdout.splitlines()[-1] == line
     # with --delay 0 the space holds u(t): nothing earlier to test, nothing said
     r0 = spm("check-data", "--data", str(path), "--inputs", "u", "--output", "y",
              "--delay", "0")

@@ -48,6 +48,7 @@ def cmd_check_data(args) -> int:
 
 
 def cmd_propose_lags(args) -> int:
+    from ...core.validate.feedthrough import describe_feedthrough, within_sample
     from ...core.validate.orders import propose_orders
 
     record = load(args, decimate=True)
@@ -67,6 +68,11 @@ def cmd_propose_lags(args) -> int:
     n, d = proposal.order, proposal.degree
     print(f"proposal: --ny {n} --nu {n} --degree {d} --delay {args.delay} --constant"
           "  (as --orders auto identifies: the constant a candidate)")
+    names = record.input_names
+    within = describe_feedthrough(within_sample(y, u, [args.delay] * len(names), names),
+                                  record.output_name)
+    if within:  # the proposal's lags start at --delay: say when an earlier one acts
+        print(f"warning: {within}")
     return 0
 
 
