@@ -250,6 +250,20 @@ def held_output(n: int, seed: int):
     return u, y[(np.arange(n) // 10) * 10]
 
 
+def within_sample(n: int, seed: int):
+    """y(t) = x(t) + 0.2 x(t)^2, x(t) = 0.5 x(t-1) + 0.5 u(t): the input acts within the sample.
+
+    A white input (a multisine's next value follows from its last ones, and then
+    the lags from 1 on stand in for u(t): 0.015 against 0.010, not said).
+    """
+    rng = np.random.default_rng(seed)
+    u = rng.standard_normal(n)
+    x = np.zeros(n)
+    for t in range(n):
+        x[t] = 0.5 * x[t - 1] + 0.5 * u[t]
+    return u, x + 0.2 * x ** 2 + 0.01 * rng.standard_normal(n)
+
+
 #: name -> (draw, samples, settings beside the command's)
 KINDS: dict[str, tuple[Draw, int, dict]] = {
     "two-level input": (two_level, 20_000, {}),
@@ -275,6 +289,8 @@ KINDS: dict[str, tuple[Draw, int, dict]] = {
     "gain 0.5 then 0.6": (gain_change, 20_000, {}),
     "input through sin(2u)": (sine_input, 20_000, {}),
     "output held 10 samples": (held_output, 20_000, {}),
+    "input acts within the sample": (within_sample, 20_000, {}),
+    "  the same, --delay 0": (within_sample, 20_000, {"delay": 0}),
 }
 
 #: What the data check said, by a phrase of its warning.
@@ -282,7 +298,7 @@ SAID = (("holds exactly", "held at an end"), ("spike", "spikes"),
         ("Coulomb friction?", "friction?"), ("faster than they move", "oversampled"),
         ("integrates", "integrates"), ("is constant", "constant input"),
         ("halves fit different", "changed"), ("explains little", "explains little"),
-        ("repeats each value", "held output"))
+        ("repeats each value", "held output"), ("in the same step", "acts within the sample"))
 
 #: Samples at the start of the second record left out of the errors (the benchmarks').
 START = 50
