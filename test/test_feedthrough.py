@@ -1,5 +1,7 @@
 """An input that acts within the sample: the data check says so and names --delay."""
 
+import re
+
 import numpy as np
 import pytest
 
@@ -60,6 +62,8 @@ def test_the_share_is_what_least_squares_gives():
     assert found[0].input == "u" and found[0].lag == 0
     assert found[0].share == pytest.approx(min(shares), rel=1e-6)
     assert found[0].share > 0.9 and found[0].acts
+    scaled = within_sample(y * 1e100, u * 1e-100, [1], ["u"])  # units do not matter
+    assert scaled[0].share == pytest.approx(found[0].share, rel=1e-6)
 
 
 def test_a_plant_acting_within_the_sample_is_said_with_the_delay_to_use(tmp_path):
@@ -108,3 +112,34 @@ def test_a_controller_that_reads_the_output_of_the_same_sample_is_named():
     u, y = _closed_loop()
     line = next(w for w in _warnings(u, y) if "same step" in w)
     assert "computed from this y in the same sample" in line and "keep the delay" in line
+
+
+def test_a_coupled_model_is_not_told_to_take_another_outputs_lag_0(tmp_path):
+    """Two outputs of one state share its disturbance: y1(t) tells y0(t) almost exactly,
+    but a coupled model reads the other outputs from lag 1 whatever --delay says (the
+    warning named y1(t) and --delay 0 before); the input acts a sample later: no warning."""
+    rng = np.random.default_rng(0)
+    n = 3000
+    u, w = rng.standard_normal(n), 0.1 * rng.standard_normal(n)
+    x = np.zeros(n)
+    for t in range(1, n):
+        x[t] = 0.8 * x[t - 1] + 0.5 * u[t - 1] + w[t]
+    y = np.column_stack([x, 2 * x]) + 0.005 * rng.standard_normal((n, 2))
+    path = tmp_path / "two.csv"
+    np.savetxt(path, np.column_stack([u, y]), delimiter=",", header="u,y0,y1", comments="")
+    assert within_sample(y[:, 0], np.column_stack([u, y[:, 1]]), [1, 1],
+                         ["u", "y1"])[1].acts  # what the test reads, were y1 an input
+    r = spm("identify", "--data", str(path), "--inputs", "u", "--output", "y0,y1",
+            "--ny", "1", "--nu", "1", "--degree", "1", "--criterion", "bic", "--seed", "1")
+    assert r.returncode == 0, r.stderr
+    line = next(x for x in r.stdout.splitlines() if x.startswith("y0(t) = "))
+    gain = re.search(r"([0-9.]+)u\(t-1\)", line)  # beside y0(t-1) or y1(t-1): 0.5 either way
+    assert gain and float(gain.group(1)) == pytest.approx(0.5, abs=0.02)
+    assert "same step" not in r.stdout + r.stderr
+
+
+def test_too_short_a_record_is_not_tested():
+    """Fewer rows than 10 per column of the order-20 ARX: no statement (nor an error)."""
+    u, y = _plant(n=400)
+    assert within_sample(y, u, [1], ["u"]) == [] and within_sample(y[:9], u[:9], [1], ["u"]) == []
+    assert within_sample(*_plant(n=600)[::-1], [1], ["u"])[0].acts

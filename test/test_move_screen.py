@@ -190,7 +190,9 @@ def test_mid_size_spaces_are_searched_twice_and_the_better_kept():
 
     u, y = CASES["dryer-0"]()
     problem = Problem.from_signals(u, y, SPACE)
-    for seed in range(4):
+    # seed 0 ends both searches at the same value, seed 1 the second worse (seeds 2 and 3
+    # repeat seed 0's ends: measured 2026-12-08)
+    for seed in (0, 1):
         options = SearchOptions(criterion="bic", seed=seed, auto_certify_time_limit=0,
                                 selection="criterion")
         model = identify_problem(problem, options).model

@@ -83,6 +83,10 @@ class Record:
         The topics, fields and names a bag's signals were read from
         (:func:`topics_read`; the node's from its parameters): ``validate --bag``
         reads another bag the same way by default.
+    fed_back : tuple of str
+        The inputs that are other outputs (a coupled model's view of one output:
+        :func:`~spm_sysid.core.jobs.several._view`); their lags start at 1 whatever
+        ``--delay`` says, so the data check does not ask about their lag 0.
     """
 
     u: np.ndarray
@@ -101,6 +105,7 @@ class Record:
     decimation: dict | None = None
     spikes: dict | None = None
     topics: dict | None = None
+    fed_back: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         self.u = np.asarray(self.u, dtype=float)

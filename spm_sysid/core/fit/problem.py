@@ -296,7 +296,12 @@ class Problem:
         regressors: :attr:`~spm_sysid.core.model.terms.TermSpace.regressor_products`).
     row_times : ndarray of int, shape (rows,)
         The sample index t of each regression row.
+    fed_back : tuple of str
+        The inputs that are other outputs of a coupled model (the data check does
+        not ask about their lag 0); set by the job, empty by default.
     """
+
+    fed_back: tuple[str, ...] = ()
 
     def __init__(self, term_space: TermSpace, u: np.ndarray, y: np.ndarray,
                  segments: Sequence[tuple[int, int]]) -> None:

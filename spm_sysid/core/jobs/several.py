@@ -295,7 +295,8 @@ def cross_summary(tests: list[CorrelationTest]) -> str:
 def _view(record: Record, space, names, i: int) -> Record:
     """The record seen from output ``i``: the inputs, then the other outputs as inputs."""
     return replace(record, u=augmented_inputs(record.u, record.y, i), y=record.y[:, i],
-                   output_name=names[i], output_names=(names[i],), input_names=space.inputs)
+                   output_name=names[i], output_names=(names[i],), input_names=space.inputs,
+                   fed_back=tuple(n for j, n in enumerate(names) if j != i))
 
 
 def _choose_mimo_orders(record: Record, base) -> tuple[Any, dict, list]:

@@ -406,7 +406,7 @@ def run_single_job(
         est, val, data = validation_segments(record, settings)
     space = settings.term_space
     problem, ident = _identified((du, dy), est, settings, (point, kept_as_is),
-                                 _throttled(report, progress_every), t0)
+                                 _throttled(report, progress_every), t0, record.fed_back)
     t1 = time.perf_counter()
     model = ident.model
     validation = None
@@ -422,17 +422,20 @@ def run_single_job(
                      validation_segments=list(val), times=times)
 
 
-def _identified(signals, est, settings: JobSettings, around, report: ProgressFn, t0: float):
+def _identified(signals, est, settings: JobSettings, around, report: ProgressFn, t0: float,
+                fed_back: tuple[str, ...] = ()):
     """The problem of ``signals`` (u, y or their deviations) and its identification.
 
     ``around``: the operating point and why the record was kept as it is (either
     None); the model is returned in the record's units, the point in its metadata.
+    ``fed_back``: the inputs that are other outputs (:attr:`Record.fed_back`).
     """
     point, kept_as_is = around
     space = settings.term_space
     if point is not None:  # a model of the record's units may need no constant, one of
         space = replace(space, constant=True)  # the deviations does: a candidate
     problem = Problem.from_signals(*signals, space, est)
+    problem.fed_back = tuple(fed_back)
     ident = identify_problem(problem, settings.search, ga=settings.ga,
                              progress=_in_units(report, point), started=t0)
     if point is not None:

@@ -412,7 +412,7 @@ def _feedthrough_hint(problem) -> str:
     ts = problem.term_space
     a, b = max(problem.segments, key=lambda s: s[1] - s[0]) if problem.segments \
         else (0, len(problem.y))
-    used = [i for i, nu in enumerate(ts.nus) if nu]
+    used = [i for i, nu in enumerate(ts.nus) if nu and ts.inputs[i] not in problem.fed_back]
     found = within_sample(problem.y[a:b], problem.u[a:b][:, used],
                           [ts.delays[i] for i in used], [ts.inputs[i] for i in used])
     return describe_feedthrough(found, ts.output)

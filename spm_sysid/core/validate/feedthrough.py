@@ -30,7 +30,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..linalg import scaled_lstsq
 from ..model.presets import arx_columns
 
 __all__ = ["FEEDTHROUGH_LEVEL", "FEEDTHROUGH_SHARE", "ORDERS", "Feedthrough",
@@ -46,7 +45,7 @@ FEEDTHROUGH_LEVEL = 1e-3
 ORDERS = (10, 20)
 
 #: ... read on at most this many rows, and on at least this many per column.
-ROWS = 50_000
+ROWS = 20_000
 ROWS_PER_COLUMN = 10
 
 
@@ -86,15 +85,13 @@ def within_sample(y: np.ndarray, u: np.ndarray, delays, names) -> list[Feedthrou
     u = u.reshape(len(u), -1)[:len(y)]
     if not (np.all(np.isfinite(y)) and np.all(np.isfinite(u))):
         return []
-    found = []
-    for j, (d, name) in enumerate(zip(delays, names)):
-        if d < 1 or np.ptp(u[:, j]) == 0:
-            continue
-        tests = [_share(y, u, delays, j, n) for n in ORDERS]
-        if any(t is None for t in tests):
-            return []
-        found.append(Feedthrough(str(name), int(d) - 1, min(s for s, _ in tests),
-                                 max(p for _, p in tests)))
+    y, u = y / _size(y), u / np.array([_size(c) for c in u.T])  # 1e100 V or 1e-100 m alike
+    tested = [j for j, d in enumerate(delays) if d >= 1 and np.ptp(u[:, j]) > 0]
+    tests = [_shares(y, u, delays, tested, n) for n in ORDERS]
+    if any(t is None for t in tests):
+        return []
+    found = [Feedthrough(str(names[j]), int(delays[j]) - 1, min(t[j][0] for t in tests),
+                         max(t[j][1] for t in tests)) for j in tested]
     return found
 
 
@@ -106,11 +103,12 @@ def describe_feedthrough(found: list[Feedthrough], output: str) -> str:
     lag = min(f.lag for f in acting)
     terms = " and ".join(f"{f.input}({_lag(f.lag)})" for f in acting)
     shares = " and ".join(f"{f.share:.0%}" for f in acting)
-    return (f"{output} moves with {terms} in the same step: beside a linear ARX model of "
-            f"order {ORDERS[0]} without it, it removes {shares} of the one-step squared "
-            "residual; either the plant responds within a sample (a static map, an "
-            "acceleration beside its torque, a sensor read after the command was "
-            f"applied): identify with --delay {lag}, or the input is computed from "
+    removes = "it removes" if len(acting) == 1 else "they remove"
+    return (f"{output} moves with {terms} in the same step: beside linear ARX models of "
+            f"orders {ORDERS[0]} and {ORDERS[1]} without it, {removes} at least {shares} of "
+            "the one-step squared residual; either the plant responds within a sample (a "
+            "static map, an acceleration beside its torque, a sensor read after the command "
+            f"was applied): identify with --delay {lag}, or the input is computed from "
             f"this {output} in the same sample (a feedback controller's output): then keep "
             "the delay, a model with that term would describe the controller (docs/cli.md)")
 
@@ -119,29 +117,43 @@ def _lag(k: int) -> str:
     return "t" if k == 0 else f"t-{k}"
 
 
-def _share(y, u, delays, j: int, order: int) -> tuple[float, float] | None:
-    """(share removed, p-value) of input ``j``'s earlier lag beside an ARX of ``order``."""
+def _shares(y, u, delays, tested, order: int) -> dict[int, tuple[float, float]] | None:
+    """Each tested input's (share removed, p-value) beside the linear ARX of ``order``.
+
+    One QR factor of the ARX's columns (scaled to unit norm) serves every input: the
+    squared residual a column removes is ``(r.z)^2 / z.z``, ``r`` the ARX's residual and
+    ``z`` the column's part outside the ARX's columns.
+    """
     inputs = [(str(i), tuple(range(max(int(d), 0), max(int(d), 0) + order)), u[:, i])
               for i, d in enumerate(delays)]
+    lag0 = max([order] + [lags[-1] for _, lags, _ in inputs])
+    if len(y) - lag0 < ROWS_PER_COLUMN * (order * (1 + len(inputs)) + 2):  # columns + 1
+        return None
     cols, lag0 = arx_columns(y, inputs, order)
     target = y[lag0:]
-    if len(target) < ROWS_PER_COLUMN * (len(cols) + 1):
-        return None
     X = np.column_stack(cols)
-    d = int(delays[j])
-    extra = u[lag0 - d + 1:len(y) - d + 1, j]
-    without, with_it = _sse(X, target), _sse(np.column_stack([X, extra]), target)
-    if without <= 0:
-        return 0.0, 1.0
-    share = 1.0 - with_it / without
-    if share <= 0:
-        return 0.0, 1.0
-    if with_it <= 0:
-        return share, 0.0
-    chi2 = (without - with_it) / (with_it / (len(target) - X.shape[1] - 1))
-    return float(share), float(math.erfc(math.sqrt(chi2 / 2)))
+    norms = np.linalg.norm(X, axis=0)
+    q, _ = np.linalg.qr(X[:, norms > 0] / norms[norms > 0])
+    r = target - q @ (q.T @ target)
+    without = float(r @ r)
+    dof = len(target) - q.shape[1] - 1
+    out = {}
+    for j in tested:
+        d = int(delays[j])
+        x = u[lag0 - d + 1:len(y) - d + 1, j]
+        z = x - q @ (q.T @ x)
+        zz = float(z @ z)
+        if without <= 0 or zz <= 1e-12 * float(x @ x):
+            out[j] = (0.0, 1.0)
+            continue
+        removed = min(float(r @ z) ** 2 / zz, without)
+        left = without - removed
+        chi2 = removed / (left / dof) if left > 0 else math.inf
+        out[j] = (removed / without, math.erfc(math.sqrt(chi2 / 2)))
+    return out
 
 
-def _sse(X: np.ndarray, target: np.ndarray) -> float:
-    r = target - X @ scaled_lstsq(X, target)
-    return float(r @ r)
+def _size(x: np.ndarray) -> float:
+    """The largest magnitude, 1 for a signal of zeros (the test is scale-free)."""
+    top = float(np.max(np.abs(x))) if x.size else 0.0
+    return top if top > 0 else 1.0
