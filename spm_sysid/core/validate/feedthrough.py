@@ -87,6 +87,8 @@ def within_sample(y: np.ndarray, u: np.ndarray, delays, names) -> list[Feedthrou
         return []
     y, u = y / _size(y), u / np.array([_size(c) for c in u.T])  # 1e100 V or 1e-100 m alike
     tested = [j for j, d in enumerate(delays) if d >= 1 and np.ptp(u[:, j]) > 0]
+    if not tested:
+        return []
     tests = [_shares(y, u, delays, tested, n) for n in ORDERS]
     if any(t is None for t in tests):
         return []
