@@ -39,10 +39,10 @@ def _multisine(n: int, rng, top: float) -> np.ndarray:
 
 
 def _second_order(u: np.ndarray, extra=lambda u, t: 0.0, a=(1.2, -0.5), b=0.5) -> np.ndarray:
-    y = np.zeros(len(u))
-    for t in range(2, len(u)):
-        y[t] = a[0] * y[t - 1] + a[1] * y[t - 2] + b * u[t - 1] + extra(u, t)
-    return y
+    """The tests' second-order plant (``test/helpers/signals.py``)."""
+    from .scale import test_helper
+
+    return test_helper("signals").second_order(u, extra, a, b)
 
 
 def two_level(n: int, seed: int):
@@ -234,12 +234,11 @@ def far_from_zero(n: int, seed: int):
 
 def sine_input(n: int, seed: int):
     """y(t) = 0.8 y(t-1) + sin(2 u(t-1)), u of std 2: no low-degree polynomial describes it."""
+    from .scale import test_helper
+
     rng = np.random.default_rng(seed)
     u = 2.0 * _multisine(n, rng, 0.05)
-    y = np.zeros(n)
-    for t in range(1, n):
-        y[t] = 0.8 * y[t - 1] + np.sin(2.0 * u[t - 1])
-    return u, y + 0.01 * rng.standard_normal(n)
+    return u, test_helper("signals").through_sine(u) + 0.01 * rng.standard_normal(n)
 
 
 def held_output(n: int, seed: int):

@@ -25,6 +25,8 @@ from spm_sysid.core.validate.explained import (
     set_explained_warning,
 )
 
+from .helpers.signals import second_order, squared, through_sine
+
 EXE = str(Path(sys.executable).with_name("spm-sysid"))
 
 
@@ -32,19 +34,13 @@ def _sine_plant(n: int, seed: int):
     """y(t) = 0.8 y(t-1) + sin(2 u(t-1)), u of std 2: no low-degree polynomial of u."""
     rng = np.random.default_rng(seed)
     u = 2.0 * rng.standard_normal(n)
-    y = np.zeros(n)
-    for t in range(1, n):
-        y[t] = 0.8 * y[t - 1] + np.sin(2.0 * u[t - 1])
-    return u, y + 0.01 * rng.standard_normal(n)
+    return u, through_sine(u) + 0.01 * rng.standard_normal(n)
 
 
 def _quadratic_plant(n: int, seed: int):
     rng = np.random.default_rng(seed)
     u = rng.standard_normal(n)
-    y = np.zeros(n)
-    for t in range(2, n):
-        y[t] = 1.2 * y[t - 1] - 0.5 * y[t - 2] + 0.5 * u[t - 1] + 0.2 * u[t - 1] ** 2
-    return u, y + 0.01 * rng.standard_normal(n)
+    return u, second_order(u, squared(0.2)) + 0.01 * rng.standard_normal(n)
 
 
 def _csv(path: Path, u, y) -> Path:

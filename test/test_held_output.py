@@ -18,7 +18,7 @@ import pytest
 from spm_sysid.core.validate.held_output import describe_held_output, held_output
 
 sys.path.insert(0, str(Path(__file__).parent))
-from helpers.signals import multisine  # noqa: E402
+from helpers.signals import multisine, second_order, squared  # noqa: E402
 
 EXE = str(Path(sys.executable).with_name("spm-sysid"))
 
@@ -26,10 +26,7 @@ EXE = str(Path(sys.executable).with_name("spm-sysid"))
 def _plant(n: int, seed: int = 1) -> tuple[np.ndarray, np.ndarray]:
     rng = np.random.default_rng(seed)
     u = multisine(n, rng, 0.02)
-    y = np.zeros(n)
-    for t in range(2, n):
-        y[t] = 1.2 * y[t - 1] - 0.5 * y[t - 2] + 0.5 * u[t - 1] + 0.2 * u[t - 1] ** 2
-    return u, y + 0.002 * rng.standard_normal(n)
+    return u, second_order(u, squared(0.2)) + 0.002 * rng.standard_normal(n)
 
 
 def _held(y: np.ndarray, every: float) -> np.ndarray:

@@ -19,7 +19,7 @@ from spm_sysid.core.validate.arx import choose_arx
 from spm_sysid.core.validate.friction import strongest_friction_sign
 
 sys.path.insert(0, str(Path(__file__).parent))
-from helpers.signals import multisine  # noqa: E402
+from helpers.signals import multisine, second_order, squared  # noqa: E402
 
 EXE = str(Path(sys.executable).with_name("spm-sysid"))
 UNITS = [(1.0, 1.0), (1e5, 1e-7), (1e-4, 1e6)]
@@ -28,10 +28,7 @@ UNITS = [(1.0, 1.0), (1e5, 1e-7), (1e-4, 1e6)]
 def _plant(n: int = 5000, seed: int = 1):
     rng = np.random.default_rng(seed)
     u = multisine(n, rng, 0.05)
-    y = np.zeros(n)
-    for t in range(2, n):
-        y[t] = 1.2 * y[t - 1] - 0.5 * y[t - 2] + 0.5 * u[t - 1] + 0.1 * u[t - 1] ** 2
-    return u, y + 0.01 * rng.standard_normal(n)
+    return u, second_order(u, squared(0.1)) + 0.01 * rng.standard_normal(n)
 
 
 def test_scaled_least_squares_keeps_a_small_column_numpy_would_cut():
